@@ -1,0 +1,44 @@
+// raymatch: ray-traced image simulations of transparent objects that match microscope images.
+#include <iostream>
+
+#include "commands.h"
+#include "raymatch/core/error.h"
+#include "raymatch/core/provenance.h"
+#include "raymatch/core/version.h"
+
+namespace raymatch::apps {
+
+int RunGuarded(const std::function<int()>& fn, int error_code) {
+  try {
+    return fn();
+  } catch (const raymatch::Error& e) {
+    std::cerr << "raymatch: " << e.what() << "\n";
+  } catch (const std::exception& e) {
+    std::cerr << "raymatch: error: " << e.what() << "\n";
+  }
+  return error_code;
+}
+
+}  // namespace raymatch::apps
+
+int main(int argc, char** argv) {
+  raymatch::SetCommandLine(argc, argv);
+  CLI::App app{
+      "raymatch: Monte Carlo ray-traced brightfield microscope images of transparent objects.\n"
+      "Lengths are in micrometres (_um) unless a name says otherwise (_mm, _deg)."};
+  app.set_version_flag("--version", std::string("raymatch ") + raymatch::kVersion);
+  app.require_subcommand(1);
+  int exit_code = 0;
+  raymatch::apps::RegisterSimulate(app, &exit_code);
+#ifdef RAYMATCH_HAVE_COMPARE
+  raymatch::apps::RegisterCompare(app, &exit_code);
+  raymatch::apps::RegisterCompareScan(app, &exit_code);
+#endif
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    const int rc = app.exit(e);
+    return rc == 0 ? 0 : 2;  // 2: usage error
+  }
+  return exit_code;
+}

@@ -1,0 +1,31 @@
+#pragma once
+// Image files through OpenImageIO. Writers are atomic: the file appears complete or not at all.
+#include <map>
+#include <string>
+
+#include "raymatch/core/image.h"
+
+namespace raymatch {
+
+/// What a file held before conversion to float.
+struct ImageFileInfo {
+  std::string format;      ///< OIIO format name ("tiff", "png", ...).
+  std::string pixel_type;  ///< "uint8", "uint16", "float", ...
+  int channels = 1;
+  double type_max = 1.0;   ///< Largest code value of an integer type (255, 65535), 1 for float.
+};
+
+/// Reads the first channel (or the mean of RGB) as float in the file's own code values:
+/// a 16-bit file gives 0..65535, an 8-bit file 0..255, a float file its stored values.
+/// Throws Error naming the file when it cannot be read or holds NaN/Inf.
+Image ReadImage(const std::string& path, ImageFileInfo* info = nullptr);
+
+/// Writes a 32-bit float single-channel image (TIFF or EXR by extension). `description` goes to
+/// the ImageDescription tag (TIFF) / comment, `attributes` to extra string metadata.
+void WriteFloatImage(const std::string& path, const Image& img, const std::string& description,
+                     const std::map<std::string, std::string>& attributes = {});
+
+/// Writes an 8-bit PNG preview: values mapped linearly from [lo, hi] to [0, 255].
+void WritePngPreview(const std::string& path, const Image& img, double lo, double hi);
+
+}  // namespace raymatch

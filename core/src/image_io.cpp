@@ -1,0 +1,108 @@
+#include "raymatch/core/image_io.h"
+
+#include <OpenImageIO/imageio.h>
+
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+
+#include "raymatch/core/atomic_file.h"
+#include "raymatch/core/error.h"
+
+namespace raymatch {
+
+namespace {
+
+double TypeMax(OIIO::TypeDesc t) {
+  switch (t.basetype) {
+    case OIIO::TypeDesc::UINT8: return 255.0;
+    case OIIO::TypeDesc::INT8: return 127.0;
+    case OIIO::TypeDesc::UINT16: return 65535.0;
+    case OIIO::TypeDesc::INT16: return 32767.0;
+    case OIIO::TypeDesc::UINT32: return 4294967295.0;
+    case OIIO::TypeDesc::INT32: return 2147483647.0;
+    default: return 1.0;
+  }
+}
+
+std::string FormatFor(const std::string& path) {
+  std::string ext = std::filesystem::path(path).extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(), ::tolower);
+  if (ext == ".tif" || ext == ".tiff") return "tiff";
+  if (ext == ".exr") return "openexr";
+  if (ext == ".png") return "png";
+  throw Error(FileLocation{path}, "unsupported image extension '" + ext +
+                                      "' (expected .tif, .tiff, .exr or .png)");
+}
+
+void WriteWithOiio(const std::string& path, const OIIO::ImageSpec& spec, OIIO::TypeDesc in_type,
+                   const void* data) {
+  const std::string format = FormatFor(path);
+  const std::filesystem::path tmp = TemporaryPathFor(path);
+  auto out = OIIO::ImageOutput::create(format);
+  if (!out) throw Error(FileLocation{path}, "OpenImageIO has no writer for " + format);
+  if (!out->open(tmp.string(), spec) || !out->write_image(in_type, data) || !out->close()) {
+    std::error_code ec;
+    std::filesystem::remove(tmp, ec);
+    throw Error(FileLocation{path}, "cannot write image: " + out->geterror());
+  }
+  CommitTemporary(tmp, path);
+}
+
+}  // namespace
+
+Image ReadImage(const std::string& path, ImageFileInfo* info) {
+  if (!std::filesystem::exists(path)) throw Error(FileLocation{path}, "file not found");
+  auto in = OIIO::ImageInput::open(path);
+  if (!in) throw Error(FileLocation{path}, "cannot read image: " + OIIO::geterror());
+  const OIIO::ImageSpec& spec = in->spec();
+  if (spec.width <= 0 || spec.height <= 0 || spec.depth > 1)
+    throw Error(FileLocation{path}, "not a 2D image");
+  const double tmax = TypeMax(spec.format);
+  std::vector<float> buf(size_t(spec.width) * spec.height * spec.nchannels);
+  if (!in->read_image(0, 0, 0, spec.nchannels, OIIO::TypeDesc::FLOAT, buf.data()))
+    throw Error(FileLocation{path}, "cannot read pixels: " + in->geterror());
+  Image img(spec.width, spec.height);
+  // Average colour channels (ignoring alpha) so RGB captures of a grey scene still load.
+  const int nc = spec.nchannels >= 3 ? 3 : 1;
+  for (size_t i = 0; i < img.size(); ++i) {
+    double s = 0;
+    for (int c = 0; c < nc; ++c) s += buf[i * spec.nchannels + c];
+    const double v = s / nc * tmax;  // OIIO normalises integer types to [0,1]
+    if (!std::isfinite(v))
+      throw Error(FileLocation{path}, "pixel (" + std::to_string(i % spec.width) + ", " +
+                                          std::to_string(i / spec.width) + ") is NaN or Inf");
+    img.pixels[i] = static_cast<float>(v);
+  }
+  if (info) {
+    info->format = in->format_name();
+    info->pixel_type = spec.format.c_str();
+    info->channels = spec.nchannels;
+    info->type_max = tmax;
+  }
+  return img;
+}
+
+void WriteFloatImage(const std::string& path, const Image& img, const std::string& description,
+                     const std::map<std::string, std::string>& attributes) {
+  for (size_t i = 0; i < img.size(); ++i)
+    RAYMATCH_CHECK(std::isfinite(img.pixels[i]));  // never NaN in an output
+  OIIO::ImageSpec spec(img.width, img.height, 1, OIIO::TypeDesc::FLOAT);
+  spec.attribute("ImageDescription", description);
+  spec.attribute("Software", "raymatch");
+  spec.attribute("compression", "zip");
+  for (const auto& [k, v] : attributes) spec.attribute(k, v);
+  WriteWithOiio(path, spec, OIIO::TypeDesc::FLOAT, img.pixels.data());
+}
+
+void WritePngPreview(const std::string& path, const Image& img, double lo, double hi) {
+  std::vector<unsigned char> px(img.size());
+  const double scale = hi > lo ? 255.0 / (hi - lo) : 0.0;
+  for (size_t i = 0; i < img.size(); ++i)
+    px[i] = static_cast<unsigned char>(std::clamp((img.pixels[i] - lo) * scale + 0.5, 0.0, 255.0));
+  OIIO::ImageSpec spec(img.width, img.height, 1, OIIO::TypeDesc::UINT8);
+  spec.attribute("Software", "raymatch");
+  WriteWithOiio(path, spec, OIIO::TypeDesc::UINT8, px.data());
+}
+
+}  // namespace raymatch

@@ -1,0 +1,237 @@
+#include "raymatch/core/toml_reader.h"
+
+#include <cmath>
+#include <fstream>
+#include <sstream>
+
+namespace raymatch {
+
+toml::table ParseTomlFile(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw Error(FileLocation{path}, "cannot open file for reading");
+  std::stringstream ss;
+  ss << in.rdbuf();
+  try {
+    return toml::parse(ss.str(), path);
+  } catch (const toml::parse_error& e) {
+    const auto& b = e.source().begin;
+    throw Error(FileLocation{path, static_cast<int>(b.line), static_cast<int>(b.column)},
+                std::string("TOML syntax: ") + std::string(e.description()));
+  }
+}
+
+static FileLocation LocOf(const std::string& file, const toml::source_region& r) {
+  return FileLocation{file, static_cast<int>(r.begin.line), static_cast<int>(r.begin.column)};
+}
+
+static const char* TypeName(const toml::node& n) {
+  switch (n.type()) {
+    case toml::node_type::table: return "a table";
+    case toml::node_type::array: return "an array";
+    case toml::node_type::string: return "a string";
+    case toml::node_type::integer: return "an integer";
+    case toml::node_type::floating_point: return "a number";
+    case toml::node_type::boolean: return "a boolean";
+    default: return "a date/time";
+  }
+}
+
+TomlReader::TomlReader(const toml::table& table, std::string file, std::string path_prefix)
+    : table_(&table), file_(std::move(file)), prefix_(std::move(path_prefix)) {}
+
+bool TomlReader::Has(const std::string& key) const { return table_->contains(key); }
+
+const toml::node* TomlReader::Node(const std::string& key) const {
+  used_.insert(key);
+  return table_->get(key);
+}
+
+FileLocation TomlReader::Where() const { return LocOf(file_, table_->source()); }
+
+FileLocation TomlReader::Where(const std::string& key) const {
+  if (const toml::node* n = table_->get(key)) return LocOf(file_, n->source());
+  return Where();
+}
+
+std::string TomlReader::Path(const std::string& key) const {
+  return prefix_.empty() ? key : prefix_ + "." + key;
+}
+
+void TomlReader::Fail(const std::string& key, const std::string& message) const {
+  throw Error(Where(key), "'" + Path(key) + "': " + message);
+}
+
+void TomlReader::TypeError(const std::string& key, const std::string& expected) const {
+  const toml::node* n = table_->get(key);
+  if (!n) {
+    const std::string where = prefix_.empty() ? "at the top level" : "in [" + prefix_ + "]";
+    throw Error(Where(), "missing required key '" + Path(key) + "' " + where + " (expected " +
+                             expected + ")");
+  }
+  throw Error(Where(key), "'" + Path(key) + "': expected " + expected + ", got " + TypeName(*n));
+}
+
+double TomlReader::Number(const std::string& key) {
+  const toml::node* n = Node(key);
+  if (!n || !(n->is_integer() || n->is_floating_point())) TypeError(key, "a number");
+  const double v = n->is_integer() ? static_cast<double>(n->as_integer()->get())
+                                   : n->as_floating_point()->get();
+  if (!std::isfinite(v)) Fail(key, "expected a finite number");
+  return v;
+}
+
+double TomlReader::Number(const std::string& key, double fallback) {
+  return Has(key) ? Number(key) : (used_.insert(key), fallback);
+}
+
+double TomlReader::Positive(const std::string& key) {
+  const double v = Number(key);
+  if (!(v > 0)) Fail(key, "expected a positive number, got " + std::to_string(v));
+  return v;
+}
+
+double TomlReader::Positive(const std::string& key, double fallback) {
+  return Has(key) ? Positive(key) : (used_.insert(key), fallback);
+}
+
+double TomlReader::InRange(const std::string& key, double lo, double hi, double fallback,
+                           bool lo_open, bool hi_open) {
+  if (!Has(key)) {
+    used_.insert(key);
+    return fallback;
+  }
+  const double v = Number(key);
+  const bool ok = (lo_open ? v > lo : v >= lo) && (hi_open ? v < hi : v <= hi);
+  if (!ok) {
+    std::ostringstream os;
+    os << "expected a number in " << (lo_open ? "(" : "[") << lo << ", " << hi
+       << (hi_open ? ")" : "]") << ", got " << v;
+    Fail(key, os.str());
+  }
+  return v;
+}
+
+int64_t TomlReader::Integer(const std::string& key, int64_t fallback, int64_t lo, int64_t hi) {
+  if (!Has(key)) {
+    used_.insert(key);
+    return fallback;
+  }
+  const toml::node* n = Node(key);
+  int64_t v = 0;
+  if (n->is_integer()) {
+    v = n->as_integer()->get();
+  } else if (n->is_floating_point() && std::floor(n->as_floating_point()->get()) ==
+                                           n->as_floating_point()->get() &&
+             std::abs(n->as_floating_point()->get()) < 9e18) {
+    v = static_cast<int64_t>(n->as_floating_point()->get());  // allow 1e9 for ray counts
+  } else {
+    TypeError(key, "an integer");
+  }
+  if (v < lo || v > hi) {
+    Fail(key, "expected an integer in [" + std::to_string(lo) + ", " + std::to_string(hi) +
+                  "], got " + std::to_string(v));
+  }
+  return v;
+}
+
+bool TomlReader::Bool(const std::string& key, bool fallback) {
+  if (!Has(key)) {
+    used_.insert(key);
+    return fallback;
+  }
+  const toml::node* n = Node(key);
+  if (!n->is_boolean()) TypeError(key, "true or false");
+  return n->as_boolean()->get();
+}
+
+std::string TomlReader::String(const std::string& key) {
+  const toml::node* n = Node(key);
+  if (!n || !n->is_string()) TypeError(key, "a string");
+  return n->as_string()->get();
+}
+
+std::string TomlReader::String(const std::string& key, const std::string& fallback) {
+  return Has(key) ? String(key) : (used_.insert(key), fallback);
+}
+
+std::string TomlReader::Choice(const std::string& key, const std::vector<std::string>& choices,
+                               std::optional<std::string> fallback) {
+  std::string list;
+  for (const auto& c : choices) list += (list.empty() ? "\"" : ", \"") + c + "\"";
+  if (!Has(key) && fallback) {
+    used_.insert(key);
+    return *fallback;
+  }
+  const toml::node* n = Node(key);
+  if (!n || !n->is_string()) TypeError(key, "one of " + list);
+  const std::string v = n->as_string()->get();
+  for (const auto& c : choices)
+    if (c == v) return v;
+  Fail(key, "expected one of " + list + ", got \"" + v + "\"");
+}
+
+std::vector<double> TomlReader::Numbers(const std::string& key, size_t min_size,
+                                        size_t max_size) {
+  const toml::node* n = Node(key);
+  if (!n || !n->is_array()) TypeError(key, "an array of numbers");
+  const toml::array& a = *n->as_array();
+  std::vector<double> out;
+  for (const toml::node& e : a) {
+    if (!(e.is_integer() || e.is_floating_point()))
+      throw Error(LocOf(file_, e.source()),
+                  "'" + Path(key) + "': expected an array of numbers, found " + TypeName(e));
+    const double v = e.is_integer() ? static_cast<double>(e.as_integer()->get())
+                                    : e.as_floating_point()->get();
+    if (!std::isfinite(v))
+      throw Error(LocOf(file_, e.source()), "'" + Path(key) + "': expected finite numbers");
+    out.push_back(v);
+  }
+  if (out.size() < min_size || out.size() > max_size) {
+    std::string expect = min_size == max_size ? std::to_string(min_size)
+                         : max_size == SIZE_MAX
+                             ? "at least " + std::to_string(min_size)
+                             : std::to_string(min_size) + " to " + std::to_string(max_size);
+    Fail(key, "expected " + expect + " numbers, got " + std::to_string(out.size()));
+  }
+  return out;
+}
+
+std::array<double, 3> TomlReader::Vec3(const std::string& key) {
+  const auto v = Numbers(key, 3, 3);
+  return {v[0], v[1], v[2]};
+}
+
+std::array<double, 3> TomlReader::Vec3(const std::string& key, std::array<double, 3> fallback) {
+  return Has(key) ? Vec3(key) : (used_.insert(key), fallback);
+}
+
+TomlReader TomlReader::Table(const std::string& key) {
+  const toml::node* n = Node(key);
+  if (!n || !n->is_table()) TypeError(key, "a table");
+  return TomlReader(*n->as_table(), file_, Path(key));
+}
+
+std::vector<TomlReader> TomlReader::Tables(const std::string& key) {
+  std::vector<TomlReader> out;
+  const toml::node* n = Node(key);
+  if (!n) return out;
+  if (!n->is_array_of_tables()) TypeError(key, "an array of tables ([[" + key + "]])");
+  int i = 0;
+  for (const toml::node& e : *n->as_array())
+    out.emplace_back(*e.as_table(), file_, Path(key) + "[" + std::to_string(i++) + "]");
+  return out;
+}
+
+void TomlReader::Finish() const {
+  for (const auto& [k, v] : *table_) {
+    const std::string key(k.str());
+    if (used_.count(key)) continue;
+    std::string accepted;
+    for (const auto& u : used_) accepted += (accepted.empty() ? "" : ", ") + u;
+    throw Error(LocOf(file_, k.source()),
+                "unknown key '" + Path(key) + "'" +
+                    (accepted.empty() ? "" : " (accepted here: " + accepted + ")"));
+  }
+}
+
+}  // namespace raymatch

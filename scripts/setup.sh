@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# Installs raymatch's Debian build dependencies when missing, then configures and builds.
+# Usage: scripts/setup.sh            (release build in build/release)
+# Re-running is cheap: installed packages are skipped and the build is incremental.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PACKAGES=(
+  build-essential cmake ninja-build pkg-config
+  libembree-dev libopenimageio-dev openimageio-tools libtbb-dev libcli11-dev libtomlplusplus-dev
+  libeigen3-dev nlohmann-json3-dev librandom123-dev libassimp-dev
+  libopencv-dev  # OpenImageIO's CMake config names OpenCV's headers
+  libgtest-dev libgmock-dev libbenchmark-dev
+  python3 python3-numpy python3-skimage python3-tifffile
+)
+
+missing=()
+for p in "${PACKAGES[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if ((${#missing[@]})); then
+  echo "raymatch setup: installing ${missing[*]}" >&2
+  SUDO=""
+  if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
+  export DEBIAN_FRONTEND=noninteractive
+  $SUDO apt-get update -q
+  $SUDO apt-get install -y -q --no-install-recommends "${missing[@]}"
+fi
+
+cmake --preset release >/dev/null
+# Two cores on the reference machine; more jobs only thrash memory on the heavy TUs.
+cmake --build --preset release -j "${RAYMATCH_JOBS:-$(nproc)}"

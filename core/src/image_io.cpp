@@ -90,7 +90,8 @@ void WriteFloatImage(const std::string& path, const Image& img, const std::strin
   OIIO::ImageSpec spec(img.width, img.height, 1, OIIO::TypeDesc::FLOAT);
   spec.attribute("ImageDescription", description);
   spec.attribute("Software", "raymatch");
-  spec.attribute("compression", "zip");
+  // Uncompressed: zip with the float predictor needs extra codecs in Python (tifffile).
+  spec.attribute("compression", "none");
   for (const auto& [k, v] : attributes) spec.attribute(k, v);
   WriteWithOiio(path, spec, OIIO::TypeDesc::FLOAT, img.pixels.data());
 }

@@ -1,0 +1,177 @@
+#pragma once
+// Surfaces of the scene's objects and the nearest-hit query used by the tracer.
+//
+// Analytic shapes (sphere, ellipsoid, box) are intersected in closed form in double precision.
+// Triangle meshes go through an Embree 3 BVH, which is built only when the scene has meshes.
+// Normals returned are unit length and point out of the object.
+#include <memory>
+#include <vector>
+
+#include "raymatch/core/vec.h"
+#include "raymatch/simulate/scene.h"
+
+namespace raymatch::simulate {
+
+struct Hit {
+  double t = 0;   ///< distance along the (unit) direction
+  Vec3 normal;    ///< outward unit normal
+  int object = -1;
+};
+
+struct SphereShape {
+  Vec3 center;
+  double radius, radius2;
+  int object;
+};
+/// Ellipsoid or box in its own frame: local = rot_t * (p - center).
+struct FramedShape {
+  Vec3 center;
+  Mat3 rot, rot_t;
+  Vec3 half;      ///< semi-axes (ellipsoid) or half-sizes (box)
+  Vec3 inv_half;
+  int object;
+};
+
+struct MeshInfo {
+  size_t triangles = 0;
+  double signed_volume_um3 = 0;
+  bool flipped = false;  ///< winding was inward and has been reversed
+};
+
+class Geometry {
+ public:
+  explicit Geometry(const std::vector<ObjectSpec>& objects);
+  ~Geometry();
+  Geometry(const Geometry&) = delete;
+  Geometry& operator=(const Geometry&) = delete;
+
+  /// Nearest hit with t > 0 along unit direction `d`; false when none.
+  /// kMesh: include the Embree query (false when the scene has no meshes).
+  template <bool kMesh>
+  bool Intersect(const Vec3& o, const Vec3& d, Hit* hit) const;
+
+  bool has_meshes() const { return scene_ != nullptr; }
+  bool empty() const { return spheres_.empty() && ellipsoids_.empty() && boxes_.empty() && !scene_; }
+  /// Offset used to leave a surface of object i without re-hitting it (micrometres).
+  double epsilon(int object) const { return eps_[object]; }
+  const std::vector<MeshInfo>& meshes() const { return mesh_info_; }
+  /// Largest distance of any object point from the origin (for automatic field sizes).
+  double extent_um() const { return extent_um_; }
+  double min_z_um() const { return min_z_um_; }
+
+ private:
+  bool IntersectMesh(const Vec3& o, const Vec3& d, Hit* hit) const;
+
+  std::vector<SphereShape> spheres_;
+  std::vector<FramedShape> ellipsoids_, boxes_;
+  std::vector<double> eps_;
+  std::vector<int> mesh_object_;             // geomID -> object
+  std::vector<std::vector<float>> vertices_;  // per mesh, xyz
+  std::vector<std::vector<unsigned>> indices_;
+  std::vector<MeshInfo> mesh_info_;
+  void* device_ = nullptr;  // RTCDevice
+  void* scene_ = nullptr;   // RTCScene
+  double extent_um_ = 0, min_z_um_ = 0;
+};
+
+// ---- inline analytic intersections (hot path) ----
+
+/// Smallest root t > tmin of |o + t d - c|^2 = r^2 for unit d, using the numerically stable
+/// form of Hearn & Baker / Haines et al. (Ray Tracing Gems ch. 7): the discriminant is computed
+/// from the perpendicular distance, so grazing rays far from the sphere keep full precision.
+inline bool IntersectSphere(const Vec3& o, const Vec3& d, const Vec3& c, double r2, double* t) {
+  const Vec3 f = o - c;
+  const double b = -Dot(f, d);
+  const Vec3 perp = f + d * b;  // f minus its projection on d
+  const double disc = r2 - Dot(perp, perp);
+  if (disc < 0) return false;
+  const double c0 = Dot(f, f) - r2;
+  const double q = b + std::copysign(std::sqrt(disc), b);
+  double t0 = q != 0 ? c0 / q : 0, t1 = q;
+  if (t0 > t1) std::swap(t0, t1);
+  if (t0 > 0) {
+    *t = t0;
+    return true;
+  }
+  if (t1 > 0) {
+    *t = t1;
+    return true;
+  }
+  return false;
+}
+
+template <bool kMesh>
+bool Geometry::Intersect(const Vec3& o, const Vec3& d, Hit* hit) const {
+  bool found = false;
+  double best = 1e300;
+  for (const SphereShape& s : spheres_) {
+    double t;
+    if (IntersectSphere(o, d, s.center, s.radius2, &t) && t < best) {
+      best = t;
+      hit->object = s.object;
+      hit->normal = ((o + d * t) - s.center) / s.radius;
+      found = true;
+    }
+  }
+  for (const FramedShape& e : ellipsoids_) {
+    // Map to the unit sphere: p' = inv_half * rot_t (p - c). Distances scale, so solve with a
+    // non-unit direction and convert t back.
+    const Vec3 ol = Mul(e.rot_t * (o - e.center), e.inv_half);
+    const Vec3 dl = Mul(e.rot_t * d, e.inv_half);
+    const double len = Length(dl);
+    double tl;
+    if (IntersectSphere(ol, dl / len, Vec3{}, 1.0, &tl)) {
+      const double t = tl / len;
+      if (t < best) {
+        best = t;
+        hit->object = e.object;
+        const Vec3 pl = ol + dl * t;
+        hit->normal = Normalize(e.rot * Mul(pl, e.inv_half));  // gradient of |p'|^2
+        found = true;
+      }
+    }
+  }
+  for (const FramedShape& b : boxes_) {
+    const Vec3 ol = b.rot_t * (o - b.center);
+    const Vec3 dl = b.rot_t * d;
+    double tn = -1e300, tf = 1e300;
+    int axis_n = 0, axis_f = 0;
+    bool miss = false;
+    for (int a = 0; a < 3 && !miss; ++a) {
+      const double oa = ol[a], da = dl[a], h = b.half[a];
+      if (da == 0) {
+        miss = std::abs(oa) > h;
+        continue;
+      }
+      double t1 = (-h - oa) / da, t2 = (h - oa) / da;
+      if (t1 > t2) std::swap(t1, t2);
+      if (t1 > tn) tn = t1, axis_n = a;
+      if (t2 < tf) tf = t2, axis_f = a;
+    }
+    if (miss || tn > tf || tf <= 0) continue;
+    const bool outside = tn > 0;
+    const double t = outside ? tn : tf;
+    if (t < best) {
+      best = t;
+      const int a = outside ? axis_n : axis_f;
+      Vec3 nl{};
+      const double pa = (ol + dl * t)[a];
+      (a == 0 ? nl.x : a == 1 ? nl.y : nl.z) = pa > 0 ? 1.0 : -1.0;
+      hit->object = b.object;
+      hit->normal = b.rot * nl;
+      found = true;
+    }
+  }
+  if constexpr (kMesh) {
+    Hit mh;
+    if (IntersectMesh(o, d, &mh) && mh.t < best) {
+      *hit = mh;
+      best = mh.t;
+      found = true;
+    }
+  }
+  if (found) hit->t = best;
+  return found;
+}
+
+}  // namespace raymatch::simulate

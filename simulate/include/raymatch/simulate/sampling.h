@@ -1,0 +1,61 @@
+#pragma once
+// Sampling helpers: piecewise-constant 1D/2D distributions (inverse CDF, as in pbrt's
+// PiecewiseConstant2D) for tabulated light fields, and uniform disc sampling.
+#include <cmath>
+#include <vector>
+
+#include "raymatch/core/image.h"
+
+namespace raymatch::simulate {
+
+/// Piecewise-constant density over [0, 1) with n bins.
+class Distribution1D {
+ public:
+  Distribution1D() = default;
+  explicit Distribution1D(const float* f, int n);
+  /// Maps u in [0,1) to x in [0,1); `*bin` receives the bin index.
+  double Sample(double u, int* bin) const;
+  double integral() const { return integral_; }
+  int size() const { return static_cast<int>(func_.size()); }
+  double Density(int bin) const { return integral_ > 0 ? func_[bin] / integral_ : 0; }
+
+ private:
+  std::vector<double> func_, cdf_;
+  double integral_ = 0;
+};
+
+/// Piecewise-constant density over the unit square from an image (row 0 at the top maps to
+/// y in [0, 1/height) ... the caller decides the orientation).
+class Distribution2D {
+ public:
+  Distribution2D() = default;
+  explicit Distribution2D(const Image& img);
+  /// (u0, u1) uniform -> (x, y) in [0,1)^2 with density proportional to the image.
+  void Sample(double u0, double u1, double* x, double* y) const;
+  bool empty() const { return rows_.empty(); }
+
+ private:
+  std::vector<Distribution1D> rows_;  // conditional in x for each row
+  Distribution1D marginal_;            // over rows
+};
+
+/// Uniform point in the unit disc (concentric mapping, Shirley & Chiu 1997).
+inline void SampleUnitDisc(double u0, double u1, double* x, double* y) {
+  const double a = 2 * u0 - 1, b = 2 * u1 - 1;
+  if (a == 0 && b == 0) {
+    *x = *y = 0;
+    return;
+  }
+  double r, phi;
+  if (std::abs(a) > std::abs(b)) {
+    r = a;
+    phi = M_PI / 4 * (b / a);
+  } else {
+    r = b;
+    phi = M_PI / 2 - M_PI / 4 * (a / b);
+  }
+  *x = r * std::cos(phi);
+  *y = r * std::sin(phi);
+}
+
+}  // namespace raymatch::simulate

@@ -1,0 +1,50 @@
+#pragma once
+// Focus scans: trace one image per defocus value and write them as files.
+//
+// For each plane: <name>_z<defocus>um.tif (32-bit float counts, ImageJ/Fiji/Python readable),
+// a PNG preview (0 .. 2x the median count), and a JSON sidecar saying how it was made. The index
+// <name>_scan.json / <name>_scan.csv lists the planes. All files are written atomically.
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "raymatch/simulate/tracer.h"
+
+namespace raymatch::simulate {
+
+struct ScanOptions {
+  std::string output_dir;             ///< created if missing
+  RunControl control;
+  std::optional<uint64_t> rays;       ///< overrides the scene's ray count / photon target
+  bool write_png = true;
+};
+
+struct ScanPlaneOutput {
+  double defocus_um = 0;
+  std::string image, png, sidecar;    ///< paths written
+  double mean_counts = 0;
+  double seconds = 0;
+};
+
+struct ScanSummary {
+  uint64_t rays_per_image = 0;
+  double hits_per_pixel_per_ray = 0;  ///< from the photon-target pilot, 0 if not used
+  std::vector<ScanPlaneOutput> planes;
+  std::string index_json, index_csv;
+  double seconds = 0;
+  std::vector<std::string> effects;
+};
+
+/// Runs the scene's focus scan and writes all outputs. Throws Error on failure; files already
+/// finished stay (each is complete), nothing half-written remains.
+ScanSummary RunScan(const Scene& scene, const ScanOptions& options);
+
+/// The sidecar metadata for one traced plane (also embedded in the TIFF ImageDescription).
+nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_t plane_index);
+
+/// "<name>_z+012.50um" style stem for a defocus value.
+std::string PlaneStem(const std::string& name, double defocus_um);
+
+}  // namespace raymatch::simulate

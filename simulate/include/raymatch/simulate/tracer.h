@@ -1,0 +1,102 @@
+#pragma once
+// Monte Carlo non-sequential ray tracer: source -> objects -> corrector -> objective -> stop ->
+// tube lens -> sensor. Each ray carries full weight; at an interface it reflects with the
+// Fresnel probability R and is transmitted otherwise, so hits count like photons.
+//
+// The tracer is assembled from what the scene declares: the partial-reflection branch, the
+// corrector stage and the Embree mesh query are compile-time switches of the inner loop, chosen
+// once per image. Rays are independent Philox streams addressed by (seed, plane, ray index) and
+// pixel counts are integers summed from per-thread buffers, so an image is bit-identical for any
+// thread count.
+#include <array>
+#include <atomic>
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "raymatch/core/image.h"
+#include "raymatch/simulate/scene.h"
+
+namespace raymatch::simulate {
+
+/// What became of a ray. Every traced ray ends in exactly one fate.
+enum class Fate : int {
+  kDetected = 0,        ///< reached a sensor pixel
+  kOutsideNa,           ///< blocked by the aperture stop, a lens rim or the corrector rim
+  kMissedSensor,        ///< passed the optics but fell outside the sensor
+  kAbsorbedCorrector,   ///< removed by a corrector ring's transmission draw
+  kInteractionCap,      ///< more interface events than max_interactions
+  kEscaped,             ///< left the objects travelling away from the objective (z' <= 0)
+  kLostInside,          ///< no exit surface found from inside an object (numerical failure)
+  kCount
+};
+const char* FateName(Fate f);
+inline constexpr int kNumFates = static_cast<int>(Fate::kCount);
+inline constexpr int kNumPathClasses = 8;
+
+/// Work counters. An effect a scene does not declare leaves its counter at zero.
+struct TraceCounters {
+  std::array<uint64_t, kNumFates> fates{};
+  uint64_t interface_events = 0;     ///< refractions + reflections at object surfaces
+  uint64_t fresnel_evaluations = 0;  ///< partial-reflection branch decisions
+  uint64_t corrector_tests = 0;      ///< rays tested against corrector rings
+  uint64_t mesh_queries = 0;         ///< Embree BVH queries
+  uint64_t shape_queries = 0;        ///< nearest-hit searches over analytic/mesh objects
+  uint64_t rays_hitting_objects = 0;
+  /// Debye-style path classes of the first departure from the first object hit:
+  /// [0] reflected externally, [k>=1] transmitted with k-1 internal reflections (7 = 6 or more).
+  std::array<uint64_t, kNumPathClasses> path_class{};
+  void Add(const TraceCounters& o);
+  uint64_t total_fates() const;
+};
+
+struct PlaneResult {
+  Image counts;          ///< hits per pixel (float32 holding integers)
+  double defocus_um = 0;
+  uint64_t rays = 0;
+  TraceCounters counters;
+  double seconds = 0;
+  int threads = 0;
+};
+
+/// Controls that do not change the physics.
+struct RunControl {
+  int threads = 0;          ///< 0: scene's value, then all cores
+  bool progress = false;    ///< progress bar on stderr
+  std::string label;        ///< shown in the progress bar
+};
+
+class Simulator {
+ public:
+  /// Builds geometry (Embree only for meshes), sources and optics. Throws Error on bad input.
+  explicit Simulator(const Scene& scene);
+  ~Simulator();
+
+  /// Traces `rays` rays with the objective focused at `defocus_um`; `plane_index` selects
+  /// the random streams (different planes get independent noise, like separate exposures).
+  PlaneResult TracePlane(double defocus_um, uint32_t plane_index, uint64_t rays,
+                         const RunControl& control = {}) const;
+
+  /// Rays per image that give `photons_per_pixel` mean hits in the flat field, from a fixed-seed
+  /// pilot run without objects (the experimenter's flat-field signal x well capacity).
+  uint64_t RaysForPhotonTarget(double photons_per_pixel, double* hits_per_pixel_per_ray = nullptr) const;
+
+  /// Rays per image for this scene (given directly, or from the photon target).
+  uint64_t RaysPerImage() const;
+
+  /// The stages this tracer runs, e.g. {"source:cone", "refraction", "partial_reflection:..."}.
+  std::vector<std::string> Effects() const;
+  const Scene& scene() const { return scene_; }
+  double source_plane_z_um() const;
+  double object_pixel_um() const;   ///< pixel pitch referred to the object plane
+  bool has_mesh_bvh() const;        ///< an Embree BVH was built
+
+  struct Impl;  ///< defined in tracer.cpp only
+
+ private:
+  Scene scene_;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace raymatch::simulate

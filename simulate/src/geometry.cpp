@@ -1,0 +1,173 @@
+#include "raymatch/simulate/geometry.h"
+
+#include <assimp/postprocess.h>
+#include <assimp/scene.h>
+#include <embree3/rtcore.h>
+
+#include <assimp/Importer.hpp>
+#include <cmath>
+
+#include "raymatch/core/error.h"
+
+namespace raymatch::simulate {
+
+namespace {
+
+// Leaving a surface: offset the new origin by this fraction of the object's size. Analytic
+// shapes are solved in double (relative error ~1e-15), Embree in float (~1e-7), hence two scales.
+constexpr double kAnalyticEpsilon = 1e-9;
+constexpr double kMeshEpsilon = 2e-5;
+
+void LoadMesh(const ObjectSpec& o, std::vector<float>* verts, std::vector<unsigned>* idx,
+              MeshInfo* info) {
+  Assimp::Importer importer;
+  const aiScene* sc = importer.ReadFile(
+      o.mesh_file, aiProcess_Triangulate | aiProcess_JoinIdenticalVertices |
+                       aiProcess_PreTransformVertices | aiProcess_FindDegenerates);
+  if (!sc || !sc->mNumMeshes)
+    throw Error(o.where, "cannot read mesh '" + o.mesh_file + "': " + importer.GetErrorString());
+  const Mat3 rot = RotationFromEulerDeg(o.rotation_deg.x, o.rotation_deg.y, o.rotation_deg.z);
+  for (unsigned m = 0; m < sc->mNumMeshes; ++m) {
+    const aiMesh* mesh = sc->mMeshes[m];
+    const unsigned base = static_cast<unsigned>(verts->size() / 3);
+    for (unsigned v = 0; v < mesh->mNumVertices; ++v) {
+      const aiVector3D& a = mesh->mVertices[v];
+      const Vec3 p = rot * Vec3(a.x, a.y, a.z) * o.mesh_scale_um + o.center_um;
+      if (!IsFinite(p)) throw Error(o.where, "mesh '" + o.mesh_file + "' has NaN/Inf vertices");
+      verts->insert(verts->end(), {float(p.x), float(p.y), float(p.z)});
+    }
+    for (unsigned f = 0; f < mesh->mNumFaces; ++f) {
+      const aiFace& face = mesh->mFaces[f];
+      if (face.mNumIndices != 3) continue;  // points/lines left by the triangulator
+      idx->insert(idx->end(), {base + face.mIndices[0], base + face.mIndices[1],
+                               base + face.mIndices[2]});
+    }
+  }
+  if (idx->empty()) throw Error(o.where, "mesh '" + o.mesh_file + "' has no triangles");
+  // Outward winding is needed to tell entering from leaving: check the signed volume.
+  double vol = 0;
+  for (size_t i = 0; i < idx->size(); i += 3) {
+    auto V = [&](unsigned k) {
+      return Vec3((*verts)[3 * k], (*verts)[3 * k + 1], (*verts)[3 * k + 2]) - o.center_um;
+    };
+    vol += Dot(V((*idx)[i]), Cross(V((*idx)[i + 1]), V((*idx)[i + 2]))) / 6.0;
+  }
+  info->triangles = idx->size() / 3;
+  info->signed_volume_um3 = vol;
+  if (vol < 0) {
+    for (size_t i = 0; i < idx->size(); i += 3) std::swap((*idx)[i + 1], (*idx)[i + 2]);
+    info->flipped = true;
+  }
+}
+
+}  // namespace
+
+Geometry::Geometry(const std::vector<ObjectSpec>& objects) {
+  double min_z = 1e300;
+  for (size_t i = 0; i < objects.size(); ++i) {
+    const ObjectSpec& o = objects[i];
+    const int id = static_cast<int>(i);
+    double size = 0;
+    switch (o.shape) {
+      case ShapeType::kSphere:
+        spheres_.push_back({o.center_um, o.radius_um, o.radius_um * o.radius_um, id});
+        size = o.radius_um;
+        break;
+      case ShapeType::kEllipsoid:
+      case ShapeType::kBox: {
+        FramedShape f;
+        f.center = o.center_um;
+        f.rot = RotationFromEulerDeg(o.rotation_deg.x, o.rotation_deg.y, o.rotation_deg.z);
+        f.rot_t = f.rot.Transposed();
+        f.half = o.semi_axes_um;
+        f.inv_half = {1 / f.half.x, 1 / f.half.y, 1 / f.half.z};
+        f.object = id;
+        (o.shape == ShapeType::kBox ? boxes_ : ellipsoids_).push_back(f);
+        size = Length(o.semi_axes_um);
+        break;
+      }
+      case ShapeType::kMesh: {
+        std::vector<float> v;
+        std::vector<unsigned> idx;
+        MeshInfo info;
+        LoadMesh(o, &v, &idx, &info);
+        double r2 = 0;
+        for (size_t k = 0; k < v.size(); k += 3) {
+          const Vec3 p(v[k], v[k + 1], v[k + 2]);
+          r2 = std::max(r2, Dot(p - o.center_um, p - o.center_um));
+          min_z = std::min(min_z, p.z);
+        }
+        size = std::sqrt(r2);
+        vertices_.push_back(std::move(v));
+        indices_.push_back(std::move(idx));
+        mesh_object_.push_back(id);
+        mesh_info_.push_back(info);
+        break;
+      }
+    }
+    eps_.push_back((o.shape == ShapeType::kMesh ? kMeshEpsilon : kAnalyticEpsilon) *
+                   std::max(size, Length(o.center_um) * 1e-3 + size));
+    extent_um_ = std::max(extent_um_, Length(o.center_um) + size);
+    if (o.shape != ShapeType::kMesh) min_z = std::min(min_z, o.center_um.z - size);
+  }
+  min_z_um_ = objects.empty() ? 0 : min_z;
+
+  if (!vertices_.empty()) {
+    RTCDevice dev = rtcNewDevice(nullptr);
+    if (!dev) throw Error("Embree device could not be created");
+    RTCScene scene = rtcNewScene(dev);
+    rtcSetSceneBuildQuality(scene, RTC_BUILD_QUALITY_HIGH);
+    for (size_t m = 0; m < vertices_.size(); ++m) {
+      RTCGeometry g = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_TRIANGLE);
+      rtcSetSharedGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
+                                 vertices_[m].data(), 0, 3 * sizeof(float),
+                                 vertices_[m].size() / 3);
+      rtcSetSharedGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
+                                 indices_[m].data(), 0, 3 * sizeof(unsigned),
+                                 indices_[m].size() / 3);
+      rtcCommitGeometry(g);
+      rtcAttachGeometryByID(scene, g, static_cast<unsigned>(m));
+      rtcReleaseGeometry(g);
+    }
+    rtcCommitScene(scene);
+    device_ = dev;
+    scene_ = scene;
+  }
+}
+
+Geometry::~Geometry() {
+  if (scene_) rtcReleaseScene(static_cast<RTCScene>(scene_));
+  if (device_) rtcReleaseDevice(static_cast<RTCDevice>(device_));
+}
+
+bool Geometry::IntersectMesh(const Vec3& o, const Vec3& d, Hit* hit) const {
+  RTCIntersectContext ctx;
+  rtcInitIntersectContext(&ctx);
+  RTCRayHit rh;
+  rh.ray.org_x = float(o.x), rh.ray.org_y = float(o.y), rh.ray.org_z = float(o.z);
+  rh.ray.dir_x = float(d.x), rh.ray.dir_y = float(d.y), rh.ray.dir_z = float(d.z);
+  rh.ray.tnear = 0.f;
+  rh.ray.tfar = std::numeric_limits<float>::infinity();
+  rh.ray.mask = 0xFFFFFFFFu;
+  rh.ray.flags = 0;
+  rh.ray.time = 0.f;
+  rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
+  rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+  rtcIntersect1(static_cast<RTCScene>(scene_), &ctx, &rh);
+  if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return false;
+  // Normal from our own (outward-wound) triangle, in double, rather than Embree's Ng.
+  const auto& v = vertices_[rh.hit.geomID];
+  const auto& ix = indices_[rh.hit.geomID];
+  auto V = [&](unsigned k) { return Vec3(v[3 * k], v[3 * k + 1], v[3 * k + 2]); };
+  const Vec3 a = V(ix[3 * rh.hit.primID]), b = V(ix[3 * rh.hit.primID + 1]),
+             c = V(ix[3 * rh.hit.primID + 2]);
+  const Vec3 n = Cross(b - a, c - a);
+  const double len = Length(n);
+  if (!(len > 0)) return false;  // degenerate triangle: treat as no surface
+  hit->t = rh.ray.tfar;
+  hit->normal = n / len;
+  hit->object = mesh_object_[rh.hit.geomID];
+  return true;
+}
+
+}  // namespace raymatch::simulate

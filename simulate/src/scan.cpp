@@ -1,0 +1,147 @@
+#include "raymatch/simulate/scan.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <sstream>
+
+#include "raymatch/core/atomic_file.h"
+#include "raymatch/core/error.h"
+#include "raymatch/core/image_io.h"
+#include "raymatch/core/provenance.h"
+#include "raymatch/simulate/geometry.h"
+
+namespace fs = std::filesystem;
+
+namespace raymatch::simulate {
+
+std::string PlaneStem(const std::string& name, double defocus_um) {
+  char buf[64];
+  std::snprintf(buf, sizeof buf, "_z%+07.2fum", defocus_um == 0 ? 0.0 : defocus_um);
+  return name + buf;
+}
+
+static const char* PrName(PartialReflection p) {
+  return p == PartialReflection::kOff ? "off"
+         : p == PartialReflection::kUnpolarized ? "unpolarized"
+                                                 : "polarized";
+}
+
+nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_t plane_index) {
+  const Scene& s = sim.scene();
+  nlohmann::json fates = nlohmann::json::object();
+  for (int i = 0; i < kNumFates; ++i) fates[FateName(Fate(i))] = r.counters.fates[i];
+  nlohmann::json objects = nlohmann::json::array();
+  for (const ObjectSpec& o : s.objects)
+    objects.push_back({{"name", o.name}, {"index", o.index}, {"material", o.material}});
+  const PixelStats st = ComputeStats(r.counts);
+  nlohmann::json j = {
+      {"provenance", ProvenanceJson()},
+      {"scene_file", s.file},
+      {"scene_checksum_fnv1a64", s.file.empty() ? "" : FileChecksum(s.file)},
+      {"units", {{"pixel_values", "ray hits (photon counts)"}, {"lengths", "micrometres"}}},
+      {"defocus_um", r.defocus_um},
+      {"defocus_convention",
+       "z of the objective's focal plane; + = focal plane moved downstream (towards the camera)"},
+      {"seed", s.trace.seed},
+      {"plane_index", plane_index},
+      {"rays", r.rays},
+      {"hits", r.counters.fates[int(Fate::kDetected)]},
+      {"fates", fates},
+      {"seconds", r.seconds},
+      {"threads", r.threads},
+      {"rays_per_second", r.seconds > 0 ? r.rays / r.seconds : 0.0},
+      {"effects", sim.Effects()},
+      {"partial_reflection", PrName(s.trace.partial_reflection)},
+      {"counters",
+       {{"interface_events", r.counters.interface_events},
+        {"fresnel_evaluations", r.counters.fresnel_evaluations},
+        {"corrector_tests", r.counters.corrector_tests},
+        {"mesh_queries", r.counters.mesh_queries},
+        {"rays_hitting_objects", r.counters.rays_hitting_objects}}},
+      {"image",
+       {{"width", r.counts.width},
+        {"height", r.counts.height},
+        {"mean_counts", st.mean},
+        {"max_counts", st.max},
+        {"object_pixel_um", sim.object_pixel_um()},
+        {"magnification", Magnification(s.optics)},
+        {"orientation", s.camera.flip ? "upright: +x right, +y up (inversion undone)"
+                                      : "raw sensor: inverted"}}},
+      {"wavelength_um", s.wavelength_um},
+      {"medium_index", s.medium_index},
+      {"objects", objects},
+  };
+  return j;
+}
+
+ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
+  const auto t0 = std::chrono::steady_clock::now();
+  EnsureDirectory(opt.output_dir);
+  Simulator sim(scene);
+  ScanSummary sum;
+  sum.effects = sim.Effects();
+  if (opt.rays) {
+    sum.rays_per_image = *opt.rays;
+  } else if (scene.trace.rays > 0) {
+    sum.rays_per_image = scene.trace.rays;
+  } else {
+    sum.rays_per_image =
+        sim.RaysForPhotonTarget(scene.trace.photons_per_pixel, &sum.hits_per_pixel_per_ray);
+  }
+  nlohmann::json planes = nlohmann::json::array();
+  std::ostringstream csv;
+  csv << "defocus_um,image,png,sidecar,rays,hits,mean_counts,seconds\n";
+  for (size_t i = 0; i < scene.defocus_um.size(); ++i) {
+    const double dz = scene.defocus_um[i];
+    RunControl ctl = opt.control;
+    char label[64];
+    std::snprintf(label, sizeof label, "plane %zu/%zu z=%+.2f um", i + 1,
+                  scene.defocus_um.size(), dz);
+    ctl.label = label;
+    const PlaneResult r = sim.TracePlane(dz, static_cast<uint32_t>(i), sum.rays_per_image, ctl);
+    const nlohmann::json meta = PlaneMetadata(sim, r, static_cast<uint32_t>(i));
+    const std::string stem = PlaneStem(scene.name, dz);
+    ScanPlaneOutput out;
+    out.defocus_um = dz;
+    out.image = (fs::path(opt.output_dir) / (stem + ".tif")).string();
+    out.sidecar = (fs::path(opt.output_dir) / (stem + ".json")).string();
+    WriteFloatImage(out.image, r.counts, meta.dump());
+    WriteTextFileAtomic(out.sidecar, meta.dump(2) + "\n");
+    if (opt.write_png) {
+      out.png = (fs::path(opt.output_dir) / (stem + ".png")).string();
+      std::vector<float> v = r.counts.pixels;
+      std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+      WritePngPreview(out.png, r.counts, 0.0, std::max(1.0, 2.0 * v[v.size() / 2]));
+    }
+    out.mean_counts = ComputeStats(r.counts).mean;
+    out.seconds = r.seconds;
+    planes.push_back({{"defocus_um", dz},
+                      {"image", fs::path(out.image).filename().string()},
+                      {"png", out.png.empty() ? "" : fs::path(out.png).filename().string()},
+                      {"sidecar", fs::path(out.sidecar).filename().string()}});
+    csv << dz << "," << fs::path(out.image).filename().string() << ","
+        << (out.png.empty() ? "" : fs::path(out.png).filename().string()) << ","
+        << fs::path(out.sidecar).filename().string() << "," << r.rays << ","
+        << r.counters.fates[int(Fate::kDetected)] << "," << out.mean_counts << "," << r.seconds
+        << "\n";
+    sum.planes.push_back(out);
+  }
+  sum.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const nlohmann::json index = {{"provenance", ProvenanceJson()},
+                                {"scene_file", scene.file},
+                                {"name", scene.name},
+                                {"rays_per_image", sum.rays_per_image},
+                                {"photons_per_pixel_target", scene.trace.photons_per_pixel},
+                                {"effects", sum.effects},
+                                {"seconds", sum.seconds},
+                                {"planes", planes}};
+  sum.index_json = (fs::path(opt.output_dir) / (scene.name + "_scan.json")).string();
+  sum.index_csv = (fs::path(opt.output_dir) / (scene.name + "_scan.csv")).string();
+  WriteTextFileAtomic(sum.index_json, index.dump(2) + "\n");
+  WriteTextFileAtomic(sum.index_csv, csv.str());
+  return sum;
+}
+
+}  // namespace raymatch::simulate

@@ -1,0 +1,309 @@
+#include "raymatch/simulate/scene.h"
+
+#include <cmath>
+#include <filesystem>
+#include <sstream>
+
+#include "raymatch/core/image_io.h"
+#include "raymatch/core/toml_reader.h"
+#include "raymatch/simulate/water.h"
+
+namespace fs = std::filesystem;
+
+namespace raymatch::simulate {
+
+namespace {
+
+std::string Resolve(const std::string& scene_file, const std::string& p) {
+  const fs::path path(p);
+  if (path.is_absolute()) return p;
+  return (fs::path(scene_file).parent_path() / path).lexically_normal().string();
+}
+
+Image ReadMap(TomlReader& r, const std::string& key, const std::string& scene_file,
+              std::string* resolved) {
+  *resolved = Resolve(scene_file, r.String(key));
+  Image img;
+  try {
+    img = ReadImage(*resolved);
+  } catch (const Error& e) {
+    r.Fail(key, e.what());
+  }
+  double sum = 0;
+  for (float v : img.pixels) {
+    if (v < 0) r.Fail(key, "map has negative values (radiance must be >= 0)");
+    sum += v;
+  }
+  if (!(sum > 0)) r.Fail(key, "map is blank (all zero)");
+  return img;
+}
+
+void ReadField(TomlReader& r, SourceSpec& s) {
+  const std::string shape = r.Choice("field_shape", {"disc", "rect"}, "disc");
+  s.field_shape = shape == "disc" ? FieldShape::kDisc : FieldShape::kRect;
+  if (s.field_shape == FieldShape::kDisc) {
+    s.field_radius_um = r.Positive("field_radius_um", 0.0);
+  } else {
+    const auto v = r.Numbers("field_size_um", 2, 2);
+    if (!(v[0] > 0 && v[1] > 0)) r.Fail("field_size_um", "expected two positive sizes");
+    s.field_size_um = {v[0], v[1]};
+  }
+  const auto c = r.Vec3("field_center_um", {0, 0, 0});
+  s.field_center_um = {c[0], c[1], 0};
+}
+
+SourceSpec ReadSource(TomlReader r, const std::string& file) {
+  SourceSpec s;
+  const std::string type = r.Choice("type", {"collimated", "cone", "point", "lightfield"});
+  if (type == "collimated") {
+    s.type = SourceType::kCollimated;
+    ReadField(r, s);
+    s.tilt_deg = r.InRange("tilt_deg", 0, 89, 0);
+    s.azimuth_deg = r.Number("azimuth_deg", 0);
+  } else if (type == "cone") {
+    s.type = SourceType::kCone;
+    ReadField(r, s);
+    s.half_angle_deg = r.InRange("half_angle_deg", 0, 89, 0, true, false);
+    if (!r.Has("half_angle_deg")) r.Fail("half_angle_deg", "required for a cone source");
+  } else if (type == "point") {
+    s.type = SourceType::kPoint;
+    const auto p = r.Vec3("position_um");
+    s.position_um = {p[0], p[1], p[2]};
+    s.half_angle_deg = r.InRange("half_angle_deg", 0, 90, 90, true, false);
+  } else {
+    s.type = SourceType::kLightField;
+    ReadField(r, s);
+    s.angular_map = ReadMap(r, "angular_map", file, &s.angular_map_file);
+    s.angular_extent = r.InRange("angular_extent", 0, 1, 0, true, false);
+    if (!r.Has("angular_extent"))
+      r.Fail("angular_extent", "required: half-width of the map in direction cosines, (0, 1]");
+    if (r.Has("spatial_map")) {
+      if (s.field_shape != FieldShape::kRect)
+        r.Fail("spatial_map", "a spatial map needs field_shape = \"rect\" and field_size_um");
+      s.spatial_map = ReadMap(r, "spatial_map", file, &s.spatial_map_file);
+    }
+  }
+  r.Finish();
+  return s;
+}
+
+void ReadMaterial(TomlReader& r, const Scene& scene, ObjectSpec& o) {
+  if (r.Has("index") && r.Has("material"))
+    r.Fail("material", "give either 'index' or 'material', not both");
+  if (r.Has("index")) {
+    o.index = r.InRange("index", 1.0, 5.0, 1.0);
+    o.material = "constant index";
+    r.Number("temperature_K", 0), r.Number("density_kg_m3", 0);  // mark; checked below
+    if (r.Has("temperature_K") || r.Has("density_kg_m3"))
+      r.Fail(r.Has("temperature_K") ? "temperature_K" : "density_kg_m3",
+             "only meaningful with material = \"water\"");
+    return;
+  }
+  if (!r.Has("material")) r.Fail("index", "missing: give 'index = <n>' or 'material = \"water\"'");
+  r.Choice("material", {"water"});
+  const double T = r.InRange("temperature_K", 261.15, 773.15, 293.15);
+  double rho;
+  if (r.Has("density_kg_m3")) {
+    rho = r.InRange("density_kg_m3", 0, 2000, 998, true, false);
+  } else {
+    if (T < 273.15 || T > 313.15)
+      r.Fail("temperature_K", "outside 273.15-313.15 K the density must be given (density_kg_m3)");
+    rho = WaterDensityTanaka(T);
+  }
+  const WaterIndex w = WaterRefractiveIndex(T, rho, scene.wavelength_um);
+  o.index = w.n;
+  std::ostringstream os;
+  os.precision(8);
+  os << "water (IAPWS R9-97, T=" << T << " K, rho=" << rho << " kg/m^3, lambda="
+     << scene.wavelength_um << " um): n=" << w.n;
+  o.material = os.str();
+}
+
+ObjectSpec ReadObject(TomlReader r, const Scene& scene, int i) {
+  ObjectSpec o;
+  o.where = r.Where();
+  o.name = r.String("name", "object" + std::to_string(i));
+  const std::string type = r.Choice("type", {"sphere", "ellipsoid", "box", "mesh"});
+  const auto c = r.Vec3("center_um", {0, 0, 0});
+  o.center_um = {c[0], c[1], c[2]};
+  auto read_axes = [&](const char* key) {
+    const auto v = r.Vec3(key);
+    if (!(v[0] > 0 && v[1] > 0 && v[2] > 0)) r.Fail(key, "expected three positive lengths");
+    o.semi_axes_um = {v[0], v[1], v[2]};
+  };
+  auto read_rot = [&] {
+    const auto v = r.Vec3("rotation_deg", {0, 0, 0});
+    o.rotation_deg = {v[0], v[1], v[2]};
+  };
+  if (type == "sphere") {
+    o.shape = ShapeType::kSphere;
+    o.radius_um = r.Positive("radius_um");
+  } else if (type == "ellipsoid") {
+    o.shape = ShapeType::kEllipsoid;
+    read_axes("semi_axes_um");
+    read_rot();
+  } else if (type == "box") {
+    o.shape = ShapeType::kBox;
+    const auto v = r.Vec3("size_um");
+    if (!(v[0] > 0 && v[1] > 0 && v[2] > 0)) r.Fail("size_um", "expected three positive lengths");
+    o.semi_axes_um = {v[0] / 2, v[1] / 2, v[2] / 2};
+    read_rot();
+  } else {
+    o.shape = ShapeType::kMesh;
+    o.mesh_file = Resolve(scene.file, r.String("file"));
+    if (!fs::exists(o.mesh_file)) r.Fail("file", "mesh file not found: " + o.mesh_file);
+    o.mesh_scale_um = r.Positive("scale_um", 1.0);
+    read_rot();
+  }
+  ReadMaterial(r, scene, o);
+  r.Finish();
+  return o;
+}
+
+OpticsSpec ReadOptics(TomlReader& top) {
+  OpticsSpec o;
+  TomlReader obj = top.Table("objective");
+  const std::string model = obj.Choice("model", {"single", "two_lens"}, "single");
+  o.model = model == "single" ? ObjectiveModel::kSingle : ObjectiveModel::kTwoLens;
+  o.objective_focal_mm = obj.Positive("focal_length_mm");
+  o.na = obj.InRange("na", 0, 1, 0, true, true);
+  if (!obj.Has("na")) obj.Fail("na", "required: numerical aperture in (0, 1)");
+  if (o.model == ObjectiveModel::kTwoLens) {
+    o.working_distance_mm = obj.Positive("working_distance_mm");
+    o.back_focal_mm = obj.Positive("back_focal_distance_mm");
+    const double f = o.objective_focal_mm;
+    const double d = f - o.back_focal_mm * o.working_distance_mm / f;
+    if (!(d > 0))
+      obj.Fail("back_focal_distance_mm",
+               "gives a non-positive lens separation d = f - BFD*WD/f; expected BFD < f^2/WD");
+    if (o.back_focal_mm == f || o.working_distance_mm == f)
+      obj.Fail("working_distance_mm", "WD = f or BFD = f makes one lens power infinite");
+  } else {
+    o.working_distance_mm = obj.Positive("working_distance_mm", o.objective_focal_mm);
+  }
+  obj.Finish();
+  TomlReader tube = top.Table("tube_lens");
+  o.tube_focal_mm = tube.Positive("focal_length_mm");
+  o.tube_distance_mm = tube.Positive("distance_mm", 150);
+  tube.Finish();
+  if (top.Has("corrector")) {
+    TomlReader c = top.Table("corrector");
+    o.corrector.enabled = true;
+    o.corrector.distance_mm = c.Positive("distance_mm", 0.0);
+    o.corrector.transmissions = c.Numbers("transmissions", 1, 64);
+    for (double t : o.corrector.transmissions)
+      if (t < 0 || t > 1) c.Fail("transmissions", "each transmission must be in [0, 1]");
+    if (c.Has("ring_outer_mm")) {
+      o.corrector.ring_outer_mm = c.Numbers("ring_outer_mm", 1, 64);
+      if (o.corrector.ring_outer_mm.size() != o.corrector.transmissions.size())
+        c.Fail("ring_outer_mm", "needs one outer radius per transmission value");
+      double prev = 0;
+      for (double r : o.corrector.ring_outer_mm) {
+        if (!(r > prev)) c.Fail("ring_outer_mm", "radii must be positive and ascending");
+        prev = r;
+      }
+    }
+    c.Finish();
+  }
+  return o;
+}
+
+}  // namespace
+
+double Magnification(const OpticsSpec& o) { return -o.tube_focal_mm / o.objective_focal_mm; }
+
+Scene LoadScene(const std::string& path) {
+  toml::table t = ParseTomlFile(path);
+  Scene s;
+  s.file = path;
+  TomlReader r(t, path, "");
+  s.name = r.String("name", fs::path(path).stem().string());
+  for (char c : s.name)
+    if (!(std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '-' || c == '.'))
+      r.Fail("name", "used in file names: letters, digits, '_', '-' and '.' only");
+  s.wavelength_um = r.InRange("wavelength_um", 0.2, 2.0, 0.462);
+  s.medium_index = r.InRange("medium_index", 1.0, 3.0, 1.0);
+  s.trace.seed = static_cast<uint64_t>(r.Integer("seed", 1, 0, INT64_MAX));
+  s.source = ReadSource(r.Table("source"), path);
+  int i = 0;
+  for (TomlReader& o : r.Tables("object")) s.objects.push_back(ReadObject(o, s, i++));
+  s.optics = ReadOptics(r);
+
+  TomlReader cam = r.Table("camera");
+  const auto px = cam.Numbers("pixels", 2, 2);
+  if (px[0] < 1 || px[1] < 1 || px[0] > 65536 || px[1] > 65536 || px[0] != std::floor(px[0]) ||
+      px[1] != std::floor(px[1]))
+    cam.Fail("pixels", "expected two whole numbers in [1, 65536] (columns, rows)");
+  s.camera.nx = static_cast<int>(px[0]);
+  s.camera.ny = static_cast<int>(px[1]);
+  s.camera.pixel_pitch_um = cam.Positive("pixel_pitch_um");
+  if (cam.Has("offset_um")) {
+    const auto v = cam.Numbers("offset_um", 2, 2);
+    s.camera.offset_um = {v[0], v[1]};
+  }
+  s.camera.sensor_shift_mm = cam.Number("sensor_shift_mm", 0);
+  s.camera.flip = cam.Bool("flip", true);
+  cam.Finish();
+
+  if (r.Has("trace")) {
+    TomlReader tr = r.Table("trace");
+    s.trace.rays = static_cast<uint64_t>(tr.Integer("rays", 0, 0, int64_t(1) << 50));
+    s.trace.photons_per_pixel = tr.Positive("photons_per_pixel", 0.0);
+    if (tr.Has("rays") && tr.Has("photons_per_pixel"))
+      tr.Fail("photons_per_pixel", "give either 'rays' or 'photons_per_pixel', not both");
+    if (tr.Has("signal") || tr.Has("well_capacity")) {
+      if (tr.Has("rays") || tr.Has("photons_per_pixel"))
+        tr.Fail("signal", "give 'signal' and 'well_capacity' instead of rays/photons_per_pixel");
+      const double signal = tr.InRange("signal", 0, 1, 0, true, false);
+      const double well = tr.Positive("well_capacity");
+      s.trace.photons_per_pixel = signal * well;
+    } else {
+      tr.Number("signal", 0), tr.Number("well_capacity", 0);
+    }
+    const std::string pr =
+        tr.Choice("partial_reflection", {"off", "unpolarized", "polarized"}, "unpolarized");
+    s.trace.partial_reflection = pr == "off"           ? PartialReflection::kOff
+                                 : pr == "unpolarized" ? PartialReflection::kUnpolarized
+                                                       : PartialReflection::kPolarized;
+    s.trace.max_interactions = static_cast<int>(tr.Integer("max_interactions", 100, 1, 100000));
+    s.trace.threads = static_cast<int>(tr.Integer("threads", 0, 0, 4096));
+    tr.Finish();
+  }
+  if (s.trace.rays == 0 && s.trace.photons_per_pixel == 0) s.trace.rays = 1000000;
+
+  if (r.Has("scan")) {
+    TomlReader sc = r.Table("scan");
+    s.defocus_um = sc.Numbers("defocus_um", 1, 10000);
+    sc.Finish();
+  }
+  r.Finish();
+  ValidateScene(s);
+  return s;
+}
+
+void ValidateScene(const Scene& s) {
+  const FileLocation where{s.file};
+  const double f_mm = s.optics.objective_focal_mm;
+  // The first optical surface: the corrector or the objective's first lens.
+  double first_plane_um = 1e300;
+  for (double dz : s.defocus_um) {
+    const double front =
+        (s.optics.model == ObjectiveModel::kTwoLens ? s.optics.working_distance_mm : f_mm) * 1e3;
+    double corr = s.optics.corrector.enabled && s.optics.corrector.distance_mm > 0
+                      ? s.optics.corrector.distance_mm * 1e3
+                      : front;
+    first_plane_um = std::min(first_plane_um, dz + std::min(front, corr));
+  }
+  for (const ObjectSpec& o : s.objects) {
+    const double extent = o.shape == ShapeType::kSphere ? o.radius_um
+                          : o.shape == ShapeType::kMesh ? 0
+                                                        : Length(o.semi_axes_um);
+    if (o.center_um.z + extent >= first_plane_um)
+      throw Error(o.where, "object '" + o.name +
+                               "' reaches the objective or corrector plane; move it or the focus");
+  }
+  if (s.source.type == SourceType::kPoint && s.source.position_um.z >= first_plane_um)
+    throw Error(where, "the point source lies beyond the objective");
+}
+
+}  // namespace raymatch::simulate

@@ -1,0 +1,616 @@
+#include "raymatch/simulate/tracer.h"
+
+#include <tbb/blocked_range.h>
+#include <tbb/enumerable_thread_specific.h>
+#include <tbb/global_control.h>
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cmath>
+#include <condition_variable>
+#include <cstdio>
+#include <mutex>
+#include <thread>
+#include <variant>
+
+#include "raymatch/core/error.h"
+#include "raymatch/core/rng.h"
+#include "raymatch/simulate/geometry.h"
+#include "raymatch/simulate/interfaces.h"
+#include "raymatch/simulate/sampling.h"
+
+namespace raymatch::simulate {
+
+const char* FateName(Fate f) {
+  static const char* names[] = {"detected",           "outside_na",      "missed_sensor",
+                                "absorbed_corrector", "interaction_cap", "escaped",
+                                "lost_inside"};
+  return names[static_cast<int>(f)];
+}
+
+void TraceCounters::Add(const TraceCounters& o) {
+  for (int i = 0; i < kNumFates; ++i) fates[i] += o.fates[i];
+  for (int i = 0; i < kNumPathClasses; ++i) path_class[i] += o.path_class[i];
+  interface_events += o.interface_events;
+  fresnel_evaluations += o.fresnel_evaluations;
+  corrector_tests += o.corrector_tests;
+  mesh_queries += o.mesh_queries;
+  shape_queries += o.shape_queries;
+  rays_hitting_objects += o.rays_hitting_objects;
+}
+
+uint64_t TraceCounters::total_fates() const {
+  uint64_t s = 0;
+  for (uint64_t f : fates) s += f;
+  return s;
+}
+
+namespace {
+
+constexpr double kDeg = M_PI / 180.0;
+
+// ---------------------------------------------------------------- sources
+// Each source yields a point where the ray crosses z = 0 (absent objects) and a unit direction
+// with d.z > 0; the tracer then starts it on the source plane before all objects.
+
+struct Field {
+  FieldShape shape;
+  double radius, half_w, half_h;
+  Vec3 center;
+  Distribution2D map;  // optional spatial map over the rectangle
+  Vec3 Sample(RayRng& rng) const {
+    const double u0 = rng.Uniform(), u1 = rng.Uniform();
+    if (shape == FieldShape::kDisc) {
+      double x, y;
+      SampleUnitDisc(u0, u1, &x, &y);
+      return center + Vec3(x * radius, y * radius, 0);
+    }
+    if (!map.empty()) {
+      double x, y;
+      map.Sample(u0, u1, &x, &y);
+      return center + Vec3((2 * x - 1) * half_w, (1 - 2 * y) * half_h, 0);  // row 0 = +y
+    }
+    return center + Vec3((2 * u0 - 1) * half_w, (2 * u1 - 1) * half_h, 0);
+  }
+};
+
+struct CollimatedSource {
+  Field field;
+  Vec3 dir;
+  bool Sample(RayRng& rng, Vec3* p, Vec3* d) const {
+    *p = field.Sample(rng);
+    *d = dir;
+    return true;
+  }
+};
+
+/// Uniform radiance inside a cone: uniform density in direction cosines (u, v) over a disc of
+/// radius sin(theta_max) (REFERENCE.md section 6: radiance is density per dx dy du dv).
+struct ConeSource {
+  Field field;
+  double sin_max;
+  bool Sample(RayRng& rng, Vec3* p, Vec3* d) const {
+    *p = field.Sample(rng);
+    double u, v;
+    SampleUnitDisc(rng.Uniform(), rng.Uniform(), &u, &v);
+    u *= sin_max, v *= sin_max;
+    *d = Vec3(u, v, std::sqrt(std::fmax(0.0, 1 - u * u - v * v)));
+    return true;
+  }
+};
+
+/// Isotropic point emitter (uniform per solid angle) into a cone about +z.
+struct PointSource {
+  Vec3 position;
+  double cos_max;
+  bool Sample(RayRng& rng, Vec3* p, Vec3* d) const {
+    const double cz = 1 - rng.Uniform() * (1 - cos_max);
+    const double sz = std::sqrt(std::fmax(0.0, 1 - cz * cz));
+    const double phi = 2 * M_PI * rng.Uniform();
+    *p = position;
+    *d = Vec3(sz * std::cos(phi), sz * std::sin(phi), cz);
+    return true;
+  }
+};
+
+/// Tabulated angular radiance over direction cosines (the calibration's light field).
+struct LightFieldSource {
+  Field field;
+  Distribution2D angular;
+  double extent;
+  bool Sample(RayRng& rng, Vec3* p, Vec3* d) const {
+    *p = field.Sample(rng);
+    double x, y;
+    angular.Sample(rng.Uniform(), rng.Uniform(), &x, &y);
+    const double u = (2 * x - 1) * extent, v = (1 - 2 * y) * extent;
+    const double w2 = 1 - u * u - v * v;
+    if (w2 <= 0) return false;  // map cell beyond the unit circle: no physical direction
+    *d = Vec3(u, v, std::sqrt(w2));
+    return true;
+  }
+};
+
+using SourceVariant = std::variant<CollimatedSource, ConeSource, PointSource, LightFieldSource>;
+
+// ---------------------------------------------------------------- optics
+
+struct Lens {
+  double z, f, rim;  // plane (um, at defocus 0), focal length (um), rim radius (0 = none)
+};
+
+struct Optics {
+  // All z at defocus 0; shifted by the defocus at trace time.
+  double corrector_z = 0;
+  std::vector<double> ring_outer2;  // squared outer radii (um^2)
+  std::vector<double> ring_t;
+  Lens lenses[3];  // objective (1 or 2) + tube lens
+  int num_lenses = 0;
+  int stop_after = 0;  // the stop plane follows lens index stop_after-1
+  double stop_z = 0, stop_r2 = 0;
+  double sensor_z = 0;
+  double pitch = 0, off_x = 0, off_y = 0, sign = -1;
+  int nx = 0, ny = 0;
+};
+
+// Per-thread accumulation: integer counts, so sums do not depend on the partition.
+struct Accum {
+  std::vector<uint32_t> image;
+  TraceCounters counters;
+};
+
+}  // namespace
+
+struct Simulator::Impl {
+  Geometry geometry;
+  SourceVariant source;
+  Optics optics;
+  std::vector<double> index;  // per object
+  double medium;
+  double source_z;
+  explicit Impl(const Scene& s) : geometry(s.objects) {}
+};
+
+namespace {
+
+Field MakeField(const Scene& s, double auto_radius) {
+  Field f;
+  f.shape = s.source.field_shape;
+  f.radius = s.source.field_radius_um > 0 ? s.source.field_radius_um : auto_radius;
+  f.half_w = s.source.field_size_um[0] / 2;
+  f.half_h = s.source.field_size_um[1] / 2;
+  f.center = s.source.field_center_um;
+  if (!s.source.spatial_map.empty()) f.map = Distribution2D(s.source.spatial_map);
+  return f;
+}
+
+Optics MakeOptics(const Scene& s) {
+  Optics o;
+  const OpticsSpec& sp = s.optics;
+  const double f = sp.objective_focal_mm * 1e3;
+  const double tan_na = std::tan(std::asin(sp.na));
+  double z;
+  if (sp.model == ObjectiveModel::kSingle) {
+    o.lenses[0] = {f, f, 0};
+    o.num_lenses = 1;
+    o.stop_z = 2 * f;
+    z = f;
+  } else {
+    // Two thin lenses from f, WD and BFD (REFERENCE.md section 6).
+    const double wd = sp.working_distance_mm * 1e3, bfd = sp.back_focal_mm * 1e3;
+    const double d = f - bfd * wd / f;
+    const double f1 = d / (1 - bfd / f), f2 = d / (1 - wd / f);
+    o.lenses[0] = {wd, f1, 0};
+    o.lenses[1] = {wd + d, f2, 0};
+    o.num_lenses = 2;
+    o.stop_z = wd + d + bfd;
+    z = wd;
+  }
+  o.stop_after = o.num_lenses;
+  // The stop at the back focal plane is a pure angle filter: height there = f tan(theta).
+  // Radius f tan(asin NA) passes exactly the rays a real (sine-condition) objective of this NA
+  // accepts from an on-axis point (docs/optics.md).
+  const double stop_r = f * tan_na;
+  o.stop_r2 = stop_r * stop_r;
+  const double tube_z = o.stop_z + sp.tube_distance_mm * 1e3;
+  o.lenses[o.num_lenses++] = {tube_z, sp.tube_focal_mm * 1e3, 0};
+  o.sensor_z = tube_z + sp.tube_focal_mm * 1e3 + s.camera.sensor_shift_mm * 1e3;
+  if (sp.corrector.enabled) {
+    const double cz = sp.corrector.distance_mm > 0 ? sp.corrector.distance_mm * 1e3 : z;
+    o.corrector_z = cz;
+    const size_t n = sp.corrector.transmissions.size();
+    for (size_t i = 0; i < n; ++i) {
+      // Default: equal-width zones out to 2 % beyond the NA edge at the corrector plane.
+      const double r = sp.corrector.ring_outer_mm.empty()
+                           ? cz * tan_na * 1.02 * double(i + 1) / n
+                           : sp.corrector.ring_outer_mm[i] * 1e3;
+      o.ring_outer2.push_back(r * r);
+      o.ring_t.push_back(sp.corrector.transmissions[i]);
+    }
+  }
+  o.pitch = s.camera.pixel_pitch_um;
+  o.off_x = s.camera.offset_um[0];
+  o.off_y = s.camera.offset_um[1];
+  o.sign = s.camera.flip ? -1.0 : 1.0;
+  o.nx = s.camera.nx;
+  o.ny = s.camera.ny;
+  return o;
+}
+
+/// Pseudo-random unit vector perpendicular to d (polarisation of a new ray).
+Vec3 RandomPerpendicular(const Vec3& d, double u) {
+  const Vec3 a = std::abs(d.x) < 0.9 ? Vec3(1, 0, 0) : Vec3(0, 1, 0);
+  const Vec3 e1 = Normalize(Cross(d, a)), e2 = Cross(d, e1);
+  const double phi = 2 * M_PI * u;
+  return e1 * std::cos(phi) + e2 * std::sin(phi);
+}
+
+template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
+                double defocus, uint32_t plane, uint64_t begin, uint64_t end, Accum& acc) {
+  const Geometry& geo = im.geometry;
+  const Optics& op = im.optics;
+  const bool has_objects = !geo.empty();
+  TraceCounters& c = acc.counters;
+  for (uint64_t ray = begin; ray < end; ++ray) {
+    RayRng rng(trace.seed, plane, ray);
+    Vec3 p, d;
+    if (!src.Sample(rng, &p, &d)) {
+      ++c.fates[int(Fate::kEscaped)];
+      continue;
+    }
+    Vec3 o = p;
+    if constexpr (!std::is_same_v<Source, PointSource>) o = p + d * ((im.source_z - p.z) / d.z);
+    Vec3 pol;
+    if constexpr (kPR == PartialReflection::kPolarized) pol = RandomPerpendicular(d, rng.Uniform());
+
+    Fate fate = Fate::kDetected;
+    bool done = false;
+    if (has_objects) {
+      int inside = -1;  // object the ray is in, -1 = surrounding medium
+      int events = 0, internal_reflections = 0;
+      bool classified = false;
+      for (;;) {
+        Hit h;
+        ++c.shape_queries;
+        if constexpr (kMesh) ++c.mesh_queries;
+        if (!geo.Intersect<kMesh>(o, d, &h)) break;
+        if (events == 0) ++c.rays_hitting_objects;
+        if (++events > trace.max_interactions) {
+          fate = Fate::kInteractionCap;
+          done = true;
+          break;
+        }
+        ++c.interface_events;
+        const bool entering = Dot(d, h.normal) < 0;
+        const double n1 = inside >= 0 ? im.index[inside] : im.medium;
+        const double n2 = entering ? im.index[h.object] : im.medium;
+        const Vec3 nf = entering ? h.normal : -h.normal;  // faces the incoming ray
+        const Vec3 hp = o + d * h.t;
+        const double cos_i = -Dot(d, nf);
+        Vec3 dt;
+        double cos_t = 0;
+        bool reflect = !Refract(d, nf, n1 / n2, &dt, &cos_t);  // TIR
+        if (!reflect) {
+          if constexpr (kPR == PartialReflection::kUnpolarized) {
+            ++c.fresnel_evaluations;
+            reflect = rng.Uniform() < Fresnel(n1, n2, cos_i, cos_t).R();
+          } else if constexpr (kPR == PartialReflection::kPolarized) {
+            ++c.fresnel_evaluations;
+            // Split the field into s (perpendicular to the plane of incidence) and p parts;
+            // reflect with the power-weighted reflectance, then carry the new s/p mixture.
+            const FresnelCoefficients fc = Fresnel(n1, n2, cos_i, cos_t);
+            Vec3 s_dir = Cross(d, nf);
+            const double sl = Length(s_dir);
+            s_dir = sl > 1e-12 ? s_dir / sl : RandomPerpendicular(d, 0.0);
+            const double es = Dot(pol, s_dir), ep = Dot(pol, Cross(s_dir, d));
+            const double R = es * es * fc.Rs + ep * ep * fc.Rp;
+            reflect = rng.Uniform() < R;
+            const Vec3 dn = reflect ? Reflect(d, nf) : dt;
+            const double as = reflect ? fc.rs * es : (1 + fc.rs) * es;  // t_s = 1 + r_s
+            const double ap = reflect ? fc.rp * ep : (1 + fc.rp) * ep * n1 / n2;  // t_p
+            const Vec3 e = s_dir * as + Cross(s_dir, dn) * ap;
+            const double el = Length(e);
+            pol = el > 0 ? e / el : RandomPerpendicular(dn, 0.25);
+          }
+        }
+        if (reflect) {
+          d = Reflect(d, nf);
+          o = hp + nf * geo.epsilon(h.object);
+          if (!classified) {
+            if (entering && events == 1) {
+              ++c.path_class[0];
+              classified = true;
+            } else if (!entering) {
+              ++internal_reflections;
+            }
+          }
+        } else {
+          d = dt;
+          o = hp - nf * geo.epsilon(h.object);
+          inside = entering ? h.object : -1;
+          if (!classified && !entering) {
+            ++c.path_class[std::min(1 + internal_reflections, kNumPathClasses - 1)];
+            classified = true;
+          }
+        }
+      }
+      if (!done && inside >= 0) {
+        fate = Fate::kLostInside;
+        done = true;
+      }
+    }
+    if (!done && d.z <= 0) {
+      fate = Fate::kEscaped;
+      done = true;
+    }
+    if (!done) {
+      // Paraxial optics on exact slopes (tangent law): x' = x + s dz, s' = s - x / f.
+      double z = o.z, x = o.x, y = o.y, sx = d.x / d.z, sy = d.y / d.z;
+      auto go = [&](double zp) {
+        x += sx * (zp - z);
+        y += sy * (zp - z);
+        z = zp;
+      };
+      if constexpr (kCorrector) {
+        ++c.corrector_tests;
+        go(op.corrector_z + defocus);
+        const double r2 = x * x + y * y;
+        size_t ring = 0;
+        while (ring < op.ring_outer2.size() && r2 > op.ring_outer2[ring]) ++ring;
+        if (ring == op.ring_outer2.size()) {
+          fate = Fate::kOutsideNa;
+          done = true;
+        } else if (rng.Uniform() >= op.ring_t[ring]) {
+          fate = Fate::kAbsorbedCorrector;
+          done = true;
+        }
+      }
+      for (int l = 0; l < op.num_lenses && !done; ++l) {
+        if (l == op.stop_after) {
+          go(op.stop_z + defocus);
+          if (x * x + y * y > op.stop_r2) {
+            fate = Fate::kOutsideNa;
+            done = true;
+            break;
+          }
+        }
+        const Lens& L = op.lenses[l];
+        go(L.z + defocus);
+        if (L.rim > 0 && x * x + y * y > L.rim * L.rim) {
+          fate = Fate::kOutsideNa;
+          done = true;
+          break;
+        }
+        sx -= x / L.f;
+        sy -= y / L.f;
+      }
+      if (!done) {
+        go(op.sensor_z + defocus);
+        const double u = op.sign * x - op.off_x, v = op.sign * y - op.off_y;
+        const double col = std::floor(u / op.pitch + 0.5 * op.nx);
+        const double row = std::floor(0.5 * op.ny - v / op.pitch);
+        if (col >= 0 && col < op.nx && row >= 0 && row < op.ny) {
+          ++acc.image[static_cast<size_t>(row) * op.nx + static_cast<size_t>(col)];
+        } else {
+          fate = Fate::kMissedSensor;
+        }
+      }
+    }
+    ++c.fates[int(fate)];
+  }
+}
+
+class Progress {
+ public:
+  Progress(bool enabled, std::string label, uint64_t total)
+      : enabled_(enabled), label_(std::move(label)), total_(total) {
+    if (enabled_) thread_ = std::thread([this] { Loop(); });
+  }
+  ~Progress() {
+    if (!enabled_) return;
+    {
+      std::lock_guard<std::mutex> lk(m_);
+      stop_ = true;
+    }
+    cv_.notify_all();
+    thread_.join();
+    std::fprintf(stderr, "\r\033[K");
+  }
+  void Add(uint64_t n) { done_.fetch_add(n, std::memory_order_relaxed); }
+
+ private:
+  void Loop() {
+    const auto t0 = std::chrono::steady_clock::now();
+    std::unique_lock<std::mutex> lk(m_);
+    // Runs shorter than ~2 s print nothing.
+    if (cv_.wait_for(lk, std::chrono::seconds(2), [this] { return stop_; })) return;
+    while (!stop_) {
+      const double f = double(done_.load()) / double(std::max<uint64_t>(total_, 1));
+      const double el = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      const int w = 30, filled = static_cast<int>(f * w);
+      std::fprintf(stderr, "\r%s [%.*s%*s] %5.1f%%  %.0f s elapsed, ~%.0f s left", label_.c_str(),
+                   filled, "##############################", w - filled, "", 100 * f, el,
+                   f > 0 ? el * (1 - f) / f : 0.0);
+      std::fflush(stderr);
+      cv_.wait_for(lk, std::chrono::milliseconds(500), [this] { return stop_; });
+    }
+  }
+  bool enabled_;
+  std::string label_;
+  uint64_t total_;
+  std::atomic<uint64_t> done_{0};
+  std::thread thread_;
+  std::mutex m_;
+  std::condition_variable cv_;
+  bool stop_ = false;
+};
+
+}  // namespace
+
+Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique<Impl>(scene)) {
+  Impl& im = *impl_;
+  im.medium = scene.medium_index;
+  for (const ObjectSpec& o : scene.objects) im.index.push_back(o.index);
+  im.optics = MakeOptics(scene);
+  // Source plane: before every object (and never after z = 0, where fields are defined).
+  const double min_z = im.geometry.empty() ? 0.0 : im.geometry.min_z_um();
+  im.source_z = std::min(0.0, min_z - 1.0 - 1e-3 * std::abs(min_z));
+  // Automatic field radius: the sensor's view at the object plane, widened by the angular
+  // spread over the largest defocus and object depth, plus 5 %.
+  const double m = std::abs(Magnification(scene.optics));
+  const double view = 0.5 * std::hypot(scene.camera.nx, scene.camera.ny) *
+                      scene.camera.pixel_pitch_um / m +
+                      std::hypot(scene.camera.offset_um[0], scene.camera.offset_um[1]) / m;
+  double max_dz = 0;
+  for (double dz : scene.defocus_um) max_dz = std::max(max_dz, std::abs(dz));
+  const double tan_max = std::tan(std::min(scene.source.half_angle_deg, 80.0) * kDeg) +
+                         std::tan(std::asin(scene.optics.na));
+  const double auto_r = 1.05 * (view + (max_dz + im.geometry.extent_um()) * tan_max) + 1.0;
+  const SourceSpec& ss = scene.source;
+  switch (ss.type) {
+    case SourceType::kCollimated: {
+      const double t = ss.tilt_deg * kDeg, a = ss.azimuth_deg * kDeg;
+      im.source = CollimatedSource{MakeField(scene, auto_r),
+                                   Vec3(std::sin(t) * std::cos(a), std::sin(t) * std::sin(a),
+                                        std::cos(t))};
+      break;
+    }
+    case SourceType::kCone:
+      im.source = ConeSource{MakeField(scene, auto_r), std::sin(ss.half_angle_deg * kDeg)};
+      break;
+    case SourceType::kPoint:
+      im.source = PointSource{ss.position_um, std::cos(ss.half_angle_deg * kDeg)};
+      break;
+    case SourceType::kLightField:
+      im.source = LightFieldSource{MakeField(scene, auto_r), Distribution2D(ss.angular_map),
+                                   ss.angular_extent};
+      break;
+  }
+  if (ss.type == SourceType::kPoint) {
+    for (const ObjectSpec& o : scene.objects)
+      if (o.shape == ShapeType::kSphere && Length(ss.position_um - o.center_um) < o.radius_um)
+        throw Error(o.where, "the point source lies inside object '" + o.name + "'");
+  }
+}
+
+Simulator::~Simulator() = default;
+
+double Simulator::source_plane_z_um() const { return impl_->source_z; }
+double Simulator::object_pixel_um() const {
+  return scene_.camera.pixel_pitch_um / std::abs(Magnification(scene_.optics));
+}
+bool Simulator::has_mesh_bvh() const { return impl_->geometry.has_meshes(); }
+
+std::vector<std::string> Simulator::Effects() const {
+  static const char* src[] = {"source:collimated", "source:cone", "source:point",
+                              "source:lightfield"};
+  std::vector<std::string> e{src[static_cast<int>(scene_.source.type)]};
+  if (!impl_->geometry.empty()) {
+    e.push_back("refraction");
+    e.push_back("total_internal_reflection");
+    if (scene_.trace.partial_reflection == PartialReflection::kUnpolarized)
+      e.push_back("partial_reflection:unpolarized");
+    if (scene_.trace.partial_reflection == PartialReflection::kPolarized)
+      e.push_back("partial_reflection:polarized");
+  }
+  if (impl_->geometry.has_meshes()) e.push_back("mesh_bvh:embree");
+  if (scene_.optics.corrector.enabled) e.push_back("angular_corrector");
+  e.push_back(scene_.optics.model == ObjectiveModel::kSingle ? "objective:single_ideal_lens"
+                                                             : "objective:two_ideal_lenses");
+  e.push_back("tube_lens");
+  return e;
+}
+
+PlaneResult Simulator::TracePlane(double defocus_um, uint32_t plane_index, uint64_t rays,
+                                  const RunControl& control) const {
+  const Impl& im = *impl_;
+  int threads = control.threads > 0 ? control.threads : scene_.trace.threads;
+  if (threads <= 0) threads = static_cast<int>(std::thread::hardware_concurrency());
+  threads = std::max(1, threads);
+  const size_t npix = size_t(scene_.camera.nx) * scene_.camera.ny;
+  tbb::enumerable_thread_specific<Accum> accums([npix] {
+    Accum a;
+    a.image.assign(npix, 0);
+    return a;
+  });
+  const auto t0 = std::chrono::steady_clock::now();
+  Progress progress(control.progress, control.label, rays);
+  const PartialReflection pr =
+      im.geometry.empty() ? PartialReflection::kOff : scene_.trace.partial_reflection;
+  const bool corr = scene_.optics.corrector.enabled;
+  const bool mesh = im.geometry.has_meshes();
+  constexpr uint64_t kChunk = 8192;
+  const uint64_t chunks = (rays + kChunk - 1) / kChunk;
+
+  auto run_chunk = [&](uint64_t ci) {
+    const uint64_t b = ci * kChunk, e = std::min(rays, b + kChunk);
+    Accum& acc = accums.local();
+    const TraceSpec& ts = scene_.trace;
+    // Choose the inner loop once per chunk from the scene's effects.
+    std::visit(
+        [&](const auto& src) {
+          auto dispatch = [&]<PartialReflection P>() {
+            if (corr && mesh) TraceRange<P, true, true>(im, src, ts, defocus_um, plane_index, b, e, acc);
+            else if (corr) TraceRange<P, true, false>(im, src, ts, defocus_um, plane_index, b, e, acc);
+            else if (mesh) TraceRange<P, false, true>(im, src, ts, defocus_um, plane_index, b, e, acc);
+            else TraceRange<P, false, false>(im, src, ts, defocus_um, plane_index, b, e, acc);
+          };
+          switch (pr) {
+            case PartialReflection::kOff: dispatch.template operator()<PartialReflection::kOff>(); break;
+            case PartialReflection::kUnpolarized: dispatch.template operator()<PartialReflection::kUnpolarized>(); break;
+            case PartialReflection::kPolarized: dispatch.template operator()<PartialReflection::kPolarized>(); break;
+          }
+        },
+        im.source);
+    progress.Add(e - b);
+  };
+
+  tbb::task_arena arena(threads);
+  arena.execute([&] {
+    tbb::parallel_for(tbb::blocked_range<uint64_t>(0, chunks, 1),
+                      [&](const tbb::blocked_range<uint64_t>& r) {
+                        for (uint64_t ci = r.begin(); ci != r.end(); ++ci) run_chunk(ci);
+                      });
+  });
+
+  PlaneResult res;
+  res.defocus_um = defocus_um;
+  res.rays = rays;
+  res.threads = threads;
+  std::vector<uint64_t> sum(npix, 0);
+  for (const Accum& a : accums) {
+    for (size_t i = 0; i < npix; ++i) sum[i] += a.image[i];
+    res.counters.Add(a.counters);
+  }
+  res.counts = Image(scene_.camera.nx, scene_.camera.ny);
+  for (size_t i = 0; i < npix; ++i) res.counts.pixels[i] = static_cast<float>(sum[i]);
+  res.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  RAYMATCH_CHECK(res.counters.total_fates() == rays);  // every ray accounted for
+  return res;
+}
+
+uint64_t Simulator::RaysForPhotonTarget(double photons_per_pixel, double* hppr) const {
+  // Pilot: the same source and optics without objects (a flat field), fixed seed and stream.
+  Scene flat = scene_;
+  flat.objects.clear();
+  flat.trace.seed = 0x5eed;
+  Simulator pilot(flat);
+  constexpr uint64_t kPilotRays = 400000;
+  const PlaneResult r = pilot.TracePlane(0.0, 0xFFFFFFFFu, kPilotRays);
+  const double per_ray_per_pixel =
+      double(r.counters.fates[int(Fate::kDetected)]) / (double(kPilotRays) * r.counts.size());
+  if (hppr) *hppr = per_ray_per_pixel;
+  if (!(per_ray_per_pixel > 0))
+    throw Error(FileLocation{scene_.file},
+                "no light reaches the sensor in the flat field: check source field, NA and camera");
+  return static_cast<uint64_t>(std::ceil(photons_per_pixel / per_ray_per_pixel));
+}
+
+uint64_t Simulator::RaysPerImage() const {
+  return scene_.trace.rays > 0 ? scene_.trace.rays
+                               : RaysForPhotonTarget(scene_.trace.photons_per_pixel);
+}
+
+}  // namespace raymatch::simulate

@@ -567,6 +567,8 @@ PlaneResult Simulator::TracePlane(double defocus_um, uint32_t plane_index, uint6
     progress.Add(e - b);
   };
 
+  // Allow exactly `threads` workers even beyond the core count (determinism tests use that).
+  tbb::global_control limit(tbb::global_control::max_allowed_parallelism, threads);
   tbb::task_arena arena(threads);
   arena.execute([&] {
     tbb::parallel_for(tbb::blocked_range<uint64_t>(0, chunks, 1),

@@ -1,0 +1,100 @@
+// Scene files: strict reading with file:line:col errors (docs/scene-format.md).
+#include "raymatch/simulate/scene.h"
+
+#include <gtest/gtest.h>
+
+#include "temp_dir.h"
+
+namespace raymatch::simulate {
+namespace {
+
+const char* kGood = R"(name = "t"
+[source]
+type = "cone"
+half_angle_deg = 20
+[[object]]
+type = "sphere"
+radius_um = 10
+index = 1.33
+[objective]
+focal_length_mm = 10
+na = 0.42
+[tube_lens]
+focal_length_mm = 200
+[camera]
+pixels = [32, 16]
+pixel_pitch_um = 20
+)";
+
+std::string LoadError(const std::string& text) {
+  testing::TempDir dir;
+  const std::string p = dir.Write("scene.toml", text);
+  try {
+    LoadScene(p);
+  } catch (const Error& e) {
+    const std::string w = e.what();
+    return w.substr(w.find("scene.toml"));
+  }
+  return "";
+}
+
+std::string Replace(std::string s, const std::string& a, const std::string& b) {
+  const size_t i = s.find(a);
+  EXPECT_NE(i, std::string::npos) << a;
+  return s.replace(i, a.size(), b);
+}
+
+TEST(SceneFile, GoodSceneLoads) {
+  testing::TempDir dir;
+  const Scene s = LoadScene(dir.Write("scene.toml", kGood));
+  EXPECT_EQ(s.camera.nx, 32);
+  EXPECT_EQ(s.camera.ny, 16);
+  EXPECT_DOUBLE_EQ(s.objects.at(0).radius_um, 10);
+  EXPECT_DOUBLE_EQ(Magnification(s.optics), -20);
+  EXPECT_EQ(s.trace.partial_reflection, PartialReflection::kUnpolarized);
+}
+
+TEST(SceneFile, WaterMaterialUsesIapws) {
+  testing::TempDir dir;
+  const Scene s = LoadScene(dir.Write(
+      "scene.toml", Replace(std::string(kGood) + "", "index = 1.33",
+                            "material = \"water\"\ntemperature_K = 298.15\ndensity_kg_m3 = "
+                            "997.047435")));
+  EXPECT_NEAR(s.objects[0].index, 1.3370, 2e-3);  // at 0.462 um, higher than 1.3329 at 589 nm
+}
+
+TEST(SceneFile, ErrorsSayWhereAndWhat) {
+  const std::string g = kGood;
+  EXPECT_EQ(LoadError(Replace(g, "radius_um = 10", "radius_um = -10")),
+            "scene.toml:7:13: error: 'object[0].radius_um': expected a positive number, got "
+            "-10.000000");
+  EXPECT_NE(LoadError(Replace(g, "na = 0.42", "na = 1.0"))
+                .find("scene.toml:11:6: error: 'objective.na': expected a number in (0, 1)"),
+            std::string::npos);
+  EXPECT_NE(LoadError(Replace(g, "pixels = [32, 16]", "pixels = [0, 16]"))
+                .find("scene.toml:15:10: error: 'camera.pixels': expected two whole numbers"),
+            std::string::npos);
+  EXPECT_NE(LoadError(Replace(g, "index = 1.33", "index = 1.33\nradius = 3"))
+                .find("scene.toml:9:1: error: unknown key 'object[0].radius'"),
+            std::string::npos);
+  EXPECT_NE(LoadError(Replace(g, "half_angle_deg = 20", "half_angle_deg = \"wide\""))
+                .find("scene.toml:4:18: error: 'source.half_angle_deg': expected a number, got a "
+                      "string"),
+            std::string::npos);
+  EXPECT_NE(LoadError(Replace(g, "[camera]\npixels = [32, 16]\npixel_pitch_um = 20\n", ""))
+                .find("missing required key 'camera'"),
+            std::string::npos);
+  EXPECT_NE(LoadError(Replace(g, "type = \"sphere\"", "type = \"cube\""))
+                .find("expected one of \"sphere\", \"ellipsoid\", \"box\", \"mesh\""),
+            std::string::npos);
+  EXPECT_NE(LoadError("name = \n").find("scene.toml:1:"), std::string::npos);  // syntax
+}
+
+TEST(SceneFile, ObjectBeyondTheObjectiveIsRejected) {
+  EXPECT_NE(LoadError(Replace(kGood, "radius_um = 10", "radius_um = 10\ncenter_um = [0, 0, 2e4]"))
+                .find("reaches the objective"),
+            std::string::npos);
+}
+
+}  // namespace
+}  // namespace raymatch::simulate

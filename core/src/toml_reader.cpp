@@ -20,6 +20,13 @@ toml::table ParseTomlFile(const std::string& path) {
   }
 }
 
+static std::string Num(double v) {
+  std::ostringstream os;
+  os.precision(10);
+  os << v;
+  return os.str();
+}
+
 static FileLocation LocOf(const std::string& file, const toml::source_region& r) {
   return FileLocation{file, static_cast<int>(r.begin.line), static_cast<int>(r.begin.column)};
 }
@@ -86,7 +93,7 @@ double TomlReader::Number(const std::string& key, double fallback) {
 
 double TomlReader::Positive(const std::string& key) {
   const double v = Number(key);
-  if (!(v > 0)) Fail(key, "expected a positive number, got " + std::to_string(v));
+  if (!(v > 0)) Fail(key, "expected a positive number, got " + Num(v));
   return v;
 }
 

@@ -1,0 +1,121 @@
+// Golden tests of `raymatch simulate` as a user runs it.
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+
+#include "raymatch/core/image_io.h"
+#include "temp_dir.h"
+
+namespace fs = std::filesystem;
+
+namespace raymatch {
+namespace {
+
+struct CliRun {
+  int code;
+  std::string err;
+};
+
+CliRun Raymatch(const std::string& args, const testing::TempDir& dir) {
+  const std::string err = dir / "stderr.txt";
+  const std::string cmd = std::string(RAYMATCH_BIN) + " " + args + " >" + (dir / "stdout.txt") +
+                          " 2>" + err;
+  const int status = std::system(cmd.c_str());
+  std::ifstream in(err);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, ss.str()};
+}
+
+const char* kScene = R"(name = "tiny"
+seed = 7
+[source]
+type = "cone"
+half_angle_deg = 20
+[[object]]
+type = "sphere"
+radius_um = 8
+material = "water"
+[objective]
+focal_length_mm = 10
+na = 0.42
+[tube_lens]
+focal_length_mm = 200
+[camera]
+pixels = [40, 30]
+pixel_pitch_um = 20
+[trace]
+rays = 200000
+[scan]
+defocus_um = [-5, 0, 5]
+)";
+
+TEST(SimulateCli, WritesImagesSidecarsAndIndex) {
+  testing::TempDir dir;
+  const std::string scene = dir.Write("tiny.toml", kScene);
+  const CliRun r = Raymatch("simulate " + scene + " -o " + (dir / "out") + " --threads 2", dir);
+  ASSERT_EQ(r.code, 0) << r.err;
+  for (const char* z : {"-005.00", "+000.00", "+005.00"}) {
+    const std::string stem = dir / ("out/tiny_z" + std::string(z) + "um");
+    ImageFileInfo info;
+    const Image img = ReadImage(stem + ".tif", &info);
+    EXPECT_EQ(info.pixel_type, "float");
+    EXPECT_EQ(img.width, 40);
+    EXPECT_TRUE(fs::exists(stem + ".png"));
+    std::ifstream js(stem + ".json");
+    const auto j = nlohmann::json::parse(js);
+    EXPECT_EQ(j["seed"], 7);
+    EXPECT_EQ(j["rays"], 200000);
+    uint64_t fates = 0;
+    for (auto& [k, v] : j["fates"].items()) fates += v.get<uint64_t>();
+    EXPECT_EQ(fates, 200000u);
+    double sum = 0;
+    for (float v : img.pixels) sum += v;
+    EXPECT_EQ(j["hits"].get<double>(), sum);
+    EXPECT_NE(j["provenance"]["command_line"].get<std::string>().find("simulate"),
+              std::string::npos);
+    EXPECT_NE(j["provenance"]["version"].get<std::string>(), "");
+  }
+  std::ifstream idx(dir / "out/tiny_scan.json");
+  EXPECT_EQ(nlohmann::json::parse(idx)["planes"].size(), 3u);
+}
+
+TEST(SimulateCli, SameSeedSameImageAcrossThreadCounts) {
+  testing::TempDir dir;
+  const std::string scene = dir.Write("tiny.toml", kScene);
+  ASSERT_EQ(Raymatch("simulate " + scene + " -q --no-png --defocus-um 0 --threads 1 -o " + (dir / "a"), dir).code, 0);
+  ASSERT_EQ(Raymatch("simulate " + scene + " -q --no-png --defocus-um 0 --threads 2 -o " + (dir / "b"), dir).code, 0);
+  EXPECT_EQ(ReadImage(dir / "a/tiny_z+000.00um.tif").pixels,
+            ReadImage(dir / "b/tiny_z+000.00um.tif").pixels);
+}
+
+TEST(SimulateCli, BadSceneGivesLocatedErrorAndNoOutput) {
+  testing::TempDir dir;
+  std::string bad = kScene;
+  bad.replace(bad.find("radius_um = 8"), 13, "radius_um = 0");
+  const std::string scene = dir.Write("bad.toml", bad);
+  const CliRun r = Raymatch("simulate " + scene + " -o " + (dir / "out"), dir);
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("bad.toml:8:13: error: 'object[0].radius_um': expected a positive number"),
+            std::string::npos)
+      << r.err;
+  EXPECT_FALSE(fs::exists(dir / "out"));
+  // Usage errors exit 2.
+  EXPECT_EQ(Raymatch("simulate", dir).code, 2);
+  EXPECT_EQ(Raymatch("simulate " + (dir / "missing.toml"), dir).code, 2);
+}
+
+TEST(SimulateCli, SampleSceneIsValid) {
+  testing::TempDir dir;
+  const CliRun r = Raymatch("simulate " + std::string(RAYMATCH_SOURCE_DIR) +
+                             "/datasets-sample/drop46/scene.toml -q --no-png --rays 20000 "
+                             "--defocus-um 0 -o " + (dir / "out"),
+                         dir);
+  EXPECT_EQ(r.code, 0) << r.err;
+}
+
+}  // namespace
+}  // namespace raymatch

@@ -61,12 +61,12 @@ struct Field {
   Vec3 center;
   Distribution2D map;  // optional spatial map over the rectangle
   Vec3 Sample(RayRng& rng) const {
-    const double u0 = rng.Uniform(), u1 = rng.Uniform();
     if (shape == FieldShape::kDisc) {
       double x, y;
-      SampleUnitDisc(u0, u1, &x, &y);
+      SampleUnitDisc(rng, &x, &y);
       return center + Vec3(x * radius, y * radius, 0);
     }
+    const double u0 = rng.Uniform(), u1 = rng.Uniform();
     if (!map.empty()) {
       double x, y;
       map.Sample(u0, u1, &x, &y);
@@ -94,9 +94,9 @@ struct ConeSource {
   bool Sample(RayRng& rng, Vec3* p, Vec3* d) const {
     *p = field.Sample(rng);
     double u, v;
-    SampleUnitDisc(rng.Uniform(), rng.Uniform(), &u, &v);
+    SampleUnitDisc(rng, &u, &v);
     u *= sin_max, v *= sin_max;
-    *d = Vec3(u, v, std::sqrt(std::fmax(0.0, 1 - u * u - v * v)));
+    *d = Vec3(u, v, std::sqrt(1 - u * u - v * v));  // u^2 + v^2 < sin_max^2 < 1
     return true;
   }
 };
@@ -107,7 +107,7 @@ struct PointSource {
   double cos_max;
   bool Sample(RayRng& rng, Vec3* p, Vec3* d) const {
     const double cz = 1 - rng.Uniform() * (1 - cos_max);
-    const double sz = std::sqrt(std::fmax(0.0, 1 - cz * cz));
+    const double sz = std::sqrt(std::max(0.0, 1 - cz * cz));
     const double phi = 2 * M_PI * rng.Uniform();
     *p = position;
     *d = Vec3(sz * std::cos(phi), sz * std::sin(phi), cz);

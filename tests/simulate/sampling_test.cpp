@@ -48,7 +48,7 @@ TEST(UnitDisc, UniformOverArea) {
   const int N = 1000000;
   for (int i = 0; i < N; ++i) {
     double x, y;
-    SampleUnitDisc(rng.Uniform(), rng.Uniform(), &x, &y);
+    SampleUnitDisc(rng, &x, &y);
     ASSERT_LE(x * x + y * y, 1 + 1e-12);
     inside += x * x + y * y < 0.25;
   }

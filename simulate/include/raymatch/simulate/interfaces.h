@@ -4,6 +4,7 @@
 // Sign convention: `d` is the unit propagation direction of the incoming ray; `n` is the unit
 // surface normal on the side the ray arrives from (Dot(d, n) < 0). `eta` = n1 / n2 with n1 the
 // index on the incoming side. All functions are branch-light and allocation-free.
+#include <algorithm>
 #include <cmath>
 
 #include "raymatch/core/vec.h"
@@ -17,7 +18,7 @@ inline Vec3 Reflect(const Vec3& d, const Vec3& n) { return d - n * (2 * Dot(d, n
 /// `*t` untouched. `cos_i` = -Dot(d, n) > 0. On success `*cos_t` is the transmitted cosine.
 inline bool Refract(const Vec3& d, const Vec3& n, double eta, Vec3* t, double* cos_t) {
   const double cos_i = -Dot(d, n);
-  const double sin2_t = eta * eta * std::fmax(0.0, 1.0 - cos_i * cos_i);
+  const double sin2_t = eta * eta * std::max(0.0, 1.0 - cos_i * cos_i);
   if (sin2_t >= 1.0) return false;
   const double ct = std::sqrt(1.0 - sin2_t);
   *t = d * eta + n * (eta * cos_i - ct);
@@ -46,7 +47,7 @@ inline FresnelCoefficients Fresnel(double n1, double n2, double cos_i, double co
 /// returns 1 beyond the critical angle (total internal reflection).
 inline double FresnelReflectance(double n1, double n2, double cos_i) {
   const double eta = n1 / n2;
-  const double sin2_t = eta * eta * std::fmax(0.0, 1.0 - cos_i * cos_i);
+  const double sin2_t = eta * eta * std::max(0.0, 1.0 - cos_i * cos_i);
   if (sin2_t >= 1.0) return 1.0;
   return Fresnel(n1, n2, cos_i, std::sqrt(1.0 - sin2_t)).R();
 }

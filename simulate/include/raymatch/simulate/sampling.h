@@ -39,23 +39,18 @@ class Distribution2D {
   Distribution1D marginal_;            // over rows
 };
 
-/// Uniform point in the unit disc (concentric mapping, Shirley & Chiu 1997).
-inline void SampleUnitDisc(double u0, double u1, double* x, double* y) {
-  const double a = 2 * u0 - 1, b = 2 * u1 - 1;
-  if (a == 0 && b == 0) {
-    *x = *y = 0;
-    return;
-  }
-  double r, phi;
-  if (std::abs(a) > std::abs(b)) {
-    r = a;
-    phi = M_PI / 4 * (b / a);
-  } else {
-    r = b;
-    phi = M_PI / 2 - M_PI / 4 * (a / b);
-  }
-  *x = r * std::cos(phi);
-  *y = r * std::sin(phi);
+/// Uniform point in the unit disc by rejection from the square (4/pi tries on average). Cheaper
+/// than a polar or concentric mapping (no sin/cos), and as the draws come from the ray's own
+/// counter-based stream the result is still independent of threading.
+template <class Rng>
+inline void SampleUnitDisc(Rng& rng, double* x, double* y) {
+  double a, b;
+  do {
+    a = 2 * rng.Uniform() - 1;
+    b = 2 * rng.Uniform() - 1;
+  } while (a * a + b * b >= 1.0);
+  *x = a;
+  *y = b;
 }
 
 }  // namespace raymatch::simulate

@@ -34,6 +34,9 @@ int main(int argc, char** argv) {
   raymatch::apps::RegisterCompare(app, &exit_code);
   raymatch::apps::RegisterCompareScan(app, &exit_code);
 #endif
+#ifdef RAYMATCH_HAVE_CALIBRATE
+  raymatch::apps::RegisterCalibrate(app, &exit_code);
+#endif
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

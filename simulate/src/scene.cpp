@@ -4,6 +4,7 @@
 #include <filesystem>
 #include <sstream>
 
+#include "raymatch/core/array_io.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/toml_reader.h"
 #include "raymatch/simulate/water.h"
@@ -119,7 +120,116 @@ void ReadMaterial(TomlReader& r, const Scene& scene, ObjectSpec& o) {
   o.material = os.str();
 }
 
-ObjectSpec ReadObject(TomlReader r, const Scene& scene, int i) {
+std::shared_ptr<const IndexField> ReadIndexField(TomlReader r, Scene& scene, const ObjectSpec& o) {
+  auto f = std::make_shared<IndexField>();
+  const std::string type = r.Choice(
+      "type", {"luneburg", "fisheye", "parabolic", "linear_n2", "grid_rz", "grid_3d"});
+  if (type == "luneburg") {
+    f->type = IndexFieldType::kLuneburg;
+    f->n0 = r.Positive("n0", scene.medium_index);
+    f->radius_um = r.Positive("radius_um", o.shape == ShapeType::kSphere ? o.radius_um : 0.0);
+    if (!(f->radius_um > 0)) r.Fail("radius_um", "required unless the object is a sphere");
+    f->description = "Luneburg n = n0 sqrt(2 - (r/R)^2)";
+  } else if (type == "fisheye") {
+    f->type = IndexFieldType::kFishEye;
+    f->n0 = r.Positive("n0");
+    f->radius_um = r.Positive("radius_um");
+    f->description = "Maxwell fish-eye n = n0 / (1 + (r/a)^2)";
+  } else if (type == "parabolic") {
+    f->type = IndexFieldType::kParabolic;
+    f->n0 = r.Positive("n0");
+    f->g_per_um = r.Positive("g_per_um");
+    f->description = "parabolic n^2 = n0^2 (1 - g^2 (x^2 + y^2))";
+  } else if (type == "linear_n2") {
+    f->type = IndexFieldType::kLinearN2;
+    f->n0 = r.Positive("n0");
+    const auto k = r.Vec3("k_per_um");
+    f->k_per_um = {k[0], k[1], k[2]};
+    f->description = "linear n^2 = n0^2 + k . p";
+  } else {
+    const bool rz = type == "grid_rz";
+    f->type = rz ? IndexFieldType::kGridRZ : IndexFieldType::kGrid3D;
+    const std::string file = Resolve(scene.file, r.String("file"));
+    const std::string dataset = r.String("dataset", "");
+    NdArray a;
+    try {
+      a = ReadArrayFile(file, dataset);
+    } catch (const Error& e) {
+      r.Fail("file", e.what());
+    }
+    const size_t dims = rz ? 2 : 3;
+    if (a.shape.size() != dims)
+      r.Fail("file", std::string("expected a ") + (rz ? "2D array [nz][nr]" : "3D array [nz][ny][nx]") +
+                         ", got " + std::to_string(a.shape.size()) + " dimensions");
+    for (size_t i = 0; i < a.size(); ++i)
+      if (!std::isfinite(a.values[i]))
+        r.Fail("file", "grid value " + std::to_string(i) + " (flat C-order index) is NaN or Inf");
+    const auto sp = r.Numbers("spacing_um", dims, dims);
+    for (double v : sp)
+      if (!(v > 0)) r.Fail("spacing_um", "spacings must be positive");
+    std::vector<double> org(dims, 0.0);
+    if (r.Has("origin_um")) org = r.Numbers("origin_um", dims, dims);
+    else r.Number("origin_um", 0);
+    if (rz) {
+      f->nz = int(a.shape[0]), f->nx = int(a.shape[1]), f->ny = 1;
+      f->spacing_um = {sp[0], 1, sp[1]};
+      f->origin_um = {org[0], 0, org[1]};
+      if (org[0] < 0) r.Fail("origin_um", "the radius of the first sample must be >= 0");
+    } else {
+      f->nz = int(a.shape[0]), f->ny = int(a.shape[1]), f->nx = int(a.shape[2]);
+      f->spacing_um = {sp[0], sp[1], sp[2]};
+      f->origin_um = {org[0], org[1], org[2]};
+    }
+    const std::string quantity = r.Choice("quantity", {"index", "density"}, "index");
+    f->values = std::move(a.values);
+    if (quantity == "density") {
+      std::vector<double> temps;
+      double T = 293.15;
+      if (r.Has("temperature_file")) {
+        NdArray t;
+        try {
+          t = ReadArrayFile(Resolve(scene.file, r.String("temperature_file")), dataset);
+        } catch (const Error& e) {
+          r.Fail("temperature_file", e.what());
+        }
+        if (t.size() != f->values.size())
+          r.Fail("temperature_file", "must have the same shape as the density grid");
+        temps = std::move(t.values);
+      } else {
+        T = r.InRange("temperature_K", 200, 800, 293.15);
+      }
+      size_t out_of_range = 0;
+      for (size_t i = 0; i < f->values.size(); ++i) {
+        const WaterIndex w =
+            WaterRefractiveIndex(temps.empty() ? T : temps[i], f->values[i], scene.wavelength_um);
+        out_of_range += !w.in_range;
+        f->values[i] = w.n;
+      }
+      if (out_of_range)
+        scene.warnings.push_back(r.Where("file").ToString() + ": " + std::to_string(out_of_range) +
+                                 " grid values lie outside the IAPWS R9-97 range (0-1060 kg/m^3, "
+                                 "261-773 K); the formula is extrapolated there");
+      f->description = "water density grid -> IAPWS R9-97 index";
+    } else {
+      r.Number("temperature_K", 0), r.String("temperature_file", "");
+      f->description = "index grid";
+      for (double v : f->values)
+        if (!(v > 0)) r.Fail("file", "refractive indices must be positive");
+    }
+    f->description += std::string(rz ? " n(r, z) " : " n(x, y, z) ") + file;
+  }
+  r.Finish();
+  // Range for reports: sample the analytic fields at the centre; grids exactly.
+  if (!f->values.empty()) {
+    f->min_n = *std::min_element(f->values.begin(), f->values.end());
+    f->max_n = *std::max_element(f->values.begin(), f->values.end());
+  } else {
+    f->min_n = f->max_n = f->Index(Vec3());
+  }
+  return f;
+}
+
+ObjectSpec ReadObject(TomlReader r, Scene& scene, int i) {
   ObjectSpec o;
   o.where = r.Where();
   o.name = r.String("name", "object" + std::to_string(i));
@@ -155,7 +265,15 @@ ObjectSpec ReadObject(TomlReader r, const Scene& scene, int i) {
     o.mesh_scale_um = r.Positive("scale_um", 1.0);
     read_rot();
   }
-  ReadMaterial(r, scene, o);
+  if (r.Has("index_field")) {
+    if (r.Has("index") || r.Has("material"))
+      r.Fail("index_field", "an object with an index field takes no 'index' or 'material'");
+    o.index_field = ReadIndexField(r.Table("index_field"), scene, o);
+    o.index = o.index_field->Index(Vec3());
+    o.material = o.index_field->description;
+  } else {
+    ReadMaterial(r, scene, o);
+  }
   r.Finish();
   return o;
 }
@@ -267,6 +385,9 @@ Scene LoadScene(const std::string& path) {
                                                        : PartialReflection::kPolarized;
     s.trace.max_interactions = static_cast<int>(tr.Integer("max_interactions", 100, 1, 100000));
     s.trace.threads = static_cast<int>(tr.Integer("threads", 0, 0, 4096));
+    s.trace.grin.tolerance_um = tr.Positive("grin_tolerance_um", s.trace.grin.tolerance_um);
+    s.trace.grin.max_step_um = tr.Positive("grin_max_step_um", 0.0);
+    s.trace.grin.max_steps = static_cast<int>(tr.Integer("grin_max_steps", s.trace.grin.max_steps, 1, 1000000000));
     tr.Finish();
   }
   if (s.trace.rays == 0 && s.trace.photons_per_pixel == 0) s.trace.rays = 1000000;

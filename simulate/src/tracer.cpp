@@ -39,6 +39,8 @@ void TraceCounters::Add(const TraceCounters& o) {
   mesh_queries += o.mesh_queries;
   shape_queries += o.shape_queries;
   rays_hitting_objects += o.rays_hitting_objects;
+  grin_steps += o.grin_steps;
+  grin_segments += o.grin_segments;
 }
 
 uint64_t TraceCounters::total_fates() const {
@@ -167,6 +169,10 @@ struct Simulator::Impl {
   SourceVariant source;
   Optics optics;
   std::vector<double> index;  // per object
+  std::vector<const IndexField*> field;  // per object; null = homogeneous
+  std::vector<Vec3> center;
+  std::vector<double> size;              // characteristic size (for first GRIN steps)
+  bool has_grin = false;
   double medium;
   double source_z;
   explicit Impl(const Scene& s) : geometry(s.objects) {}
@@ -246,6 +252,58 @@ Vec3 RandomPerpendicular(const Vec3& d, double u) {
   return e1 * std::cos(phi) + e2 * std::sin(phi);
 }
 
+enum class GrinOutcome { kHit, kStepCap, kNoSurface };
+
+/// Follows a curved ray inside gradient-index object `obj` from `o` (direction `d`) to the next
+/// surface. Each accepted step's chord is tested against the surfaces; a step whose chord crosses
+/// one is shortened (the crossing parameter scales the step) until the crossing chord is shorter
+/// than 1e-3 um or 1e-5 of the object size, then the ray leaves at the chord's hit point with
+/// the direction T/|T| at the step's end.
+template <bool kMesh>
+GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cfg, int obj,
+                               const Vec3& o, const Vec3& d, Hit* hit, Vec3* hp, Vec3* dout,
+                               TraceCounters& c) {
+  const IndexField& f = *im.field[obj];
+  const Vec3& center = im.center[obj];
+  const Geometry& geo = im.geometry;
+  const double surface_tol = std::min(1e-3, 1e-5 * im.size[obj]);
+  GrinState s{o, d * f.Index(o - center)};
+  double dt = 0.05 * im.size[obj] / Length(s.t);
+  ++c.grin_segments;
+  for (int step = 0; step < cfg.max_steps; ++step) {
+    GrinState s1 = s;
+    double used = 0, next = dt;
+    AdaptiveStep(f, center, cfg, &s1, &next, &used);
+    ++c.grin_steps;
+    for (int shrink = 0;; ++shrink) {
+      const Vec3 chord = s1.r - s.r;
+      const double L = Length(chord);
+      Hit h;
+      ++c.shape_queries;
+      if constexpr (kMesh) ++c.mesh_queries;
+      const bool crosses = L > 0 && geo.Intersect<kMesh>(s.r, chord / L, &h) && h.t <= L;
+      if (!crosses) {
+        s = s1;
+        dt = next;
+        break;
+      }
+      if (L <= surface_tol || shrink > 60) {
+        *hit = h;
+        *hp = s.r + chord * (h.t / L);
+        *dout = Normalize(s1.t);
+        return GrinOutcome::kHit;
+      }
+      // Aim the (shorter) step at the crossing point; it is within the accepted error.
+      used *= std::max(0.05, 0.999 * h.t / L);
+      next = used;
+      s1 = SharmaStep(f, center, s, used);
+      const double nn = f.Index(s1.r - center), tl = Length(s1.t);
+      if (tl > 0) s1.t = s1.t * (nn / tl);
+    }
+  }
+  return GrinOutcome::kStepCap;
+}
+
 template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
 void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
                 double defocus, uint32_t plane, uint64_t begin, uint64_t end, Accum& acc) {
@@ -268,14 +326,35 @@ void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& t
     Fate fate = Fate::kDetected;
     bool done = false;
     if (has_objects) {
-      int inside = -1;  // object the ray is in, -1 = surrounding medium
+      // Objects the ray is inside, innermost last (nested objects: a bubble in a drop).
+      constexpr int kMaxDepth = 16;
+      int stack[kMaxDepth];
+      int depth = 0;
+      auto index_at = [&](int obj, const Vec3& x) {
+        if (obj < 0) return im.medium;
+        if (im.has_grin && im.field[obj]) return im.field[obj]->Index(x - im.center[obj]);
+        return im.index[obj];
+      };
       int events = 0, internal_reflections = 0;
       bool classified = false;
       for (;;) {
         Hit h;
-        ++c.shape_queries;
-        if constexpr (kMesh) ++c.mesh_queries;
-        if (!geo.Intersect<kMesh>(o, d, &h)) break;
+        Vec3 hp;
+        const int cur = depth ? stack[depth - 1] : -1;
+        if (im.has_grin && cur >= 0 && im.field[cur]) {
+          const GrinOutcome g =
+              IntegrateToSurface<kMesh>(im, trace.grin, cur, o, d, &h, &hp, &d, c);
+          if (g != GrinOutcome::kHit) {
+            fate = g == GrinOutcome::kStepCap ? Fate::kInteractionCap : Fate::kLostInside;
+            done = true;
+            break;
+          }
+        } else {
+          ++c.shape_queries;
+          if constexpr (kMesh) ++c.mesh_queries;
+          if (!geo.Intersect<kMesh>(o, d, &h)) break;
+          hp = o + d * h.t;
+        }
         if (events == 0) ++c.rays_hitting_objects;
         if (++events > trace.max_interactions) {
           fate = Fate::kInteractionCap;
@@ -284,10 +363,18 @@ void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& t
         }
         ++c.interface_events;
         const bool entering = Dot(d, h.normal) < 0;
-        const double n1 = inside >= 0 ? im.index[inside] : im.medium;
-        const double n2 = entering ? im.index[h.object] : im.medium;
+        // The medium beyond a surface being left is the innermost enclosing object other than
+        // the one left.
+        int outer = -1;
+        if (!entering)
+          for (int k = depth - 1; k >= 0; --k)
+            if (stack[k] != h.object) {
+              outer = stack[k];
+              break;
+            }
+        const double n1 = entering ? index_at(cur, hp) : index_at(h.object, hp);
+        const double n2 = entering ? index_at(h.object, hp) : index_at(outer, hp);
         const Vec3 nf = entering ? h.normal : -h.normal;  // faces the incoming ray
-        const Vec3 hp = o + d * h.t;
         const double cos_i = -Dot(d, nf);
         Vec3 dt;
         double cos_t = 0;
@@ -329,14 +416,28 @@ void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& t
         } else {
           d = dt;
           o = hp - nf * geo.epsilon(h.object);
-          inside = entering ? h.object : -1;
+          if (entering) {
+            if (depth == kMaxDepth) {
+              fate = Fate::kLostInside;  // deeper nesting than supported
+              done = true;
+              break;
+            }
+            stack[depth++] = h.object;
+          } else {
+            for (int k = depth - 1; k >= 0; --k)
+              if (stack[k] == h.object) {
+                for (int m = k; m + 1 < depth; ++m) stack[m] = stack[m + 1];
+                --depth;
+                break;
+              }
+          }
           if (!classified && !entering) {
             ++c.path_class[std::min(1 + internal_reflections, kNumPathClasses - 1)];
             classified = true;
           }
         }
       }
-      if (!done && inside >= 0) {
+      if (!done && depth > 0) {
         fate = Fate::kLostInside;
         done = true;
       }
@@ -452,7 +553,13 @@ class Progress {
 Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique<Impl>(scene)) {
   Impl& im = *impl_;
   im.medium = scene.medium_index;
-  for (const ObjectSpec& o : scene.objects) im.index.push_back(o.index);
+  for (const ObjectSpec& o : scene.objects) {
+    im.index.push_back(o.index);
+    im.field.push_back(o.index_field.get());
+    im.center.push_back(o.center_um);
+    im.size.push_back(o.shape == ShapeType::kSphere ? o.radius_um : Length(o.semi_axes_um));
+    im.has_grin = im.has_grin || o.index_field != nullptr;
+  }
   im.optics = MakeOptics(scene);
   // Source plane: before every object (and never after z = 0, where fields are defined).
   const double min_z = im.geometry.empty() ? 0.0 : im.geometry.min_z_um();
@@ -515,6 +622,7 @@ std::vector<std::string> Simulator::Effects() const {
     if (scene_.trace.partial_reflection == PartialReflection::kPolarized)
       e.push_back("partial_reflection:polarized");
   }
+  if (impl_->has_grin) e.push_back("gradient_index:sharma_adaptive");
   if (impl_->geometry.has_meshes()) e.push_back("mesh_bvh:embree");
   if (scene_.optics.corrector.enabled) e.push_back("angular_corrector");
   e.push_back(scene_.optics.model == ObjectiveModel::kSingle ? "objective:single_ideal_lens"

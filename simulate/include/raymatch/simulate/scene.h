@@ -6,6 +6,7 @@
 // object plane where sources define their field). Angles in degrees in files, radians inside.
 // Refractive indices are absolute (relative to vacuum).
 #include <array>
+#include <memory>
 #include <optional>
 #include <string>
 #include <vector>
@@ -13,6 +14,7 @@
 #include "raymatch/core/error.h"
 #include "raymatch/core/image.h"
 #include "raymatch/core/vec.h"
+#include "raymatch/simulate/index_field.h"
 
 namespace raymatch::simulate {
 
@@ -53,6 +55,8 @@ struct ObjectSpec {
   double mesh_scale_um = 1;              ///< mesh: micrometres per mesh unit
   double index = 1.0;                    ///< absolute refractive index
   std::string material;                  ///< "constant" or "water (IAPWS R9-97, T=..., rho=...)"
+  /// Gradient-index field inside the object (null: homogeneous, never integrated).
+  std::shared_ptr<const IndexField> index_field;
   FileLocation where;                    ///< for messages
 };
 
@@ -93,6 +97,7 @@ struct TraceSpec {
   int max_interactions = 100;           ///< interface events per ray before it is abandoned
   int threads = 0;                      ///< 0 = all cores
   uint64_t seed = 1;
+  GrinSettings grin;                    ///< gradient-index integration tolerances
 };
 
 struct Scene {

@@ -44,6 +44,8 @@ struct TraceCounters {
   uint64_t mesh_queries = 0;         ///< Embree BVH queries
   uint64_t shape_queries = 0;        ///< nearest-hit searches over analytic/mesh objects
   uint64_t rays_hitting_objects = 0;
+  uint64_t grin_steps = 0;           ///< accepted gradient-index integration steps
+  uint64_t grin_segments = 0;        ///< ray segments integrated through index fields
   /// Debye-style path classes of the first departure from the first object hit:
   /// [0] reflected externally, [k>=1] transmitted with k-1 internal reflections (7 = 6 or more).
   std::array<uint64_t, kNumPathClasses> path_class{};

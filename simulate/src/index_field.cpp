@@ -1,0 +1,161 @@
+#include "raymatch/simulate/index_field.h"
+
+#include <algorithm>
+#include <cmath>
+
+namespace raymatch::simulate {
+
+namespace {
+
+// Cell index and fraction along one axis (x in sample units); outside [0, n-1] the value is
+// held constant (fraction clamped) and `inside` is false so the gradient along it is zero.
+inline void Locate(double x, int n, int* i, double* f, bool* inside) {
+  if (n < 2 || x < 0) {
+    *i = 0, *f = 0, *inside = false;
+  } else if (x >= n - 1) {
+    *i = n - 2, *f = 1, *inside = false;
+  } else {
+    *i = static_cast<int>(x), *f = x - *i, *inside = true;
+  }
+}
+
+}  // namespace
+
+void IndexField::Eval(const Vec3& p, double* n, Vec3* grad) const {
+  switch (type) {
+    case IndexFieldType::kLuneburg: {
+      const double q = 2 - Dot(p, p) / (radius_um * radius_um);
+      const double nn = n0 * std::sqrt(std::max(q, 1e-12));
+      *n = nn;
+      *grad = p * (-n0 * n0 / (radius_um * radius_um) / nn);  // grad n = grad(n^2) / 2n
+      return;
+    }
+    case IndexFieldType::kFishEye: {
+      const double a2 = radius_um * radius_um, den = 1 + Dot(p, p) / a2;
+      *n = n0 / den;
+      *grad = p * (-2 * n0 / (a2 * den * den));
+      return;
+    }
+    case IndexFieldType::kParabolic: {
+      const double g2 = g_per_um * g_per_um;
+      const double n2 = n0 * n0 * (1 - g2 * (p.x * p.x + p.y * p.y));
+      const double nn = std::sqrt(std::max(n2, 1e-12));
+      *n = nn;
+      *grad = Vec3(p.x, p.y, 0) * (-n0 * n0 * g2 / nn);
+      return;
+    }
+    case IndexFieldType::kLinearN2: {
+      const double nn = std::sqrt(std::max(n0 * n0 + Dot(k_per_um, p), 1e-12));
+      *n = nn;
+      *grad = k_per_um * (0.5 / nn);
+      return;
+    }
+    case IndexFieldType::kGridRZ: {
+      const double r = std::sqrt(p.x * p.x + p.y * p.y);
+      int ir, iz;
+      double fr, fz;
+      bool in_r, in_z;
+      Locate((r - origin_um.x) / spacing_um.x, nx, &ir, &fr, &in_r);
+      Locate((p.z - origin_um.z) / spacing_um.z, nz, &iz, &fz, &in_z);
+      auto v = [&](int a, int b) {  // a: z index, b: r index
+        return values[size_t(std::min(a, nz - 1)) * nx + std::min(b, nx - 1)];
+      };
+      const double v00 = v(iz, ir), v01 = v(iz, ir + 1), v10 = v(iz + 1, ir),
+                   v11 = v(iz + 1, ir + 1);
+      const double a0 = v00 + (v01 - v00) * fr, a1 = v10 + (v11 - v10) * fr;
+      *n = a0 + (a1 - a0) * fz;
+      const double dn_dr =
+          in_r ? ((v01 - v00) * (1 - fz) + (v11 - v10) * fz) / spacing_um.x : 0.0;
+      const double dn_dz = in_z ? (a1 - a0) / spacing_um.z : 0.0;
+      // On the axis dn/dr is taken as 0 (the field is smooth and symmetric there).
+      const Vec3 radial = r > 1e-12 ? Vec3(p.x / r, p.y / r, 0) : Vec3();
+      *grad = radial * dn_dr + Vec3(0, 0, dn_dz);
+      return;
+    }
+    case IndexFieldType::kGrid3D: {
+      int ix, iy, iz;
+      double fx, fy, fz;
+      bool inx, iny, inz;
+      Locate((p.x - origin_um.x) / spacing_um.x, nx, &ix, &fx, &inx);
+      Locate((p.y - origin_um.y) / spacing_um.y, ny, &iy, &fy, &iny);
+      Locate((p.z - origin_um.z) / spacing_um.z, nz, &iz, &fz, &inz);
+      auto v = [&](int c, int b, int a) {
+        return values[(size_t(std::min(c, nz - 1)) * ny + std::min(b, ny - 1)) * nx +
+                      std::min(a, nx - 1)];
+      };
+      double c[2][2][2];
+      for (int k = 0; k < 2; ++k)
+        for (int j = 0; j < 2; ++j)
+          for (int i = 0; i < 2; ++i) c[k][j][i] = v(iz + k, iy + j, ix + i);
+      auto lerp = [](double a, double b, double t) { return a + (b - a) * t; };
+      double cx[2][2], dx[2][2];
+      for (int k = 0; k < 2; ++k)
+        for (int j = 0; j < 2; ++j) {
+          cx[k][j] = lerp(c[k][j][0], c[k][j][1], fx);
+          dx[k][j] = c[k][j][1] - c[k][j][0];
+        }
+      const double cy0 = lerp(cx[0][0], cx[0][1], fy), cy1 = lerp(cx[1][0], cx[1][1], fy);
+      *n = lerp(cy0, cy1, fz);
+      const double gx = lerp(lerp(dx[0][0], dx[0][1], fy), lerp(dx[1][0], dx[1][1], fy), fz);
+      const double gy = lerp(cx[0][1] - cx[0][0], cx[1][1] - cx[1][0], fz);
+      const double gz = cy1 - cy0;
+      *grad = Vec3(inx ? gx / spacing_um.x : 0, iny ? gy / spacing_um.y : 0,
+                   inz ? gz / spacing_um.z : 0);
+      return;
+    }
+  }
+}
+
+double IndexField::MaxStepUm() const {
+  switch (type) {
+    case IndexFieldType::kGridRZ: return 0.5 * std::min(spacing_um.x, spacing_um.z);
+    case IndexFieldType::kGrid3D:
+      return 0.5 * std::min({spacing_um.x, spacing_um.y, spacing_um.z});
+    default: return 0;
+  }
+}
+
+GrinState SharmaStep(const IndexField& f, const Vec3& c, const GrinState& s, double dt) {
+  auto D = [&](const Vec3& r) {  // D = n grad n = grad(n^2) / 2
+    double n;
+    Vec3 g;
+    f.Eval(r - c, &n, &g);
+    return g * n;
+  };
+  const Vec3 A = D(s.r) * dt;
+  const Vec3 B = D(s.r + s.t * (dt / 2) + A * (dt / 8)) * dt;
+  const Vec3 C = D(s.r + s.t * dt + B * (dt / 2)) * dt;
+  GrinState o;
+  o.r = s.r + (s.t + (A + B * 2) / 6) * dt;
+  o.t = s.t + (A + B * 4 + C) / 6;
+  return o;
+}
+
+int AdaptiveStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, GrinState* s,
+                 double* dt, double* used) {
+  double cap = cfg.max_step_um > 0 ? cfg.max_step_um : f.MaxStepUm();
+  int evals = 0;
+  for (int tries = 0;; ++tries) {
+    double n = f.Index(s->r - c);
+    ++evals;
+    if (cap > 0) *dt = std::min(*dt, cap / n);  // ds = n dt
+    const GrinState full = SharmaStep(f, c, *s, *dt);
+    const GrinState half = SharmaStep(f, c, SharmaStep(f, c, *s, *dt / 2), *dt / 2);
+    evals += 9;
+    const double err = Length(full.r - half.r);
+    if (err <= cfg.tolerance_um || tries > 60) {
+      *s = half;
+      *used = *dt;
+      // Keep |T| = n(R): renormalise the optical direction to the local index.
+      const double nn = f.Index(s->r - c);
+      const double tl = Length(s->t);
+      if (tl > 0) s->t = s->t * (nn / tl);
+      const double grow = err > 0 ? 0.9 * std::pow(cfg.tolerance_um / err, 0.2) : 4.0;
+      *dt *= std::clamp(grow, 0.2, 4.0);
+      return evals + 1;
+    }
+    *dt *= std::clamp(0.9 * std::pow(cfg.tolerance_um / err, 0.2), 0.1, 0.5);
+  }
+}
+
+}  // namespace raymatch::simulate

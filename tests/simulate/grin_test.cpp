@@ -1,0 +1,323 @@
+// Gradient-index media against exact answers (REFERENCE.md section 5).
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "raymatch/core/array_io.h"
+#include "raymatch/core/rng.h"
+#include "raymatch/simulate/index_field.h"
+#include "raymatch/simulate/scene.h"
+#include "raymatch/simulate/tracer.h"
+#include "stats.h"
+#include "temp_dir.h"
+
+namespace raymatch::simulate {
+namespace {
+
+// Linear n^2 = n0^2 + k.p gives R'' = k/2 (in t = s/n): an exact parabola
+// R(t) = R0 + T0 t + k t^2 / 4, which the Sharma scheme reproduces exactly (up to rounding).
+TEST(Grin, LinearN2GivesExactParabolasEvenWithHugeSteps) {
+  IndexField f;
+  f.type = IndexFieldType::kLinearN2;
+  f.n0 = 1.5;
+  f.k_per_um = {0.02, -0.01, 0.005};
+  GrinState s{{1, 2, 3}, Normalize(Vec3(0.2, 0.1, 1)) * f.Index({1, 2, 3})};
+  const GrinState s0 = s;
+  const double dt = 7.0;
+  for (int i = 0; i < 10; ++i) s = SharmaStep(f, Vec3(), s, dt);
+  const double t = 10 * dt;
+  const Vec3 exact = s0.r + s0.t * t + f.k_per_um * (t * t / 4);
+  EXPECT_LT(Length(s.r - exact), 1e-10 * Length(exact)) << Length(s.r - exact);
+}
+
+// Parabolic medium n^2 = n0^2 (1 - g^2 (x^2 + y^2)): R'' = -n0^2 g^2 (x, y, 0), so skew rays
+// are exact sinusoids in t with angular frequency w = n0 g, and z advances uniformly.
+TEST(Grin, ParabolicMediumSkewRayFollowsTheSinusoid) {
+  IndexField f;
+  f.type = IndexFieldType::kParabolic;
+  f.n0 = 1.5;
+  f.g_per_um = 0.01;
+  GrinSettings cfg;
+  cfg.tolerance_um = 1e-9;
+  const Vec3 r0(10, -5, 0);
+  const Vec3 d0 = Normalize(Vec3(0.1, 0.2, 1));
+  GrinState s{r0, d0 * f.Index(r0)};
+  const Vec3 t0 = s.t;
+  const double w = f.n0 * f.g_per_um;
+  double t = 0, dt = 1, used;
+  double worst = 0;
+  while (t < 3 * 2 * M_PI / w) {  // three periods, ~2 mm of path
+    AdaptiveStep(f, Vec3(), cfg, &s, &dt, &used);
+    t += used;
+    const Vec3 exact(r0.x * std::cos(w * t) + t0.x / w * std::sin(w * t),
+                     r0.y * std::cos(w * t) + t0.y / w * std::sin(w * t), r0.z + t0.z * t);
+    worst = std::max(worst, Length(s.r - exact));
+  }
+  // Global error <= steps x tolerance in the worst case; observed far below. Bound: 1e-5 um.
+  EXPECT_LT(worst, 1e-5);
+}
+
+// Maxwell fish-eye n = n0 / (1 + (r/a)^2) images r1 to -a^2 r1 / |r1|^2 for every direction.
+TEST(Grin, FishEyeImagesAPointToItsConjugate) {
+  IndexField f;
+  f.type = IndexFieldType::kFishEye;
+  f.n0 = 2.0;
+  f.radius_um = 10;
+  GrinSettings cfg;
+  cfg.tolerance_um = 1e-10;
+  cfg.max_step_um = 0.05;
+  const Vec3 r1(5, 0, 0), r2 = r1 * (-100.0 / 25.0);  // (-20, 0, 0)
+  for (double ang : {0.3, 1.0, 1.7, 2.5}) {
+    const Vec3 d(std::cos(ang), std::sin(ang) * 0.6, std::sin(ang) * 0.8);
+    GrinState s{r1, d * f.Index(r1)};
+    double dt = 0.01, used, best = 1e9;
+    for (int i = 0; i < 200000 && best > 1e-9; ++i) {
+      const Vec3 a = s.r;
+      AdaptiveStep(f, Vec3(), cfg, &s, &dt, &used);
+      // Distance from r2 to the segment a -> s.r.
+      const Vec3 ab = s.r - a;
+      const double u = std::clamp(Dot(r2 - a, ab) / Dot(ab, ab), 0.0, 1.0);
+      best = std::min(best, Length(a + ab * u - r2));
+      if (Length(s.r - r1) < 1e-3 && i > 100) break;  // full circle
+    }
+    // Chord-vs-arc error of a 0.05 um step on a ~20 um circle: 0.05^2 / (8 * 20) = 1.6e-5 um.
+    EXPECT_LT(best, 5e-5) << "direction angle " << ang;
+  }
+}
+
+Scene LensScene() {
+  Scene s;
+  s.optics.objective_focal_mm = 10;
+  s.optics.na = 0.42;
+  s.optics.tube_focal_mm = 200;
+  s.camera.nx = s.camera.ny = 64;
+  s.camera.pixel_pitch_um = 0.2;  // 0.01 um at the object
+  s.trace.partial_reflection = PartialReflection::kOff;
+  s.trace.seed = 3;
+  return s;
+}
+
+// Luneburg lens n = sqrt(2 - (r/R)^2) (n = 1 at its surface, in vacuum) focuses a collimated
+// beam onto its rear pole. Rays up to h = 0.4 R leave the pole within the NA 0.42.
+TEST(Grin, LuneburgLensFocusesOnItsRearPole) {
+  const double R = 20;
+  Scene s = LensScene();
+  ObjectSpec o;
+  o.shape = ShapeType::kSphere;
+  o.radius_um = R;
+  auto f = std::make_shared<IndexField>();
+  f->type = IndexFieldType::kLuneburg;
+  f->n0 = 1.0;
+  f->radius_um = R;
+  o.index_field = f;
+  o.index = f->Index(Vec3());
+  s.objects = {o};
+  s.source.type = SourceType::kCollimated;
+  s.source.field_radius_um = 0.4 * R;
+  s.trace.grin.tolerance_um = 1e-7;
+  Simulator sim(s);
+  const uint64_t N = 3000;
+  const PlaneResult r = sim.TracePlane(R, 0, N);  // focal plane through the rear pole
+  EXPECT_EQ(r.counters.fates[int(Fate::kDetected)], N);
+  double within = 0;  // hits within +-0.02 um of the axis (the 4x4 central pixels)
+  for (int y = 30; y < 34; ++y)
+    for (int x = 30; x < 34; ++x) within += r.counts.at(x, y);
+  EXPECT_EQ(within, double(N));
+  EXPECT_GT(r.counters.grin_steps, N * 10);
+  EXPECT_EQ(r.counters.grin_segments, N);
+}
+
+// A grid of constant index behaves like the homogeneous sphere: with the same random streams
+// the images agree up to rays whose fate changes by the exit-point tolerance.
+TEST(Grin, UniformGridMatchesHomogeneousSphere) {
+  Scene s = LensScene();
+  s.camera.pixel_pitch_um = 20;
+  s.source.type = SourceType::kCone;
+  s.source.half_angle_deg = 20;
+  s.source.field_radius_um = 40;
+  ObjectSpec o;
+  o.shape = ShapeType::kSphere;
+  o.radius_um = 10;
+  o.index = 1.4;
+  s.objects = {o};
+  const PlaneResult a = Simulator(s).TracePlane(4, 0, 200000);
+  auto f = std::make_shared<IndexField>();
+  f->type = IndexFieldType::kGridRZ;
+  f->nx = 12, f->ny = 1, f->nz = 23;
+  f->spacing_um = {1, 1, 1};
+  f->origin_um = {0, 0, -11};
+  f->values.assign(12 * 23, 1.4);
+  s.objects[0].index_field = f;
+  const PlaneResult b = Simulator(s).TracePlane(4, 0, 200000);
+  double diff = 0, total = 0;
+  for (size_t i = 0; i < a.counts.size(); ++i) {
+    diff += std::abs(a.counts.pixels[i] - b.counts.pixels[i]);
+    total += a.counts.pixels[i];
+  }
+  EXPECT_LT(diff / total, 1e-3);
+  EXPECT_GT(b.counters.grin_steps, 0u);
+  EXPECT_EQ(a.counters.grin_steps, 0u);  // homogeneous objects never enter the integrator
+}
+
+// An axisymmetric grid and the equivalent 3D grid give the same image statistically:
+// chi-square of two independent Poisson images, sum (a-b)^2/(a+b), has mean = number of pixels.
+TEST(Grin, AxisymmetricAndThreeDGridsAgree) {
+  const double R = 10, h = 0.5;
+  auto n_of = [](double r, double z) { return 1.33 + 0.06 * std::exp(-(r * r + z * z) / 25.0); };
+  auto rz = std::make_shared<IndexField>();
+  rz->type = IndexFieldType::kGridRZ;
+  rz->nx = 24, rz->ny = 1, rz->nz = 47;
+  rz->spacing_um = {h, 1, h};
+  rz->origin_um = {0, 0, -11.5};
+  for (int k = 0; k < rz->nz; ++k)
+    for (int i = 0; i < rz->nx; ++i) rz->values.push_back(n_of(i * h, -11.5 + k * h));
+  auto g3 = std::make_shared<IndexField>();
+  g3->type = IndexFieldType::kGrid3D;
+  g3->nx = g3->ny = g3->nz = 47;
+  g3->spacing_um = {h, h, h};
+  g3->origin_um = {-11.5, -11.5, -11.5};
+  for (int k = 0; k < 47; ++k)
+    for (int j = 0; j < 47; ++j)
+      for (int i = 0; i < 47; ++i)
+        g3->values.push_back(n_of(std::hypot(-11.5 + i * h, -11.5 + j * h), -11.5 + k * h));
+  Scene s = LensScene();
+  s.camera.nx = s.camera.ny = 40;
+  s.camera.pixel_pitch_um = 20;
+  s.source.type = SourceType::kCone;
+  s.source.half_angle_deg = 20;
+  s.source.field_radius_um = 40;
+  ObjectSpec o;
+  o.shape = ShapeType::kSphere;
+  o.radius_um = R;
+  o.index_field = rz;
+  s.objects = {o};
+  s.trace.grin.tolerance_um = 1e-4;
+  const PlaneResult a = Simulator(s).TracePlane(3, 0, 300000);
+  s.objects[0].index_field = g3;
+  const PlaneResult b = Simulator(s).TracePlane(3, 1, 300000);  // independent noise
+  double chi2 = 0;
+  int dof = 0;
+  for (size_t i = 0; i < a.counts.size(); ++i) {
+    const double x = a.counts.pixels[i], y = b.counts.pixels[i];
+    if (x + y > 0) chi2 += (x - y) * (x - y) / (x + y), ++dof;
+  }
+  EXPECT_LT(std::abs(chi2 / dof - 1), 4 * std::sqrt(2.0 / dof)) << chi2 << " / " << dof;
+}
+
+// Shock front: bilinear interpolation never overshoots a jump (tricubic would ring).
+TEST(Grin, InterpolantDoesNotOvershootAtAJump) {
+  IndexField f;
+  f.type = IndexFieldType::kGridRZ;
+  f.nx = 20, f.ny = 1, f.nz = 20;
+  f.spacing_um = {1, 1, 1};
+  f.origin_um = {0, 0, -10};
+  for (int k = 0; k < 20; ++k)
+    for (int i = 0; i < 20; ++i) f.values.push_back(i < 8 ? 1.333 : 1.346);  // 40 kg/m^3 shock
+  for (double r = 0; r < 20; r += 0.01) {
+    double n;
+    Vec3 g;
+    f.Eval(Vec3(r, 0, 0.3), &n, &g);
+    EXPECT_GE(n, 1.333 - 1e-15);
+    EXPECT_LE(n, 1.346 + 1e-15);
+    EXPECT_TRUE(std::isfinite(g.x));
+    if (r > 7.01 && r < 7.99) EXPECT_NEAR(g.x, 0.013, 1e-12);  // the jump spreads over one cell
+    if (r > 8.01) EXPECT_EQ(g.x, 0.0);
+  }
+}
+
+// Gradients against central finite differences of the index, for every field type, at random
+// points away from cell faces (where grid gradients are discontinuous by construction).
+TEST(Grin, GradientsMatchFiniteDifferences) {
+  std::vector<IndexField> fields(6);
+  fields[0].type = IndexFieldType::kLuneburg, fields[0].n0 = 1.2, fields[0].radius_um = 7;
+  fields[1].type = IndexFieldType::kFishEye, fields[1].n0 = 1.8, fields[1].radius_um = 5;
+  fields[2].type = IndexFieldType::kParabolic, fields[2].n0 = 1.5, fields[2].g_per_um = 0.05;
+  fields[3].type = IndexFieldType::kLinearN2, fields[3].n0 = 1.4, fields[3].k_per_um = {0.01, 0.02, -0.03};
+  IndexField& rz = fields[4];
+  rz.type = IndexFieldType::kGridRZ, rz.nx = 9, rz.ny = 1, rz.nz = 11;
+  rz.spacing_um = {1, 1, 1}, rz.origin_um = {0, 0, -5};
+  IndexField& g3 = fields[5];
+  g3.type = IndexFieldType::kGrid3D, g3.nx = 9, g3.ny = 9, g3.nz = 11;
+  g3.spacing_um = {1, 1, 1}, g3.origin_um = {-4, -4, -5};
+  RayRng rng(1, 0, 0);
+  for (int i = 0; i < 9 * 11; ++i) rz.values.push_back(1.33 + 0.05 * rng.Uniform());
+  for (int i = 0; i < 9 * 9 * 11; ++i) g3.values.push_back(1.33 + 0.05 * rng.Uniform());
+  for (const IndexField& f : fields)
+    for (int k = 0; k < 200; ++k) {
+      // Points at cell centres +- 0.3 cell, so +-h stays inside one cell.
+      auto c = [&](double lo) { return std::floor(lo + 6 * rng.Uniform()) + 0.5 + 0.6 * (rng.Uniform() - 0.5); };
+      const Vec3 p(c(-3), c(-3), c(-4));
+      if (f.type == IndexFieldType::kGridRZ &&
+          std::abs(std::hypot(p.x, p.y) - std::floor(std::hypot(p.x, p.y)) - 0.5) > 0.45)
+        continue;  // radial cell faces are circles: skip points next to them
+      double n;
+      Vec3 g;
+      f.Eval(p, &n, &g);
+      const double h = 1e-5;
+      for (int a = 0; a < 3; ++a) {
+        Vec3 e;
+        (a == 0 ? e.x : a == 1 ? e.y : e.z) = h;
+        const double fd = (f.Index(p + e) - f.Index(p - e)) / (2 * h);
+        // Central differences: O(h^2) truncation plus rounding ~1e-16/h: 1e-8 absolute.
+        EXPECT_NEAR(g[a], fd, 1e-8) << "field type " << int(f.type) << " axis " << a;
+      }
+    }
+}
+
+const char* kGridScene = R"(name = "g"
+[source]
+type = "cone"
+half_angle_deg = 20
+[[object]]
+type = "sphere"
+radius_um = 5
+[object.index_field]
+type = "grid_rz"
+file = "grid.npy"
+spacing_um = [1, 1]
+origin_um = [0, -6]
+QUANTITY
+[objective]
+focal_length_mm = 10
+na = 0.42
+[tube_lens]
+focal_length_mm = 200
+[camera]
+pixels = [16, 16]
+pixel_pitch_um = 20
+)";
+
+std::string GridScene(const testing::TempDir& dir, const std::string& quantity) {
+  std::string s = kGridScene;
+  s.replace(s.find("QUANTITY"), 8, quantity);
+  return dir.Write("scene.toml", s);
+}
+
+TEST(GridFiles, NanInAGridIsAClearError) {
+  testing::TempDir dir;
+  NdArray a{{13, 7}, std::vector<double>(91, 1.4)};
+  a.values[40] = std::nan("");
+  WriteNpy(dir / "grid.npy", a);
+  try {
+    LoadScene(GridScene(dir, ""));
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("grid value 40 (flat C-order index) is NaN or Inf"),
+              std::string::npos)
+        << e.what();
+  }
+}
+
+TEST(GridFiles, DensityGridUsesIapwsAndWarnsOutsideItsRange) {
+  testing::TempDir dir;
+  NdArray a{{13, 7}, std::vector<double>(91, 997.047435)};
+  a.values[3] = 1100;  // a strong shock
+  WriteNpy(dir / "grid.npy", a);
+  const Scene s = LoadScene(GridScene(dir, "quantity = \"density\"\ntemperature_K = 298.15"));
+  ASSERT_TRUE(s.objects[0].index_field);
+  EXPECT_EQ(s.warnings.size(), 1u);
+  EXPECT_NEAR(s.objects[0].index_field->min_n, 1.3370, 2e-3);
+}
+
+}  // namespace
+}  // namespace raymatch::simulate

@@ -26,7 +26,7 @@ namespace raymatch::simulate {
 const char* FateName(Fate f) {
   static const char* names[] = {"detected",           "outside_na",      "missed_sensor",
                                 "absorbed_corrector", "interaction_cap", "escaped",
-                                "lost_inside"};
+                                "lost_inside",        "grin_step_cap"};
   return names[static_cast<int>(f)];
 }
 
@@ -291,6 +291,9 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
         *hit = h;
         *hp = s.r + chord * (h.t / L);
         *dout = Normalize(s1.t);
+        // In a steep gradient the direction at the step's end may already bend back inward;
+        // the crossing chord points outward by construction, so leave along it then.
+        if (Dot(*dout, h.normal) <= 0) *dout = chord / L;
         return GrinOutcome::kHit;
       }
       // Aim the (shorter) step at the crossing point; it is within the accepted error.
@@ -345,7 +348,7 @@ void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& t
           const GrinOutcome g =
               IntegrateToSurface<kMesh>(im, trace.grin, cur, o, d, &h, &hp, &d, c);
           if (g != GrinOutcome::kHit) {
-            fate = g == GrinOutcome::kStepCap ? Fate::kInteractionCap : Fate::kLostInside;
+            fate = g == GrinOutcome::kStepCap ? Fate::kGrinStepCap : Fate::kLostInside;
             done = true;
             break;
           }
@@ -403,7 +406,7 @@ void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& t
           }
         }
         if (reflect) {
-          d = Reflect(d, nf);
+          d = Normalize(Reflect(d, nf));
           o = hp + nf * geo.epsilon(h.object);
           if (!classified) {
             if (entering && events == 1) {
@@ -414,7 +417,7 @@ void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& t
             }
           }
         } else {
-          d = dt;
+          d = Normalize(dt);
           o = hp - nf * geo.epsilon(h.object);
           if (entering) {
             if (depth == kMaxDepth) {

@@ -109,7 +109,9 @@ bool Geometry::Intersect(const Vec3& o, const Vec3& d, Hit* hit) const {
     if (IntersectSphere(o, d, s.center, s.radius2, &t) && t < best) {
       best = t;
       hit->object = s.object;
-      hit->normal = ((o + d * t) - s.center) / s.radius;
+      // Normalise rather than divide by the radius: a hit point off the surface by rounding
+      // would give |n| != 1, and reflections would then change |d| and compound the error.
+      hit->normal = Normalize((o + d * t) - s.center);
       found = true;
     }
   }

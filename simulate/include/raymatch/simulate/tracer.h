@@ -29,6 +29,7 @@ enum class Fate : int {
   kInteractionCap,      ///< more interface events than max_interactions
   kEscaped,             ///< left the objects travelling away from the objective (z' <= 0)
   kLostInside,          ///< no exit surface found from inside an object (numerical failure)
+  kGrinStepCap,         ///< gradient-index integration exceeded grin max_steps in one segment
   kCount
 };
 const char* FateName(Fate f);

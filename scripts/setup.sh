@@ -9,7 +9,8 @@ PACKAGES=(
   build-essential cmake ninja-build pkg-config
   libembree-dev libopenimageio-dev openimageio-tools libtbb-dev libcli11-dev libtomlplusplus-dev
   libeigen3-dev nlohmann-json3-dev librandom123-dev libassimp-dev libhdf5-dev
-  libopencv-dev  # OpenImageIO's CMake config names OpenCV's headers
+  libopencv-dev  # also: OpenImageIO's CMake config names OpenCV's headers
+  libopenvdb-dev  # iso-surfaces of volume-fraction grids
   libgtest-dev libgmock-dev libbenchmark-dev
   python3 python3-numpy python3-skimage python3-tifffile
 )

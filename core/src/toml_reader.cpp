@@ -203,6 +203,28 @@ std::vector<double> TomlReader::Numbers(const std::string& key, size_t min_size,
   return out;
 }
 
+std::vector<std::vector<double>> TomlReader::NumberRows(const std::string& key, size_t cols) {
+  const toml::node* n = Node(key);
+  if (!n || !n->is_array()) TypeError(key, "an array of [" + std::to_string(cols) + " numbers]");
+  std::vector<std::vector<double>> out;
+  for (const toml::node& row : *n->as_array()) {
+    const FileLocation where = LocOf(file_, row.source());
+    if (!row.is_array() || row.as_array()->size() != cols)
+      throw Error(where, "'" + Path(key) + "': each entry must be an array of " +
+                             std::to_string(cols) + " numbers");
+    std::vector<double> v;
+    for (const toml::node& e : *row.as_array()) {
+      if (!(e.is_integer() || e.is_floating_point()))
+        throw Error(where, "'" + Path(key) + "': expected numbers, found " + TypeName(e));
+      const double x = e.is_integer() ? double(e.as_integer()->get()) : e.as_floating_point()->get();
+      if (!std::isfinite(x)) throw Error(where, "'" + Path(key) + "': expected finite numbers");
+      v.push_back(x);
+    }
+    out.push_back(v);
+  }
+  return out;
+}
+
 std::array<double, 3> TomlReader::Vec3(const std::string& key) {
   const auto v = Numbers(key, 3, 3);
   return {v[0], v[1], v[2]};

@@ -8,6 +8,7 @@
 #include <cmath>
 
 #include "raymatch/core/error.h"
+#include "raymatch/simulate/shapes.h"
 
 namespace raymatch::simulate {
 
@@ -18,46 +19,57 @@ namespace {
 constexpr double kAnalyticEpsilon = 1e-9;
 constexpr double kMeshEpsilon = 2e-5;
 
-void LoadMesh(const ObjectSpec& o, std::vector<float>* verts, std::vector<unsigned>* idx,
-              MeshInfo* info) {
+// The object's mesh in object-local micrometres: generated, or read with Assimp and scaled.
+TriangleMesh LocalMesh(const ObjectSpec& o) {
+  if (o.mesh) return *o.mesh;
   Assimp::Importer importer;
   const aiScene* sc = importer.ReadFile(
       o.mesh_file, aiProcess_Triangulate | aiProcess_JoinIdenticalVertices |
-                       aiProcess_PreTransformVertices | aiProcess_FindDegenerates);
+                       aiProcess_PreTransformVertices);
   if (!sc || !sc->mNumMeshes)
     throw Error(o.where, "cannot read mesh '" + o.mesh_file + "': " + importer.GetErrorString());
-  const Mat3 rot = RotationFromEulerDeg(o.rotation_deg.x, o.rotation_deg.y, o.rotation_deg.z);
-  for (unsigned m = 0; m < sc->mNumMeshes; ++m) {
-    const aiMesh* mesh = sc->mMeshes[m];
-    const unsigned base = static_cast<unsigned>(verts->size() / 3);
+  TriangleMesh m;
+  for (unsigned k = 0; k < sc->mNumMeshes; ++k) {
+    const aiMesh* mesh = sc->mMeshes[k];
+    const unsigned base = static_cast<unsigned>(m.vertices.size());
     for (unsigned v = 0; v < mesh->mNumVertices; ++v) {
       const aiVector3D& a = mesh->mVertices[v];
-      const Vec3 p = rot * Vec3(a.x, a.y, a.z) * o.mesh_scale_um + o.center_um;
+      const Vec3 p = Vec3(a.x, a.y, a.z) * o.mesh_scale_um;
       if (!IsFinite(p)) throw Error(o.where, "mesh '" + o.mesh_file + "' has NaN/Inf vertices");
-      verts->insert(verts->end(), {float(p.x), float(p.y), float(p.z)});
+      m.vertices.push_back(p);
     }
     for (unsigned f = 0; f < mesh->mNumFaces; ++f) {
       const aiFace& face = mesh->mFaces[f];
-      if (face.mNumIndices != 3) continue;  // points/lines left by the triangulator
-      idx->insert(idx->end(), {base + face.mIndices[0], base + face.mIndices[1],
+      if (face.mNumIndices == 3)
+        m.triangles.push_back({base + face.mIndices[0], base + face.mIndices[1],
                                base + face.mIndices[2]});
+      else
+        m.triangles.push_back({base, base, base});  // points/lines: counted as degenerate
     }
   }
-  if (idx->empty()) throw Error(o.where, "mesh '" + o.mesh_file + "' has no triangles");
-  // Outward winding is needed to tell entering from leaving: check the signed volume.
-  double vol = 0;
-  for (size_t i = 0; i < idx->size(); i += 3) {
-    auto V = [&](unsigned k) {
-      return Vec3((*verts)[3 * k], (*verts)[3 * k + 1], (*verts)[3 * k + 2]) - o.center_um;
-    };
-    vol += Dot(V((*idx)[i]), Cross(V((*idx)[i + 1]), V((*idx)[i + 2]))) / 6.0;
+  return m;
+}
+
+void LoadMesh(const ObjectSpec& o, std::vector<float>* verts, std::vector<unsigned>* idx,
+              MeshInfo* info) {
+  TriangleMesh m = LocalMesh(o);
+  const std::string what = o.mesh ? o.shape_description : "mesh '" + o.mesh_file + "'";
+  const MeshReport rep = CheckAndOrientMesh(&m);
+  if (rep.triangles == 0) throw Error(o.where, what + " has no usable triangles");
+  if (!rep.ok())
+    throw Error(o.where, what + " does not enclose a volume: " + rep.Summary() +
+                             ". Refraction needs a closed surface; repair the mesh "
+                             "(e.g. close holes, remove self-intersections)");
+  const Mat3 rot = RotationFromEulerDeg(o.rotation_deg.x, o.rotation_deg.y, o.rotation_deg.z);
+  for (const Vec3& v : m.vertices) {
+    const Vec3 p = rot * v + o.center_um;
+    verts->insert(verts->end(), {float(p.x), float(p.y), float(p.z)});
   }
-  info->triangles = idx->size() / 3;
-  info->signed_volume_um3 = vol;
-  if (vol < 0) {
-    for (size_t i = 0; i < idx->size(); i += 3) std::swap((*idx)[i + 1], (*idx)[i + 2]);
-    info->flipped = true;
-  }
+  for (const auto& t : m.triangles) idx->insert(idx->end(), {t[0], t[1], t[2]});
+  info->triangles = rep.triangles;
+  info->signed_volume_um3 = rep.signed_volume_um3;
+  info->flipped = rep.flipped;
+  info->degenerate_removed = rep.degenerate_removed;
 }
 
 }  // namespace
@@ -117,6 +129,8 @@ Geometry::Geometry(const std::vector<ObjectSpec>& objects) {
     if (!dev) throw Error("Embree device could not be created");
     RTCScene scene = rtcNewScene(dev);
     rtcSetSceneBuildQuality(scene, RTC_BUILD_QUALITY_HIGH);
+    // Watertight traversal: rays must not slip between triangles that share an edge.
+    rtcSetSceneFlags(scene, RTC_SCENE_FLAG_ROBUST);
     for (size_t m = 0; m < vertices_.size(); ++m) {
       RTCGeometry g = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_TRIANGLE);
       rtcSetSharedGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,

@@ -7,6 +7,7 @@
 #include "raymatch/core/array_io.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/toml_reader.h"
+#include "raymatch/simulate/shapes.h"
 #include "raymatch/simulate/water.h"
 
 namespace fs = std::filesystem;
@@ -233,7 +234,8 @@ ObjectSpec ReadObject(TomlReader r, Scene& scene, int i) {
   ObjectSpec o;
   o.where = r.Where();
   o.name = r.String("name", "object" + std::to_string(i));
-  const std::string type = r.Choice("type", {"sphere", "ellipsoid", "box", "mesh"});
+  const std::string type =
+      r.Choice("type", {"sphere", "ellipsoid", "box", "mesh", "revolution", "volume_fraction"});
   const auto c = r.Vec3("center_um", {0, 0, 0});
   o.center_um = {c[0], c[1], c[2]};
   auto read_axes = [&](const char* key) {
@@ -257,6 +259,61 @@ ObjectSpec ReadObject(TomlReader r, Scene& scene, int i) {
     const auto v = r.Vec3("size_um");
     if (!(v[0] > 0 && v[1] > 0 && v[2] > 0)) r.Fail("size_um", "expected three positive lengths");
     o.semi_axes_um = {v[0] / 2, v[1] / 2, v[2] / 2};
+    read_rot();
+  } else if (type == "revolution") {
+    o.shape = ShapeType::kMesh;
+    const int given = r.Has("outline_rz_um") + r.Has("outline_file") + r.Has("outline_image");
+    if (given != 1)
+      r.Fail("outline_rz_um", "give exactly one of outline_rz_um, outline_file, outline_image");
+    Outline outline;
+    try {
+      if (r.Has("outline_rz_um")) {
+        for (const auto& row : r.NumberRows("outline_rz_um", 2)) outline.push_back({row[0], row[1]});
+        o.shape_description = "revolved outline (" + std::to_string(outline.size()) + " points)";
+      } else if (r.Has("outline_file")) {
+        const std::string f = Resolve(scene.file, r.String("outline_file"));
+        outline = ReadOutlineCsv(f);
+        o.shape_description = "revolved outline from " + f;
+      } else {
+        const std::string f = Resolve(scene.file, r.String("outline_image"));
+        SilhouetteOptions so;
+        so.pixel_um = r.Positive("pixel_um");
+        so.threshold = r.InRange("threshold", 0, 1, 0.5, true, true);
+        so.vertical_axis = r.Choice("axis", {"vertical", "horizontal"}, "vertical") == "vertical";
+        so.axis_px = r.Number("axis_px", -1);
+        so.smooth_px = r.InRange("smooth_px", 0, 100, 1.5);
+        double axis = 0;
+        outline = OutlineFromSilhouette(ReadImage(f), so, &axis);
+        o.shape_description = "revolved silhouette of " + f + " (axis at " +
+                              std::to_string(axis) + " px)";
+      }
+    } catch (const Error& e) {
+      if (!e.where().file.empty() && e.where().file != scene.file) throw;
+      r.Fail(r.Has("outline_rz_um") ? "outline_rz_um" : r.Has("outline_file") ? "outline_file" : "outline_image", e.message());
+    }
+    const int segments = static_cast<int>(r.Integer("segments", 256, 8, 65536));
+    o.mesh = std::make_shared<TriangleMesh>(RevolveOutline(outline, segments));
+    read_rot();
+  } else if (type == "volume_fraction") {
+    o.shape = ShapeType::kMesh;
+    const std::string f = Resolve(scene.file, r.String("file"));
+    NdArray a;
+    try {
+      a = ReadArrayFile(f, r.String("dataset", ""));
+    } catch (const Error& e) {
+      r.Fail("file", e.what());
+    }
+    const auto sp = r.Numbers("spacing_um", 3, 3);
+    const auto org = r.Has("origin_um") ? r.Numbers("origin_um", 3, 3) : std::vector<double>{0, 0, 0};
+    if (!(sp[0] > 0 && sp[1] > 0 && sp[2] > 0)) r.Fail("spacing_um", "spacings must be positive");
+    const double iso = r.InRange("iso", 0, 1, 0.5, true, true);
+    try {
+      o.mesh = std::make_shared<TriangleMesh>(MeshFromVolumeFraction(
+          a, {sp[0], sp[1], sp[2]}, {org[0], org[1], org[2]}, iso));
+    } catch (const Error& e) {
+      r.Fail("file", e.message());
+    }
+    o.shape_description = "iso-surface " + std::to_string(iso) + " of " + f;
     read_rot();
   } else {
     o.shape = ShapeType::kMesh;

@@ -36,6 +36,7 @@ struct MeshInfo {
   size_t triangles = 0;
   double signed_volume_um3 = 0;
   bool flipped = false;  ///< winding was inward and has been reversed
+  size_t degenerate_removed = 0;
 };
 
 class Geometry {

@@ -44,6 +44,8 @@ struct SourceSpec {
 
 enum class ShapeType { kSphere, kEllipsoid, kBox, kMesh };
 
+struct TriangleMesh;  // shapes.h
+
 struct ObjectSpec {
   std::string name;
   ShapeType shape = ShapeType::kSphere;
@@ -53,6 +55,10 @@ struct ObjectSpec {
   Vec3 rotation_deg{};                   ///< ellipsoid, box, mesh: Euler x-y-z (docs)
   std::string mesh_file;                 ///< mesh: OBJ/PLY/STL path (resolved)
   double mesh_scale_um = 1;              ///< mesh: micrometres per mesh unit
+  /// Generated mesh in object-local micrometres (surface of revolution, iso-surface); when set
+  /// it is used instead of mesh_file.
+  std::shared_ptr<const TriangleMesh> mesh;
+  std::string shape_description;         ///< how a generated mesh was made
   double index = 1.0;                    ///< absolute refractive index
   std::string material;                  ///< "constant" or "water (IAPWS R9-97, T=..., rho=...)"
   /// Gradient-index field inside the object (null: homogeneous, never integrated).

@@ -168,10 +168,10 @@ struct Simulator::Impl {
   Geometry geometry;
   SourceVariant source;
   Optics optics;
-  std::vector<double> index;  // per object
+  std::vector<double> index;             // per object
   std::vector<const IndexField*> field;  // per object; null = homogeneous
   std::vector<Vec3> center;
-  std::vector<double> size;              // characteristic size (for first GRIN steps)
+  std::vector<double> size;  // characteristic size (for first GRIN steps)
   bool has_grin = false;
   double medium;
   double source_z;
@@ -228,9 +228,8 @@ Optics MakeOptics(const Scene& s) {
     const size_t n = sp.corrector.transmissions.size();
     for (size_t i = 0; i < n; ++i) {
       // Default: equal-width zones out to 2 % beyond the NA edge at the corrector plane.
-      const double r = sp.corrector.ring_outer_mm.empty()
-                           ? cz * tan_na * 1.02 * double(i + 1) / n
-                           : sp.corrector.ring_outer_mm[i] * 1e3;
+      const double r = sp.corrector.ring_outer_mm.empty() ? cz * tan_na * 1.02 * double(i + 1) / n
+                                                          : sp.corrector.ring_outer_mm[i] * 1e3;
       o.ring_outer2.push_back(r * r);
       o.ring_t.push_back(sp.corrector.transmissions[i]);
     }
@@ -307,6 +306,133 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
   return GrinOutcome::kStepCap;
 }
 
+/// Traces a ray through the objects until it leaves them all (or ends). Updates o, d (and the
+/// polarisation) to the ray leaving the last surface; returns true with *fate set when the ray
+/// ended inside the objects (interaction cap, numerical loss, step cap).
+template <PartialReflection kPR, bool kMesh>
+bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng, Vec3& o, Vec3& d,
+                  Vec3& pol, TraceCounters& c, Fate* fate_out) {
+  const Geometry& geo = im.geometry;
+  Fate fate = Fate::kDetected;
+  bool done = false;
+  // Objects the ray is inside, innermost last (nested objects: a bubble in a drop).
+  constexpr int kMaxDepth = 16;
+  int stack[kMaxDepth];
+  int depth = 0;
+  auto index_at = [&](int obj, const Vec3& x) {
+    if (obj < 0) return im.medium;
+    if (im.has_grin && im.field[obj]) return im.field[obj]->Index(x - im.center[obj]);
+    return im.index[obj];
+  };
+  int events = 0, internal_reflections = 0;
+  bool classified = false;
+  for (;;) {
+    Hit h;
+    Vec3 hp;
+    const int cur = depth ? stack[depth - 1] : -1;
+    if (im.has_grin && cur >= 0 && im.field[cur]) {
+      const GrinOutcome g = IntegrateToSurface<kMesh>(im, trace.grin, cur, o, d, &h, &hp, &d, c);
+      if (g != GrinOutcome::kHit) {
+        fate = g == GrinOutcome::kStepCap ? Fate::kGrinStepCap : Fate::kLostInside;
+        done = true;
+        break;
+      }
+    } else {
+      ++c.shape_queries;
+      if constexpr (kMesh) ++c.mesh_queries;
+      if (!geo.Intersect<kMesh>(o, d, &h)) break;
+      hp = o + d * h.t;
+    }
+    if (events == 0) ++c.rays_hitting_objects;
+    if (++events > trace.max_interactions) {
+      fate = Fate::kInteractionCap;
+      done = true;
+      break;
+    }
+    ++c.interface_events;
+    const bool entering = Dot(d, h.normal) < 0;
+    // The medium beyond a surface being left is the innermost enclosing object other than
+    // the one left.
+    int outer = -1;
+    if (!entering)
+      for (int k = depth - 1; k >= 0; --k)
+        if (stack[k] != h.object) {
+          outer = stack[k];
+          break;
+        }
+    const double n1 = entering ? index_at(cur, hp) : index_at(h.object, hp);
+    const double n2 = entering ? index_at(h.object, hp) : index_at(outer, hp);
+    const Vec3 nf = entering ? h.normal : -h.normal;  // faces the incoming ray
+    const double cos_i = -Dot(d, nf);
+    Vec3 dt;
+    double cos_t = 0;
+    bool reflect = !Refract(d, nf, n1 / n2, &dt, &cos_t);  // TIR
+    if (!reflect) {
+      if constexpr (kPR == PartialReflection::kUnpolarized) {
+        ++c.fresnel_evaluations;
+        reflect = rng.Uniform() < Fresnel(n1, n2, cos_i, cos_t).R();
+      } else if constexpr (kPR == PartialReflection::kPolarized) {
+        ++c.fresnel_evaluations;
+        // Split the field into s (perpendicular to the plane of incidence) and p parts;
+        // reflect with the power-weighted reflectance, then carry the new s/p mixture.
+        const FresnelCoefficients fc = Fresnel(n1, n2, cos_i, cos_t);
+        Vec3 s_dir = Cross(d, nf);
+        const double sl = Length(s_dir);
+        s_dir = sl > 1e-12 ? s_dir / sl : RandomPerpendicular(d, 0.0);
+        const double es = Dot(pol, s_dir), ep = Dot(pol, Cross(s_dir, d));
+        const double R = es * es * fc.Rs + ep * ep * fc.Rp;
+        reflect = rng.Uniform() < R;
+        const Vec3 dn = reflect ? Reflect(d, nf) : dt;
+        const double as = reflect ? fc.rs * es : (1 + fc.rs) * es;            // t_s = 1 + r_s
+        const double ap = reflect ? fc.rp * ep : (1 + fc.rp) * ep * n1 / n2;  // t_p
+        const Vec3 e = s_dir * as + Cross(s_dir, dn) * ap;
+        const double el = Length(e);
+        pol = el > 0 ? e / el : RandomPerpendicular(dn, 0.25);
+      }
+    }
+    if (reflect) {
+      d = Normalize(Reflect(d, nf));
+      o = hp + nf * geo.epsilon(h.object);
+      if (!classified) {
+        if (entering && events == 1) {
+          ++c.path_class[0];
+          classified = true;
+        } else if (!entering) {
+          ++internal_reflections;
+        }
+      }
+    } else {
+      d = Normalize(dt);
+      o = hp - nf * geo.epsilon(h.object);
+      if (entering) {
+        if (depth == kMaxDepth) {
+          fate = Fate::kLostInside;  // deeper nesting than supported
+          done = true;
+          break;
+        }
+        stack[depth++] = h.object;
+      } else {
+        for (int k = depth - 1; k >= 0; --k)
+          if (stack[k] == h.object) {
+            for (int m = k; m + 1 < depth; ++m) stack[m] = stack[m + 1];
+            --depth;
+            break;
+          }
+      }
+      if (!classified && !entering) {
+        ++c.path_class[std::min(1 + internal_reflections, kNumPathClasses - 1)];
+        classified = true;
+      }
+    }
+  }
+  if (!done && depth > 0) {
+    fate = Fate::kLostInside;
+    done = true;
+  }
+  *fate_out = fate;
+  return done;
+}
+
 template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
 void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
                 double defocus, uint32_t plane, uint64_t begin, uint64_t end, Accum& acc) {
@@ -328,123 +454,7 @@ void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& t
 
     Fate fate = Fate::kDetected;
     bool done = false;
-    if (has_objects) {
-      // Objects the ray is inside, innermost last (nested objects: a bubble in a drop).
-      constexpr int kMaxDepth = 16;
-      int stack[kMaxDepth];
-      int depth = 0;
-      auto index_at = [&](int obj, const Vec3& x) {
-        if (obj < 0) return im.medium;
-        if (im.has_grin && im.field[obj]) return im.field[obj]->Index(x - im.center[obj]);
-        return im.index[obj];
-      };
-      int events = 0, internal_reflections = 0;
-      bool classified = false;
-      for (;;) {
-        Hit h;
-        Vec3 hp;
-        const int cur = depth ? stack[depth - 1] : -1;
-        if (im.has_grin && cur >= 0 && im.field[cur]) {
-          const GrinOutcome g =
-              IntegrateToSurface<kMesh>(im, trace.grin, cur, o, d, &h, &hp, &d, c);
-          if (g != GrinOutcome::kHit) {
-            fate = g == GrinOutcome::kStepCap ? Fate::kGrinStepCap : Fate::kLostInside;
-            done = true;
-            break;
-          }
-        } else {
-          ++c.shape_queries;
-          if constexpr (kMesh) ++c.mesh_queries;
-          if (!geo.Intersect<kMesh>(o, d, &h)) break;
-          hp = o + d * h.t;
-        }
-        if (events == 0) ++c.rays_hitting_objects;
-        if (++events > trace.max_interactions) {
-          fate = Fate::kInteractionCap;
-          done = true;
-          break;
-        }
-        ++c.interface_events;
-        const bool entering = Dot(d, h.normal) < 0;
-        // The medium beyond a surface being left is the innermost enclosing object other than
-        // the one left.
-        int outer = -1;
-        if (!entering)
-          for (int k = depth - 1; k >= 0; --k)
-            if (stack[k] != h.object) {
-              outer = stack[k];
-              break;
-            }
-        const double n1 = entering ? index_at(cur, hp) : index_at(h.object, hp);
-        const double n2 = entering ? index_at(h.object, hp) : index_at(outer, hp);
-        const Vec3 nf = entering ? h.normal : -h.normal;  // faces the incoming ray
-        const double cos_i = -Dot(d, nf);
-        Vec3 dt;
-        double cos_t = 0;
-        bool reflect = !Refract(d, nf, n1 / n2, &dt, &cos_t);  // TIR
-        if (!reflect) {
-          if constexpr (kPR == PartialReflection::kUnpolarized) {
-            ++c.fresnel_evaluations;
-            reflect = rng.Uniform() < Fresnel(n1, n2, cos_i, cos_t).R();
-          } else if constexpr (kPR == PartialReflection::kPolarized) {
-            ++c.fresnel_evaluations;
-            // Split the field into s (perpendicular to the plane of incidence) and p parts;
-            // reflect with the power-weighted reflectance, then carry the new s/p mixture.
-            const FresnelCoefficients fc = Fresnel(n1, n2, cos_i, cos_t);
-            Vec3 s_dir = Cross(d, nf);
-            const double sl = Length(s_dir);
-            s_dir = sl > 1e-12 ? s_dir / sl : RandomPerpendicular(d, 0.0);
-            const double es = Dot(pol, s_dir), ep = Dot(pol, Cross(s_dir, d));
-            const double R = es * es * fc.Rs + ep * ep * fc.Rp;
-            reflect = rng.Uniform() < R;
-            const Vec3 dn = reflect ? Reflect(d, nf) : dt;
-            const double as = reflect ? fc.rs * es : (1 + fc.rs) * es;  // t_s = 1 + r_s
-            const double ap = reflect ? fc.rp * ep : (1 + fc.rp) * ep * n1 / n2;  // t_p
-            const Vec3 e = s_dir * as + Cross(s_dir, dn) * ap;
-            const double el = Length(e);
-            pol = el > 0 ? e / el : RandomPerpendicular(dn, 0.25);
-          }
-        }
-        if (reflect) {
-          d = Normalize(Reflect(d, nf));
-          o = hp + nf * geo.epsilon(h.object);
-          if (!classified) {
-            if (entering && events == 1) {
-              ++c.path_class[0];
-              classified = true;
-            } else if (!entering) {
-              ++internal_reflections;
-            }
-          }
-        } else {
-          d = Normalize(dt);
-          o = hp - nf * geo.epsilon(h.object);
-          if (entering) {
-            if (depth == kMaxDepth) {
-              fate = Fate::kLostInside;  // deeper nesting than supported
-              done = true;
-              break;
-            }
-            stack[depth++] = h.object;
-          } else {
-            for (int k = depth - 1; k >= 0; --k)
-              if (stack[k] == h.object) {
-                for (int m = k; m + 1 < depth; ++m) stack[m] = stack[m + 1];
-                --depth;
-                break;
-              }
-          }
-          if (!classified && !entering) {
-            ++c.path_class[std::min(1 + internal_reflections, kNumPathClasses - 1)];
-            classified = true;
-          }
-        }
-      }
-      if (!done && depth > 0) {
-        fate = Fate::kLostInside;
-        done = true;
-      }
-    }
+    if (has_objects) done = TraceObjects<kPR, kMesh>(im, trace, rng, o, d, pol, c, &fate);
     if (!done && d.z <= 0) {
       fate = Fate::kEscaped;
       done = true;
@@ -532,7 +542,8 @@ class Progress {
     if (cv_.wait_for(lk, std::chrono::seconds(2), [this] { return stop_; })) return;
     while (!stop_) {
       const double f = double(done_.load()) / double(std::max<uint64_t>(total_, 1));
-      const double el = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      const double el =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
       const int w = 30, filled = static_cast<int>(f * w);
       std::fprintf(stderr, "\r%s [%.*s%*s] %5.1f%%  %.0f s elapsed, ~%.0f s left", label_.c_str(),
                    filled, "##############################", w - filled, "", 100 * f, el,
@@ -570,9 +581,9 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
   // Automatic field radius: the sensor's view at the object plane, widened by the angular
   // spread over the largest defocus and object depth, plus 5 %.
   const double m = std::abs(Magnification(scene.optics));
-  const double view = 0.5 * std::hypot(scene.camera.nx, scene.camera.ny) *
-                      scene.camera.pixel_pitch_um / m +
-                      std::hypot(scene.camera.offset_um[0], scene.camera.offset_um[1]) / m;
+  const double view =
+      0.5 * std::hypot(scene.camera.nx, scene.camera.ny) * scene.camera.pixel_pitch_um / m +
+      std::hypot(scene.camera.offset_um[0], scene.camera.offset_um[1]) / m;
   double max_dz = 0;
   for (double dz : scene.defocus_um) max_dz = std::max(max_dz, std::abs(dz));
   const double tan_max = std::tan(std::min(scene.source.half_angle_deg, 80.0) * kDeg) +
@@ -582,9 +593,9 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
   switch (ss.type) {
     case SourceType::kCollimated: {
       const double t = ss.tilt_deg * kDeg, a = ss.azimuth_deg * kDeg;
-      im.source = CollimatedSource{MakeField(scene, auto_r),
-                                   Vec3(std::sin(t) * std::cos(a), std::sin(t) * std::sin(a),
-                                        std::cos(t))};
+      im.source =
+          CollimatedSource{MakeField(scene, auto_r),
+                           Vec3(std::sin(t) * std::cos(a), std::sin(t) * std::sin(a), std::cos(t))};
       break;
     }
     case SourceType::kCone:
@@ -663,15 +674,25 @@ PlaneResult Simulator::TracePlane(double defocus_um, uint32_t plane_index, uint6
     std::visit(
         [&](const auto& src) {
           auto dispatch = [&]<PartialReflection P>() {
-            if (corr && mesh) TraceRange<P, true, true>(im, src, ts, defocus_um, plane_index, b, e, acc);
-            else if (corr) TraceRange<P, true, false>(im, src, ts, defocus_um, plane_index, b, e, acc);
-            else if (mesh) TraceRange<P, false, true>(im, src, ts, defocus_um, plane_index, b, e, acc);
-            else TraceRange<P, false, false>(im, src, ts, defocus_um, plane_index, b, e, acc);
+            if (corr && mesh)
+              TraceRange<P, true, true>(im, src, ts, defocus_um, plane_index, b, e, acc);
+            else if (corr)
+              TraceRange<P, true, false>(im, src, ts, defocus_um, plane_index, b, e, acc);
+            else if (mesh)
+              TraceRange<P, false, true>(im, src, ts, defocus_um, plane_index, b, e, acc);
+            else
+              TraceRange<P, false, false>(im, src, ts, defocus_um, plane_index, b, e, acc);
           };
           switch (pr) {
-            case PartialReflection::kOff: dispatch.template operator()<PartialReflection::kOff>(); break;
-            case PartialReflection::kUnpolarized: dispatch.template operator()<PartialReflection::kUnpolarized>(); break;
-            case PartialReflection::kPolarized: dispatch.template operator()<PartialReflection::kPolarized>(); break;
+            case PartialReflection::kOff:
+              dispatch.template operator()<PartialReflection::kOff>();
+              break;
+            case PartialReflection::kUnpolarized:
+              dispatch.template operator()<PartialReflection::kUnpolarized>();
+              break;
+            case PartialReflection::kPolarized:
+              dispatch.template operator()<PartialReflection::kPolarized>();
+              break;
           }
         },
         im.source);
@@ -702,6 +723,34 @@ PlaneResult Simulator::TracePlane(double defocus_um, uint32_t plane_index, uint6
   res.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   RAYMATCH_CHECK(res.counters.total_fates() == rays);  // every ray accounted for
   return res;
+}
+
+Simulator::ObjectExit Simulator::TraceThroughObjects(const Vec3& origin, const Vec3& direction,
+                                                     uint64_t ray_index) const {
+  ObjectExit out;
+  out.origin = origin;
+  out.direction = Normalize(direction);
+  RayRng rng(scene_.trace.seed, 0, ray_index);
+  Vec3 pol = RandomPerpendicular(out.direction, rng.Uniform());
+  auto run = [&]<PartialReflection P>() {
+    out.ended = impl_->geometry.has_meshes()
+                    ? TraceObjects<P, true>(*impl_, scene_.trace, rng, out.origin, out.direction,
+                                            pol, out.counters, &out.fate)
+                    : TraceObjects<P, false>(*impl_, scene_.trace, rng, out.origin, out.direction,
+                                             pol, out.counters, &out.fate);
+  };
+  switch (scene_.trace.partial_reflection) {
+    case PartialReflection::kOff:
+      run.template operator()<PartialReflection::kOff>();
+      break;
+    case PartialReflection::kUnpolarized:
+      run.template operator()<PartialReflection::kUnpolarized>();
+      break;
+    case PartialReflection::kPolarized:
+      run.template operator()<PartialReflection::kPolarized>();
+      break;
+  }
+  return out;
 }
 
 uint64_t Simulator::RaysForPhotonTarget(double photons_per_pixel, double* hppr) const {

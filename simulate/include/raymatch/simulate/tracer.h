@@ -85,6 +85,18 @@ class Simulator {
   /// pilot run without objects (the experimenter's flat-field signal x well capacity).
   uint64_t RaysForPhotonTarget(double photons_per_pixel, double* hits_per_pixel_per_ray = nullptr) const;
 
+  /// One ray through the objects only (no source, no optics), with the scene's physics and the
+  /// random stream of `ray_index`: where and in which direction it leaves the last surface.
+  /// For tests and accuracy studies.
+  struct ObjectExit {
+    Vec3 origin, direction;
+    bool ended = false;           ///< ended inside (then `fate` says why)
+    Fate fate = Fate::kDetected;
+    TraceCounters counters;
+  };
+  ObjectExit TraceThroughObjects(const Vec3& origin, const Vec3& direction,
+                                 uint64_t ray_index = 0) const;
+
   /// Rays per image for this scene (given directly, or from the photon target).
   uint64_t RaysPerImage() const;
 

@@ -418,6 +418,7 @@ Scene LoadScene(const std::string& path) {
   }
   s.camera.sensor_shift_mm = cam.Number("sensor_shift_mm", 0);
   s.camera.flip = cam.Bool("flip", true);
+  s.camera.psf_sigma_um = cam.InRange("psf_sigma_um", 0, 100, 0);
   cam.Finish();
 
   if (r.Has("trace")) {

@@ -153,6 +153,7 @@ struct Optics {
   double stop_z = 0, stop_r2 = 0;
   double sensor_z = 0;
   double pitch = 0, off_x = 0, off_y = 0, sign = -1;
+  double psf_sigma_sensor = 0;  // Gaussian PSF at the sensor (um), 0 = none
   int nx = 0, ny = 0;
 };
 
@@ -238,6 +239,7 @@ Optics MakeOptics(const Scene& s) {
   o.off_x = s.camera.offset_um[0];
   o.off_y = s.camera.offset_um[1];
   o.sign = s.camera.flip ? -1.0 : 1.0;
+  o.psf_sigma_sensor = s.camera.psf_sigma_um * std::abs(Magnification(sp));
   o.nx = s.camera.nx;
   o.ny = s.camera.ny;
   return o;
@@ -502,7 +504,13 @@ void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& t
       }
       if (!done) {
         go(op.sensor_z + defocus);
-        const double u = op.sign * x - op.off_x, v = op.sign * y - op.off_y;
+        double u = op.sign * x - op.off_x, v = op.sign * y - op.off_y;
+        if (op.psf_sigma_sensor > 0) {  // Box-Muller: two independent normal offsets
+          const double r = op.psf_sigma_sensor * std::sqrt(-2 * std::log(1 - rng.Uniform()));
+          const double phi = 2 * M_PI * rng.Uniform();
+          u += r * std::cos(phi);
+          v += r * std::sin(phi);
+        }
         const double col = std::floor(u / op.pitch + 0.5 * op.nx);
         const double row = std::floor(0.5 * op.ny - v / op.pitch);
         if (col >= 0 && col < op.nx && row >= 0 && row < op.ny) {
@@ -642,6 +650,7 @@ std::vector<std::string> Simulator::Effects() const {
   e.push_back(scene_.optics.model == ObjectiveModel::kSingle ? "objective:single_ideal_lens"
                                                              : "objective:two_ideal_lenses");
   e.push_back("tube_lens");
+  if (scene_.camera.psf_sigma_um > 0) e.push_back("camera_psf:gaussian");
   return e;
 }
 

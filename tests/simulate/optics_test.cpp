@@ -153,3 +153,30 @@ TEST(Fates, InteractionCapCountsTrappedRays) {
 
 }  // namespace
 }  // namespace raymatch::simulate
+
+namespace raymatch::simulate {
+namespace {
+
+// The camera PSF spreads a focused point into a Gaussian of the given sigma: the second moment
+// of the image about the point is 2 sigma^2 (+ pixel quantisation 2/12 px^2).
+TEST(CameraPsf, PointSpreadsIntoTheGaussian) {
+  Scene s = Base();
+  s.source.type = SourceType::kPoint;
+  s.source.position_um = {0.5, 0.5, 0};  // a pixel centre (1 um pixels, even size)
+  s.source.half_angle_deg = 20;
+  s.camera.psf_sigma_um = 2.0;
+  const PlaneResult r = Simulator(s).TracePlane(0, 0, 200000);
+  double w = 0, m2 = 0;
+  for (int y = 0; y < 64; ++y)
+    for (int x = 0; x < 64; ++x) {
+      const double c = r.counts.at(x, y), dx = x + 0.5 - 32 - 0.5, dy = 32 - y - 0.5 - 0.5;
+      w += c, m2 += c * (dx * dx + dy * dy);
+    }
+  const double want = 2 * 4.0 + 2.0 / 12;
+  // Relative sd of a second-moment estimate from N samples of a 2D Gaussian: 1/sqrt(N).
+  EXPECT_NEAR(m2 / w, want, 4 * want / std::sqrt(w));
+  EXPECT_EQ(w, double(r.counters.fates[int(Fate::kDetected)]));
+}
+
+}  // namespace
+}  // namespace raymatch::simulate

@@ -92,6 +92,9 @@ struct CameraSpec {
   std::array<double, 2> offset_um{};    ///< sensor centre offset from the axis, sensor frame
   double sensor_shift_mm = 0;           ///< sensor displacement along z from the tube focus
   bool flip = true;                     ///< true: store the image upright (undo the inversion)
+  /// Gaussian point-spread function (sigma, at the object plane) applied to each detected ray:
+  /// a convolution of the photon distribution that keeps exact Poisson statistics. 0 = none.
+  double psf_sigma_um = 0;
 };
 
 enum class PartialReflection { kOff, kUnpolarized, kPolarized };

@@ -96,6 +96,19 @@ void WriteFloatImage(const std::string& path, const Image& img, const std::strin
   WriteWithOiio(path, spec, OIIO::TypeDesc::FLOAT, img.pixels.data());
 }
 
+void WriteUint16Image(const std::string& path, const Image& img, const std::string& description) {
+  std::vector<uint16_t> px(img.size());
+  for (size_t i = 0; i < img.size(); ++i) {
+    RAYMATCH_CHECK(std::isfinite(img.pixels[i]));
+    px[i] = static_cast<uint16_t>(std::clamp(std::round(double(img.pixels[i])), 0.0, 65535.0));
+  }
+  OIIO::ImageSpec spec(img.width, img.height, 1, OIIO::TypeDesc::UINT16);
+  if (!description.empty()) spec.attribute("ImageDescription", description);
+  spec.attribute("Software", "raymatch");
+  spec.attribute("compression", "none");
+  WriteWithOiio(path, spec, OIIO::TypeDesc::UINT16, px.data());
+}
+
 void WritePngPreview(const std::string& path, const Image& img, double lo, double hi) {
   std::vector<unsigned char> px(img.size());
   const double scale = hi > lo ? 255.0 / (hi - lo) : 0.0;

@@ -39,6 +39,17 @@ TEST(ImageIo, PngPreviewKeepsCodeValues) {
   EXPECT_DOUBLE_EQ(info.type_max, 255.0);
 }
 
+TEST(ImageIo, Uint16KeepsTwelveBitCodeValues) {
+  testing::TempDir dir;
+  Image img(3, 1);
+  img.pixels = {0.4f, 4095.f, 70000.f};
+  WriteUint16Image(dir / "c.tif", img, "12-bit data");
+  ImageFileInfo info;
+  const Image back = ReadImage(dir / "c.tif", &info);
+  EXPECT_EQ(back.pixels, (std::vector<float>{0.f, 4095.f, 65535.f}));
+  EXPECT_EQ(info.pixel_type, "uint16");
+}
+
 TEST(ImageIo, MissingAndBadFilesSayWhich) {
   testing::TempDir dir;
   try {

@@ -25,6 +25,10 @@ Image ReadImage(const std::string& path, ImageFileInfo* info = nullptr);
 void WriteFloatImage(const std::string& path, const Image& img, const std::string& description,
                      const std::map<std::string, std::string>& attributes = {});
 
+/// Writes a 16-bit unsigned single-channel TIFF or PNG (camera-like data): values rounded and
+/// clamped to [0, 65535]. `description` goes to ImageDescription (TIFF).
+void WriteUint16Image(const std::string& path, const Image& img, const std::string& description);
+
 /// Writes an 8-bit PNG preview: values mapped linearly from [lo, hi] to [0, 255].
 void WritePngPreview(const std::string& path, const Image& img, double lo, double hi);
 

@@ -10,6 +10,7 @@
 #include "raymatch/simulate/tracer.h"
 #include "stats.h"
 #include "temp_dir.h"
+#include "test_scenes.h"
 
 namespace raymatch::simulate {
 namespace {
@@ -86,14 +87,8 @@ TEST(Grin, FishEyeImagesAPointToItsConjugate) {
 }
 
 Scene LensScene() {
-  Scene s;
-  s.optics.objective_focal_mm = 10;
-  s.optics.na = 0.42;
-  s.optics.tube_focal_mm = 200;
-  s.camera.nx = s.camera.ny = 64;
+  Scene s = testing::MicroscopeScene(3);
   s.camera.pixel_pitch_um = 0.2;  // 0.01 um at the object
-  s.trace.partial_reflection = PartialReflection::kOff;
-  s.trace.seed = 3;
   return s;
 }
 
@@ -277,18 +272,13 @@ file = "grid.npy"
 spacing_um = [1, 1]
 origin_um = [0, -6]
 QUANTITY
-[objective]
-focal_length_mm = 10
-na = 0.42
-[tube_lens]
-focal_length_mm = 200
 [camera]
 pixels = [16, 16]
 pixel_pitch_um = 20
 )";
 
 std::string GridScene(const testing::TempDir& dir, const std::string& quantity) {
-  std::string s = kGridScene;
+  std::string s = std::string(kGridScene) + testing::kOpticsToml;
   s.replace(s.find("QUANTITY"), 8, quantity);
   return dir.Write("scene.toml", s);
 }

@@ -7,39 +7,19 @@
 #include "raymatch/simulate/tracer.h"
 #include "stats.h"
 #include "temp_dir.h"
+#include "test_scenes.h"
 
 namespace raymatch::simulate {
 namespace {
 
 Scene Base() {
-  Scene s;
-  s.optics.objective_focal_mm = 10;
-  s.optics.na = 0.42;
-  s.optics.tube_focal_mm = 200;
-  s.camera.nx = s.camera.ny = 64;
-  s.camera.pixel_pitch_um = 20;
+  Scene s = testing::MicroscopeScene(2024);
   s.trace.partial_reflection = PartialReflection::kUnpolarized;
-  s.trace.seed = 2024;
   return s;
 }
 
-ObjectSpec Sphere(double r, double n, Vec3 c = {}) {
-  ObjectSpec o;
-  o.shape = ShapeType::kSphere;
-  o.radius_um = r;
-  o.index = n;
-  o.center_um = c;
-  return o;
-}
-
-ObjectSpec Box(Vec3 half, double n, Vec3 c = {}) {
-  ObjectSpec o;
-  o.shape = ShapeType::kBox;
-  o.semi_axes_um = half;
-  o.index = n;
-  o.center_um = c;
-  return o;
-}
+ObjectSpec Sphere(double r, double n, Vec3 c = {}) { return testing::SphereObject(r, n, c); }
+ObjectSpec Box(Vec3 half, double n, Vec3 c = {}) { return testing::BoxObject(half, n, c); }
 
 void ExpectSane(const PlaneResult& r, bool allow_lost = false) {
   for (float v : r.counts.pixels) ASSERT_TRUE(std::isfinite(v));

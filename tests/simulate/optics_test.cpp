@@ -5,23 +5,14 @@
 
 #include "raymatch/simulate/tracer.h"
 #include "stats.h"
+#include "test_scenes.h"
 
 namespace raymatch::simulate {
 namespace {
 
 constexpr double kPi = 3.14159265358979323846;
 
-Scene Base() {
-  Scene s;
-  s.optics.objective_focal_mm = 10;
-  s.optics.na = 0.42;
-  s.optics.tube_focal_mm = 200;
-  s.camera.nx = s.camera.ny = 64;
-  s.camera.pixel_pitch_um = 20;  // 1 um at the object
-  s.trace.partial_reflection = PartialReflection::kOff;
-  s.trace.seed = 99;
-  return s;
-}
+Scene Base() { return testing::MicroscopeScene(99); }
 
 uint64_t F(const PlaneResult& r, Fate f) { return r.counters.fates[int(f)]; }
 

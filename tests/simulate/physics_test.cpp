@@ -9,33 +9,15 @@
 #include "raymatch/simulate/tracer.h"
 #include "stats.h"
 #include "temp_dir.h"
+#include "test_scenes.h"
 
 namespace raymatch::simulate {
 namespace {
 
 constexpr double kPi = 3.14159265358979323846;
 
-/// Mitutoyo-like optics (f = 10 mm, NA 0.42, 200 mm tube lens: M = -20) and a 64x64 camera.
-Scene BaseScene() {
-  Scene s;
-  s.name = "test";
-  s.optics.objective_focal_mm = 10;
-  s.optics.na = 0.42;
-  s.optics.tube_focal_mm = 200;
-  s.camera.nx = s.camera.ny = 64;
-  s.camera.pixel_pitch_um = 20;  // 1 um at the object
-  s.trace.partial_reflection = PartialReflection::kOff;
-  s.trace.seed = 12345;
-  return s;
-}
-
-ObjectSpec Sphere(double r, double n) {
-  ObjectSpec o;
-  o.shape = ShapeType::kSphere;
-  o.radius_um = r;
-  o.index = n;
-  return o;
-}
+Scene BaseScene() { return testing::MicroscopeScene(12345); }
+ObjectSpec Sphere(double r, double n) { return testing::SphereObject(r, n); }
 
 uint64_t Fates(const PlaneResult& r, Fate f) { return r.counters.fates[int(f)]; }
 

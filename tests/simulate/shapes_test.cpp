@@ -11,6 +11,7 @@
 #include "raymatch/simulate/tracer.h"
 #include "stats.h"
 #include "temp_dir.h"
+#include "test_scenes.h"
 
 namespace raymatch::simulate {
 namespace {
@@ -42,9 +43,8 @@ TEST(Revolution, SemicircleGivesAClosedSphere) {
 // The revolved sphere refracts like the analytic one: the Debye direct-transmission fraction
 // P1 agrees within shot noise plus a faceting allowance (facet normals deviate by <= pi/256).
 TEST(Revolution, RevolvedSphereRefractsLikeTheAnalyticSphere) {
-  Scene s;
-  s.optics.objective_focal_mm = 10, s.optics.na = 0.42, s.optics.tube_focal_mm = 200;
-  s.camera.nx = s.camera.ny = 32, s.camera.pixel_pitch_um = 20;
+  Scene s = testing::MicroscopeScene();
+  s.camera.nx = s.camera.ny = 32;
   s.source.type = SourceType::kCollimated;
   s.source.field_radius_um = 9.9;
   s.trace.partial_reflection = PartialReflection::kUnpolarized;
@@ -156,15 +156,10 @@ type = "mesh"
 file = "open.obj"
 scale_um = 10
 index = 1.5
-[objective]
-focal_length_mm = 10
-na = 0.42
-[tube_lens]
-focal_length_mm = 200
 [camera]
 pixels = [16, 16]
 pixel_pitch_um = 20
-)");
+)" + testing::kOpticsToml);
   try {
     Simulator sim(LoadScene(scene));
     FAIL() << "open mesh accepted";
@@ -187,15 +182,10 @@ outline_rz_um = [[0, -10], [6, -8], [9, 0], [6, 8], [0, 10]]
 segments = 64
 rotation_deg = [-90, 0, 0]
 index = 1.33
-[objective]
-focal_length_mm = 10
-na = 0.42
-[tube_lens]
-focal_length_mm = 200
 [camera]
 pixels = [32, 32]
 pixel_pitch_um = 20
-)");
+)" + testing::kOpticsToml);
   const Scene s = LoadScene(scene);
   ASSERT_TRUE(s.objects[0].mesh);
   Simulator sim(s);

@@ -14,6 +14,7 @@ function(raymatch_test name)
   cmake_parse_arguments(A "" "LABEL" "SOURCES;DEPS" ${ARGN})
   add_executable(${name} ${A_SOURCES})
   target_link_libraries(${name} PRIVATE ${A_DEPS} raymatch_testing GTest::gtest GTest::gtest_main)
+  target_compile_definitions(${name} PRIVATE RAYMATCH_SOURCE_DIR="${PROJECT_SOURCE_DIR}")
   # One ctest entry per test binary keeps ctest output compact; gtest prints the cases.
   add_test(NAME ${name} COMMAND ${name} WORKING_DIRECTORY ${CMAKE_CURRENT_SOURCE_DIR})
   if(A_LABEL)

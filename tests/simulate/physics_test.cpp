@@ -5,6 +5,7 @@
 #include <cmath>
 #include <fstream>
 #include <numeric>
+#include <sstream>
 
 #include "raymatch/simulate/tracer.h"
 #include "stats.h"
@@ -163,6 +164,53 @@ std::string WriteCubeObj(const testing::TempDir& dir) {
                    "v -0.5 -0.5 0.5\nv 0.5 -0.5 0.5\nv 0.5 0.5 0.5\nv -0.5 0.5 0.5\n"
                    "f 1 3 2\nf 1 4 3\nf 5 6 7\nf 5 7 8\nf 1 2 6\nf 1 6 5\n"
                    "f 2 3 7\nf 2 7 6\nf 3 4 8\nf 3 8 7\nf 4 1 5\nf 4 5 8\n");
+}
+
+// The same cube as ASCII STL and PLY (Assimp reads all three formats).
+std::string WriteCube(const testing::TempDir& dir, const std::string& ext) {
+  const double v[8][3] = {{-.5, -.5, -.5}, {.5, -.5, -.5}, {.5, .5, -.5}, {-.5, .5, -.5},
+                          {-.5, -.5, .5},  {.5, -.5, .5},  {.5, .5, .5},  {-.5, .5, .5}};
+  const int f[12][3] = {{0, 2, 1}, {0, 3, 2}, {4, 5, 6}, {4, 6, 7}, {0, 1, 5}, {0, 5, 4},
+                        {1, 2, 6}, {1, 6, 5}, {2, 3, 7}, {2, 7, 6}, {3, 0, 4}, {3, 4, 7}};
+  std::ostringstream os;
+  if (ext == "obj") return WriteCubeObj(dir);
+  if (ext == "stl") {
+    os << "solid cube\n";
+    for (auto& t : f) {
+      os << " facet normal 0 0 0\n  outer loop\n";
+      for (int k : t) os << "   vertex " << v[k][0] << " " << v[k][1] << " " << v[k][2] << "\n";
+      os << "  endloop\n endfacet\n";
+    }
+    os << "endsolid cube\n";
+  } else {
+    os << "ply\nformat ascii 1.0\nelement vertex 8\nproperty float x\nproperty float y\n"
+          "property float z\nelement face 12\nproperty list uchar int vertex_indices\nend_header\n";
+    for (auto& p : v) os << p[0] << " " << p[1] << " " << p[2] << "\n";
+    for (auto& t : f) os << "3 " << t[0] << " " << t[1] << " " << t[2] << "\n";
+  }
+  return dir.Write("cube." + ext, os.str());
+}
+
+TEST(MeshFormats, StlAndPlyCubesTransmitLikeTheBox) {
+  for (const std::string ext : {"stl", "ply"}) {
+    testing::TempDir dir;
+    Scene s = BaseScene();
+    ObjectSpec o;
+    o.shape = ShapeType::kMesh;
+    o.mesh_file = WriteCube(dir, ext);
+    o.mesh_scale_um = 200;
+    o.index = 1.5;
+    s.objects = {o};
+    s.source.type = SourceType::kCollimated;
+    s.source.field_radius_um = 50;
+    s.trace.partial_reflection = PartialReflection::kUnpolarized;
+    s.trace.max_interactions = 200;
+    const uint64_t N = 300000;
+    const PlaneResult r = Simulator(s).TracePlane(0, 0, N);
+    const double want = (1 - 0.04) / (1 + 0.04);
+    const double forward = double(N - Fates(r, Fate::kEscaped)) / N;
+    EXPECT_LT(std::abs(forward - want), 4 * testing::BinomialSigma(want, N)) << ext;
+  }
 }
 
 class Slab : public ::testing::TestWithParam<bool> {};

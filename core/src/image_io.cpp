@@ -109,6 +109,12 @@ void WriteUint16Image(const std::string& path, const Image& img, const std::stri
   WriteWithOiio(path, spec, OIIO::TypeDesc::UINT16, px.data());
 }
 
+void WriteRgbPng(const std::string& path, int width, int height, const unsigned char* rgb) {
+  OIIO::ImageSpec spec(width, height, 3, OIIO::TypeDesc::UINT8);
+  spec.attribute("Software", "raymatch");
+  WriteWithOiio(path, spec, OIIO::TypeDesc::UINT8, rgb);
+}
+
 void WritePngPreview(const std::string& path, const Image& img, double lo, double hi) {
   std::vector<unsigned char> px(img.size());
   const double scale = hi > lo ? 255.0 / (hi - lo) : 0.0;

@@ -29,6 +29,9 @@ void WriteFloatImage(const std::string& path, const Image& img, const std::strin
 /// clamped to [0, 65535]. `description` goes to ImageDescription (TIFF).
 void WriteUint16Image(const std::string& path, const Image& img, const std::string& description);
 
+/// Writes an 8-bit RGB PNG from interleaved rgb bytes (3 * width * height); atomic.
+void WriteRgbPng(const std::string& path, int width, int height, const unsigned char* rgb);
+
 /// Writes an 8-bit PNG preview: values mapped linearly from [lo, hi] to [0, 255].
 void WritePngPreview(const std::string& path, const Image& img, double lo, double hi);
 

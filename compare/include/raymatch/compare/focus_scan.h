@@ -1,0 +1,89 @@
+#pragma once
+// The focus-scan test (paper sections II.B-C): every experimental plane against every simulated
+// plane, for every measure; a measure passes when each experimental plane's best match is the
+// simulated plane of the same defocus, within one step.
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "raymatch/compare/measures.h"
+
+namespace raymatch::compare {
+
+/// A focus stack: images labelled with their defocus (micrometres, docs/conventions.md).
+struct Stack {
+  std::vector<double> defocus_um;
+  std::vector<Image> images;
+  std::vector<std::string> files;
+};
+
+/// Reads a stack index: a CSV "defocus_um,file" (header allowed) or the simulator's JSON index
+/// ({"planes": [{"defocus_um": .., "image": ..}]}). Paths are relative to the index. Throws
+/// CompareError (kFileError for missing files, kInvalidInput for empty/malformed stacks or
+/// NaN pixels, kSizeMismatch for images of different sizes within the stack).
+Stack ReadStack(const std::string& index_path);
+
+/// Turning camera images into photon counts.
+struct PrepareOptions {
+  std::optional<std::array<int, 4>> roi;  ///< x, y, width, height in pixels (crop first)
+  std::string dark_file;                  ///< subtracted (code values) when given
+  std::string flat_file;                  ///< flat field (dark-subtracted): divide by flat/mean
+  double gain_e_per_dn = 1;               ///< photons per code value after dark subtraction
+};
+
+/// Crop, dark subtraction, flat-field normalisation and conversion to photon counts.
+Image PrepareExperiment(const Image& raw, const PrepareOptions& options, const Image* dark,
+                        const Image* flat);
+
+enum class Measure { kMse, kSsim, kMsSsim, kCwSsim, kPoissonChi2 };
+const char* MeasureName(Measure m);            ///< "mse", "ssim", "ms_ssim", "cw_ssim", "poisson_chi2"
+bool HigherIsBetter(Measure m);                ///< similarity (true) or distance (false)
+
+struct FocusScanOptions {
+  PrepareOptions prepare;                       ///< applied to the experimental stack
+  double data_range = 0;                        ///< L; 0 = the largest pixel of both stacks
+  bool register_shift = true;                   ///< sub-pixel phase correlation at the middle plane
+  bool normalize_background = true;             ///< scale simulation to the experiment's median
+  int ms_ssim_scales = 0;                       ///< 0 = one below the maximum (paper)
+  int cw_ssim_level = 0;                        ///< 0 = one below the maximum (paper)
+  std::vector<Measure> measures = {Measure::kMse, Measure::kSsim, Measure::kMsSsim,
+                                   Measure::kCwSsim, Measure::kPoissonChi2};
+  /// Measures whose failure fails the test (the paper: MSE, MS-SSIM and CW-SSIM pass, SSIM not).
+  std::vector<Measure> primary = {Measure::kMse, Measure::kMsSsim, Measure::kCwSsim};
+};
+
+struct MeasureScan {
+  Measure measure;
+  std::vector<std::vector<double>> matrix;  ///< [experiment plane][simulation plane]
+  std::vector<int> best;                    ///< best simulation plane per experiment plane
+  std::vector<int> expected;                ///< simulation plane nearest in defocus
+  bool passes = false;
+};
+
+enum class Verdict { kPass = 0, kWarning = 1, kFail = 2 };
+
+struct FocusScanResult {
+  std::vector<double> exp_defocus_um, sim_defocus_um;
+  std::vector<MeasureScan> measures;
+  double data_range = 0;
+  std::array<double, 2> shift_px{};   ///< applied to the experiment (x, y)
+  double sim_scale = 1;               ///< factor applied to the simulation
+  int ms_ssim_scales = 0, cw_ssim_level = 0;
+  Verdict verdict = Verdict::kFail;
+  std::string message;
+  std::vector<Image> exp_images, sim_images;  ///< prepared, for reports
+  nlohmann::json ToJson() const;
+};
+
+/// Runs the focus-scan test. Throws CompareError on bad input.
+FocusScanResult RunFocusScan(const Stack& experiment, const Stack& simulation,
+                             const FocusScanOptions& options);
+
+/// Writes compare_scan.json, <measure>_matrix.csv, best_match.csv, heatmap_<measure>.png,
+/// montage.png and a self-contained report.html into `dir`. Returns the report path.
+std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& dir,
+                                 const std::string& title);
+
+}  // namespace raymatch::compare

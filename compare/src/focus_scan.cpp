@@ -1,0 +1,329 @@
+#include "raymatch/compare/focus_scan.h"
+
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <opencv2/imgproc.hpp>
+#include <sstream>
+
+#include "raymatch/core/image_io.h"
+
+namespace fs = std::filesystem;
+
+namespace raymatch::compare {
+
+namespace {
+
+Image LoadChecked(const std::string& path) {
+  if (!fs::exists(path)) throw CompareError(FailureKind::kFileError, FileLocation{path}, "file not found");
+  try {
+    return ReadImage(path);
+  } catch (const Error& e) {
+    const bool nan = e.message().find("NaN") != std::string::npos;
+    throw CompareError(nan ? FailureKind::kInvalidInput : FailureKind::kFileError, e.where(),
+                       e.message());
+  }
+}
+
+}  // namespace
+
+Stack ReadStack(const std::string& index) {
+  if (!fs::exists(index))
+    throw CompareError(FailureKind::kFileError, FileLocation{index}, "stack index not found");
+  const fs::path base = fs::path(index).parent_path();
+  Stack s;
+  std::ifstream in(index);
+  if (fs::path(index).extension() == ".json") {
+    nlohmann::json j;
+    try {
+      j = nlohmann::json::parse(in);
+    } catch (const std::exception& e) {
+      throw CompareError(FailureKind::kInvalidInput, FileLocation{index},
+                         std::string("not valid JSON: ") + e.what());
+    }
+    if (!j.contains("planes") || !j["planes"].is_array())
+      throw CompareError(FailureKind::kInvalidInput, FileLocation{index},
+                         "expected {\"planes\": [{\"defocus_um\": .., \"image\": ..}, ...]}");
+    for (const auto& p : j["planes"]) {
+      if (!p.contains("defocus_um") || !p.contains("image"))
+        throw CompareError(FailureKind::kInvalidInput, FileLocation{index},
+                           "each plane needs defocus_um and image");
+      s.defocus_um.push_back(p["defocus_um"].get<double>());
+      s.files.push_back((base / p["image"].get<std::string>()).string());
+    }
+  } else {
+    std::string line;
+    int n = 0;
+    while (std::getline(in, line)) {
+      ++n;
+      if (line.empty() || line[0] == '#') continue;
+      const size_t comma = line.find(',');
+      double z;
+      try {
+        if (comma == std::string::npos) throw std::invalid_argument("");
+        z = std::stod(line.substr(0, comma));
+      } catch (const std::exception&) {
+        if (n == 1) continue;  // header
+        throw CompareError(FailureKind::kInvalidInput, FileLocation{index, n, 1},
+                           "expected 'defocus_um,file'");
+      }
+      std::string f = line.substr(comma + 1);
+      while (!f.empty() && (f.back() == '\r' || f.back() == ' ')) f.pop_back();
+      s.defocus_um.push_back(z);
+      s.files.push_back((base / f).string());
+    }
+  }
+  if (s.files.empty())
+    throw CompareError(FailureKind::kInvalidInput, FileLocation{index}, "the stack is empty");
+  for (const auto& f : s.files) {
+    s.images.push_back(LoadChecked(f));
+    if (s.images.back().width != s.images[0].width || s.images.back().height != s.images[0].height)
+      throw CompareError(FailureKind::kSizeMismatch, FileLocation{f},
+                         "image size differs from the stack's first image");
+  }
+  return s;
+}
+
+Image PrepareExperiment(const Image& raw, const PrepareOptions& o, const Image* dark,
+                        const Image* flat) {
+  auto crop = [&](const Image& img, const std::string& what) {
+    if (!o.roi) return img;
+    const auto [x0, y0, w, h] = *o.roi;
+    if (x0 < 0 || y0 < 0 || w <= 0 || h <= 0 || x0 + w > img.width || y0 + h > img.height)
+      throw CompareError(FailureKind::kSizeMismatch,
+                         "ROI " + std::to_string(x0) + "," + std::to_string(y0) + " " +
+                             std::to_string(w) + "x" + std::to_string(h) + " does not fit the " +
+                             what + " (" + std::to_string(img.width) + "x" +
+                             std::to_string(img.height) + ")");
+    Image c(w, h);
+    for (int y = 0; y < h; ++y)
+      for (int x = 0; x < w; ++x) c.at(x, y) = img.at(x0 + x, y0 + y);
+    return c;
+  };
+  Image img = crop(raw, "image");
+  if (dark) {
+    const Image d = crop(*dark, "dark frame");
+    if (d.width != img.width || d.height != img.height)
+      throw CompareError(FailureKind::kSizeMismatch, "dark frame size differs from the image");
+    for (size_t i = 0; i < img.size(); ++i) img.pixels[i] -= d.pixels[i];
+  }
+  if (flat) {
+    const Image f = crop(*flat, "flat field");
+    if (f.width != img.width || f.height != img.height)
+      throw CompareError(FailureKind::kSizeMismatch, "flat field size differs from the image");
+    const double mean = ComputeStats(f).mean;
+    if (!(mean > 0)) throw CompareError(FailureKind::kInvalidInput, "flat field is blank");
+    for (size_t i = 0; i < img.size(); ++i)
+      img.pixels[i] = f.pixels[i] > 0 ? float(img.pixels[i] * mean / f.pixels[i]) : 0.f;
+  }
+  for (float& v : img.pixels) v = float(v * o.gain_e_per_dn);
+  return img;
+}
+
+const char* MeasureName(Measure m) {
+  switch (m) {
+    case Measure::kMse: return "mse";
+    case Measure::kSsim: return "ssim";
+    case Measure::kMsSsim: return "ms_ssim";
+    case Measure::kCwSsim: return "cw_ssim";
+    case Measure::kPoissonChi2: return "poisson_chi2";
+  }
+  return "?";
+}
+
+bool HigherIsBetter(Measure m) { return m == Measure::kSsim || m == Measure::kMsSsim || m == Measure::kCwSsim; }
+
+namespace {
+
+double Median(std::vector<float> v) {
+  std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+  return v[v.size() / 2];
+}
+
+Image Shift(const Image& img, double dx, double dy) {
+  cv::Mat src(img.height, img.width, CV_32F, const_cast<float*>(img.pixels.data())), dst;
+  const cv::Mat m = (cv::Mat_<double>(2, 3) << 1, 0, dx, 0, 1, dy);
+  cv::warpAffine(src, dst, m, src.size(), cv::INTER_LINEAR, cv::BORDER_REPLICATE);
+  Image out(img.width, img.height);
+  std::copy(dst.begin<float>(), dst.end<float>(), out.pixels.begin());
+  return out;
+}
+
+int Nearest(const std::vector<double>& zs, double z) {
+  int best = 0;
+  for (size_t j = 1; j < zs.size(); ++j)
+    if (std::abs(zs[j] - z) < std::abs(zs[best] - z)) best = int(j);
+  return best;
+}
+
+}  // namespace
+
+FocusScanResult RunFocusScan(const Stack& exp, const Stack& sim, const FocusScanOptions& o) {
+  if (exp.images.empty() || sim.images.empty())
+    throw CompareError(FailureKind::kInvalidInput, "a focus stack is empty");
+  FocusScanResult r;
+  r.exp_defocus_um = exp.defocus_um;
+  r.sim_defocus_um = sim.defocus_um;
+  Image dark, flat;
+  if (!o.prepare.dark_file.empty()) dark = LoadChecked(o.prepare.dark_file);
+  if (!o.prepare.flat_file.empty()) flat = LoadChecked(o.prepare.flat_file);
+  for (const Image& e : exp.images)
+    r.exp_images.push_back(PrepareExperiment(e, o.prepare, dark.empty() ? nullptr : &dark,
+                                             flat.empty() ? nullptr : &flat));
+  r.sim_images = sim.images;
+  const Image& e0 = r.exp_images[0];
+  if (e0.width != r.sim_images[0].width || e0.height != r.sim_images[0].height)
+    throw CompareError(FailureKind::kSizeMismatch,
+                       "experiment images are " + std::to_string(e0.width) + "x" +
+                           std::to_string(e0.height) + " after preparation, simulation images " +
+                           std::to_string(r.sim_images[0].width) + "x" +
+                           std::to_string(r.sim_images[0].height) + "; crop with an ROI");
+  // Bring the simulation to the experiment's background level (exposure), then register.
+  if (o.normalize_background) {
+    const double me = Median(r.exp_images[exp.images.size() / 2].pixels);
+    const double ms = Median(r.sim_images[Nearest(sim.defocus_um, exp.defocus_um[exp.images.size() / 2])].pixels);
+    if (!(ms > 0) || !(me > 0))
+      throw CompareError(FailureKind::kInvalidInput, "blank images: cannot match exposures");
+    r.sim_scale = me / ms;
+    for (Image& s : r.sim_images)
+      for (float& v : s.pixels) v = float(v * r.sim_scale);
+  }
+  if (o.register_shift) {
+    const size_t k = exp.images.size() / 2;
+    const Image& a = r.exp_images[k];
+    const Image& b = r.sim_images[Nearest(sim.defocus_um, exp.defocus_um[k])];
+    cv::Mat ma(a.height, a.width, CV_32F, const_cast<float*>(a.pixels.data()));
+    cv::Mat mb(b.height, b.width, CV_32F, const_cast<float*>(b.pixels.data()));
+    cv::Mat win;
+    cv::createHanningWindow(win, ma.size(), CV_32F);
+    cv::Mat a64, b64, w64;
+    ma.convertTo(a64, CV_64F);
+    mb.convertTo(b64, CV_64F);
+    win.convertTo(w64, CV_64F);
+    const cv::Point2d d = cv::phaseCorrelate(b64, a64, w64);  // shift of a relative to b
+    // Phase correlation's sub-pixel peak is biased towards whole pixels; refine by minimising
+    // the MSE between the shifted experiment and the simulation (parabola through three shifts
+    // per axis, twice).
+    double sx = -d.x, sy = -d.y;
+    for (int it = 0; it < 2; ++it) {
+      for (int axis = 0; axis < 2; ++axis) {
+        const double h = it == 0 ? 0.5 : 0.2;
+        double e[3];
+        for (int k = 0; k < 3; ++k) {
+          const double tx = sx + (axis == 0 ? (k - 1) * h : 0), ty = sy + (axis == 1 ? (k - 1) * h : 0);
+          e[k] = MeanSquaredError(Shift(a, tx, ty), b);
+        }
+        const double den = e[0] - 2 * e[1] + e[2];
+        if (den > 0) {
+          const double step = std::clamp(0.5 * h * (e[0] - e[2]) / den, -h, h);
+          (axis == 0 ? sx : sy) += step;
+        }
+      }
+    }
+    r.shift_px = {sx, sy};
+    for (Image& e : r.exp_images) e = Shift(e, sx, sy);
+  }
+  double L = o.data_range;
+  if (L <= 0) {
+    for (const auto* v : {&r.exp_images, &r.sim_images})
+      for (const Image& img : *v) L = std::max(L, ComputeStats(img).max);
+  }
+  if (!(L > 0)) throw CompareError(FailureKind::kInvalidInput, "all images are blank");
+  r.data_range = L;
+  const int ms_max = MaxMsSsimScales(e0.width, e0.height);
+  r.ms_ssim_scales = o.ms_ssim_scales > 0 ? o.ms_ssim_scales : std::max(1, ms_max - 1);
+  const int cw_max = MaxCwSsimLevel(e0.width, e0.height);
+  r.cw_ssim_level = o.cw_ssim_level > 0 ? o.cw_ssim_level : std::max(1, cw_max - 1);
+  const size_t ne = r.exp_images.size(), ns = r.sim_images.size();
+  for (Measure m : o.measures) {
+    MeasureScan ms;
+    ms.measure = m;
+    ms.matrix.assign(ne, std::vector<double>(ns, 0));
+    std::vector<CwSsimBands> eb, sb;
+    CwSsimOptions cwo;
+    cwo.data_range = L;
+    cwo.level = r.cw_ssim_level;
+    if (m == Measure::kCwSsim) {
+      for (const Image& e : r.exp_images) eb.push_back(ComputeCwSsimBands(e, cwo, cwo.level));
+      for (const Image& s : r.sim_images) sb.push_back(ComputeCwSsimBands(s, cwo, cwo.level));
+    }
+    for (size_t i = 0; i < ne; ++i)
+      for (size_t j = 0; j < ns; ++j) {
+        const Image &a = r.exp_images[i], &b = r.sim_images[j];
+        double v = 0;
+        switch (m) {
+          case Measure::kMse: v = MeanSquaredError(a, b); break;
+          case Measure::kSsim: {
+            SsimOptions so;
+            so.data_range = L;
+            v = Ssim(a, b, so).ssim;
+            break;
+          }
+          case Measure::kMsSsim: {
+            MsSsimOptions mo;
+            mo.data_range = L;
+            mo.num_scales = r.ms_ssim_scales;
+            v = MsSsim(a, b, mo).ms_ssim;
+            break;
+          }
+          case Measure::kCwSsim:
+            v = CwSsimFromBands(eb[i], sb[j], cwo, cwo.level, cw_max).cw_ssim;
+            break;
+          case Measure::kPoissonChi2: v = PoissonMeasures(a, b).chi2_per_pixel; break;
+        }
+        ms.matrix[i][j] = v;
+      }
+    ms.passes = true;
+    for (size_t i = 0; i < ne; ++i) {
+      int best = 0;
+      for (size_t j = 1; j < ns; ++j) {
+        const double v = ms.matrix[i][j], bv = ms.matrix[i][best];
+        if (HigherIsBetter(m) ? v > bv : v < bv) best = int(j);
+      }
+      ms.best.push_back(best);
+      ms.expected.push_back(Nearest(sim.defocus_um, exp.defocus_um[i]));
+      if (std::abs(best - ms.expected.back()) > 1) ms.passes = false;
+    }
+    r.measures.push_back(std::move(ms));
+  }
+  int primary = 0, failed = 0;
+  std::string failed_names;
+  for (const MeasureScan& ms : r.measures)
+    if (std::count(o.primary.begin(), o.primary.end(), ms.measure)) {
+      ++primary;
+      if (!ms.passes) ++failed, failed_names += std::string(failed_names.empty() ? "" : ", ") + MeasureName(ms.measure);
+    }
+  r.verdict = failed == 0 ? Verdict::kPass : failed < primary ? Verdict::kWarning : Verdict::kFail;
+  r.message = failed == 0 ? "all primary measures pass the focus-scan test"
+                          : "focus-scan test failed for: " + failed_names;
+  return r;
+}
+
+nlohmann::json FocusScanResult::ToJson() const {
+  nlohmann::json ms = nlohmann::json::array();
+  for (const MeasureScan& m : measures) {
+    nlohmann::json best = nlohmann::json::array();
+    for (size_t i = 0; i < m.best.size(); ++i)
+      best.push_back({{"experiment_defocus_um", exp_defocus_um[i]},
+                      {"best_simulation_defocus_um", sim_defocus_um[m.best[i]]},
+                      {"expected_simulation_defocus_um", sim_defocus_um[m.expected[i]]}});
+    ms.push_back({{"measure", MeasureName(m.measure)},
+                  {"higher_is_better", HigherIsBetter(m.measure)},
+                  {"passes", m.passes},
+                  {"matrix", m.matrix},
+                  {"best_matches", best}});
+  }
+  return {{"verdict", verdict == Verdict::kPass ? "pass" : verdict == Verdict::kWarning ? "warning" : "fail"},
+          {"message", message},
+          {"data_range", data_range},
+          {"registration_shift_px", shift_px},
+          {"simulation_scale", sim_scale},
+          {"ms_ssim_scales", ms_ssim_scales},
+          {"cw_ssim_level", cw_ssim_level},
+          {"experiment_defocus_um", exp_defocus_um},
+          {"simulation_defocus_um", sim_defocus_um},
+          {"measures", ms}};
+}
+
+}  // namespace raymatch::compare

@@ -1,0 +1,115 @@
+// The focus-scan test on a synthetic stack with a known answer, and bad stacks.
+#include "raymatch/compare/focus_scan.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <fstream>
+#include <functional>
+#include <sstream>
+#include <random>
+
+#include "raymatch/core/image_io.h"
+#include "temp_dir.h"
+
+namespace raymatch::compare {
+namespace {
+
+// A drop-like image whose appearance changes with defocus z (um): the dark rim's radius grows
+// and blurs with z, a bright centre appears on one side of focus (asymmetric, like a lens).
+Image Plane(double z, double shift_px = 0) {
+  Image img(80, 64);
+  const double rim = 16 + 0.25 * z, width = 2 + 0.15 * std::abs(z);
+  const double centre = z > 0 ? 200 * std::exp(-z / 15) : 0;
+  for (int y = 0; y < 64; ++y)
+    for (int x = 0; x < 80; ++x) {
+      const double r = std::hypot(x - 40 - shift_px, y - 32);
+      img.at(x, y) = float(500 - 350 * std::exp(-std::pow((r - rim) / width, 2)) +
+                           centre * std::exp(-r * r / 30));
+    }
+  return img;
+}
+
+Stack MakeStack(const std::vector<double>& zs, double scale, double shift, uint64_t seed,
+                bool noise) {
+  Stack s;
+  std::mt19937_64 g(seed);
+  for (double z : zs) {
+    Image img = Plane(z, shift);
+    for (float& v : img.pixels) {
+      v = float(v * scale);
+      if (noise) v = float(std::poisson_distribution<int>(v)(g));
+    }
+    s.defocus_um.push_back(z);
+    s.images.push_back(img);
+  }
+  return s;
+}
+
+TEST(FocusScan, SyntheticScanPassesAndRecoversTheShift) {
+  const std::vector<double> zs = {-20, -15, -10, -5, 0, 5, 10, 15, 20};
+  // "Experiment": photon counts with shot noise, shifted by 1.6 px, twice the exposure.
+  const Stack exp = MakeStack(zs, 2.0, 1.6, 1, true);
+  const Stack sim = MakeStack(zs, 1.0, 0.0, 2, true);
+  FocusScanOptions o;
+  const FocusScanResult r = RunFocusScan(exp, sim, o);
+  for (const MeasureScan& m : r.measures)
+    if (m.measure != Measure::kSsim) EXPECT_TRUE(m.passes) << MeasureName(m.measure);
+  EXPECT_EQ(r.verdict, Verdict::kPass);
+  EXPECT_NEAR(r.shift_px[0], -1.6, 0.1);
+  EXPECT_NEAR(r.sim_scale, 2.0, 0.05);
+  EXPECT_EQ(r.ms_ssim_scales, MaxMsSsimScales(80, 64) - 1);
+  EXPECT_EQ(r.cw_ssim_level, MaxCwSsimLevel(80, 64) - 1);
+  for (const MeasureScan& m : r.measures)
+    for (const auto& row : m.matrix)
+      for (double v : row) EXPECT_TRUE(std::isfinite(v));
+  // Against a stack in reverse order every primary measure fails.
+  Stack rev = sim;
+  std::reverse(rev.images.begin(), rev.images.end());
+  EXPECT_EQ(RunFocusScan(exp, rev, o).verdict, Verdict::kFail);
+}
+
+TEST(FocusScan, ReportFilesAreWritten) {
+  const std::vector<double> zs = {-10, 0, 10};
+  const FocusScanResult r = RunFocusScan(MakeStack(zs, 1, 0, 1, true), MakeStack(zs, 1, 0, 2, true), {});
+  testing::TempDir dir;
+  const std::string report = WriteFocusScanReport(r, dir / "out", "test");
+  std::ifstream in(report);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  EXPECT_NE(ss.str().find("data:image/png;base64,"), std::string::npos);
+  for (const char* f : {"compare_scan.json", "best_match.csv", "mse_matrix.csv", "heatmap_ms_ssim.png", "montage.png"})
+    EXPECT_TRUE(std::filesystem::exists(dir / ("out/" + std::string(f)))) << f;
+}
+
+FailureKind KindOf(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const CompareError& e) {
+    return e.kind();
+  }
+  ADD_FAILURE() << "no error";
+  return FailureKind::kInvalidInput;
+}
+
+TEST(FocusScan, BadStacks) {
+  testing::TempDir dir;
+  WriteFloatImage(dir / "a.tif", Plane(0), "");
+  WriteFloatImage(dir / "small.tif", Image(10, 10, 1.f), "");
+  EXPECT_EQ(KindOf([&] { ReadStack(dir / "missing.csv"); }), FailureKind::kFileError);
+  EXPECT_EQ(KindOf([&] { ReadStack(dir.Write("empty.csv", "defocus_um,file\n")); }),
+            FailureKind::kInvalidInput);
+  EXPECT_EQ(KindOf([&] { ReadStack(dir.Write("m.csv", "0,a.tif\n5,nothere.tif\n")); }),
+            FailureKind::kFileError);
+  EXPECT_EQ(KindOf([&] { ReadStack(dir.Write("s.csv", "0,a.tif\n5,small.tif\n")); }),
+            FailureKind::kSizeMismatch);
+  EXPECT_EQ(KindOf([&] { ReadStack(dir.Write("bad.csv", "0,a.tif\nfive,a.tif\n")); }),
+            FailureKind::kInvalidInput);
+  const Stack a = ReadStack(dir.Write("ok.csv", "defocus_um,file\n0,a.tif\n"));
+  const Stack b = ReadStack(dir.Write("ok2.csv", "0,small.tif\n"));
+  EXPECT_EQ(KindOf([&] { RunFocusScan(a, b, {}); }), FailureKind::kSizeMismatch);
+  EXPECT_EQ(KindOf([&] { RunFocusScan(a, Stack{}, {}); }), FailureKind::kInvalidInput);
+}
+
+}  // namespace
+}  // namespace raymatch::compare

@@ -1,0 +1,165 @@
+// Similarity measures: known answers, monotonic behaviour, and agreement with independent
+// implementations (scikit-image; a NumPy/SciPy MATLAB-style reference).
+#include "raymatch/compare/measures.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdio>
+#include <random>
+
+#include "raymatch/core/image_io.h"
+#include "raymatch/core/rng.h"
+#include "temp_dir.h"
+
+namespace raymatch::compare {
+namespace {
+
+// A smooth test scene: a dark ring and a bright blob on a mid background, 0..1000.
+Image Scene(int w = 96, int h = 80, double dx = 0) {
+  Image img(w, h);
+  for (int y = 0; y < h; ++y)
+    for (int x = 0; x < w; ++x) {
+      const double r = std::hypot(x - 40 - dx, y - 38);
+      img.at(x, y) = float(600 - 400 * std::exp(-std::pow((r - 18) / 4, 2)) +
+                           300 * std::exp(-std::pow(std::hypot(x - 70 - dx, y - 20) / 6, 2)));
+    }
+  return img;
+}
+
+Image Noisy(const Image& a, double sigma, uint64_t seed) {
+  Image b = a;
+  for (size_t i = 0; i < b.size(); ++i) {
+    RayRng r(seed, 0, i);
+    b.pixels[i] += float(sigma * std::sqrt(-2 * std::log(1 - r.Uniform())) * std::cos(2 * M_PI * r.Uniform()));
+  }
+  return b;
+}
+
+Image Poisson(const Image& mean, uint64_t seed) {
+  std::mt19937_64 g(seed);
+  Image out = mean;
+  for (float& v : out.pixels) v = float(std::poisson_distribution<int>(v)(g));
+  return out;
+}
+
+TEST(Measures, IdenticalImages) {
+  const Image a = Scene();
+  EXPECT_EQ(MeanSquaredError(a, a), 0.0);
+  EXPECT_EQ(PeakSignalToNoiseRatio(a, a, 1000), kPsnrCapDb);
+  SsimOptions so;
+  so.data_range = 1000;
+  EXPECT_NEAR(Ssim(a, a, so).ssim, 1.0, 1e-12);
+  MsSsimOptions mo;
+  mo.data_range = 1000;
+  EXPECT_NEAR(MsSsim(a, a, mo).ms_ssim, 1.0, 1e-12);
+  CwSsimOptions co;
+  co.data_range = 1000;
+  EXPECT_NEAR(CwSsim(a, a, co).cw_ssim, 1.0, 1e-12);
+}
+
+TEST(Measures, MoreNoiseIsWorseForEveryMeasure) {
+  const Image a = Scene();
+  SsimOptions so;
+  so.data_range = 1000;
+  MsSsimOptions mo;
+  mo.data_range = 1000;
+  CwSsimOptions co;
+  co.data_range = 1000;
+  double prev_mse = 0, prev_ssim = 1, prev_ms = 1, prev_cw = 1;
+  for (double s : {5.0, 20.0, 60.0}) {
+    const Image b = Noisy(a, s, 3);
+    const double mse = MeanSquaredError(a, b), ssim = Ssim(a, b, so).ssim,
+                 ms = MsSsim(a, b, mo).ms_ssim, cw = CwSsim(a, b, co).cw_ssim;
+    EXPECT_GT(mse, prev_mse);
+    EXPECT_LT(ssim, prev_ssim);
+    EXPECT_LT(ms, prev_ms);
+    EXPECT_LT(cw, prev_cw);
+    EXPECT_NEAR(mse, s * s, 0.1 * s * s);  // Gaussian noise: MSE = sigma^2 (+-10 % for 7680 px)
+    prev_mse = mse, prev_ssim = ssim, prev_ms = ms, prev_cw = cw;
+  }
+}
+
+// CW-SSIM is designed to tolerate small translations (Sampat 2009): a 1-pixel shift costs it
+// much less than it costs SSIM.
+TEST(Measures, CwSsimToleratesSmallShifts) {
+  const Image a = Scene(), b = Scene(96, 80, 1.0);
+  SsimOptions so;
+  so.data_range = 1000;
+  CwSsimOptions co;
+  co.data_range = 1000;
+  const double ssim_loss = 1 - Ssim(a, b, so).ssim, cw_loss = 1 - CwSsim(a, b, co).cw_ssim;
+  EXPECT_LT(cw_loss, 0.5 * ssim_loss) << "SSIM loss " << ssim_loss << ", CW-SSIM loss " << cw_loss;
+}
+
+// Two independent Poisson images with the same mean: E[(a-b)^2/(a+b)] = 1 per pixel for large
+// counts (mean 500 here; the bias is O(1/mean)); the estimate over 7680 px has sd ~ sqrt(2/7680).
+TEST(Measures, PoissonChiSquareIsOneForMatchingShotNoise) {
+  const Image mean = Scene();
+  const PoissonResult r = PoissonMeasures(Poisson(mean, 1), Poisson(mean, 2));
+  EXPECT_NEAR(r.chi2_per_pixel, 1.0, 5 * std::sqrt(2.0 / 7680));
+  EXPECT_NEAR(r.deviance_per_pixel, 1.0, 5 * std::sqrt(2.0 / 7680) + 0.01);
+  Image brighter = mean;
+  for (float& v : brighter.pixels) v *= 1.1f;
+  EXPECT_GT(PoissonMeasures(Poisson(mean, 1), Poisson(brighter, 2)).chi2_per_pixel, 2.0);
+}
+
+TEST(Measures, BadInputsAreClearErrors) {
+  const Image a = Scene();
+  try {
+    MeanSquaredError(a, Scene(90, 80));
+    FAIL();
+  } catch (const CompareError& e) {
+    EXPECT_EQ(e.kind(), FailureKind::kSizeMismatch);
+  }
+  Image n = a;
+  n.pixels[5] = std::nanf("");
+  try {
+    MeanSquaredError(a, n);
+    FAIL();
+  } catch (const CompareError& e) {
+    EXPECT_EQ(e.kind(), FailureKind::kInvalidInput);
+  }
+  SsimOptions so;  // data_range missing
+  EXPECT_THROW(Ssim(a, a, so), CompareError);
+}
+
+// Against independent implementations, to 1e-6 (both compute in double; float inputs).
+TEST(Measures, AgreesWithScikitImageAndMatlabStyleReference) {
+  if (std::system("/usr/bin/python3 -c 'import skimage, scipy, tifffile' 2>/dev/null") != 0)
+    GTEST_SKIP() << "python3-skimage not installed";
+  testing::TempDir dir;
+  const std::string script = std::string(RAYMATCH_SOURCE_DIR) + "/tests/compare/reference_ssim.py";
+  int pair = 0;
+  for (double noise : {10.0, 80.0}) {
+    const Image a = Scene(), b = Noisy(Scene(96, 80, 0.7), noise, 7 + pair);
+    WriteFloatImage(dir / "a.tif", a, "");
+    WriteFloatImage(dir / "b.tif", b, "");
+    const double L = 1000;
+    MsSsimOptions mo;
+    mo.data_range = L;
+    const MsSsimResult ms = MsSsim(a, b, mo);
+    const std::string cmd = "/usr/bin/python3 " + script + " " + (dir / "a.tif") + " " +
+                            (dir / "b.tif") + " 1000 " + std::to_string(ms.num_scales);
+    FILE* p = popen(cmd.c_str(), "r");
+    ASSERT_TRUE(p);
+    double sk = 0, matlab = 0, msref = 0;
+    ASSERT_EQ(std::fscanf(p, "%lf %lf %lf", &sk, &matlab, &msref), 3);
+    pclose(p);
+    SsimOptions so;
+    so.data_range = L;
+    so.keep_map = true;
+    const SsimResult s = Ssim(a, b, so);
+    double interior = 0;
+    int n = 0;
+    for (int y = 5; y < a.height - 5; ++y)
+      for (int x = 5; x < a.width - 5; ++x) interior += s.map.at(x, y), ++n;
+    EXPECT_NEAR(interior / n, sk, 1e-6) << "noise " << noise;  // map stored as float: ~1e-7
+    EXPECT_NEAR(s.ssim, matlab, 1e-6);
+    EXPECT_NEAR(ms.ms_ssim, msref, 1e-6);
+    ++pair;
+  }
+}
+
+}  // namespace
+}  // namespace raymatch::compare

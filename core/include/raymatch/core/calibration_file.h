@@ -1,0 +1,43 @@
+#pragma once
+// The calibration file: one human-readable TOML file plus binary sidecars (a float32 TIFF of
+// the angular light-field map), written by `raymatch calibrate` and read by the simulator
+// (docs/calibration-format.md). Either the light field or the corrector may be absent.
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "raymatch/core/image.h"
+
+namespace raymatch {
+
+struct CalibrationData {
+  // Light field: angular radiance over direction cosines (u, v) in
+  // [-angular_extent, angular_extent]^2, columns = u increasing, rows = v decreasing from the top
+  // (docs/conventions.md); spatially uniform field (field_radius_um = 0: automatic).
+  Image angular_map;                 ///< empty when the file has no light field
+  double angular_extent = 0;
+  double field_radius_um = 0;
+  double na_limit = 0;               ///< the measured map is cut at this NA (the objective's)
+  double cone_half_angle_deg = 0;    ///< fitted edge half-angle of the cone (informational)
+  std::string light_field_note;      ///< e.g. "measured up to NA 0.42; beyond: extrapolated"
+  // Corrector: central disc + rings (empty when not calibrated).
+  std::vector<double> ring_outer_mm, transmissions, transmission_sigma;
+  double corrector_distance_mm = 0;  ///< plane distance from the focal plane
+  // Optics.
+  double objective_focal_mm = 0, working_distance_mm = 0, na = 0, tube_focal_mm = 0;
+  double pixel_pitch_um = 0, wavelength_um = 0;
+  nlohmann::json provenance;         ///< version, date, command line, input checksums
+
+  bool has_light_field() const { return !angular_map.empty(); }
+  bool has_corrector() const { return !transmissions.empty(); }
+};
+
+/// Reads a calibration file strictly (unknown keys and bad values are "file:line:col" errors)
+/// with its sidecars, which are resolved relative to the file.
+CalibrationData ReadCalibrationFile(const std::string& path);
+
+/// Writes the TOML file and its sidecar(s) (<stem>.angular.tif) atomically.
+void WriteCalibrationFile(const std::string& path, const CalibrationData& data);
+
+}  // namespace raymatch

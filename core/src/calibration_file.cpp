@@ -1,0 +1,128 @@
+#include "raymatch/core/calibration_file.h"
+
+#include <cmath>
+#include <filesystem>
+#include <sstream>
+
+#include "raymatch/core/atomic_file.h"
+#include "raymatch/core/error.h"
+#include "raymatch/core/image_io.h"
+#include "raymatch/core/toml_reader.h"
+
+namespace fs = std::filesystem;
+
+namespace raymatch {
+
+namespace {
+
+constexpr const char* kFormat = "raymatch-calibration-1";
+
+std::string List(const std::vector<double>& v) {
+  std::ostringstream os;
+  os.precision(10);
+  os << "[";
+  for (size_t i = 0; i < v.size(); ++i) os << (i ? ", " : "") << v[i];
+  os << "]";
+  return os.str();
+}
+
+std::string Quote(const std::string& s) {
+  std::string out = "\"";
+  for (char c : s) {
+    if (c == '"' || c == '\\') out += '\\';
+    if (c == '\n') {
+      out += "\\n";
+      continue;
+    }
+    out += c;
+  }
+  return out + "\"";
+}
+
+}  // namespace
+
+void WriteCalibrationFile(const std::string& path, const CalibrationData& d) {
+  std::ostringstream os;
+  os.precision(12);
+  os << "# raymatch calibration file (docs/calibration-format.md)\nformat = \"" << kFormat
+     << "\"\n\n[provenance]\n";
+  for (auto& [k, v] : d.provenance.items())
+    os << k << " = " << Quote(v.is_string() ? v.get<std::string>() : v.dump()) << "\n";
+  os << "\n[optics]\nobjective_focal_mm = " << d.objective_focal_mm
+     << "\nworking_distance_mm = " << d.working_distance_mm << "\nna = " << d.na
+     << "\ntube_focal_mm = " << d.tube_focal_mm << "\npixel_pitch_um = " << d.pixel_pitch_um
+     << "\nwavelength_um = " << d.wavelength_um << "\n";
+  if (d.has_light_field()) {
+    const std::string side = fs::path(path).stem().string() + ".angular.tif";
+    WriteFloatImage((fs::path(path).parent_path() / side).string(), d.angular_map,
+                    "raymatch calibration: angular radiance over direction cosines");
+    os << "\n[light_field]\nangular_map = " << Quote(side)
+       << "   # float32 TIFF: columns u, rows v (top = +extent)\nangular_extent = "
+       << d.angular_extent << "\nfield_radius_um = " << d.field_radius_um
+       << "   # 0 = uniform field sized automatically\nna_limit = " << d.na_limit
+       << "\ncone_half_angle_deg = " << d.cone_half_angle_deg << "\nnote = " << Quote(d.light_field_note)
+       << "\n";
+  }
+  if (d.has_corrector()) {
+    os << "\n[corrector]\ndistance_mm = " << d.corrector_distance_mm
+       << "\nring_outer_mm = " << List(d.ring_outer_mm) << "\ntransmissions = " << List(d.transmissions)
+       << "\ntransmission_sigma = " << List(d.transmission_sigma) << "\n";
+  }
+  WriteTextFileAtomic(path, os.str());
+}
+
+CalibrationData ReadCalibrationFile(const std::string& path) {
+  const toml::table t = ParseTomlFile(path);
+  TomlReader r(t, path, "");
+  CalibrationData d;
+  if (r.String("format") != kFormat)
+    r.Fail("format", std::string("expected \"") + kFormat + "\"");
+  if (r.Has("provenance")) {
+    TomlReader p = r.Table("provenance");
+    for (auto& [k, v] : *t["provenance"].as_table()) d.provenance[std::string(k.str())] = p.String(std::string(k.str()));
+    p.Finish();
+  }
+  TomlReader o = r.Table("optics");
+  d.objective_focal_mm = o.Positive("objective_focal_mm");
+  d.working_distance_mm = o.Positive("working_distance_mm");
+  d.na = o.InRange("na", 0, 1, 0, true, true);
+  d.tube_focal_mm = o.Positive("tube_focal_mm");
+  d.pixel_pitch_um = o.Positive("pixel_pitch_um");
+  d.wavelength_um = o.InRange("wavelength_um", 0.2, 2.0, 0.462);
+  o.Finish();
+  if (r.Has("light_field")) {
+    TomlReader l = r.Table("light_field");
+    const std::string side = (fs::path(path).parent_path() / l.String("angular_map")).string();
+    try {
+      d.angular_map = ReadImage(side);
+    } catch (const Error& e) {
+      l.Fail("angular_map", e.what());
+    }
+    for (float v : d.angular_map.pixels)
+      if (v < 0) l.Fail("angular_map", "negative radiance in the map");
+    d.angular_extent = l.InRange("angular_extent", 0, 1, 0, true, false);
+    d.field_radius_um = l.Number("field_radius_um", 0);
+    if (d.field_radius_um < 0) l.Fail("field_radius_um", "expected >= 0");
+    d.na_limit = l.InRange("na_limit", 0, 1, 0);
+    d.cone_half_angle_deg = l.InRange("cone_half_angle_deg", 0, 90, 0);
+    d.light_field_note = l.String("note", "");
+    l.Finish();
+  }
+  if (r.Has("corrector")) {
+    TomlReader c = r.Table("corrector");
+    d.corrector_distance_mm = c.Positive("distance_mm");
+    d.ring_outer_mm = c.Numbers("ring_outer_mm", 1, 64);
+    d.transmissions = c.Numbers("transmissions", 1, 64);
+    d.transmission_sigma = c.Numbers("transmission_sigma", 1, 64);
+    if (d.transmissions.size() != d.ring_outer_mm.size() ||
+        d.transmission_sigma.size() != d.ring_outer_mm.size())
+      c.Fail("transmissions", "ring_outer_mm, transmissions and transmission_sigma need equal lengths");
+    for (double v : d.transmissions)
+      if (v < 0 || v > 1.5) c.Fail("transmissions", "expected values in [0, 1.5]");
+    c.Finish();
+  }
+  r.Finish();
+  return d;
+}
+
+}  // namespace raymatch

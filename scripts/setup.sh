@@ -11,6 +11,7 @@ PACKAGES=(
   libeigen3-dev nlohmann-json3-dev librandom123-dev libassimp-dev libhdf5-dev
   libopencv-dev  # also: OpenImageIO's CMake config names OpenCV's headers
   libopenvdb-dev  # iso-surfaces of volume-fraction grids
+  libceres-dev  # calibration fits
   libgtest-dev libgmock-dev libbenchmark-dev
   python3 python3-numpy python3-skimage python3-tifffile
 )

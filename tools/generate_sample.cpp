@@ -38,7 +38,7 @@ struct Truth {
   double radial_rise = 0.10;                      // L ~ 1 + rise (theta/edge)^2
   double azimuthal = 0.06, azimuth_deg = 40;      // L ~ 1 + a (sin t / sin edge) cos(phi - az)
   double tilt_deg = 0.8, tilt_azimuth_deg = 120;
-  std::vector<double> iris_deg = {6, 10, 14, 18, 22, 30};  // flat-field series (30 = open)
+  std::vector<double> iris_deg = {3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 30};  // flats
   std::vector<double> corrector = {1, 0.998, 0.995, 0.99, 0.982, 0.97, 0.95, 0.92, 0.88};
   // Camera (a 12-bit high-speed camera, 10 um pixels).
   double well_e = 4500, gain_e_per_dn = 4500.0 / 4095, read_noise_e = 6, dark_dn = 64;
@@ -228,19 +228,22 @@ int main(int argc, char** argv) {
       const uint64_t rays = uint64_t(rays_open * sum / open_sum);  // same lamp, iris blocks light
       const std::string tag = "iris" + std::to_string(int(iris)) + "deg";
       w.Image16("flatfield/flat_" + tag + ".tif", Trace(f, 0, rays, plane++), "flat field " + tag);
+      // The cone through the pinhole with the same lamp exposure for every iris, so that the
+      // cone images carry the relative amount of light (the corrector fit needs it).
       Scene c = BaseScene(t, iris, false);
       c.source.field_radius_um = t.pinhole_diameter_um / 2;
-      const double area_px = M_PI * std::pow(30 * std::tan(std::min(iris, 24.8) * kDeg), 2) / 0.25;
+      const double open_px = M_PI * std::pow(30 * std::tan(24.8 * kDeg), 2) / 0.25;
       w.Image16("flatfield/cone_" + tag + ".tif",
-                Trace(c, 30, uint64_t(0.5 * photons * area_px * scale), plane++),
-                "cone for " + tag);
+                Trace(c, 30, uint64_t(0.25 * photons * open_px * scale * sum / open_sum), plane++),
+                "cone for " + tag + " (same exposure for every iris)");
       iris_toml += "[[flat]]\nfile = \"flat_" + tag + ".tif\"\ncone = \"cone_" + tag +
                    ".tif\"\ncone_dz_um = 30\n\n";
     }
     w.Image16("flatfield/dark.tif", Image(t.nx, t.ny), "dark frame");
     std::ofstream(fs::path(out) / "flatfield/metadata.toml")
         << "# Flat fields (no object) at several illumination apertures, each with the image of\n"
-        << "# its light cone through a pinhole, for `raymatch calibrate corrector`.\n"
+        << "# its light cone through a pinhole (same lamp exposure for all cones), for\n"
+        << "# `raymatch calibrate corrector`.\n"
         << "dark = \"dark.tif\"\npinhole_diameter_um = " << t.pinhole_diameter_um << "\n\n"
         << iris_toml << kCameraToml;
 

@@ -42,6 +42,7 @@ std::string Quote(const std::string& s) {
 }  // namespace
 
 void WriteCalibrationFile(const std::string& path, const CalibrationData& d) {
+  EnsureDirectory(fs::path(path).parent_path());
   std::ostringstream os;
   os.precision(12);
   os << "# raymatch calibration file (docs/calibration-format.md)\nformat = \"" << kFormat

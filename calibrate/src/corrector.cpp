@@ -1,0 +1,232 @@
+#include "raymatch/calibrate/corrector.h"
+
+#include <ceres/ceres.h>
+
+#include <Eigen/Dense>
+
+#include <cmath>
+#include <sstream>
+
+#include "raymatch/calibrate/lightfield.h"
+#include "raymatch/core/error.h"
+#include "raymatch/core/image_io.h"
+#include "raymatch/core/provenance.h"
+
+namespace raymatch::calibrate {
+
+namespace {
+
+struct SignalResidual {
+  std::vector<double> w;
+  double s, sigma;
+  bool operator()(const double* const* p, double* r) const {
+    const double* T = p[0];
+    double m = 0;
+    for (size_t j = 0; j < w.size(); ++j) m += T[j] * w[j];
+    r[0] = (s - p[1][0] * m) / sigma;
+    return true;
+  }
+};
+
+struct SmoothResidual {
+  int j;
+  double weight;
+  template <class T>
+  bool operator()(T const* const* p, T* r) const {
+    const T* t = p[0];
+    r[0] = T(weight) * (t[j - 1] - 2.0 * t[j] + t[j + 1]);
+    return true;
+  }
+};
+
+}  // namespace
+
+int CorrectorZone(double s, double na, int zones) {
+  if (s >= 1) return -1;
+  const double t = s / std::sqrt(1 - s * s), edge = 1.02 * na / std::sqrt(1 - na * na);
+  const int z = int(t / edge * zones);
+  return z < zones ? z : -1;
+}
+
+TransmissionFit FitTransmissions(const std::vector<std::vector<double>>& W,
+                                 const std::vector<double>& S, const std::vector<double>& sg,
+                                 double smoothness) {
+  const size_t K = W.size(), J = W.at(0).size();
+  TransmissionFit f;
+  f.transmissions.assign(J, 1.0);
+  double colmax = 0;
+  std::vector<double> col(J, 0);
+  for (size_t j = 0; j < J; ++j) {
+    for (size_t k = 0; k < K; ++k) col[j] += W[k][j];
+    colmax = std::max(colmax, col[j]);
+  }
+  if (!(colmax > 0) || !(col[0] > 1e-3 * colmax))
+    throw Error("the flat fields carry no light through the central zone: nothing to fit");
+  std::vector<int> fixed = {0};
+  for (size_t j = 1; j < J; ++j)
+    if (col[j] < 1e-3 * colmax) f.undetermined.push_back(int(j)), fixed.push_back(int(j));
+  ceres::Problem prob;
+  double* T = f.transmissions.data();
+  double g = S[0] / std::max(1e-300, [&] { double m = 0; for (size_t j = 0; j < J; ++j) m += W[0][j]; return m; }());
+  for (size_t k = 0; k < K; ++k) {
+    auto* cost = new ceres::DynamicNumericDiffCostFunction<SignalResidual>(new SignalResidual{W[k], S[k], sg[k]});
+    cost->AddParameterBlock(int(J));
+    cost->AddParameterBlock(1);
+    cost->SetNumResiduals(1);
+    prob.AddResidualBlock(cost, nullptr, T, &g);
+  }
+  if (smoothness > 0)
+    for (size_t j = 1; j + 1 < J; ++j)
+    {
+      auto* c = new ceres::DynamicAutoDiffCostFunction<SmoothResidual, 4>(
+          new SmoothResidual{int(j), smoothness});
+      c->AddParameterBlock(int(J));
+      c->SetNumResiduals(1);
+      prob.AddResidualBlock(c, nullptr, T);
+    }
+  prob.SetManifold(T, new ceres::SubsetManifold(int(J), fixed));
+  for (size_t j = 0; j < J; ++j) {
+    prob.SetParameterLowerBound(T, int(j), 0.0);
+    prob.SetParameterUpperBound(T, int(j), 1.2);
+  }
+  prob.SetParameterLowerBound(&g, 0, 0.0);
+  ceres::Solver::Options so;
+  so.max_num_iterations = 200;
+  so.function_tolerance = 1e-14;
+  so.parameter_tolerance = 1e-12;
+  ceres::Solver::Summary sum;
+  ceres::Solve(so, &prob, &sum);
+  if (!sum.IsSolutionUsable()) throw Error("corrector fit failed: " + sum.BriefReport());
+  // Undetermined zones take the previous zone's value.
+  for (int j : f.undetermined) T[j] = T[j - 1];
+  f.gain = g;
+  double chi2 = 0;
+  for (size_t k = 0; k < K; ++k) {
+    double m = 0;
+    for (size_t j = 0; j < J; ++j) m += T[j] * W[k][j];
+    f.model.push_back(g * m);
+    f.residual.push_back(S[k] - g * m);
+    chi2 += std::pow((S[k] - g * m) / sg[k], 2);
+  }
+  const int dof = int(K) - int(J - fixed.size()) - 1;
+  f.reduced_chi2 = dof > 0 ? chi2 / dof : 0;
+  // Covariance of the free parameters (T_j not fixed, and g) from the analytic Jacobian of
+  // the weighted residuals, (J^T J)^-1, scaled by the reduced chi^2 when it exceeds 1.
+  f.sigma.assign(J, 0.0);
+  std::vector<int> free;
+  for (size_t j = 0; j < J; ++j)
+    if (!std::count(fixed.begin(), fixed.end(), int(j))) free.push_back(int(j));
+  const int P = int(free.size()) + 1;
+  const int rows = int(K) + (smoothness > 0 ? int(J) - 2 : 0);
+  Eigen::MatrixXd Jm = Eigen::MatrixXd::Zero(rows, P);
+  for (size_t k = 0; k < K; ++k) {
+    double m = 0;
+    for (size_t j = 0; j < J; ++j) m += T[j] * W[k][j];
+    for (int q = 0; q < P - 1; ++q) Jm(int(k), q) = g * W[k][free[q]] / sg[k];
+    Jm(int(k), P - 1) = g * m / sg[k];  // derivative with respect to ln g (commensurate scale)
+  }
+  if (smoothness > 0)
+    for (size_t j = 1; j + 1 < J; ++j)
+      for (int q = 0; q < P - 1; ++q) {
+        const int fj = free[q];
+        const double c = fj == int(j) - 1 || fj == int(j) + 1 ? 1.0 : fj == int(j) ? -2.0 : 0.0;
+        Jm(int(K + j - 1), q) = smoothness * c;
+      }
+  const Eigen::MatrixXd info = Jm.transpose() * Jm;
+  Eigen::FullPivLU<Eigen::MatrixXd> lu(info);
+  if (lu.isInvertible()) {
+    // With the sigma_k known, chi^2 only signals model mismatch when it is significantly above
+    // its expectation (1 + 3 sqrt(2 / dof)); only then are the uncertainties inflated by it.
+    const bool mismatch = dof > 0 && f.reduced_chi2 > 1 + 3 * std::sqrt(2.0 / dof);
+    const Eigen::MatrixXd cov = lu.inverse() * (mismatch ? f.reduced_chi2 : 1.0);
+    for (int q = 0; q < P - 1; ++q) f.sigma[free[q]] = std::sqrt(std::max(0.0, cov(q, q)));
+    f.gain_sigma = g * std::sqrt(std::max(0.0, cov(P - 1, P - 1)));
+  }
+  std::ostringstream msg;
+  msg << "fitted " << J - fixed.size() << " zone transmissions from " << K
+      << " flat fields; reduced chi^2 " << f.reduced_chi2;
+  for (int j : f.undetermined)
+    msg << "; zone " << j << " receives no light in any flat field: undetermined (held at zone "
+        << j - 1 << "'s value)";
+  if (dof <= 0) msg << "; as many unknowns as flat fields: add iris settings or smoothness";
+  f.message = msg.str();
+  return f;
+}
+
+CorrectorSummary CalibrateCorrector(const FlatFieldInput& in, const CorrectorOptions& o,
+                                    const CalibrationData* base) {
+  CorrectorSummary s;
+  if (base) s.data = *base;
+  const double M = in.optics.magnification(), p = in.camera.pixel_pitch_um / M, na = in.optics.na;
+  Image dark;
+  if (!in.dark.empty()) dark = ReadImage(in.dark);
+  const Image* dk = dark.empty() ? nullptr : &dark;
+  const int n = o.map_size;
+  const double extent = std::min(1.0, 1.15 * na);
+  std::vector<double> sigma;
+  for (const FlatImage& fl : in.flats) {
+    size_t sat = 0;
+    const Image flat = LoadPhotons(fl.file, dk, in.camera, &sat);
+    if (sat) s.warnings.push_back(fl.file + ": " + std::to_string(sat) + " saturated pixels");
+    const PixelStats st = ComputeStats(flat);
+    const Image cone = LoadPhotons(fl.cone, dk, in.camera, &sat);
+    if (cone.width != flat.width || cone.height != flat.height)
+      throw Error(FileLocation{fl.cone}, "cone image size differs from its flat field");
+    double cx, cy;
+    Centroid(cone, p, 0.25, &cx, &cy, nullptr);
+    // The apex is the pinhole at the object plane; the cone's centroid gives its lateral
+    // position (a tilted axis shifts both equally for a symmetric cone).
+    const Image map = ConeToAngularMap(cone, p, fl.cone_dz_um, cx, cy, 0, n, extent, na, nullptr);
+    std::vector<double> w(o.zones, 0.0);
+    double total_photons = 0;
+    for (float v : cone.pixels) total_photons += std::max(0.f, v);
+    for (int row = 0; row < n; ++row)
+      for (int col = 0; col < n; ++col) {
+        const double u = (2 * (col + 0.5) / n - 1) * extent, v = (1 - 2 * (row + 0.5) / n) * extent;
+        const int z = CorrectorZone(std::hypot(u, v), na, o.zones);
+        if (z >= 0) w[z] += map.at(col, row);
+      }
+    s.weights.push_back(w);
+    s.signal.push_back(st.mean);
+    // Noise: the flat's mean (shot noise over its pixels) and the cone image's total counts.
+    sigma.push_back(st.mean * std::sqrt(1.0 / std::max(1.0, st.mean * st.count) +
+                                        1.0 / std::max(1.0, total_photons)));
+  }
+  s.fit = FitTransmissions(s.weights, s.signal, sigma, o.smoothness);
+  CalibrationData& d = s.data;
+  const double dist = o.distance_mm > 0 ? o.distance_mm : in.optics.working_distance_mm;
+  d.corrector_distance_mm = dist;
+  d.ring_outer_mm.clear();
+  const double edge = dist * 1.02 * na / std::sqrt(1 - na * na);
+  for (int j = 0; j < o.zones; ++j) d.ring_outer_mm.push_back(edge * (j + 1) / o.zones);
+  d.transmissions = s.fit.transmissions;
+  d.transmission_sigma = s.fit.sigma;
+  if (!base || d.objective_focal_mm == 0) {
+    d.objective_focal_mm = in.optics.objective_focal_mm;
+    d.working_distance_mm = in.optics.working_distance_mm;
+    d.na = na;
+    d.tube_focal_mm = in.optics.tube_focal_mm;
+    d.pixel_pitch_um = in.camera.pixel_pitch_um;
+    d.wavelength_um = in.optics.wavelength_um;
+  }
+  nlohmann::json prov = ProvenanceJson();
+  for (auto& [k, v] : d.provenance.items())
+    if (!prov.contains(k)) prov[k] = v;
+  std::string inputs;
+  for (const FlatImage& fl : in.flats) inputs += FileChecksum(fl.file) + " " + fl.file + "; ";
+  prov["corrector_inputs"] = inputs;
+  d.provenance = prov;
+  return s;
+}
+
+std::string CorrectorSummary::BriefReport() const {
+  std::ostringstream os;
+  os.precision(4);
+  os << fit.message << "\n  zone  T        sigma\n";
+  for (size_t j = 0; j < fit.transmissions.size(); ++j)
+    os << "  " << j << "     " << fit.transmissions[j] << "   " << fit.sigma[j] << "\n";
+  for (const auto& w : warnings) os << "warning: " << w << "\n";
+  return os.str();
+}
+
+}  // namespace raymatch::calibrate

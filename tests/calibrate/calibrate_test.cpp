@@ -1,0 +1,185 @@
+// Calibration against synthetic truth (CONVENTIONS 10): seeded noise, known answers, reported
+// uncertainties checked against the spread of re-solves.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <random>
+
+#include "raymatch/calibrate/corrector.h"
+#include "raymatch/calibrate/lightfield.h"
+#include "raymatch/core/error.h"
+#include "raymatch/core/image_io.h"
+#include "temp_dir.h"
+
+namespace raymatch::calibrate {
+namespace {
+
+constexpr double kNa = 0.42;
+
+// Weights of a uniform-radiance cone of half-angle `iris` deg over the corrector zones:
+// light per zone is the (u, v) disc area of the zone inside the cone (closed form).
+std::vector<double> UniformConeWeights(double iris_deg, int zones) {
+  std::vector<double> w(zones, 0.0);
+  const double s_iris = std::min(std::sin(iris_deg * M_PI / 180), kNa);
+  const double edge = 1.02 * kNa / std::sqrt(1 - kNa * kNa);
+  for (int j = 0; j < zones; ++j) {
+    auto s_of = [&](double t) { return t / std::sqrt(1 + t * t); };  // tan -> sin
+    const double lo = std::min(s_of(edge * j / zones), s_iris), hi = std::min(s_of(edge * (j + 1) / zones), s_iris);
+    w[j] = M_PI * (hi * hi - lo * lo) * 1e6;
+  }
+  return w;
+}
+
+TEST(CorrectorFit, RecoversTransmissionsWithHonestUncertainties) {
+  const int J = 9;
+  const std::vector<double> truth = {1, 0.998, 0.995, 0.99, 0.982, 0.97, 0.95, 0.92, 0.88};
+  std::vector<std::vector<double>> W;
+  for (double iris = 3; iris <= 27; iris += 2) W.push_back(UniformConeWeights(iris, J));
+  const double g = 2.5e-3;
+  std::vector<std::vector<double>> fits;
+  std::vector<double> reported;
+  for (int seed = 0; seed < 20; ++seed) {
+    std::mt19937_64 rng(seed);
+    std::vector<double> S, sg;
+    for (const auto& w : W) {
+      double m = 0;
+      for (int j = 0; j < J; ++j) m += truth[j] * w[j];
+      const double sigma = 1e-3 * g * m;  // 0.1 % per flat field
+      S.push_back(g * m + std::normal_distribution<double>(0, sigma)(rng));
+      sg.push_back(sigma);
+    }
+    const TransmissionFit f = FitTransmissions(W, S, sg, 0);
+    EXPECT_TRUE(f.undetermined.empty());
+    fits.push_back(f.transmissions);
+    if (reported.empty()) reported.assign(J, 0.0);
+    for (int j = 0; j < J; ++j) reported[j] += f.sigma[j] / 20;
+    for (int j = 1; j < J; ++j)
+      EXPECT_LT(std::abs(f.transmissions[j] - truth[j]), 5 * f.sigma[j]) << "zone " << j;
+  }
+  // The spread over re-solves must match the (mean) reported standard uncertainty (factor
+  // 1.6: the sd of a 20-sample sd is ~16 %, so 1.6 is ~3.5 sigma).
+  for (int j = 1; j < J; ++j) {
+    double mean = 0, var = 0;
+    for (const auto& f : fits) mean += f[j] / fits.size();
+    for (const auto& f : fits) var += (f[j] - mean) * (f[j] - mean) / (fits.size() - 1);
+    const double spread = std::sqrt(var);
+    EXPECT_GT(spread, reported[j] / 1.6) << "zone " << j;
+    EXPECT_LT(spread, reported[j] * 1.6) << "zone " << j;
+  }
+}
+
+TEST(CorrectorFit, ZoneWithoutLightIsReportedUndetermined) {
+  std::vector<std::vector<double>> W;
+  for (double iris : {3.0, 6.0, 9.0, 12.0}) W.push_back(UniformConeWeights(iris, 9));
+  std::vector<double> S, sg;
+  for (const auto& w : W) {
+    double m = 0;
+    for (double x : w) m += x;
+    S.push_back(1e-3 * m);
+    sg.push_back(1e-6 * m);
+  }
+  const TransmissionFit f = FitTransmissions(W, S, sg, 0);
+  ASSERT_FALSE(f.undetermined.empty());
+  EXPECT_EQ(f.undetermined.back(), 8);
+  EXPECT_NE(f.message.find("zone 8 receives no light in any flat field: undetermined"), std::string::npos);
+}
+
+// Synthetic pinhole and cone images of a uniform cone of half-angle 15 deg (inside the NA),
+// made with the radiance-to-irradiance relation on a plane h away, E = L w^4 / h^2, with
+// Poisson noise; calibration recovers the half-angle and a flat angular profile.
+void WriteFolder(const testing::TempDir& dir, double half_deg, const std::vector<double>& dzs,
+                 bool blank = false) {
+  const int nx = 160, ny = 120;
+  const double p = 0.5;  // um at the object
+  std::mt19937_64 rng(11);
+  auto expose = [&](const Image& e) {
+    Image dn(nx, ny);
+    for (size_t i = 0; i < e.size(); ++i)
+      dn.pixels[i] = float(100 + std::poisson_distribution<int>(std::max(0.f, e.pixels[i]))(rng));
+    return dn;
+  };
+  Image pin(nx, ny);
+  for (int y = 0; y < ny; ++y)
+    for (int x = 0; x < nx; ++x)
+      pin.at(x, y) = std::hypot((x + 0.5 - nx / 2.0) * p, (ny / 2.0 - y - 0.5) * p) < 1.0 ? 3000.f : 0.f;
+  WriteUint16Image(dir / "pinhole.tif", blank ? Image(nx, ny) : expose(pin), "");
+  WriteUint16Image(dir / "dark.tif", Image(nx, ny, 100.f), "");
+  std::string meta = "pinhole = \"pinhole.tif\"\npinhole_diameter_um = 2\ndark = \"dark.tif\"\n";
+  const double s = std::sin(half_deg * M_PI / 180);
+  for (double h : dzs) {
+    Image e(nx, ny);
+    for (int y = 0; y < ny; ++y)
+      for (int x = 0; x < nx; ++x) {
+        const double X = (x + 0.5 - nx / 2.0) * p, Y = (ny / 2.0 - y - 0.5) * p;
+        const double rho = std::sqrt(X * X + Y * Y + h * h), w = h / rho;
+        const double L = std::hypot(X, Y) / rho < s ? 1.0 : 0.0;
+        e.at(x, y) = float(2000 * L * std::pow(w, 4) * (20.0 * 20.0) / (h * h));
+      }
+    const std::string f = "cone" + std::to_string(int(h)) + ".tif";
+    WriteUint16Image(dir / f, expose(e), "");
+    meta += "[[cone]]\nfile = \"" + f + "\"\ndz_um = " + std::to_string(h) + "\n";
+  }
+  meta += "[camera]\npixel_pitch_um = 10\nbit_depth = 12\ngain_e_per_dn = 1\n"
+          "[optics]\nobjective_focal_mm = 10\nna = 0.42\ntube_focal_mm = 200\n";
+  std::ofstream(dir / "metadata.toml") << meta;
+}
+
+TEST(LightField, RecoversTheConeFromSyntheticImages) {
+  testing::TempDir dir;
+  WriteFolder(dir, 15, {20, 30, 40});
+  const LightFieldSummary s = CalibrateLightField(ReadLightFieldInput(dir.path().string()), {});
+  // Edge radius from pixel areas (0.5 um pixels) at 20-40 um: 0.3 deg covers it.
+  EXPECT_NEAR(s.cone.half_angle_deg, 15, 0.3) << s.BriefReport();
+  EXPECT_FALSE(s.cone.cut_by_na);
+  EXPECT_NEAR(s.cone.apex_z_um, 0, 0.5);
+  EXPECT_NEAR(s.pinhole_diameter_um, 2.0, 0.15);
+  // The angular map is flat inside the cone: relative sd of cells well inside < 5 %.
+  const Image& m = s.data.angular_map;
+  double sum = 0, ss = 0;
+  int n = 0;
+  for (int y = 0; y < m.height; ++y)
+    for (int x = 0; x < m.width; ++x) {
+      const double u = (2 * (x + 0.5) / m.width - 1) * s.data.angular_extent,
+                   v = (1 - 2 * (y + 0.5) / m.height) * s.data.angular_extent;
+      if (std::hypot(u, v) < 0.8 * std::sin(15 * M_PI / 180)) sum += m.at(x, y), ss += m.at(x, y) * m.at(x, y), ++n;
+    }
+  const double mean = sum / n;
+  EXPECT_LT(std::sqrt(ss / n - mean * mean) / mean, 0.05);
+}
+
+TEST(LightField, BadInputs) {
+  testing::TempDir blank;
+  WriteFolder(blank, 15, {20, 30}, true);
+  EXPECT_THROW(CalibrateLightField(ReadLightFieldInput(blank.path().string()), {}), Error);
+  testing::TempDir one;
+  WriteFolder(one, 15, {20});
+  EXPECT_THROW(ReadLightFieldInput(one.path().string()), Error);  // needs two dz
+  testing::TempDir missing;
+  WriteFolder(missing, 15, {20, 30});
+  std::filesystem::remove(missing / "cone30.tif");
+  try {
+    ReadLightFieldInput(missing.path().string());
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("file not found"), std::string::npos) << e.what();
+  }
+  // Inconsistent dz: the cone images say 20/30 but the metadata claims 20/60 -> warning.
+  testing::TempDir wrong;
+  WriteFolder(wrong, 15, {20, 30, 40});
+  std::ifstream in(wrong / "metadata.toml");
+  std::stringstream ss;
+  ss << in.rdbuf();
+  std::string t = ss.str();
+  t.replace(t.find("dz_um = 40"), 10, "dz_um = 80");
+  std::ofstream(wrong / "metadata.toml") << t;
+  const LightFieldSummary s = CalibrateLightField(ReadLightFieldInput(wrong.path().string()), {});
+  bool warned = false;
+  for (const auto& w : s.warnings) warned |= w.find("does not scale with dz") != std::string::npos;
+  EXPECT_TRUE(warned) << s.BriefReport();
+}
+
+}  // namespace
+}  // namespace raymatch::calibrate

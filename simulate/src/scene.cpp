@@ -5,6 +5,7 @@
 #include <sstream>
 
 #include "raymatch/core/array_io.h"
+#include "raymatch/core/calibration_file.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/toml_reader.h"
 #include "raymatch/simulate/shapes.h"
@@ -335,6 +336,29 @@ ObjectSpec ReadObject(TomlReader r, Scene& scene, int i) {
   return o;
 }
 
+void ReadCorrector(TomlReader& top, OpticsSpec* out) {
+  OpticsSpec& o = *out;
+  if (top.Has("corrector")) {
+    TomlReader c = top.Table("corrector");
+    o.corrector.enabled = true;
+    o.corrector.distance_mm = c.Positive("distance_mm", 0.0);
+    o.corrector.transmissions = c.Numbers("transmissions", 1, 64);
+    for (double t : o.corrector.transmissions)
+      if (t < 0 || t > 1) c.Fail("transmissions", "each transmission must be in [0, 1]");
+    if (c.Has("ring_outer_mm")) {
+      o.corrector.ring_outer_mm = c.Numbers("ring_outer_mm", 1, 64);
+      if (o.corrector.ring_outer_mm.size() != o.corrector.transmissions.size())
+        c.Fail("ring_outer_mm", "needs one outer radius per transmission value");
+      double prev = 0;
+      for (double r : o.corrector.ring_outer_mm) {
+        if (!(r > prev)) c.Fail("ring_outer_mm", "radii must be positive and ascending");
+        prev = r;
+      }
+    }
+    c.Finish();
+  }
+}
+
 OpticsSpec ReadOptics(TomlReader& top) {
   OpticsSpec o;
   TomlReader obj = top.Table("objective");
@@ -361,29 +385,24 @@ OpticsSpec ReadOptics(TomlReader& top) {
   o.tube_focal_mm = tube.Positive("focal_length_mm");
   o.tube_distance_mm = tube.Positive("distance_mm", 150);
   tube.Finish();
-  if (top.Has("corrector")) {
-    TomlReader c = top.Table("corrector");
-    o.corrector.enabled = true;
-    o.corrector.distance_mm = c.Positive("distance_mm", 0.0);
-    o.corrector.transmissions = c.Numbers("transmissions", 1, 64);
-    for (double t : o.corrector.transmissions)
-      if (t < 0 || t > 1) c.Fail("transmissions", "each transmission must be in [0, 1]");
-    if (c.Has("ring_outer_mm")) {
-      o.corrector.ring_outer_mm = c.Numbers("ring_outer_mm", 1, 64);
-      if (o.corrector.ring_outer_mm.size() != o.corrector.transmissions.size())
-        c.Fail("ring_outer_mm", "needs one outer radius per transmission value");
-      double prev = 0;
-      for (double r : o.corrector.ring_outer_mm) {
-        if (!(r > prev)) c.Fail("ring_outer_mm", "radii must be positive and ascending");
-        prev = r;
-      }
-    }
-    c.Finish();
-  }
+  ReadCorrector(top, &o);
   return o;
 }
 
 }  // namespace
+
+/// The calibration's light field as a source (uniform disc field, automatic radius unless the
+/// file gives one).
+SourceSpec CalibratedSource(const CalibrationData& c, const std::string& file) {
+  SourceSpec s;
+  s.type = SourceType::kLightField;
+  s.field_shape = FieldShape::kDisc;
+  s.field_radius_um = c.field_radius_um;
+  s.angular_map = c.angular_map;
+  s.angular_extent = c.angular_extent;
+  s.angular_map_file = file;
+  return s;
+}
 
 double Magnification(const OpticsSpec& o) { return -o.tube_focal_mm / o.objective_focal_mm; }
 
@@ -396,13 +415,45 @@ Scene LoadScene(const std::string& path) {
   for (char c : s.name)
     if (!(std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '-' || c == '.'))
       r.Fail("name", "used in file names: letters, digits, '_', '-' and '.' only");
-  s.wavelength_um = r.InRange("wavelength_um", 0.2, 2.0, 0.462);
+  // A calibration file supplies the light field, corrector and optics; tables in the scene
+  // override its parts (docs/scene-format.md).
+  std::optional<CalibrationData> cal;
+  std::string cal_file;
+  if (r.Has("calibration")) {
+    cal_file = Resolve(path, r.String("calibration"));
+    try {
+      cal = ReadCalibrationFile(cal_file);
+    } catch (const Error& e) {
+      r.Fail("calibration", e.what());
+    }
+  }
+  s.wavelength_um = r.InRange("wavelength_um", 0.2, 2.0, cal ? cal->wavelength_um : 0.462);
   s.medium_index = r.InRange("medium_index", 1.0, 3.0, 1.0);
   s.trace.seed = static_cast<uint64_t>(r.Integer("seed", 1, 0, INT64_MAX));
-  s.source = ReadSource(r.Table("source"), path);
+  if (r.Has("source") || !cal || !cal->has_light_field()) {
+    s.source = ReadSource(r.Table("source"), path);
+  } else {
+    s.source = CalibratedSource(*cal, cal_file);
+  }
   int i = 0;
   for (TomlReader& o : r.Tables("object")) s.objects.push_back(ReadObject(o, s, i++));
-  s.optics = ReadOptics(r);
+  if (r.Has("objective") || !cal) {
+    s.optics = ReadOptics(r);
+  } else {
+    s.optics.model = ObjectiveModel::kSingle;
+    s.optics.objective_focal_mm = cal->objective_focal_mm;
+    s.optics.na = cal->na;
+    s.optics.working_distance_mm = cal->working_distance_mm;
+    s.optics.tube_focal_mm = cal->tube_focal_mm;
+    if (r.Has("tube_lens")) r.Fail("tube_lens", "give [objective] too, or neither (both come from the calibration)");
+    ReadCorrector(r, &s.optics);
+  }
+  if (cal && cal->has_corrector() && !r.Has("corrector")) {
+    s.optics.corrector.enabled = true;
+    s.optics.corrector.distance_mm = cal->corrector_distance_mm;
+    s.optics.corrector.ring_outer_mm = cal->ring_outer_mm;
+    s.optics.corrector.transmissions = cal->transmissions;
+  }
 
   TomlReader cam = r.Table("camera");
   const auto px = cam.Numbers("pixels", 2, 2);
@@ -411,7 +462,8 @@ Scene LoadScene(const std::string& path) {
     cam.Fail("pixels", "expected two whole numbers in [1, 65536] (columns, rows)");
   s.camera.nx = static_cast<int>(px[0]);
   s.camera.ny = static_cast<int>(px[1]);
-  s.camera.pixel_pitch_um = cam.Positive("pixel_pitch_um");
+  s.camera.pixel_pitch_um = cam.Positive("pixel_pitch_um", cal ? cal->pixel_pitch_um : 0.0);
+  if (!(s.camera.pixel_pitch_um > 0)) cam.Positive("pixel_pitch_um");  // required: report it
   if (cam.Has("offset_um")) {
     const auto v = cam.Numbers("offset_um", 2, 2);
     s.camera.offset_um = {v[0], v[1]};

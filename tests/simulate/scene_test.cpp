@@ -6,6 +6,7 @@
 #include <fstream>
 #include <sstream>
 
+#include "raymatch/core/calibration_file.h"
 #include "raymatch/simulate/tracer.h"
 #include "temp_dir.h"
 
@@ -97,6 +98,30 @@ TEST(SceneFile, ObjectBeyondTheObjectiveIsRejected) {
   EXPECT_NE(LoadError(Replace(kGood, "radius_um = 10", "radius_um = 10\ncenter_um = [0, 0, 2e4]"))
                 .find("reaches the objective"),
             std::string::npos);
+}
+
+// A scene that points at a calibration file takes its light field, corrector and optics.
+TEST(SceneFile, CalibrationFileSuppliesSourceCorrectorAndOptics) {
+  testing::TempDir dir;
+  CalibrationData c;
+  c.angular_map = Image(8, 8, 1.f);
+  c.angular_extent = 0.3;
+  c.ring_outer_mm = {2, 4};
+  c.transmissions = {1, 0.9};
+  c.transmission_sigma = {0, 0.01};
+  c.corrector_distance_mm = 20;
+  c.objective_focal_mm = 10, c.working_distance_mm = 20, c.na = 0.42, c.tube_focal_mm = 180;
+  c.pixel_pitch_um = 12, c.wavelength_um = 0.405;
+  WriteCalibrationFile(dir / "cal.toml", c);
+  const Scene s = LoadScene(dir.Write("s.toml", "calibration = \"cal.toml\"\n[camera]\npixels = [16, 16]\n"));
+  EXPECT_EQ(s.source.type, SourceType::kLightField);
+  EXPECT_EQ(s.source.angular_extent, 0.3);
+  EXPECT_TRUE(s.optics.corrector.enabled);
+  EXPECT_EQ(s.optics.corrector.transmissions, (std::vector<double>{1, 0.9}));
+  EXPECT_EQ(s.optics.tube_focal_mm, 180);
+  EXPECT_EQ(s.camera.pixel_pitch_um, 12);
+  EXPECT_EQ(s.wavelength_um, 0.405);
+  EXPECT_NE(LoadError("calibration = \"missing.toml\"\n[camera]\npixels = [4, 4]\n").find("scene.toml:1:15: error: 'calibration'"), std::string::npos);
 }
 
 // The annotated example in docs/scene-format.md must stay a valid scene.

@@ -1,13 +1,20 @@
-// raymatch calibrate lightfield|corrector: measured illumination and angular losses -> one
-// calibration file (docs/calibration.md).
+// raymatch calibrate lightfield|corrector|zemax-export|zemax-import: measured illumination and
+// angular losses -> one calibration file (docs/calibration.md). Thin: options -> library call.
 #include <iostream>
 
 #include "commands.h"
 #include "raymatch/calibrate/corrector.h"
 #include "raymatch/calibrate/lightfield.h"
+#include "raymatch/calibrate/zemax_source.h"
 #include "raymatch/core/calibration_file.h"
 
 namespace raymatch::apps {
+
+namespace {
+void PrintWarnings(const std::vector<std::string>& warnings) {
+  for (const auto& w : warnings) std::cerr << "warning: " << w << "\n";
+}
+}  // namespace
 
 void RegisterCalibrate(CLI::App& app, int* exit_code) {
   CLI::App* cal = app.add_subcommand(
@@ -21,18 +28,21 @@ void RegisterCalibrate(CLI::App& app, int* exit_code) {
   auto lf = std::make_shared<LfOpts>();
   CLI::App* l = cal->add_subcommand(
       "lightfield",
-      "Light-field source from a pinhole image and light-cone images at known defocus.\n"
-      "FOLDER holds the images and metadata.toml (docs/sample-data-format.md).");
+      "Light-field source from a pinhole image and light-cone images at known defocus, or from\n"
+      "images of a camera focused at infinity with an mrcal .cameramodel.\n"
+      "FOLDER holds the images and metadata.toml (docs/calibration.md).");
   l->add_option("folder", lf->folder, "Input folder")->required()->check(CLI::ExistingDirectory);
-  l->add_option("-o,--output", lf->output, "Calibration file to write (TOML + sidecars)")->capture_default_str();
-  l->add_option("--map-size", lf->o.map_size, "Angular map cells per side")->capture_default_str();
+  l->add_option("-o,--output", lf->output, "Calibration file to write (TOML + sidecar)")->capture_default_str();
+  l->add_option("--map-size", lf->o.map_size, "Angular map cells per side")->capture_default_str()->check(CLI::Range(4, 4096));
+  l->add_option("--extent", lf->o.extent, "Map half-width in direction cosines (0 = 1.15 NA)")->check(CLI::Range(0.0, 1.0));
   l->add_option("--extrapolate-to-deg", lf->o.extrapolate_to_deg,
-                "Continue the radiance beyond the objective NA up to this half-angle (deg)");
+                "Continue the radiance beyond the objective NA up to this half-angle (deg)")->check(CLI::Range(0.0, 89.0));
   l->callback([lf, exit_code] {
     *exit_code = RunGuarded([&] {
       const auto s = calibrate::CalibrateLightField(calibrate::ReadLightFieldInput(lf->folder), lf->o);
       WriteCalibrationFile(lf->output, s.data);
       std::cout << s.BriefReport() << "wrote " << lf->output << "\n";
+      PrintWarnings(s.warnings);
       return 0;
     });
   });
@@ -45,13 +55,14 @@ void RegisterCalibrate(CLI::App& app, int* exit_code) {
   CLI::App* c = cal->add_subcommand(
       "corrector",
       "Angular-corrector zone transmissions from a flat-field iris series, each flat with its\n"
-      "cone image (same lamp exposure). --base adds the corrector to an existing calibration.");
+      "cone image (same lamp exposure). --base adds the corrector to an existing calibration\n"
+      "(its light field and optics are kept) and writes a new file.");
   c->add_option("folder", co->folder, "Input folder")->required()->check(CLI::ExistingDirectory);
   c->add_option("-o,--output", co->output, "Calibration file to write")->capture_default_str();
-  c->add_option("--base", co->base, "Existing calibration file to extend (e.g. from lightfield)");
-  c->add_option("--zones", co->o.zones, "Central disc + rings")->capture_default_str();
-  c->add_option("--smoothness", co->o.smoothness, "Second-difference penalty weight")->capture_default_str();
-  c->add_option("--distance-mm", co->o.distance_mm, "Corrector plane from the focal plane (default: WD)");
+  c->add_option("--base", co->base, "Existing calibration file to extend (e.g. from lightfield)")->check(CLI::ExistingFile);
+  c->add_option("--zones", co->o.zones, "Central disc + rings")->capture_default_str()->check(CLI::Range(2, 64));
+  c->add_option("--smoothness", co->o.smoothness, "Second-difference penalty weight")->capture_default_str()->check(CLI::NonNegativeNumber);
+  c->add_option("--distance-mm", co->o.distance_mm, "Corrector plane from the focal plane (default: WD)")->check(CLI::NonNegativeNumber);
   c->callback([co, exit_code] {
     *exit_code = RunGuarded([&] {
       CalibrationData base;
@@ -60,6 +71,54 @@ void RegisterCalibrate(CLI::App& app, int* exit_code) {
                                                    co->base.empty() ? nullptr : &base);
       WriteCalibrationFile(co->output, s.data);
       std::cout << s.BriefReport() << "wrote " << co->output << "\n";
+      PrintWarnings(s.warnings);
+      return 0;
+    });
+  });
+
+  struct ZeOpts {
+    std::string calibration, output;
+    calibrate::ZemaxExportOptions o;
+  };
+  auto ze = std::make_shared<ZeOpts>();
+  CLI::App* zx = cal->add_subcommand(
+      "zemax-export", "Write a calibration's light field as a Zemax binary source file (.DAT)");
+  zx->add_option("calibration", ze->calibration, "Calibration file")->required()->check(CLI::ExistingFile);
+  zx->add_option("-o,--output", ze->output, "Zemax source file to write")->required();
+  zx->add_option("--rays", ze->o.num_rays, "Number of rays")->capture_default_str();
+  zx->add_option("--seed", ze->o.seed, "Random seed")->capture_default_str();
+  zx->add_option("--field-radius-um", ze->o.field_radius_um, "Field disc radius (default: the calibration's)");
+  zx->add_option("--flux", ze->o.flux, "Total source flux (W)")->capture_default_str();
+  zx->callback([ze, exit_code] {
+    *exit_code = RunGuarded([&] {
+      calibrate::WriteZemaxSourceFile(
+          ze->output, calibrate::SampleZemaxSource(ReadCalibrationFile(ze->calibration), ze->o));
+      std::cout << "wrote " << ze->output << " (" << ze->o.num_rays << " rays, units mm)\n";
+      return 0;
+    });
+  });
+
+  struct ZiOpts {
+    std::string source, base, output = "calibration.toml";
+    calibrate::ZemaxImportOptions o;
+  };
+  auto zi = std::make_shared<ZiOpts>();
+  CLI::App* zm = cal->add_subcommand(
+      "zemax-import",
+      "Replace the light field of a calibration (--base: optics, corrector) with one from a Zemax\n"
+      "binary source file, and write a new calibration file.");
+  zm->add_option("source", zi->source, "Zemax source file (.DAT/.SDF)")->required()->check(CLI::ExistingFile);
+  zm->add_option("--base", zi->base, "Calibration file giving the optics")->required()->check(CLI::ExistingFile);
+  zm->add_option("-o,--output", zi->output, "Calibration file to write")->capture_default_str();
+  zm->add_option("--map-size", zi->o.map_size, "Angular map cells per side")->capture_default_str()->check(CLI::Range(2, 4096));
+  zm->add_option("--extent", zi->o.extent, "Map half-width in direction cosines (0 = from the rays)")->check(CLI::Range(0.0, 1.0));
+  zm->callback([zi, exit_code] {
+    *exit_code = RunGuarded([&] {
+      const auto s = calibrate::ImportZemaxLightField(calibrate::ReadZemaxSourceFile(zi->source),
+                                                      zi->o, ReadCalibrationFile(zi->base), zi->source);
+      WriteCalibrationFile(zi->output, s.data);
+      std::cout << s.data.light_field_note << "\nwrote " << zi->output << "\n";
+      PrintWarnings(s.warnings);
       return 0;
     });
   });

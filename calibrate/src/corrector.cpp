@@ -225,8 +225,7 @@ std::string CorrectorSummary::BriefReport() const {
   os << fit.message << "\n  zone  T        sigma\n";
   for (size_t j = 0; j < fit.transmissions.size(); ++j)
     os << "  " << j << "     " << fit.transmissions[j] << "   " << fit.sigma[j] << "\n";
-  for (const auto& w : warnings) os << "warning: " << w << "\n";
-  return os.str();
+  return os.str();  // warnings are separate (apps print them to stderr)
 }
 
 }  // namespace raymatch::calibrate

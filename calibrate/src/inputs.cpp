@@ -45,23 +45,38 @@ LightFieldInput ReadLightFieldInput(const std::string& folder) {
   TomlReader r(t, path, "");
   LightFieldInput in;
   in.folder = folder;
-  in.pinhole = Existing(r, "pinhole", folder);
-  in.pinhole_diameter_um = r.Positive("pinhole_diameter_um");
   if (r.Has("dark")) in.dark = Existing(r, "dark", folder);
-  for (TomlReader& c : r.Tables("cone")) {
-    ConeImage ci;
-    ci.file = Existing(c, "file", folder);
-    ci.dz_um = c.Positive("dz_um");
-    c.Finish();
-    in.cones.push_back(ci);
+  in.field_radius_um = r.Number("field_radius_um", 0.0);
+  if (in.field_radius_um < 0) r.Fail("field_radius_um", "expected >= 0 (0 = not measured)");
+  if (r.Has("camera_model")) {
+    // mrcal path: a camera focused at infinity; no pinhole, no defocus series.
+    in.camera_model = Existing(r, "camera_model", folder);
+    if (r.Has("cone") || r.Has("pinhole"))
+      r.Fail("camera_model", "give either camera_model with [[direction]] images or pinhole with [[cone]] images, not both");
+    for (TomlReader& c : r.Tables("direction")) {
+      in.direction_images.push_back(Existing(c, "file", folder));
+      c.Finish();
+    }
+    if (in.direction_images.empty())
+      throw Error(r.Where("camera_model"), "camera_model needs at least one [[direction]] image (file = ...)");
+  } else {
+    in.pinhole = Existing(r, "pinhole", folder);
+    in.pinhole_diameter_um = r.Positive("pinhole_diameter_um");
+    for (TomlReader& c : r.Tables("cone")) {
+      ConeImage ci;
+      ci.file = Existing(c, "file", folder);
+      ci.dz_um = c.Positive("dz_um");
+      c.Finish();
+      in.cones.push_back(ci);
+    }
+    if (in.cones.size() < 2)
+      throw Error(r.Where(), "need at least two [[cone]] images at different dz_um (got " +
+                                 std::to_string(in.cones.size()) + ")");
+    for (size_t i = 0; i < in.cones.size(); ++i)
+      for (size_t j = i + 1; j < in.cones.size(); ++j)
+        if (in.cones[i].dz_um == in.cones[j].dz_um)
+          throw Error(r.Where(), "two cone images share dz_um = " + std::to_string(in.cones[i].dz_um));
   }
-  if (in.cones.size() < 2)
-    throw Error(r.Where(), "need at least two [[cone]] images at different dz_um (got " +
-                               std::to_string(in.cones.size()) + ")");
-  for (size_t i = 0; i < in.cones.size(); ++i)
-    for (size_t j = i + 1; j < in.cones.size(); ++j)
-      if (in.cones[i].dz_um == in.cones[j].dz_um)
-        throw Error(r.Where(), "two cone images share dz_um = " + std::to_string(in.cones[i].dz_um));
   ReadCommon(r, &in.camera, &in.optics);
   r.Finish();
   return in;

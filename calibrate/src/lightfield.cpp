@@ -6,6 +6,7 @@
 #include <cmath>
 #include <sstream>
 
+#include "raymatch/calibrate/mrcal_lightfield.h"
 #include "raymatch/core/error.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/provenance.h"
@@ -89,7 +90,93 @@ Image ConeToAngularMap(const Image& ph, double p, double dz, double ax, double a
   return map;
 }
 
+namespace {
+
+// Edge of the angular distribution from a map: the (u, v) area of the cells above half the
+// plateau (mean of the cells above a quarter of the maximum) gives s_edge = sqrt(A / pi).
+double EdgeHalfAngleDeg(const Image& map, double extent) {
+  const double mx = *std::max_element(map.pixels.begin(), map.pixels.end());
+  double plateau = 0;
+  size_t cnt = 0;
+  for (float x : map.pixels)
+    if (x > 0.25 * mx) plateau += x, ++cnt;
+  plateau /= std::max<size_t>(cnt, 1);
+  size_t lit = 0;
+  for (float x : map.pixels) lit += x > 0.5 * plateau;
+  const double cell = (2 * extent / map.width) * (2 * extent / map.height);
+  return std::asin(std::min(1.0, std::sqrt(lit * cell / M_PI))) / kDeg;
+}
+
+void FillOptics(const LightFieldInput& in, CalibrationData* d) {
+  d->objective_focal_mm = in.optics.objective_focal_mm;
+  d->working_distance_mm = in.optics.working_distance_mm;
+  d->na = in.optics.na;
+  d->tube_focal_mm = in.optics.tube_focal_mm;
+  d->pixel_pitch_um = in.camera.pixel_pitch_um;
+  d->wavelength_um = in.optics.wavelength_um;
+  d->field_radius_um = in.field_radius_um;
+}
+
+// mrcal path: images from a camera focused at infinity; each pixel is a direction.
+LightFieldSummary FromCameraModel(const LightFieldInput& in, const LightFieldOptions& o) {
+  LightFieldSummary s;
+  Image dark;
+  if (!in.dark.empty()) dark = ReadImage(in.dark);
+  const Image* dk = dark.empty() ? nullptr : &dark;
+  const int n = o.map_size;
+  const double extent = o.extent > 0 ? o.extent : std::min(1.0, 1.15 * in.optics.na);
+  Image map(n, n);
+  std::vector<int> count(size_t(n) * n, 0);
+  double max_s = 0;
+  for (const std::string& file : in.direction_images) {
+    size_t sat = 0;
+    const Image ph = LoadPhotons(file, dk, in.camera, &sat);
+    if (sat) s.warnings.push_back(file + ": " + std::to_string(sat) + " saturated pixels (radiance clipped there)");
+    std::vector<char> cov;
+    DirectionMapStats st;
+    const Image m = DirectionImageToAngularMap(ph, in.camera_model, n, extent, &cov, &st);
+    max_s = std::max(max_s, st.max_s);
+    const double cell = (2 * extent / n) * (2 * extent / n);
+    if (st.median_pixel_area_uv > 0.5 * cell)
+      s.warnings.push_back(file + ": camera pixels are coarser than the map cells (" +
+                           std::to_string(st.median_pixel_area_uv / cell) +
+                           " cells each): lower --map-size or the map has holes");
+    for (size_t i = 0; i < m.size(); ++i)
+      if (cov[i]) map.pixels[i] += m.pixels[i], ++count[i];
+  }
+  size_t unmeasured = 0;
+  for (size_t i = 0; i < map.size(); ++i) {
+    if (count[i]) map.pixels[i] = std::max(0.f, map.pixels[i] / float(count[i]));
+    const double u = (2 * (i % n + 0.5) / n - 1) * extent, v = (1 - 2 * (i / n + 0.5) / n) * extent;
+    if (u * u + v * v < in.optics.na * in.optics.na && !count[i]) ++unmeasured;
+  }
+  if (unmeasured)
+    s.warnings.push_back(std::to_string(unmeasured) +
+                         " directions inside the NA are outside the camera's view (set to 0)");
+  s.cone.half_angle_deg = EdgeHalfAngleDeg(map, extent);
+  CalibrationData& d = s.data;
+  d.angular_map = map;
+  d.angular_extent = extent;
+  d.na_limit = 0;  // not seen through the objective: not cut at its NA
+  d.cone_half_angle_deg = s.cone.half_angle_deg;
+  std::ostringstream note;
+  note << "measured with a camera focused at infinity (mrcal model " << in.camera_model << ") from "
+       << in.direction_images.size() << " image(s), up to direction-cosine radius " << max_s
+       << "; not cut by the objective NA";
+  d.light_field_note = note.str();
+  FillOptics(in, &d);
+  d.provenance = ProvenanceJson();
+  std::string inputs = FileChecksum(in.camera_model) + " " + in.camera_model;
+  for (const std::string& f : in.direction_images) inputs += "; " + FileChecksum(f) + " " + f;
+  d.provenance["light_field_inputs"] = inputs;
+  return s;
+}
+
+}  // namespace
+
 LightFieldSummary CalibrateLightField(const LightFieldInput& in, const LightFieldOptions& o) {
+  if (o.map_size < 4 || o.map_size > 4096) throw Error("map_size must be in [4, 4096]");
+  if (!in.camera_model.empty()) return FromCameraModel(in, o);
   LightFieldSummary s;
   const double M = in.optics.magnification();
   const double p = in.camera.pixel_pitch_um / M;  // object-plane pixel
@@ -222,12 +309,7 @@ LightFieldSummary CalibrateLightField(const LightFieldInput& in, const LightFiel
   d.na_limit = in.optics.na;
   d.cone_half_angle_deg = f.half_angle_deg;
   d.light_field_note = note.str();
-  d.objective_focal_mm = in.optics.objective_focal_mm;
-  d.working_distance_mm = in.optics.working_distance_mm;
-  d.na = in.optics.na;
-  d.tube_focal_mm = in.optics.tube_focal_mm;
-  d.pixel_pitch_um = in.camera.pixel_pitch_um;
-  d.wavelength_um = in.optics.wavelength_um;
+  FillOptics(in, &d);
   d.provenance = ProvenanceJson();
   std::string inputs = FileChecksum(in.pinhole) + " " + in.pinhole;
   for (const ConeImage& c : in.cones) inputs += "; " + FileChecksum(c.file) + " " + c.file;
@@ -244,8 +326,7 @@ std::string LightFieldSummary::BriefReport() const {
      << " um, axis tilt (" << cone.tilt_x << ", " << cone.tilt_y << "), rms residuals: centre "
      << cone.rms_center_residual_um << " um, radius " << cone.rms_radius_residual_um << " um\n"
      << "light field: " << data.light_field_note << "\n";
-  for (const auto& w : warnings) os << "warning: " << w << "\n";
-  return os.str();
+  return os.str();  // warnings are separate (apps print them to stderr)
 }
 
 }  // namespace raymatch::calibrate

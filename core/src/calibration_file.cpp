@@ -53,23 +53,37 @@ void WriteCalibrationFile(const std::string& path, const CalibrationData& d) {
      << "\nworking_distance_mm = " << d.working_distance_mm << "\nna = " << d.na
      << "\ntube_focal_mm = " << d.tube_focal_mm << "\npixel_pitch_um = " << d.pixel_pitch_um
      << "\nwavelength_um = " << d.wavelength_um << "\n";
+  // Both files are written to temporaries first and committed only when both are complete,
+  // so that a failure leaves the previous calibration (or nothing) in place.
+  fs::path side_tmp, side_final;
   if (d.has_light_field()) {
     const std::string side = fs::path(path).stem().string() + ".angular.tif";
-    WriteFloatImage((fs::path(path).parent_path() / side).string(), d.angular_map,
+    side_final = fs::path(path).parent_path() / side;
+    side_tmp = TemporaryPathFor(side_final);
+    WriteFloatImage(side_tmp.string(), d.angular_map,
                     "raymatch calibration: angular radiance over direction cosines");
     os << "\n[light_field]\nangular_map = " << Quote(side)
        << "   # float32 TIFF: columns u, rows v (top = +extent)\nangular_extent = "
        << d.angular_extent << "\nfield_radius_um = " << d.field_radius_um
-       << "   # 0 = uniform field sized automatically\nna_limit = " << d.na_limit
-       << "\ncone_half_angle_deg = " << d.cone_half_angle_deg << "\nnote = " << Quote(d.light_field_note)
-       << "\n";
+       << "   # uniform disc at the object plane; 0 = not measured (simulator sizes it)\nna_limit = "
+       << d.na_limit << "   # the map is cut at this NA (0 = not cut)\ncone_half_angle_deg = "
+       << d.cone_half_angle_deg << "\nnote = " << Quote(d.light_field_note) << "\n";
   }
   if (d.has_corrector()) {
     os << "\n[corrector]\ndistance_mm = " << d.corrector_distance_mm
        << "\nring_outer_mm = " << List(d.ring_outer_mm) << "\ntransmissions = " << List(d.transmissions)
        << "\ntransmission_sigma = " << List(d.transmission_sigma) << "\n";
   }
-  WriteTextFileAtomic(path, os.str());
+  try {
+    const fs::path toml_tmp = TemporaryPathFor(path);
+    WriteTextFileAtomic(toml_tmp, os.str());
+    if (!side_tmp.empty()) CommitTemporary(side_tmp, side_final);
+    CommitTemporary(toml_tmp, path);
+  } catch (...) {
+    std::error_code ec;
+    if (!side_tmp.empty()) fs::remove(side_tmp, ec);
+    throw;
+  }
 }
 
 CalibrationData ReadCalibrationFile(const std::string& path) {

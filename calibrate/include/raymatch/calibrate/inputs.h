@@ -1,5 +1,5 @@
 #pragma once
-// Calibration inputs: image folders with a metadata.toml (docs/sample-data-format.md).
+// Calibration inputs: image folders with a metadata.toml (docs/calibration.md, "Inputs").
 #include <string>
 #include <vector>
 
@@ -30,6 +30,11 @@ struct LightFieldInput {
   std::string folder, pinhole, dark;
   double pinhole_diameter_um = 0;
   std::vector<ConeImage> cones;
+  /// mrcal path instead of pinhole + cones: a camera focused at infinity with this model and
+  /// its images ([[direction]] entries) of the source (docs/calibration.md).
+  std::string camera_model;
+  std::vector<std::string> direction_images;
+  double field_radius_um = 0;  ///< uniform disc field at the object plane; 0 = not measured
   CameraInfo camera;
   OpticsInfo optics;
 };

@@ -14,11 +14,13 @@ namespace raymatch {
 struct CalibrationData {
   // Light field: angular radiance over direction cosines (u, v) in
   // [-angular_extent, angular_extent]^2, columns = u increasing, rows = v decreasing from the top
-  // (docs/conventions.md); spatially uniform field (field_radius_um = 0: automatic).
+  // (docs/conventions.md); spatially uniform field: a disc of field_radius_um at the object plane
+// (0 = not measured: the simulator sizes it to cover the view).
   Image angular_map;                 ///< empty when the file has no light field
   double angular_extent = 0;
   double field_radius_um = 0;
-  double na_limit = 0;               ///< the measured map is cut at this NA (the objective's)
+  double na_limit = 0;               ///< the measured map is cut at this NA (the objective's;
+                                     ///< 0 = not cut, e.g. measured with an mrcal camera)
   double cone_half_angle_deg = 0;    ///< fitted edge half-angle of the cone (informational)
   std::string light_field_note;      ///< e.g. "measured up to NA 0.42; beyond: extrapolated"
   // Corrector: central disc + rings (empty when not calibrated).
@@ -37,7 +39,8 @@ struct CalibrationData {
 /// with its sidecars, which are resolved relative to the file.
 CalibrationData ReadCalibrationFile(const std::string& path);
 
-/// Writes the TOML file and its sidecar(s) (<stem>.angular.tif) atomically.
+/// Writes the TOML file and its sidecar (<stem>.angular.tif): both go to temporaries and are
+/// renamed into place only when both are complete (nothing half-written on failure).
 void WriteCalibrationFile(const std::string& path, const CalibrationData& data);
 
 }  // namespace raymatch

@@ -74,14 +74,15 @@ void WriteCalibrationFile(const std::string& path, const CalibrationData& d) {
        << "\nring_outer_mm = " << List(d.ring_outer_mm) << "\ntransmissions = " << List(d.transmissions)
        << "\ntransmission_sigma = " << List(d.transmission_sigma) << "\n";
   }
+  const fs::path toml_tmp = TemporaryPathFor(path);
   try {
-    const fs::path toml_tmp = TemporaryPathFor(path);
     WriteTextFileAtomic(toml_tmp, os.str());
     if (!side_tmp.empty()) CommitTemporary(side_tmp, side_final);
     CommitTemporary(toml_tmp, path);
   } catch (...) {
     std::error_code ec;
     if (!side_tmp.empty()) fs::remove(side_tmp, ec);
+    fs::remove(toml_tmp, ec);
     throw;
   }
 }

@@ -10,6 +10,7 @@
 
 #include "raymatch/calibrate/corrector.h"
 #include "raymatch/calibrate/lightfield.h"
+#include "raymatch/core/calibration_file.h"
 #include "raymatch/core/error.h"
 #include "raymatch/core/image_io.h"
 #include "temp_dir.h"
@@ -91,7 +92,7 @@ TEST(CorrectorFit, ZoneWithoutLightIsReportedUndetermined) {
 // made with the radiance-to-irradiance relation on a plane h away, E = L w^4 / h^2, with
 // Poisson noise; calibration recovers the half-angle and a flat angular profile.
 void WriteFolder(const testing::TempDir& dir, double half_deg, const std::vector<double>& dzs,
-                 bool blank = false) {
+                 bool blank = false, float pin_level = 3000.f) {
   const int nx = 160, ny = 120;
   const double p = 0.5;  // um at the object
   std::mt19937_64 rng(11);
@@ -104,7 +105,7 @@ void WriteFolder(const testing::TempDir& dir, double half_deg, const std::vector
   Image pin(nx, ny);
   for (int y = 0; y < ny; ++y)
     for (int x = 0; x < nx; ++x)
-      pin.at(x, y) = std::hypot((x + 0.5 - nx / 2.0) * p, (ny / 2.0 - y - 0.5) * p) < 1.0 ? 3000.f : 0.f;
+      pin.at(x, y) = std::hypot((x + 0.5 - nx / 2.0) * p, (ny / 2.0 - y - 0.5) * p) < 1.0 ? pin_level : 0.f;
   WriteUint16Image(dir / "pinhole.tif", blank ? Image(nx, ny) : expose(pin), "");
   WriteUint16Image(dir / "dark.tif", Image(nx, ny, 100.f), "");
   std::string meta = "pinhole = \"pinhole.tif\"\npinhole_diameter_um = 2\ndark = \"dark.tif\"\n";
@@ -179,6 +180,56 @@ TEST(LightField, BadInputs) {
   bool warned = false;
   for (const auto& w : s.warnings) warned |= w.find("does not scale with dz") != std::string::npos;
   EXPECT_TRUE(warned) << s.BriefReport();
+}
+
+TEST(LightField, SaturationIsReportedAndSizesMustMatch) {
+  testing::TempDir sat;
+  WriteFolder(sat, 15, {20, 30}, false, 4095.f);  // 12-bit camera: the pinhole clips at 4095
+  const LightFieldSummary s = CalibrateLightField(ReadLightFieldInput(sat.path().string()), {});
+  bool warned = false;
+  for (const auto& w : s.warnings) warned |= w.find("pinhole.tif: ") != std::string::npos && w.find("saturated pixels") != std::string::npos;
+  EXPECT_TRUE(warned) << s.BriefReport();
+  EXPECT_NEAR(s.cone.half_angle_deg, 15, 0.3);  // still usable: a warning, not an error
+
+  testing::TempDir sizes;
+  WriteFolder(sizes, 15, {20, 30});
+  WriteUint16Image(sizes / "cone30.tif", Image(100, 80, 500.f), "");
+  try {
+    CalibrateLightField(ReadLightFieldInput(sizes.path().string()), {});
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("cone30.tif: error: image is 100x80 but the dark frame is 160x120"),
+              std::string::npos) << e.what();
+  }
+}
+
+TEST(CalibrationFileWrite, FailureLeavesThePreviousFileAndNoPartials) {
+  testing::TempDir dir;
+  WriteFolder(dir, 15, {20, 30});
+  const LightFieldSummary s = CalibrateLightField(ReadLightFieldInput(dir.path().string()), {});
+  namespace fs = std::filesystem;
+  const fs::path out = dir.path() / "out";
+  fs::create_directories(out);
+  WriteCalibrationFile((out / "cal.toml").string(), s.data);
+  const std::string before = [&] {
+    std::ifstream in(out / "cal.toml");
+    std::stringstream ss;
+    ss << in.rdbuf();
+    return ss.str();
+  }();
+  // Make the sidecar's final path undeletable (a non-empty directory): the write must fail and
+  // leave the previous TOML untouched and no temporary files behind.
+  fs::remove(out / "cal.angular.tif");
+  fs::create_directories(out / "cal.angular.tif" / "blocker");
+  CalibrationData changed = s.data;
+  changed.cone_half_angle_deg = 1;
+  EXPECT_THROW(WriteCalibrationFile((out / "cal.toml").string(), changed), Error);
+  std::ifstream in(out / "cal.toml");
+  std::stringstream ss;
+  ss << in.rdbuf();
+  EXPECT_EQ(ss.str(), before);
+  for (const auto& e : fs::directory_iterator(out))
+    EXPECT_EQ(e.path().filename().string().find("partial"), std::string::npos) << e.path();
 }
 
 }  // namespace

@@ -8,7 +8,8 @@ namespace raymatch::apps {
 void RegisterSimulate(CLI::App& app, int* exit_code);
 void RegisterCompare(CLI::App& app, int* exit_code);      // apps/compare.cpp
 void RegisterCompareScan(CLI::App& app, int* exit_code);  // apps/compare_scan.cpp
-void RegisterCalibrate(CLI::App& app, int* exit_code);    // apps/calibrate.cpp ("lightfield", "corrector")
+void RegisterCalibrate(CLI::App& app, int* exit_code);
+void RegisterRun(CLI::App& app, int* exit_code);          // apps/run.cpp    // apps/calibrate.cpp ("lightfield", "corrector")
 
 /// Runs `fn`, printing raymatch::Error and other exceptions to stderr; returns `error_code` then.
 int RunGuarded(const std::function<int()>& fn, int error_code = 1);

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
-# Sets up (installs missing packages, builds) and runs the main job on datasets-sample/,
-# writing everything under out/sample/. Open out/sample/index.html (or the PNGs) to look.
+# Sets up (installs missing packages, builds) and runs the main job on datasets-sample/:
+# calibrate -> simulate the focus scan -> compare -> report, all under out/sample/.
+# Open out/sample/index.html. Extra arguments go to `raymatch run` (e.g. --ray-fraction 0.25).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
-mkdir -p out/sample
-exec build/release/apps/raymatch simulate datasets-sample/drop46/scene.toml -o out/sample "$@"
+exec build/release/apps/raymatch run datasets-sample/pipeline.toml -o out/sample "$@"

@@ -257,11 +257,14 @@ int main(int argc, char** argv) {
     o.index = WaterRefractiveIndex(t.temperature_K, WaterDensityTanaka(t.temperature_K), 0.462).n;
     drop.objects = {o};
     drop.defocus_um = t.defocus_um;
+    // Exposure of the drop images: the flat-field level of this very scene (its source field is
+    // larger than the flat field's, because it must cover the drop and the defocus range).
+    const uint64_t rays_drop = Simulator(drop).RaysForPhotonTarget(photons * scale);
     std::string csv = "defocus_um,file\n";
     for (size_t i = 0; i < t.defocus_um.size(); ++i) {
       char name[64];
       std::snprintf(name, sizeof name, "drop_z%+03dum.tif", int(t.defocus_um[i]));
-      w.Image16(std::string("drop46/") + name, Trace(drop, t.defocus_um[i], rays_open, plane++),
+      w.Image16(std::string("drop46/") + name, Trace(drop, t.defocus_um[i], rays_drop, plane++),
                 "46 um water drop, defocus " + std::to_string(t.defocus_um[i]) + " um");
       csv += std::to_string(int(t.defocus_um[i])) + "," + name + "\n";
     }
@@ -302,7 +305,9 @@ int main(int argc, char** argv) {
     m.rotation_deg = {0, 90, 0};  // local z -> world x: the axis runs horizontally
     m.index = o.index;
     merge.objects = {m};
-    w.Image16("merging/merging_z+00um.tif", Trace(merge, 0, rays_open, plane++), "merging drops");
+    w.Image16("merging/merging_z+00um.tif",
+              Trace(merge, 0, Simulator(merge).RaysForPhotonTarget(photons * scale), plane++),
+              "merging drops");
     w.Image16("merging/dark.tif", Image(t.nx, t.ny), "dark frame");
     std::ofstream(fs::path(out) / "merging/metadata.toml")
         << "# Two merging water drops in focus; their shape as a mesh (from a CFD-like model).\n"

@@ -8,6 +8,7 @@
 
 #include "raymatch/compare/focus_scan.h"
 #include "raymatch/core/atomic_file.h"
+#include "raymatch/core/html.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/provenance.h"
 
@@ -16,31 +17,6 @@ namespace fs = std::filesystem;
 namespace raymatch::compare {
 
 namespace {
-
-std::string Base64(const std::string& in) {
-  static const char* t = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-  std::string out;
-  size_t i = 0;
-  for (; i + 2 < in.size(); i += 3) {
-    const unsigned v = (uint8_t(in[i]) << 16) | (uint8_t(in[i + 1]) << 8) | uint8_t(in[i + 2]);
-    out += {t[v >> 18], t[(v >> 12) & 63], t[(v >> 6) & 63], t[v & 63]};
-  }
-  if (i + 1 == in.size()) {
-    const unsigned v = uint8_t(in[i]) << 16;
-    out += {t[v >> 18], t[(v >> 12) & 63], '=', '='};
-  } else if (i + 2 == in.size()) {
-    const unsigned v = (uint8_t(in[i]) << 16) | (uint8_t(in[i + 1]) << 8);
-    out += {t[v >> 18], t[(v >> 12) & 63], t[(v >> 6) & 63], '='};
-  }
-  return out;
-}
-
-std::string ReadAll(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  std::stringstream ss;
-  ss << in.rdbuf();
-  return ss.str();
-}
 
 void WriteMat(const std::string& path, const cv::Mat& bgr) {
   cv::Mat rgb;
@@ -139,7 +115,7 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
   Montage(r, (d / "montage.png").string());
   html += "<h2>Experiment (top) and simulation (bottom)</h2><p>Defocus (um): ";
   for (double z : r.exp_defocus_um) html += Fmt(z) + " ";
-  html += "</p><img src='data:image/png;base64," + Base64(ReadAll((d / "montage.png").string())) + "'>";
+  html += "</p>" + EmbeddedPng((d / "montage.png").string());
   html += "<h2>Cross-similarity (rows: experiment z, columns: simulation z)</h2>"
           "<p>Bright = better match; white box = best match; red dot = same defocus.</p>";
   for (const MeasureScan& m : r.measures) {
@@ -157,8 +133,7 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
     const std::string png = (d / ("heatmap_" + name + ".png")).string();
     Heatmap(m, png);
     html += "<h3>" + name + " <span class='" + (m.passes ? "pass'>passes" : "fail'>fails") +
-            "</span></h3><img src='data:image/png;base64," + Base64(ReadAll(png)) +
-            "'><table><tr><th>exp z \\ sim z</th>";
+            "</span></h3>" + EmbeddedPng(png) + "<table><tr><th>exp z \\ sim z</th>";
     for (double z : r.sim_defocus_um) html += "<th>" + Fmt(z) + "</th>";
     html += "</tr>";
     for (size_t i = 0; i < m.matrix.size(); ++i) {

@@ -174,6 +174,7 @@ struct Simulator::Impl {
   std::vector<Vec3> center;
   std::vector<double> size;  // characteristic size (for first GRIN steps)
   bool has_grin = false;
+  double field_radius_um = 0;  // resolved source field radius (automatic or given)
   double medium;
   double source_z;
   explicit Impl(const Scene& s) : geometry(s.objects) {}
@@ -598,6 +599,7 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
                          std::tan(std::asin(scene.optics.na));
   const double auto_r = 1.05 * (view + (max_dz + im.geometry.extent_um()) * tan_max) + 1.0;
   const SourceSpec& ss = scene.source;
+  im.field_radius_um = ss.field_radius_um > 0 ? ss.field_radius_um : auto_r;
   switch (ss.type) {
     case SourceType::kCollimated: {
       const double t = ss.tilt_deg * kDeg, a = ss.azimuth_deg * kDeg;
@@ -766,6 +768,8 @@ uint64_t Simulator::RaysForPhotonTarget(double photons_per_pixel, double* hppr) 
   // Pilot: the same source and optics without objects (a flat field), fixed seed and stream.
   Scene flat = scene_;
   flat.objects.clear();
+  // The same source field as the real scene: its automatic size depends on the objects.
+  if (flat.source.field_shape == FieldShape::kDisc) flat.source.field_radius_um = impl_->field_radius_um;
   flat.trace.seed = 0x5eed;
   Simulator pilot(flat);
   constexpr uint64_t kPilotRays = 400000;

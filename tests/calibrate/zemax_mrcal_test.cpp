@@ -172,6 +172,23 @@ TEST(ZemaxSource, ExportImportRoundTripMatchesTheMapStatistically) {
   ASSERT_GT(dof, 300);
   EXPECT_LT(chi2 / dof, 1 + 5 * std::sqrt(2.0 / dof)) << "dof " << dof;
   EXPECT_GT(chi2 / dof, 1 - 5 * std::sqrt(2.0 / dof)) << "dof " << dof;
+  // Within a cell the directions are uniform: on a grid twice as fine each sub-cell expects a
+  // quarter of its parent's rays (catches e.g. rays placed at cell centres).
+  io.map_size = 2 * n;
+  const ZemaxImportSummary fine = AngularMapFromZemax(g, io);
+  const double fine_cell = cell / 4;
+  double chi2f = 0;
+  int doff = 0;
+  for (int y = 0; y < 2 * n; ++y)
+    for (int x = 0; x < 2 * n; ++x) {
+      const double expected = eo.num_rays * cal.angular_map.at(x / 2, y / 2) / total / 4;
+      if (expected < 20) continue;
+      const double observed = fine.data.angular_map.at(x, y) * fine_cell / per_ray;
+      chi2f += (observed - expected) * (observed - expected) / expected;
+      ++doff;
+    }
+  ASSERT_GT(doff, 1000);
+  EXPECT_LT(chi2f / doff, 1 + 5 * std::sqrt(2.0 / doff)) << "dof " << doff;
   // A different seed gives different rays (the sampler is not degenerate).
   eo.seed = 8;
   EXPECT_NE(SampleZemaxSource(cal, eo).rays[0].l, f.rays[0].l);

@@ -1,0 +1,34 @@
+// raymatch run: the main job (calibrate -> simulate -> compare -> report).
+#include <iostream>
+
+#include "commands.h"
+#include "raymatch/pipeline/pipeline.h"
+
+namespace raymatch::apps {
+
+void RegisterRun(CLI::App& app, int* exit_code) {
+  auto o = std::make_shared<pipeline::PipelineOptions>();
+  CLI::App* sub = app.add_subcommand(
+      "run",
+      "The main job from one pipeline file (docs/pipeline.md): calibrate the light field and the\n"
+      "corrector, simulate the experiment's focus scan with that calibration, run the focus-scan\n"
+      "test and write index.html. Unchanged steps are reused. Exit: 0 pass, 1 warning, 2 fail.");
+  sub->add_option("pipeline", o->pipeline_file, "Pipeline file (.toml)")->required()->check(CLI::ExistingFile);
+  sub->add_option("-o,--output", o->output_dir, "Output folder (default: the file's `output`)");
+  sub->add_option("--ray-fraction", o->ray_fraction,
+                  "Fraction of the photon-matched ray count (e.g. 0.0625 for a quick look)");
+  sub->add_option("--threads", o->threads, "Worker threads (default: all cores)");
+  sub->add_flag("--force", o->force, "Recompute every step");
+  sub->callback([o, exit_code] {
+    *exit_code = RunGuarded([&] {
+      const auto s = pipeline::RunPipeline(*o);
+      std::cout << "raymatch run: cone half-angle " << s.cone_half_angle_deg << " deg; exposure "
+                << s.photons_per_pixel << " photons/pixel; verdict "
+                << (s.verdict == 0 ? "pass" : s.verdict == 1 ? "warning" : "fail") << "\n  report: "
+                << s.report << "\n";
+      return s.verdict;
+    });
+  });
+}
+
+}  // namespace raymatch::apps

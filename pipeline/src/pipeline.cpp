@@ -1,0 +1,308 @@
+#include "raymatch/pipeline/pipeline.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <sstream>
+
+#include "plot.h"
+#include "raymatch/calibrate/corrector.h"
+#include "raymatch/calibrate/lightfield.h"
+#include "raymatch/compare/focus_scan.h"
+#include "raymatch/core/atomic_file.h"
+#include "raymatch/core/calibration_file.h"
+#include "raymatch/core/error.h"
+#include "raymatch/core/html.h"
+#include "raymatch/core/image_io.h"
+#include "raymatch/core/provenance.h"
+#include "raymatch/core/toml_reader.h"
+#include "raymatch/simulate/scan.h"
+#include "raymatch/simulate/scene.h"
+
+namespace fs = std::filesystem;
+
+namespace raymatch::pipeline {
+
+namespace {
+
+struct Config {
+  std::string output, lightfield, flatfield, experiment;
+  double extrapolate_to_deg = 0;
+  int zones = 9;
+  double smoothness = 0;
+  double ray_fraction = 1;
+  uint64_t seed = 1;
+  std::string partial_reflection = "unpolarized";
+};
+
+Config ReadConfig(const std::string& path) {
+  const toml::table t = ParseTomlFile(path);
+  TomlReader r(t, path, "");
+  const fs::path base = fs::path(path).parent_path();
+  auto rel = [&](TomlReader& rd, const std::string& key) {
+    const std::string p = (base / rd.String(key)).lexically_normal().string();
+    if (!fs::is_directory(p)) rd.Fail(key, "folder not found: " + p);
+    return p;
+  };
+  Config c;
+  c.output = r.String("output", "out/pipeline");
+  TomlReader cal = r.Table("calibration");
+  c.lightfield = rel(cal, "lightfield");
+  c.flatfield = rel(cal, "corrector");
+  c.extrapolate_to_deg = cal.InRange("extrapolate_to_deg", 0, 89, 0);
+  c.zones = int(cal.Integer("zones", 9, 1, 64));
+  c.smoothness = cal.Number("smoothness", 0);
+  cal.Finish();
+  TomlReader ex = r.Table("experiment");
+  c.experiment = rel(ex, "scan");
+  ex.Finish();
+  if (r.Has("simulation")) {
+    TomlReader s = r.Table("simulation");
+    c.ray_fraction = s.InRange("ray_fraction", 0, 100, 1, true, false);
+    c.seed = uint64_t(s.Integer("seed", 1, 0, INT64_MAX));
+    c.partial_reflection = s.Choice("partial_reflection", {"off", "unpolarized", "polarized"}, "unpolarized");
+    s.Finish();
+  }
+  r.Finish();
+  return c;
+}
+
+/// The experiment folder's metadata (docs/sample-data-format.md).
+struct Experiment {
+  std::string scan_csv, dark;
+  double diameter_um = 0, temperature_K = 293.15, gain = 1;
+};
+
+Experiment ReadExperiment(const std::string& folder) {
+  const std::string path = (fs::path(folder) / "metadata.toml").string();
+  const toml::table t = ParseTomlFile(path);
+  TomlReader r(t, path, "");
+  Experiment e;
+  e.scan_csv = (fs::path(folder) / r.String("scan")).string();
+  if (r.Has("dark")) e.dark = (fs::path(folder) / r.String("dark")).string();
+  r.String("object", "");
+  e.diameter_um = r.Positive("nominal_diameter_um");
+  e.temperature_K = r.InRange("temperature_K", 261.15, 773.15, 293.15);
+  TomlReader cam = r.Table("camera");
+  e.gain = cam.Positive("gain_e_per_dn", 1.0);
+  cam.Positive("pixel_pitch_um", 1), cam.Integer("bit_depth", 16, 1, 32), cam.Number("well_capacity_e", 0), cam.Number("read_noise_e", 0);
+  cam.Finish();
+  r.Table("optics");  // the calibration's optics are used; the table is informational here
+  r.Finish();
+  return e;
+}
+
+/// Checksums of a folder's files (sorted), for step reuse.
+std::string FolderStamp(const std::string& folder) {
+  std::vector<std::string> files;
+  for (const auto& e : fs::directory_iterator(folder))
+    if (e.is_regular_file()) files.push_back(e.path().string());
+  std::sort(files.begin(), files.end());
+  std::string s;
+  for (const auto& f : files) s += fs::path(f).filename().string() + ":" + FileChecksum(f) + ";";
+  return s;
+}
+
+/// A step is reused when its stamp file holds the same input description and its outputs exist.
+bool Reusable(const fs::path& stamp, const std::string& inputs, const std::vector<fs::path>& outputs) {
+  std::ifstream in(stamp);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  if (!in || ss.str() != inputs) return false;
+  for (const auto& o : outputs)
+    if (!fs::exists(o)) return false;
+  return true;
+}
+
+std::string Img(const std::string& png) { return EmbeddedPng(png); }
+
+}  // namespace
+
+PipelineSummary RunPipeline(const PipelineOptions& opt) {
+  using clock = std::chrono::steady_clock;
+  const Config cfg = ReadConfig(opt.pipeline_file);
+  const fs::path out = opt.output_dir.empty() ? fs::path(cfg.output) : fs::path(opt.output_dir);
+  EnsureDirectory(out);
+  PipelineSummary sum;
+  auto say = [&](const std::string& m) {
+    if (opt.progress) std::cerr << "raymatch run: " << m << std::endl;
+  };
+  auto timed = [&](const std::string& name, const std::function<void()>& fn) {
+    const auto t0 = clock::now();
+    fn();
+    sum.step_seconds.push_back({name, std::chrono::duration<double>(clock::now() - t0).count()});
+  };
+
+  // 1. Calibration.
+  const fs::path cal_file = out / "calibration.toml";
+  calibrate::LightFieldSummary lf;
+  calibrate::CorrectorSummary co;
+  const std::string cal_inputs = FolderStamp(cfg.lightfield) + "|" + FolderStamp(cfg.flatfield) + "|" +
+                                 std::to_string(cfg.extrapolate_to_deg) + "|" + std::to_string(cfg.zones) +
+                                 "|" + std::to_string(cfg.smoothness);
+  timed("calibrate", [&] {
+    say("calibrating the light field (" + cfg.lightfield + ")");
+    calibrate::LightFieldOptions lo;
+    lo.extrapolate_to_deg = cfg.extrapolate_to_deg;
+    lf = calibrate::CalibrateLightField(calibrate::ReadLightFieldInput(cfg.lightfield), lo);
+    say("fitting the corrector (" + cfg.flatfield + ")");
+    calibrate::CorrectorOptions copt;
+    copt.zones = cfg.zones;
+    copt.smoothness = cfg.smoothness;
+    co = calibrate::CalibrateCorrector(calibrate::ReadFlatFieldInput(cfg.flatfield), copt, &lf.data);
+    WriteCalibrationFile(cal_file.string(), co.data);
+  });
+  sum.cone_half_angle_deg = lf.cone.half_angle_deg;
+  sum.transmissions = co.fit.transmissions;
+  sum.transmission_sigma = co.fit.sigma;
+
+  // 2. Scene for the experiment: nominal drop, the experiment's image size and planes, the
+  // exposure recovered from the background of the middle plane.
+  const Experiment ex = ReadExperiment(cfg.experiment);
+  const compare::Stack exp = compare::ReadStack(ex.scan_csv);
+  Image dark;
+  if (!ex.dark.empty()) dark = ReadImage(ex.dark);
+  compare::PrepareOptions prep;
+  prep.dark_file = ex.dark;
+  prep.gain_e_per_dn = ex.gain;
+  const Image mid = compare::PrepareExperiment(exp.images[exp.images.size() / 2], prep,
+                                               dark.empty() ? nullptr : &dark, nullptr);
+  // Background level: median of a border frame (1/8 of the smaller side), away from the object;
+  // a whole-image median would be pulled down by the object's dark pixels.
+  std::vector<float> v;
+  const int bw = std::max(1, std::min(mid.width, mid.height) / 8);
+  for (int y = 0; y < mid.height; ++y)
+    for (int x = 0; x < mid.width; ++x)
+      if (x < bw || y < bw || x >= mid.width - bw || y >= mid.height - bw) v.push_back(mid.at(x, y));
+  std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+  sum.photons_per_pixel = v[v.size() / 2];
+  const double frac = opt.ray_fraction > 0 ? opt.ray_fraction : cfg.ray_fraction;
+  std::ostringstream sc;
+  sc.precision(10);
+  sc << "# Written by raymatch run: the experiment's focus scan, simulated with the calibration.\n"
+     << "name = \"sim\"\ncalibration = \"calibration.toml\"\nseed = " << cfg.seed << "\n\n"
+     << "[[object]]\nname = \"drop\"\ntype = \"sphere\"\nradius_um = " << ex.diameter_um / 2
+     << "\nmaterial = \"water\"\ntemperature_K = " << ex.temperature_K << "\n\n[camera]\npixels = ["
+     << exp.images[0].width << ", " << exp.images[0].height << "]\n\n[trace]\nphotons_per_pixel = "
+     << sum.photons_per_pixel * frac << "   # background photons x ray fraction " << frac
+     << "\npartial_reflection = \"" << cfg.partial_reflection << "\"\n\n[scan]\ndefocus_um = [";
+  for (size_t i = 0; i < exp.defocus_um.size(); ++i) sc << (i ? ", " : "") << exp.defocus_um[i];
+  sc << "]\n";
+  const fs::path scene_file = out / "scene.toml";
+  WriteTextFileAtomic(scene_file, sc.str());
+
+  // 3. Simulation (reused when scene and calibration are unchanged).
+  const fs::path sim_dir = out / "simulation", sim_index = sim_dir / "sim_scan.json";
+  const std::string sim_inputs = ReadFileBytes(scene_file.string()) + "|" + FileChecksum(cal_file.string());
+  if (!opt.force && Reusable(out / ".simulation.stamp", sim_inputs, {sim_index})) {
+    say("simulation unchanged: reusing " + sim_index.string());
+    sum.reused.push_back("simulate");
+  } else {
+    timed("simulate", [&] {
+      say("simulating " + std::to_string(exp.defocus_um.size()) + " planes at " +
+          std::to_string(sum.photons_per_pixel * frac) + " photons per pixel");
+      simulate::Scene scene = simulate::LoadScene(scene_file.string());
+      simulate::ScanOptions so;
+      so.output_dir = sim_dir.string();
+      so.control.progress = opt.progress;
+      so.control.threads = opt.threads;
+      simulate::RunScan(scene, so);
+      WriteTextFileAtomic(out / ".simulation.stamp", sim_inputs);
+    });
+  }
+
+  // 4. Focus-scan comparison.
+  compare::FocusScanResult fr;
+  timed("compare", [&] {
+    say("comparing the focus scans");
+    compare::FocusScanOptions fo;
+    fo.prepare = prep;
+    fr = compare::RunFocusScan(exp, compare::ReadStack(sim_index.string()), fo);
+    compare::WriteFocusScanReport(fr, (out / "compare").string(), "focus-scan test");
+  });
+  sum.verdict = int(fr.verdict);
+  sum.exp_defocus_um = fr.exp_defocus_um;
+  for (const auto& m : fr.measures) {
+    sum.measures.push_back(compare::MeasureName(m.measure));
+    std::vector<double> b;
+    for (int j : m.best) b.push_back(fr.sim_defocus_um[j]);
+    sum.best_match_um.push_back(b);
+  }
+
+  // 5. Report.
+  const fs::path fig = out / "figures";
+  EnsureDirectory(fig);
+  WriteFalseColour((fig / "angular_map.png").string(), lf.data.angular_map, 4);
+  {
+    const Image& m = lf.data.angular_map;
+    const int n = m.width;
+    std::vector<double> sum_r(n / 2, 0), cnt(n / 2, 0);
+    for (int y = 0; y < n; ++y)
+      for (int x = 0; x < n; ++x) {
+        const double u = (2 * (x + 0.5) / n - 1), vv = (1 - 2 * (y + 0.5) / n);
+        const int k = int(std::hypot(u, vv) * n / 2);
+        if (k < n / 2) sum_r[k] += m.at(x, y), cnt[k] += 1;
+      }
+    Series s;
+    for (int k = 0; k < n / 2; ++k)
+      if (cnt[k] > 0) {
+        s.x.push_back(std::asin(std::min(1.0, (k + 0.5) / (n / 2) * lf.data.angular_extent)) * 180 / M_PI);
+        s.y.push_back(sum_r[k] / cnt[k]);
+      }
+    const double mx = *std::max_element(s.y.begin(), s.y.end());
+    for (double& y : s.y) y /= mx;
+    WritePlot((fig / "radial_profile.png").string(), {s}, "light field: radial profile (azimuthal mean)",
+              "angle (deg)", "radiance (rel.)");
+  }
+  {
+    Series s;
+    s.points = true;
+    for (size_t j = 0; j < co.fit.transmissions.size(); ++j) {
+      s.x.push_back(double(j));
+      s.y.push_back(co.fit.transmissions[j]);
+      s.yerr.push_back(co.fit.sigma[j]);
+    }
+    WritePlot((fig / "transmissions.png").string(), {s}, "corrector zone transmissions (+- 1 sigma)",
+              "zone (0 = central disc)", "T");
+  }
+  std::ostringstream h;
+  h.precision(4);
+  h << "<!doctype html><html><head><meta charset='utf-8'><title>raymatch run</title><style>"
+       "body{font-family:sans-serif;margin:2em;max-width:1100px}td,th{border:1px solid #ccc;"
+       "padding:2px 6px;font-size:12px}table{border-collapse:collapse}img{max-width:100%}"
+       ".pass{color:#070}.fail{color:#b00}</style></head><body><h1>raymatch: calibrate, simulate, compare</h1>"
+    << "<p>" << ProvenanceJson()["date_utc"].get<std::string>() << " &mdash; <code>" << CommandLine()
+    << "</code></p><h2>Verdict: <span class='" << (fr.verdict == compare::Verdict::kPass ? "pass'>pass" : "fail'>" + std::string(fr.verdict == compare::Verdict::kWarning ? "warning" : "fail"))
+    << "</span></h2><p>" << fr.message << "</p>"
+    << "<h2>Measured light field</h2><pre>" << lf.BriefReport() << "</pre>"
+    << Img((fig / "angular_map.png").string()) << " " << Img((fig / "radial_profile.png").string())
+    << "<p>Angular map over direction cosines (u right, v up), +-" << lf.data.angular_extent << ".</p>"
+    << "<h2>Corrector</h2><pre>" << co.BriefReport() << "</pre>" << Img((fig / "transmissions.png").string())
+    << "<h2>Experiment (top) and simulation (bottom)</h2><p>Exposure recovered from the "
+       "background: " << sum.photons_per_pixel << " photons per pixel; simulated with ray fraction "
+    << frac << ". Registration shift " << fr.shift_px[0] << ", " << fr.shift_px[1] << " px.</p>"
+    << Img((out / "compare/montage.png").string())
+    << "<h2>Focus-scan test</h2><table><tr><th>measure</th><th>verdict</th><th>best simulated z per experimental z (um)</th></tr>";
+  for (size_t i = 0; i < fr.measures.size(); ++i) {
+    h << "<tr><td>" << sum.measures[i] << "</td><td class='" << (fr.measures[i].passes ? "pass'>pass" : "fail'>fail") << "</td><td>";
+    for (double z : sum.best_match_um[i]) h << z << " ";
+    h << "</td></tr>";
+  }
+  h << "</table>";
+  for (const auto& m : fr.measures)
+    h << "<h3>" << compare::MeasureName(m.measure) << "</h3>"
+      << Img((out / ("compare/heatmap_" + std::string(compare::MeasureName(m.measure)) + ".png")).string());
+  h << "<h2>Timing</h2><table>";
+  for (const auto& [name, s] : sum.step_seconds) h << "<tr><td>" << name << "</td><td>" << s << " s</td></tr>";
+  for (const auto& r : sum.reused) h << "<tr><td>" << r << "</td><td>reused (inputs unchanged)</td></tr>";
+  h << "</table><p>Files: <code>calibration.toml</code>, <code>scene.toml</code>, <code>simulation/</code>, "
+       "<code>compare/</code> (report.html, CSV, JSON), <code>figures/</code>.</p></body></html>\n";
+  sum.report = (out / "index.html").string();
+  WriteTextFileAtomic(sum.report, h.str());
+  return sum;
+}
+
+}  // namespace raymatch::pipeline

@@ -1,0 +1,71 @@
+// Golden test of the main job: generate the reduced sample (1/16 of the photons), run the
+// whole pipeline with few rays, and check the recovered quantities against the generator's
+// ground truth. Runs in well under a minute on 2 cores.
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+
+#include "raymatch/core/calibration_file.h"
+#include "temp_dir.h"
+
+namespace raymatch {
+namespace {
+
+TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
+  testing::TempDir dir;
+  const std::string data = dir / "sample";
+  ASSERT_EQ(std::system((std::string(RAYMATCH_GENERATOR) + " " + data + " --quick >/dev/null").c_str()), 0);
+  std::filesystem::copy_file(std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample/pipeline.toml",
+                             data + "/pipeline.toml");
+  const std::string cmd = std::string(RAYMATCH_BIN) + " run " + data + "/pipeline.toml -o " +
+                          (dir / "out") + " --ray-fraction 0.5 >" + (dir / "log.txt") + " 2>&1";
+  const int status = std::system(cmd.c_str());
+  std::ifstream log(dir / "log.txt");
+  std::stringstream ls;
+  ls << log.rdbuf();
+  ASSERT_TRUE(WIFEXITED(status)) << ls.str();
+  EXPECT_EQ(WEXITSTATUS(status), 0) << ls.str();  // focus-scan verdict: pass
+  // Light field: the truth cone (25.5 deg) is cut by the objective at asin(0.42) = 24.83 deg;
+  // the measured edge must be within 0.5 deg below that cut.
+  const CalibrationData cal = ReadCalibrationFile(dir / "out/calibration.toml");
+  EXPECT_GT(cal.cone_half_angle_deg, 24.33);
+  EXPECT_LT(cal.cone_half_angle_deg, 24.9);
+  // Exposure recovered from the background: 2520/16 photons less the corrector's losses at the
+  // full aperture (truth ~2.5 %); +-5 % covers the losses and the median's noise.
+  const size_t at = ls.str().find("exposure ");
+  ASSERT_NE(at, std::string::npos) << ls.str();
+  EXPECT_NEAR(std::stod(ls.str().substr(at + 9)), 2520.0 / 16 * 0.975, 0.05 * 2520.0 / 16);
+  // Best-matching focus planes: the drop sits 0.8 um beyond the nominal centre, so each
+  // experimental plane's best match is the same defocus (5 um steps).
+  std::ifstream js(dir / "out/compare/compare_scan.json");
+  const auto j = nlohmann::json::parse(js);
+  for (const auto& m : j["measures"]) {
+    const std::string name = m["measure"];
+    if (name == "ssim") continue;  // the paper's finding: SSIM need not pass
+    for (const auto& b : m["best_matches"])
+      EXPECT_LE(std::abs(b["best_simulation_defocus_um"].get<double>() -
+                         b["experiment_defocus_um"].get<double>()), 5.0) << name;
+  }
+  EXPECT_TRUE(std::filesystem::exists(dir / "out/index.html"));
+}
+
+// Known issue (docs/calibration.md): the corrector fit on the sample recovers the inner zones only
+// roughly and the outer ones with a bias (the flat fields lose ~2 % at full aperture where the
+// cone-derived weights predict 5 %). Disabled until resolved, so that it is reported, not hidden:
+// run with --gtest_also_run_disabled_tests.
+TEST(Pipeline, DISABLED_CorrectorRecoversTheTruthOnTheSample) {
+  testing::TempDir dir;
+  ASSERT_EQ(std::system((std::string(RAYMATCH_BIN) + " calibrate corrector " +
+                         RAYMATCH_SOURCE_DIR + "/datasets-sample/flatfield -o " + (dir / "c.toml") +
+                         " >/dev/null").c_str()), 0);
+  const CalibrationData cal = ReadCalibrationFile(dir / "c.toml");
+  const std::vector<double> truth = {1, 0.998, 0.995, 0.99, 0.982, 0.97, 0.95, 0.92, 0.88};
+  for (size_t j = 1; j < truth.size(); ++j)
+    EXPECT_LT(std::abs(cal.transmissions[j] - truth[j]), 3 * cal.transmission_sigma[j]) << "zone " << j;
+}
+
+}  // namespace
+}  // namespace raymatch

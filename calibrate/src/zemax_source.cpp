@@ -212,7 +212,7 @@ ZemaxSourceFile SampleZemaxSource(const CalibrationData& cal, const ZemaxExportO
       const double t = rng.Uniform() * cdf.back();
       const size_t i = size_t(std::upper_bound(cdf.begin(), cdf.end(), t) - cdf.begin()) - 1;
       const size_t c = std::min(i, m.size() - 1);
-      u = (2 * ((c % nx) + 0.5 + 0 * rng.Uniform()) / nx - 1) * ext;
+      u = (2 * ((c % nx) + rng.Uniform()) / nx - 1) * ext;
       v = (1 - 2 * ((c / nx) + rng.Uniform()) / ny) * ext;
     } while (u * u + v * v >= 1);
     r.x = float(x * radius_um / unit), r.y = float(y * radius_um / unit), r.z = 0;

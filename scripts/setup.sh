@@ -12,6 +12,7 @@ PACKAGES=(
   libopencv-dev  # also: OpenImageIO's CMake config names OpenCV's headers
   libopenvdb-dev  # iso-surfaces of volume-fraction grids
   libceres-dev  # calibration fits
+  libmrcal-dev  # light field from mrcal .cameramodel files (optional in CMake)
   libgtest-dev libgmock-dev libbenchmark-dev
   python3 python3-numpy python3-skimage python3-tifffile
 )

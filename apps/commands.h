@@ -9,7 +9,8 @@ void RegisterSimulate(CLI::App& app, int* exit_code);
 void RegisterCompare(CLI::App& app, int* exit_code);      // apps/compare.cpp
 void RegisterCompareScan(CLI::App& app, int* exit_code);  // apps/compare_scan.cpp
 void RegisterCalibrate(CLI::App& app, int* exit_code);
-void RegisterRun(CLI::App& app, int* exit_code);          // apps/run.cpp    // apps/calibrate.cpp ("lightfield", "corrector")
+void RegisterRun(CLI::App& app, int* exit_code);          // apps/run.cpp
+void RegisterBench(CLI::App& app, int* exit_code);        // apps/bench.cpp ("accuracy")    // apps/calibrate.cpp ("lightfield", "corrector")
 
 /// Runs `fn`, printing raymatch::Error and other exceptions to stderr; returns `error_code` then.
 int RunGuarded(const std::function<int()>& fn, int error_code = 1);

@@ -39,6 +39,7 @@ int main(int argc, char** argv) {
 #endif
 #ifdef RAYMATCH_HAVE_PIPELINE
   raymatch::apps::RegisterRun(app, &exit_code);
+  raymatch::apps::RegisterBench(app, &exit_code);
 #endif
   try {
     app.parse(argc, argv);

@@ -119,3 +119,29 @@ TEST(SimulateCli, SampleSceneIsValid) {
 
 }  // namespace
 }  // namespace raymatch
+
+namespace raymatch {
+namespace {
+
+// compare / compare-scan exit codes as documented (docs/compare.md): 0 ok/pass, 3 size
+// mismatch, 4 file error.
+TEST(CompareCli, ExitCodes) {
+  testing::TempDir dir;
+  const std::string root = std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample/drop46/";
+  // The experiment against itself passes.
+  EXPECT_EQ(Raymatch("compare-scan " + root + "scan.csv " + root + "scan.csv --dark " + root +
+                         "dark.tif --gain 1.0989 -o " + (dir / "self"),
+                     dir).code,
+            0);
+  EXPECT_TRUE(std::filesystem::exists(dir / "self/report.html"));
+  EXPECT_EQ(Raymatch("compare " + root + "drop_z+00um.tif " + root + "drop_z+05um.tif -L 4095", dir).code, 0);
+  WriteFloatImage(dir / "tiny.tif", Image(8, 8, 1.f), "");
+  EXPECT_EQ(Raymatch("compare " + root + "drop_z+00um.tif " + (dir / "tiny.tif") + " -L 4095", dir).code, 3);
+  EXPECT_EQ(Raymatch("compare " + root + "drop_z+00um.tif " + (dir / "none.tif") + " -L 4095", dir).code, 4);
+  EXPECT_EQ(Raymatch("compare-scan " + (dir / "none.csv") + " " + root + "scan.csv", dir).code, 4);
+  const std::string tiny = dir.Write("tiny.csv", "0,tiny.tif\n");
+  EXPECT_EQ(Raymatch("compare-scan " + tiny + " " + root + "scan.csv -o " + (dir / "x"), dir).code, 3);
+}
+
+}  // namespace
+}  // namespace raymatch

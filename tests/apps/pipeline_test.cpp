@@ -50,6 +50,19 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
                          b["experiment_defocus_um"].get<double>()), 5.0) << name;
   }
   EXPECT_TRUE(std::filesystem::exists(dir / "out/index.html"));
+  // The mesh object (merging drops, rotated so their axis lies along the image x axis) matches
+  // its experimental image: Poisson chi-square per pixel near 1-2 (both images carry shot noise);
+  // a wrong rotation (axis along the optical axis) gives about 12 on this data.
+  std::ifstream ms(dir / "out/mesh_object/compare/compare_scan.json");
+  ASSERT_TRUE(ms.good());
+  int found = 0;
+  const auto mj = nlohmann::json::parse(ms);
+  for (const auto& m : mj["measures"])
+    if (m["measure"] == "poisson_chi2") {
+      ++found;
+      EXPECT_LT(m["matrix"][0][0].get<double>(), 3.0);
+    }
+  EXPECT_EQ(found, 1);
 }
 
 // raymatch bench accuracy on a small scene: every fraction is reported, and the similarity to the

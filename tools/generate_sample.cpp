@@ -228,21 +228,30 @@ int main(int argc, char** argv) {
       const uint64_t rays = uint64_t(rays_open * sum / open_sum);  // same lamp, iris blocks light
       const std::string tag = "iris" + std::to_string(int(iris)) + "deg";
       w.Image16("flatfield/flat_" + tag + ".tif", Trace(f, 0, rays, plane++), "flat field " + tag);
-      // The cone through the pinhole with the same lamp exposure for every iris, so that the
-      // cone images carry the relative amount of light (the corrector fit needs it).
+      // The cone through the pinhole. The corrector fit needs the relative amount of light of
+      // each iris, so the lamp is the same for all and the exposure time is recorded: a narrow
+      // cone is exposed longer (1, 2, 5, 10, ...x) so its mean over the lit disc is at least
+      // ~1/3 of the well (as an experimenter would; read noise would otherwise dominate).
       Scene c = BaseScene(t, iris, false);
       c.source.field_radius_um = t.pinhole_diameter_um / 2;
       const double open_px = M_PI * std::pow(30 * std::tan(24.8 * kDeg), 2) / 0.25;
+      const double lit_px =
+          M_PI * std::pow(30 * std::tan(std::min(iris, 24.8) * kDeg) + t.pinhole_diameter_um / 2, 2) / 0.25;
+      const double per_px = 0.25 * photons * open_px * sum / open_sum / lit_px;
+      int exposure = 1;
+      for (int e : {2, 5, 10, 20, 50, 100})
+        if (e * per_px < 0.35 * t.well_e) exposure = e;
       w.Image16("flatfield/cone_" + tag + ".tif",
-                Trace(c, 30, uint64_t(0.25 * photons * open_px * scale * sum / open_sum), plane++),
-                "cone for " + tag + " (same exposure for every iris)");
+                Trace(c, 30, uint64_t(exposure * 0.25 * photons * open_px * scale * sum / open_sum), plane++),
+                "cone for " + tag + " (relative exposure " + std::to_string(exposure) + ")");
       iris_toml += "[[flat]]\nfile = \"flat_" + tag + ".tif\"\ncone = \"cone_" + tag +
-                   ".tif\"\ncone_dz_um = 30\n\n";
+                   ".tif\"\ncone_dz_um = 30\ncone_exposure = " + std::to_string(exposure) +
+                   "   # relative to the flat fields' exposure (same lamp)\n\n";
     }
     w.Image16("flatfield/dark.tif", Image(t.nx, t.ny), "dark frame");
     std::ofstream(fs::path(out) / "flatfield/metadata.toml")
         << "# Flat fields (no object) at several illumination apertures, each with the image of\n"
-        << "# its light cone through a pinhole (same lamp exposure for all cones), for\n"
+        << "# its light cone through a pinhole (same lamp; cone_exposure = relative exposure time), for\n"
         << "# `raymatch calibrate corrector`.\n"
         << "dark = \"dark.tif\"\npinhole_diameter_um = " << t.pinhole_diameter_um << "\n\n"
         << iris_toml << kCameraToml;

@@ -161,8 +161,6 @@ CorrectorSummary CalibrateCorrector(const FlatFieldInput& in, const CorrectorOpt
   Image dark;
   if (!in.dark.empty()) dark = ReadImage(in.dark);
   const Image* dk = dark.empty() ? nullptr : &dark;
-  const int n = o.map_size;
-  const double extent = std::min(1.0, 1.15 * na);
   std::vector<double> sigma;
   for (const FlatImage& fl : in.flats) {
     size_t sat = 0;
@@ -174,23 +172,42 @@ CorrectorSummary CalibrateCorrector(const FlatFieldInput& in, const CorrectorOpt
       throw Error(FileLocation{fl.cone}, "cone image size differs from its flat field");
     double cx, cy;
     Centroid(cone, p, 0.25, &cx, &cy, nullptr);
-    // The apex is the pinhole at the object plane; the cone's centroid gives its lateral
-    // position (a tilted axis shifts both equally for a symmetric cone).
-    const Image map = ConeToAngularMap(cone, p, fl.cone_dz_um, cx, cy, 0, n, extent, na, nullptr);
+    // The apex is the pinhole at the object plane. An iris-limited (or NA-limited) cone is
+    // centred on the optical axis, so the cone's centroid gives the apex's lateral position.
+    // The light through zone j is the cone image's photons in the annulus that zone's angles
+    // cover on the plane h = cone_dz_um beyond the apex (r = h tan theta, exact for the ideal
+    // objective). Summing photons, not a resampled angular map, keeps every photon: the
+    // pinhole's size and the blur spill light past the NA radius, and that light (which did pass
+    // the aperture) is counted in the outermost zone. Pixels are split 4x4 at zone boundaries.
+    const double h = fl.cone_dz_um, tna = na / std::sqrt(1 - na * na);
+    const double r_max = h * tna + 0.5 * in.pinhole_diameter_um + 3 * p;
     std::vector<double> w(o.zones, 0.0);
-    double total_photons = 0;
-    for (float v : cone.pixels) total_photons += std::max(0.f, v);
-    for (int row = 0; row < n; ++row)
-      for (int col = 0; col < n; ++col) {
-        const double u = (2 * (col + 0.5) / n - 1) * extent, v = (1 - 2 * (row + 0.5) / n) * extent;
-        const int z = CorrectorZone(std::hypot(u, v), na, o.zones);
-        if (z >= 0) w[z] += map.at(col, row);
+    double var = 0;  // variance of the summed photons: shot noise + read noise (+ the dark's)
+    const double rn2 = (dk ? 2 : 1) * (std::pow(in.camera.read_noise_e, 2) +
+                                       std::pow(in.camera.gain_e_per_dn, 2) / 12);
+    for (int row = 0; row < cone.height; ++row)
+      for (int col = 0; col < cone.width; ++col) {
+        const double X = (col + 0.5 - cone.width / 2.0) * p - cx, Y = (cone.height / 2.0 - row - 0.5) * p - cy;
+        if (std::hypot(X, Y) > r_max) continue;
+        const double e = cone.at(col, row);
+        var += std::max(0.0, e) + rn2;
+        for (int a = 0; a < 4; ++a)
+          for (int b = 0; b < 4; ++b) {
+            const double t = std::hypot(X + (a - 1.5) / 4 * p, Y + (b - 1.5) / 4 * p) / h;
+            const int z = CorrectorZone(t / std::sqrt(1 + t * t), na, o.zones);
+            w[z >= 0 ? z : o.zones - 1] += e / 16 / fl.cone_exposure;
+          }
       }
+    double total = 0;
+    for (double x : w) total += x;
+    if (!(total > 0)) throw Error(FileLocation{fl.cone}, "no light inside the NA circle of the cone image");
     s.weights.push_back(w);
-    s.signal.push_back(st.mean);
-    // Noise: the flat's mean (shot noise over its pixels) and the cone image's total counts.
-    sigma.push_back(st.mean * std::sqrt(1.0 / std::max(1.0, st.mean * st.count) +
-                                        1.0 / std::max(1.0, total_photons)));
+    s.signal.push_back(st.mean / fl.exposure);
+    // sigma_k: the flat mean's noise (shot + read, over its pixels) and the relative noise of
+    // the cone's light, which scales the whole model row (effective-variance approximation).
+    const double rel_flat = std::sqrt((std::max(st.mean, 1.0) + rn2) / st.count) / std::max(st.mean, 1e-300);
+    const double rel_cone = std::sqrt(var) / fl.cone_exposure / total;
+    sigma.push_back(st.mean / fl.exposure * std::hypot(rel_flat, rel_cone));
   }
   s.fit = FitTransmissions(s.weights, s.signal, sigma, o.smoothness);
   CalibrationData& d = s.data;

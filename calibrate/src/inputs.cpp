@@ -48,6 +48,12 @@ LightFieldInput ReadLightFieldInput(const std::string& folder) {
   if (r.Has("dark")) in.dark = Existing(r, "dark", folder);
   in.field_radius_um = r.Number("field_radius_um", 0.0);
   if (in.field_radius_um < 0) r.Fail("field_radius_um", "expected >= 0 (0 = not measured)");
+  if (r.Has("flat")) {
+    in.flat = Existing(r, "flat", folder);
+    in.flat_bin_px = int(r.Integer("flat_bin_px", 8, 1, 1024));
+    if (in.field_radius_um > 0)
+      r.Fail("flat", "give either field_radius_um (uniform disc) or flat (spatial map), not both");
+  }
   if (r.Has("camera_model")) {
     // mrcal path: a camera focused at infinity; no pinhole, no defocus series.
     in.camera_model = Existing(r, "camera_model", folder);
@@ -95,6 +101,8 @@ FlatFieldInput ReadFlatFieldInput(const std::string& folder) {
     fi.file = Existing(f, "file", folder);
     fi.cone = Existing(f, "cone", folder);
     fi.cone_dz_um = f.Positive("cone_dz_um");
+    fi.exposure = f.Positive("exposure", 1.0);
+    fi.cone_exposure = f.Positive("cone_exposure", 1.0);
     f.Finish();
     in.flats.push_back(fi);
   }

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <filesystem>
 #include <sstream>
 
 #include "raymatch/calibrate/mrcal_lightfield.h"
@@ -12,6 +13,8 @@
 #include "raymatch/core/provenance.h"
 
 namespace raymatch::calibrate {
+
+namespace fs = std::filesystem;
 
 namespace {
 
@@ -174,9 +177,48 @@ LightFieldSummary FromCameraModel(const LightFieldInput& in, const LightFieldOpt
 
 }  // namespace
 
-LightFieldSummary CalibrateLightField(const LightFieldInput& in, const LightFieldOptions& o) {
-  if (o.map_size < 4 || o.map_size > 4096) throw Error("map_size must be in [4, 4096]");
-  if (!in.camera_model.empty()) return FromCameraModel(in, o);
+Image SpatialMapFromFlat(const Image& photons, double pixel_um, int bin, double size_um[2],
+                         double* lo, double* hi) {
+  if (bin < 1) throw Error("flat_bin_px must be >= 1");
+  const int nbx = photons.width / bin, nby = photons.height / bin;
+  if (nbx < 1 || nby < 1) throw Error("the flat-field image is smaller than one bin of " + std::to_string(bin) + " pixels");
+  const int x0 = (photons.width - nbx * bin) / 2, y0 = (photons.height - nby * bin) / 2;
+  const int px = (nbx + 3) / 4, py = (nby + 3) / 4;  // padding: a quarter of the view per side
+  Image map(nbx + 2 * px, nby + 2 * py);
+  double centre = 0;
+  for (int by = 0; by < nby; ++by)
+    for (int bx = 0; bx < nbx; ++bx) {
+      double sum = 0;
+      for (int y = 0; y < bin; ++y)
+        for (int x = 0; x < bin; ++x) sum += photons.at(x0 + bx * bin + x, y0 + by * bin + y);
+      map.at(px + bx, py + by) = float(std::max(0.0, sum / (bin * bin)));
+    }
+  // Normalise to the mean of the central quarter of the view (relative irradiance).
+  int cnt = 0;
+  for (int by = nby / 4; by < nby - nby / 4; ++by)
+    for (int bx = nbx / 4; bx < nbx - nbx / 4; ++bx) centre += map.at(px + bx, py + by), ++cnt;
+  centre /= std::max(cnt, 1);
+  if (!(centre > 0)) throw Error("the flat-field image has no light in the centre of the view");
+  *lo = 1e300, *hi = -1e300;
+  for (int by = 0; by < nby; ++by)
+    for (int bx = 0; bx < nbx; ++bx) {
+      float& v = map.at(px + bx, py + by);
+      v = float(v / centre);
+      *lo = std::min(*lo, double(v)), *hi = std::max(*hi, double(v));
+    }
+  // Beyond the view the field continues with its edge values (rays reach the view obliquely
+  // from outside it when defocused or through objects).
+  for (int y = 0; y < map.height; ++y)
+    for (int x = 0; x < map.width; ++x)
+      map.at(x, y) = map.at(std::clamp(x, px, px + nbx - 1), std::clamp(y, py, py + nby - 1));
+  size_um[0] = map.width * bin * pixel_um;
+  size_um[1] = map.height * bin * pixel_um;
+  return map;
+}
+
+namespace {
+
+LightFieldSummary FromCones(const LightFieldInput& in, const LightFieldOptions& o) {
   LightFieldSummary s;
   const double M = in.optics.magnification();
   const double p = in.camera.pixel_pitch_um / M;  // object-plane pixel
@@ -314,6 +356,32 @@ LightFieldSummary CalibrateLightField(const LightFieldInput& in, const LightFiel
   std::string inputs = FileChecksum(in.pinhole) + " " + in.pinhole;
   for (const ConeImage& c : in.cones) inputs += "; " + FileChecksum(c.file) + " " + c.file;
   d.provenance["light_field_inputs"] = inputs;
+  return s;
+}
+
+}  // namespace
+
+LightFieldSummary CalibrateLightField(const LightFieldInput& in, const LightFieldOptions& o) {
+  if (o.map_size < 4 || o.map_size > 4096) throw Error("map_size must be in [4, 4096]");
+  LightFieldSummary s = in.camera_model.empty() ? FromCones(in, o) : FromCameraModel(in, o);
+  if (!in.flat.empty()) {
+    Image dark;
+    if (!in.dark.empty()) dark = ReadImage(in.dark);
+    size_t sat = 0;
+    const Image flat = LoadPhotons(in.flat, dark.empty() ? nullptr : &dark, in.camera, &sat);
+    if (sat) s.warnings.push_back(in.flat + ": " + std::to_string(sat) + " saturated pixels (the spatial map is clipped there)");
+    double lo, hi;
+    CalibrationData& d = s.data;
+    d.spatial_map = SpatialMapFromFlat(flat, in.camera.pixel_pitch_um / in.optics.magnification(),
+                                       in.flat_bin_px, d.field_size_um, &lo, &hi);
+    std::ostringstream os;
+    os.precision(3);
+    os << "; spatial map from " << fs::path(in.flat).filename().string() << " (" << in.flat_bin_px
+       << " px bins, " << lo << " to " << hi << " of the centre over the view)";
+    d.light_field_note += os.str();
+    d.provenance["light_field_inputs"] =
+        d.provenance["light_field_inputs"].get<std::string>() + "; " + FileChecksum(in.flat) + " " + in.flat;
+  }
   return s;
 }
 

@@ -55,19 +55,36 @@ void WriteCalibrationFile(const std::string& path, const CalibrationData& d) {
      << "\nwavelength_um = " << d.wavelength_um << "\n";
   // Both files are written to temporaries first and committed only when both are complete,
   // so that a failure leaves the previous calibration (or nothing) in place.
-  fs::path side_tmp, side_final;
-  if (d.has_light_field()) {
-    const std::string side = fs::path(path).stem().string() + ".angular.tif";
-    side_final = fs::path(path).parent_path() / side;
-    side_tmp = TemporaryPathFor(side_final);
-    WriteFloatImage(side_tmp.string(), d.angular_map,
-                    "raymatch calibration: angular radiance over direction cosines");
-    os << "\n[light_field]\nangular_map = " << Quote(side)
-       << "   # float32 TIFF: columns u, rows v (top = +extent)\nangular_extent = "
-       << d.angular_extent << "\nfield_radius_um = " << d.field_radius_um
-       << "   # uniform disc at the object plane; 0 = not measured (simulator sizes it)\nna_limit = "
-       << d.na_limit << "   # the map is cut at this NA (0 = not cut)\ncone_half_angle_deg = "
-       << d.cone_half_angle_deg << "\nnote = " << Quote(d.light_field_note) << "\n";
+  std::vector<std::pair<fs::path, fs::path>> sides;  // (temporary, final)
+  auto sidecar = [&](const std::string& suffix, const Image& img, const std::string& what) {
+    const std::string side = fs::path(path).stem().string() + suffix;
+    const fs::path fin = fs::path(path).parent_path() / side;
+    sides.emplace_back(TemporaryPathFor(fin), fin);
+    WriteFloatImage(sides.back().first.string(), img, what);
+    return side;
+  };
+  try {
+    if (d.has_light_field()) {
+      const std::string side = sidecar(".angular.tif", d.angular_map,
+                                       "raymatch calibration: angular radiance over direction cosines");
+      os << "\n[light_field]\nangular_map = " << Quote(side)
+         << "   # float32 TIFF: columns u, rows v (top = +extent)\nangular_extent = "
+         << d.angular_extent << "\nfield_radius_um = " << d.field_radius_um
+         << "   # uniform disc at the object plane; 0 = not measured (simulator sizes it)\nna_limit = "
+         << d.na_limit << "   # the map is cut at this NA (0 = not cut)\ncone_half_angle_deg = "
+         << d.cone_half_angle_deg << "\nnote = " << Quote(d.light_field_note) << "\n";
+      if (!d.spatial_map.empty()) {
+        const std::string sp = sidecar(".spatial.tif", d.spatial_map,
+                                       "raymatch calibration: relative irradiance at the object plane");
+        os << "spatial_map = " << Quote(sp)
+           << "   # float32 TIFF: columns x, rows y (top = +y), relative irradiance\nfield_size_um = ["
+           << d.field_size_um[0] << ", " << d.field_size_um[1] << "]   # the map's rectangle, centred on the axis\n";
+      }
+    }
+  } catch (...) {
+    std::error_code ec;
+    for (auto& [tmp, fin] : sides) fs::remove(tmp, ec);
+    throw;
   }
   if (d.has_corrector()) {
     os << "\n[corrector]\ndistance_mm = " << d.corrector_distance_mm
@@ -77,11 +94,11 @@ void WriteCalibrationFile(const std::string& path, const CalibrationData& d) {
   const fs::path toml_tmp = TemporaryPathFor(path);
   try {
     WriteTextFileAtomic(toml_tmp, os.str());
-    if (!side_tmp.empty()) CommitTemporary(side_tmp, side_final);
+    for (auto& [tmp, fin] : sides) CommitTemporary(tmp, fin);
     CommitTemporary(toml_tmp, path);
   } catch (...) {
     std::error_code ec;
-    if (!side_tmp.empty()) fs::remove(side_tmp, ec);
+    for (auto& [tmp, fin] : sides) fs::remove(tmp, ec);
     fs::remove(toml_tmp, ec);
     throw;
   }
@@ -122,6 +139,23 @@ CalibrationData ReadCalibrationFile(const std::string& path) {
     d.na_limit = l.InRange("na_limit", 0, 1, 0);
     d.cone_half_angle_deg = l.InRange("cone_half_angle_deg", 0, 90, 0);
     d.light_field_note = l.String("note", "");
+    if (l.Has("spatial_map") || l.Has("field_size_um")) {
+      const std::string sp = (fs::path(path).parent_path() / l.String("spatial_map")).string();
+      try {
+        d.spatial_map = ReadImage(sp);
+      } catch (const Error& e) {
+        l.Fail("spatial_map", e.what());
+      }
+      double sum = 0;
+      for (float v : d.spatial_map.pixels) {
+        if (!(v >= 0) || !std::isfinite(v)) l.Fail("spatial_map", "expected finite values >= 0");
+        sum += v;
+      }
+      if (!(sum > 0)) l.Fail("spatial_map", "the map is all zero");
+      const auto fsz = l.Numbers("field_size_um", 2, 2);
+      if (!(fsz[0] > 0) || !(fsz[1] > 0)) l.Fail("field_size_um", "expected two positive sizes (width, height)");
+      d.field_size_um[0] = fsz[0], d.field_size_um[1] = fsz[1];
+    }
     l.Finish();
   }
   if (r.Has("corrector")) {

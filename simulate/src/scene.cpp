@@ -391,8 +391,8 @@ OpticsSpec ReadOptics(TomlReader& top) {
 
 }  // namespace
 
-/// The calibration's light field as a source (uniform disc field, automatic radius unless the
-/// file gives one).
+/// The calibration's light field as a source: its spatial map over its rectangle when it has
+/// one, else a uniform disc field (automatic radius unless the file gives one).
 SourceSpec CalibratedSource(const CalibrationData& c, const std::string& file) {
   SourceSpec s;
   s.type = SourceType::kLightField;
@@ -401,6 +401,12 @@ SourceSpec CalibratedSource(const CalibrationData& c, const std::string& file) {
   s.angular_map = c.angular_map;
   s.angular_extent = c.angular_extent;
   s.angular_map_file = file;
+  if (!c.spatial_map.empty()) {
+    s.field_shape = FieldShape::kRect;
+    s.field_size_um = {c.field_size_um[0], c.field_size_um[1]};
+    s.spatial_map = c.spatial_map;
+    s.spatial_map_file = file;
+  }
   return s;
 }
 

@@ -13,7 +13,6 @@ struct CorrectorOptions {
   int zones = 9;              ///< central disc + rings, equal widths in radius to 1.02 x the NA edge
   double distance_mm = 0;     ///< corrector plane from the focal plane; 0 = working distance
   double smoothness = 0;      ///< weight of a second-difference penalty on T (0 = none)
-  int map_size = 64;          ///< angular map cells per side for the cone images
 };
 
 /// The linear least-squares problem and its solution (also usable directly, e.g. in tests).

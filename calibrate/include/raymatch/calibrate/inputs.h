@@ -35,6 +35,10 @@ struct LightFieldInput {
   std::string camera_model;
   std::vector<std::string> direction_images;
   double field_radius_um = 0;  ///< uniform disc field at the object plane; 0 = not measured
+  /// Optional flat-field image (no object, same illumination): its binned pattern becomes the
+  /// light field's spatial map (relative irradiance over the view).
+  std::string flat;
+  int flat_bin_px = 8;
   CameraInfo camera;
   OpticsInfo optics;
 };
@@ -42,6 +46,9 @@ struct LightFieldInput {
 struct FlatImage {
   std::string file, cone;
   double cone_dz_um = 0;
+  /// Relative exposures (lamp power x exposure time, any unit common to the series): the flat's
+  /// signal and the cone's light are divided by them, so each cone image can be exposed well.
+  double exposure = 1, cone_exposure = 1;
 };
 
 struct FlatFieldInput {

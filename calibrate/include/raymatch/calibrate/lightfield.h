@@ -49,6 +49,13 @@ LightFieldSummary CalibrateLightField(const LightFieldInput& input, const LightF
 Image ConeToAngularMap(const Image& photons, double pixel_um, double dz_um, double ax, double ay,
                        double az, int n, double extent, double na, std::vector<char>* covered);
 
+/// Spatial map (relative irradiance at the object plane) from a flat-field image in photons:
+/// bin x bin pixel means, normalised to the central quarter of the view, padded by a quarter of
+/// the view on each side with the edge values. Returns the map and its rectangle (um); *lo and
+/// *hi give its range over the view.
+Image SpatialMapFromFlat(const Image& photons, double pixel_um, int bin, double size_um[2],
+                         double* lo, double* hi);
+
 /// Intensity-weighted centroid (object-plane um) of the pixels above `fraction` of the maximum.
 void Centroid(const Image& img, double pixel_um, double fraction, double* x, double* y,
               double* rms_radius);

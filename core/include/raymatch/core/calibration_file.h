@@ -22,6 +22,11 @@ struct CalibrationData {
   double na_limit = 0;               ///< the measured map is cut at this NA (the objective's;
                                      ///< 0 = not cut, e.g. measured with an mrcal camera)
   double cone_half_angle_deg = 0;    ///< fitted edge half-angle of the cone (informational)
+  // Optional spatial map (relative irradiance at the object plane, from a flat-field image) over
+  // a rectangle field_size_um centred on the optical axis; columns x increasing, rows y
+  // decreasing from the top (object-plane orientation, docs/conventions.md). Empty = uniform.
+  Image spatial_map;
+  double field_size_um[2] = {0, 0};
   std::string light_field_note;      ///< e.g. "measured up to NA 0.42; beyond: extrapolated"
   // Corrector: central disc + rings (empty when not calibrated).
   std::vector<double> ring_outer_mm, transmissions, transmission_sigma;
@@ -39,8 +44,8 @@ struct CalibrationData {
 /// with its sidecars, which are resolved relative to the file.
 CalibrationData ReadCalibrationFile(const std::string& path);
 
-/// Writes the TOML file and its sidecar (<stem>.angular.tif): both go to temporaries and are
-/// renamed into place only when both are complete (nothing half-written on failure).
+/// Writes the TOML file and its sidecars (<stem>.angular.tif, <stem>.spatial.tif): all go to
+/// temporaries and are renamed into place only when all are complete (nothing half-written).
 void WriteCalibrationFile(const std::string& path, const CalibrationData& data);
 
 }  // namespace raymatch

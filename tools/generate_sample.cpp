@@ -201,7 +201,9 @@ int main(int argc, char** argv) {
     std::ofstream(fs::path(out) / "lightfield/metadata.toml")
         << "# Pinhole and light-cone images for `raymatch calibrate lightfield`.\n"
         << "pinhole = \"pinhole.tif\"\npinhole_diameter_um = " << t.pinhole_diameter_um
-        << "\ndark = \"dark.tif\"\n\n"
+        << "\ndark = \"dark.tif\"\n"
+        << "flat = \"../flatfield/flat_iris30deg.tif\"   # flat field, open iris: the spatial map\n"
+        << "flat_bin_px = 8\n\n"
         << [&] {
              std::string s;
              for (double dz : t.cone_dz_um)

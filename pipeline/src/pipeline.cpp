@@ -289,6 +289,15 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   const fs::path fig = out / "figures";
   EnsureDirectory(fig);
   WriteFalseColour((fig / "angular_map.png").string(), lf.data.angular_map, 4);
+  std::string spatial_html;
+  if (!lf.data.spatial_map.empty()) {
+    WriteFalseColour((fig / "spatial_map.png").string(), lf.data.spatial_map, 8);
+    std::ostringstream os;
+    os << "<p>Spatial map (relative irradiance at the object plane, 0 to its maximum; x right, y up) over "
+       << lf.data.field_size_um[0] << " x " << lf.data.field_size_um[1] << " um, from the flat field:</p>"
+       << Img((fig / "spatial_map.png").string());
+    spatial_html = os.str();
+  }
   {
     const Image& m = lf.data.angular_map;
     const int n = m.width;
@@ -333,6 +342,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     << "<h2>Measured light field</h2><pre>" << lf.BriefReport() << "</pre>"
     << Img((fig / "angular_map.png").string()) << " " << Img((fig / "radial_profile.png").string())
     << "<p>Angular map over direction cosines (u right, v up), +-" << lf.data.angular_extent << ".</p>"
+    << spatial_html
     << "<h2>Corrector</h2><pre>" << co.BriefReport() << "</pre>" << Img((fig / "transmissions.png").string())
     << "<h2>Experiment (top) and simulation (bottom)</h2><p>Exposure recovered from the "
        "background: " << sum.photons_per_pixel << " photons per pixel; simulated with ray fraction "

@@ -406,6 +406,7 @@ SourceSpec CalibratedSource(const CalibrationData& c, const std::string& file) {
     s.field_size_um = {c.field_size_um[0], c.field_size_um[1]};
     s.spatial_map = c.spatial_map;
     s.spatial_map_file = file;
+    s.extend_spatial_map = true;
   }
   return s;
 }

@@ -189,7 +189,25 @@ Field MakeField(const Scene& s, double auto_radius) {
   f.half_w = s.source.field_size_um[0] / 2;
   f.half_h = s.source.field_size_um[1] / 2;
   f.center = s.source.field_center_um;
-  if (!s.source.spatial_map.empty()) f.map = Distribution2D(s.source.spatial_map);
+  if (!s.source.spatial_map.empty()) {
+    const Image& m0 = s.source.spatial_map;
+    if (!s.source.extend_spatial_map) {
+      f.map = Distribution2D(m0);
+      return f;
+    }
+    // A measured map covers about the camera's view; rays reach the view from outside it when
+    // defocused or deflected by objects, so its edge values continue out to the automatic
+    // field extent (the same cell size, edge cells replicated).
+    const double cw = 2 * f.half_w / m0.width, ch = 2 * f.half_h / m0.height;
+    const int px = std::max(0, int(std::ceil((auto_radius - f.half_w) / cw)));
+    const int py = std::max(0, int(std::ceil((auto_radius - f.half_h) / ch)));
+    Image m(m0.width + 2 * px, m0.height + 2 * py);
+    for (int y = 0; y < m.height; ++y)
+      for (int x = 0; x < m.width; ++x)
+        m.at(x, y) = m0.at(std::clamp(x - px, 0, m0.width - 1), std::clamp(y - py, 0, m0.height - 1));
+    f.half_w += px * cw, f.half_h += py * ch;
+    f.map = Distribution2D(m);
+  }
   return f;
 }
 

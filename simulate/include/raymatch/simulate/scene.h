@@ -39,6 +39,9 @@ struct SourceSpec {
   Image angular_map;
   double angular_extent = 0;
   Image spatial_map;
+  /// The spatial map's edge values continue beyond its rectangle out to the automatic field
+  /// extent (set for maps from a calibration file, which cover about the camera's view).
+  bool extend_spatial_map = false;
   std::string angular_map_file, spatial_map_file;
 };
 

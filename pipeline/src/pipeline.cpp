@@ -8,6 +8,8 @@
 #include <iostream>
 #include <sstream>
 
+#include <nlohmann/json.hpp>
+
 #include "plot.h"
 #include "raymatch/calibrate/corrector.h"
 #include "raymatch/calibrate/lightfield.h"
@@ -139,26 +141,47 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
 
   // 1. Calibration.
   const fs::path cal_file = out / "calibration.toml";
-  calibrate::LightFieldSummary lf;
-  calibrate::CorrectorSummary co;
-  const std::string cal_inputs = FolderStamp(cfg.lightfield) + "|" + FolderStamp(cfg.flatfield) + "|" +
-                                 std::to_string(cfg.extrapolate_to_deg) + "|" + std::to_string(cfg.zones) +
-                                 "|" + std::to_string(cfg.smoothness);
-  timed("calibrate", [&] {
-    say("calibrating the light field (" + cfg.lightfield + ")");
-    calibrate::LightFieldOptions lo;
-    lo.extrapolate_to_deg = cfg.extrapolate_to_deg;
-    lf = calibrate::CalibrateLightField(calibrate::ReadLightFieldInput(cfg.lightfield), lo);
-    say("fitting the corrector (" + cfg.flatfield + ")");
-    calibrate::CorrectorOptions copt;
-    copt.zones = cfg.zones;
-    copt.smoothness = cfg.smoothness;
-    co = calibrate::CalibrateCorrector(calibrate::ReadFlatFieldInput(cfg.flatfield), copt, &lf.data);
-    WriteCalibrationFile(cal_file.string(), co.data);
-  });
-  sum.cone_half_angle_deg = lf.cone.half_angle_deg;
-  sum.transmissions = co.fit.transmissions;
-  sum.transmission_sigma = co.fit.sigma;
+  const calibrate::LightFieldInput lf_in = calibrate::ReadLightFieldInput(cfg.lightfield);
+  const std::string cal_inputs =
+      FolderStamp(cfg.lightfield) + "|" + FolderStamp(cfg.flatfield) + "|" +
+      (lf_in.flat.empty() ? "" : FileChecksum(lf_in.flat)) + "|" + std::to_string(cfg.extrapolate_to_deg) +
+      "|" + std::to_string(cfg.zones) + "|" + std::to_string(cfg.smoothness);
+  const fs::path cal_report = out / "calibration_report.json";
+  std::string lf_report, co_report;
+  CalibrationData cal;
+  if (!opt.force && Reusable(out / ".calibration.stamp", cal_inputs, {cal_file, cal_report})) {
+    say("calibration inputs unchanged: reusing " + cal_file.string());
+    cal = ReadCalibrationFile(cal_file.string());
+    std::ifstream rin(cal_report);
+    const nlohmann::json rj = nlohmann::json::parse(rin);
+    lf_report = rj.at("light_field").get<std::string>();
+    co_report = rj.at("corrector").get<std::string>();
+    sum.reused.push_back("calibrate");
+  } else {
+    timed("calibrate", [&] {
+      say("calibrating the light field (" + cfg.lightfield + ")");
+      calibrate::LightFieldOptions lo;
+      lo.extrapolate_to_deg = cfg.extrapolate_to_deg;
+      const calibrate::LightFieldSummary lf = calibrate::CalibrateLightField(lf_in, lo);
+      say("fitting the corrector (" + cfg.flatfield + ")");
+      calibrate::CorrectorOptions copt;
+      copt.zones = cfg.zones;
+      copt.smoothness = cfg.smoothness;
+      const calibrate::CorrectorSummary co =
+          calibrate::CalibrateCorrector(calibrate::ReadFlatFieldInput(cfg.flatfield), copt, &lf.data);
+      for (const auto& w : lf.warnings) std::cerr << "raymatch run: warning: " << w << "\n";
+      for (const auto& w : co.warnings) std::cerr << "raymatch run: warning: " << w << "\n";
+      WriteCalibrationFile(cal_file.string(), co.data);
+      lf_report = lf.BriefReport();
+      co_report = co.BriefReport();
+      WriteTextFileAtomic(cal_report, nlohmann::json{{"light_field", lf_report}, {"corrector", co_report}}.dump(2) + "\n");
+      WriteTextFileAtomic(out / ".calibration.stamp", cal_inputs);
+      cal = co.data;
+    });
+  }
+  sum.cone_half_angle_deg = cal.cone_half_angle_deg;
+  sum.transmissions = cal.transmissions;
+  sum.transmission_sigma = cal.transmission_sigma;
 
   // 2. Scene for the experiment: nominal drop, the experiment's image size and planes, the
   // exposure recovered from the background of the middle plane.
@@ -288,18 +311,18 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   // 5. Report.
   const fs::path fig = out / "figures";
   EnsureDirectory(fig);
-  WriteFalseColour((fig / "angular_map.png").string(), lf.data.angular_map, 4);
+  WriteFalseColour((fig / "angular_map.png").string(), cal.angular_map, 4);
   std::string spatial_html;
-  if (!lf.data.spatial_map.empty()) {
-    WriteFalseColour((fig / "spatial_map.png").string(), lf.data.spatial_map, 8);
+  if (!cal.spatial_map.empty()) {
+    WriteFalseColour((fig / "spatial_map.png").string(), cal.spatial_map, 8);
     std::ostringstream os;
     os << "<p>Spatial map (relative irradiance at the object plane, 0 to its maximum; x right, y up) over "
-       << lf.data.field_size_um[0] << " x " << lf.data.field_size_um[1] << " um, from the flat field:</p>"
+       << cal.field_size_um[0] << " x " << cal.field_size_um[1] << " um, from the flat field:</p>"
        << Img((fig / "spatial_map.png").string());
     spatial_html = os.str();
   }
   {
-    const Image& m = lf.data.angular_map;
+    const Image& m = cal.angular_map;
     const int n = m.width;
     std::vector<double> sum_r(n / 2, 0), cnt(n / 2, 0);
     for (int y = 0; y < n; ++y)
@@ -311,7 +334,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     Series s;
     for (int k = 0; k < n / 2; ++k)
       if (cnt[k] > 0) {
-        s.x.push_back(std::asin(std::min(1.0, (k + 0.5) / (n / 2) * lf.data.angular_extent)) * 180 / M_PI);
+        s.x.push_back(std::asin(std::min(1.0, (k + 0.5) / (n / 2) * cal.angular_extent)) * 180 / M_PI);
         s.y.push_back(sum_r[k] / cnt[k]);
       }
     const double mx = *std::max_element(s.y.begin(), s.y.end());
@@ -322,10 +345,10 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   {
     Series s;
     s.points = true;
-    for (size_t j = 0; j < co.fit.transmissions.size(); ++j) {
+    for (size_t j = 0; j < cal.transmissions.size(); ++j) {
       s.x.push_back(double(j));
-      s.y.push_back(co.fit.transmissions[j]);
-      s.yerr.push_back(co.fit.sigma[j]);
+      s.y.push_back(cal.transmissions[j]);
+      s.yerr.push_back(cal.transmission_sigma[j]);
     }
     WritePlot((fig / "transmissions.png").string(), {s}, "corrector zone transmissions (+- 1 sigma)",
               "zone (0 = central disc)", "T");
@@ -339,11 +362,11 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     << "<p>" << ProvenanceJson()["date_utc"].get<std::string>() << " &mdash; <code>" << CommandLine()
     << "</code></p><h2>Verdict: <span class='" << (fr.verdict == compare::Verdict::kPass ? "pass'>pass" : "fail'>" + std::string(fr.verdict == compare::Verdict::kWarning ? "warning" : "fail"))
     << "</span></h2><p>" << fr.message << "</p>"
-    << "<h2>Measured light field</h2><pre>" << lf.BriefReport() << "</pre>"
+    << "<h2>Measured light field</h2><pre>" << lf_report << "</pre>"
     << Img((fig / "angular_map.png").string()) << " " << Img((fig / "radial_profile.png").string())
-    << "<p>Angular map over direction cosines (u right, v up), +-" << lf.data.angular_extent << ".</p>"
+    << "<p>Angular map over direction cosines (u right, v up), +-" << cal.angular_extent << ".</p>"
     << spatial_html
-    << "<h2>Corrector</h2><pre>" << co.BriefReport() << "</pre>" << Img((fig / "transmissions.png").string())
+    << "<h2>Corrector</h2><pre>" << co_report << "</pre>" << Img((fig / "transmissions.png").string())
     << "<h2>Experiment (top) and simulation (bottom)</h2><p>Exposure recovered from the "
        "background: " << sum.photons_per_pixel << " photons per pixel; simulated with ray fraction "
     << frac << ". Registration shift " << fr.shift_px[0] << ", " << fr.shift_px[1] << " px.</p>"

@@ -77,6 +77,13 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
       EXPECT_LT(m["matrix"][0][0].get<double>(), 3.0);
     }
   EXPECT_EQ(found, 1);
+  // Re-running with unchanged inputs reuses the calibration and the simulation.
+  ASSERT_EQ(std::system(cmd.c_str()), 0);
+  std::ifstream log2(dir / "log.txt");
+  std::stringstream l2;
+  l2 << log2.rdbuf();
+  EXPECT_NE(l2.str().find("calibration inputs unchanged: reusing"), std::string::npos) << l2.str();
+  EXPECT_NE(l2.str().find("simulation unchanged: reusing"), std::string::npos) << l2.str();
 }
 
 // raymatch bench accuracy on a small scene: every fraction is reported, and the similarity to the

@@ -99,7 +99,7 @@ void RegisterCalibrate(CLI::App& app, int* exit_code) {
   });
 
   struct ZiOpts {
-    std::string source, base, output = "calibration.toml";
+    std::string source, base, output = "calibration.toml", ray_list;
     calibrate::ZemaxImportOptions o;
   };
   auto zi = std::make_shared<ZiOpts>();
@@ -112,10 +112,20 @@ void RegisterCalibrate(CLI::App& app, int* exit_code) {
   zm->add_option("-o,--output", zi->output, "Calibration file to write")->capture_default_str();
   zm->add_option("--map-size", zi->o.map_size, "Angular map cells per side")->capture_default_str()->check(CLI::Range(2, 4096));
   zm->add_option("--extent", zi->o.extent, "Map half-width in direction cosines (0 = from the rays)")->check(CLI::Range(0.0, 1.0));
+  zm->add_option("--ray-list", zi->ray_list,
+                 "Also write the rays as a .npy ray list (N x 5: x_um, y_um, u, v, weight) for a\n"
+                 "scene source of type \"ray_list\": exact rays, no separable-map assumption");
   zm->callback([zi, exit_code] {
     *exit_code = RunGuarded([&] {
-      const auto s = calibrate::ImportZemaxLightField(calibrate::ReadZemaxSourceFile(zi->source),
-                                                      zi->o, ReadCalibrationFile(zi->base), zi->source);
+      const calibrate::ZemaxSourceFile zf = calibrate::ReadZemaxSourceFile(zi->source);
+      const auto s = calibrate::ImportZemaxLightField(zf, zi->o, ReadCalibrationFile(zi->base), zi->source);
+      if (!zi->ray_list.empty()) {
+        uint64_t skipped = 0;
+        const NdArray rays = calibrate::ZemaxRayList(zf, &skipped);
+        WriteNpy(zi->ray_list, rays);
+        std::cout << "wrote " << rays.shape[0] << " rays to " << zi->ray_list
+                  << (skipped ? " (" + std::to_string(skipped) + " not towards +z skipped)" : std::string()) << "\n";
+      }
       WriteCalibrationFile(zi->output, s.data);
       std::cout << s.data.light_field_note << "\nwrote " << zi->output << "\n";
       PrintWarnings(s.warnings);

@@ -202,8 +202,8 @@ int main(int argc, char** argv) {
         << "# Pinhole and light-cone images for `raymatch calibrate lightfield`.\n"
         << "pinhole = \"pinhole.tif\"\npinhole_diameter_um = " << t.pinhole_diameter_um
         << "\ndark = \"dark.tif\"\n"
-        << "flat = \"../flatfield/flat_iris30deg.tif\"   # flat field, open iris: the spatial map\n"
-        << "flat_bin_px = 8\n\n"
+        << "# The illumination is uniform over the view here; a non-uniform one would be measured\n"
+        << "# with a flat field (flat = \"../flatfield/flat_iris30deg.tif\", docs/calibration.md).\n\n"
         << [&] {
              std::string s;
              for (double dz : t.cone_dz_um)

@@ -289,4 +289,21 @@ ZemaxImportSummary ImportZemaxLightField(const ZemaxSourceFile& file, const Zema
   return s;
 }
 
+NdArray ZemaxRayList(const ZemaxSourceFile& f, uint64_t* skipped) {
+  const double unit = ZemaxUnitUm(f.header.dimension_units);
+  NdArray a;
+  uint64_t skip = 0;
+  for (const ZemaxRay& r : f.rays) {
+    if (!(r.n > 0) || !(r.flux >= 0) || !(double(r.l) * r.l + double(r.m) * r.m < 1)) {
+      ++skip;
+      continue;
+    }
+    a.values.insert(a.values.end(), {r.x * unit, r.y * unit, double(r.l), double(r.m), double(r.flux)});
+  }
+  a.shape = {a.values.size() / 5, 5};
+  if (skipped) *skipped = skip;
+  if (a.values.empty()) throw Error("the Zemax source file has no ray travelling towards +z");
+  return a;
+}
+
 }  // namespace raymatch::calibrate

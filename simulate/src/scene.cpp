@@ -57,7 +57,7 @@ void ReadField(TomlReader& r, SourceSpec& s) {
 
 SourceSpec ReadSource(TomlReader r, const std::string& file) {
   SourceSpec s;
-  const std::string type = r.Choice("type", {"collimated", "cone", "point", "lightfield"});
+  const std::string type = r.Choice("type", {"collimated", "cone", "point", "lightfield", "ray_list"});
   if (type == "collimated") {
     s.type = SourceType::kCollimated;
     ReadField(r, s);
@@ -73,6 +73,29 @@ SourceSpec ReadSource(TomlReader r, const std::string& file) {
     const auto p = r.Vec3("position_um");
     s.position_um = {p[0], p[1], p[2]};
     s.half_angle_deg = r.InRange("half_angle_deg", 0, 90, 90, true, false);
+  } else if (type == "ray_list") {
+    s.type = SourceType::kRayList;
+    s.ray_file = Resolve(file, r.String("file"));
+    NdArray a;
+    try {
+      a = ReadNpy(s.ray_file);
+    } catch (const Error& e) {
+      r.Fail("file", e.what());
+    }
+    if (a.shape.size() != 2 || a.shape[1] != 5 || a.shape[0] < 1)
+      r.Fail("file", "expected a .npy array of shape (N, 5): x_um, y_um, u, v, weight per ray");
+    double total = 0;
+    for (size_t i = 0; i < a.shape[0]; ++i) {
+      const double* v = &a.values[5 * i];
+      for (int k = 0; k < 5; ++k)
+        if (!std::isfinite(v[k])) r.Fail("file", "ray " + std::to_string(i) + " has a NaN or Inf value");
+      if (v[2] * v[2] + v[3] * v[3] >= 1)
+        r.Fail("file", "ray " + std::to_string(i) + ": direction cosines need u^2 + v^2 < 1");
+      if (v[4] < 0) r.Fail("file", "ray " + std::to_string(i) + ": negative weight");
+      total += v[4];
+      s.rays.push_back({v[0], v[1], v[2], v[3], v[4]});
+    }
+    if (!(total > 0)) r.Fail("file", "all ray weights are zero");
   } else {
     s.type = SourceType::kLightField;
     ReadField(r, s);

@@ -134,7 +134,22 @@ struct LightFieldSource {
   }
 };
 
-using SourceVariant = std::variant<CollimatedSource, ConeSource, PointSource, LightFieldSource>;
+/// Weighted ray list at the object plane (e.g. imported from a Zemax source file): ray i with
+/// probability proportional to its weight.
+struct RayListSource {
+  std::shared_ptr<const std::vector<std::array<double, 5>>> rays;
+  Distribution1D weights;
+  bool Sample(RayRng& rng, Vec3* p, Vec3* d) const {
+    int i = 0;
+    weights.Sample(rng.Uniform(), &i);
+    const auto& r = (*rays)[size_t(i)];
+    *p = Vec3(r[0], r[1], 0);
+    *d = Vec3(r[2], r[3], std::sqrt(1 - r[2] * r[2] - r[3] * r[3]));  // u^2 + v^2 < 1 (reader)
+    return true;
+  }
+};
+
+using SourceVariant = std::variant<CollimatedSource, ConeSource, PointSource, LightFieldSource, RayListSource>;
 
 // ---------------------------------------------------------------- optics
 
@@ -636,6 +651,13 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
       im.source = LightFieldSource{MakeField(scene, auto_r), Distribution2D(ss.angular_map),
                                    ss.angular_extent};
       break;
+    case SourceType::kRayList: {
+      std::vector<float> w;
+      for (const auto& r : ss.rays) w.push_back(float(r[4]));
+      im.source = RayListSource{std::make_shared<const std::vector<std::array<double, 5>>>(ss.rays),
+                                Distribution1D(w.data(), int(w.size()))};
+      break;
+    }
   }
   if (ss.type == SourceType::kPoint) {
     for (const ObjectSpec& o : scene.objects)

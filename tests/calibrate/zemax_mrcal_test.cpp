@@ -241,6 +241,26 @@ void WriteMrcalFolder(const testing::TempDir& dir, double photons_scale, int ima
       << "[optics]\nobjective_focal_mm = 10\nna = 0.42\ntube_focal_mm = 200\n";
 }
 
+// The ray list keeps each ray exactly: units converted to um (cm here), rays not towards +z
+// skipped and counted.
+TEST(ZemaxSource, RayListKeepsTheRaysInMicrometres) {
+  ZemaxSourceFile f;
+  f.header.dimension_units = 2;  // cm
+  f.rays = {{0.001f, -0.002f, 0, 0.1f, 0.2f, std::sqrt(0.95f), 2.5f, 0},
+            {0, 0, 0, 0, 0, -1, 1, 0},  // backwards: skipped
+            {-0.0005f, 0, 0, 0, 0, 1, 1, 0}};
+  uint64_t skipped = 0;
+  const NdArray a = ZemaxRayList(f, &skipped);
+  ASSERT_EQ(a.shape, (std::vector<size_t>{2, 5}));
+  EXPECT_EQ(skipped, 1u);
+  EXPECT_NEAR(a.values[0], 10, 1e-3);   // 0.001 cm = 10 um
+  EXPECT_NEAR(a.values[1], -20, 1e-3);
+  EXPECT_NEAR(a.values[2], 0.1, 1e-7);
+  EXPECT_NEAR(a.values[3], 0.2, 1e-7);
+  EXPECT_EQ(a.values[4], 2.5);
+  EXPECT_NEAR(a.values[5], -5, 1e-3);
+}
+
 TEST(MrcalLightField, RecoversConeAndProfileFromAPinholeCameraModel) {
   if (!MrcalAvailable()) GTEST_SKIP() << "built without mrcal";
   testing::TempDir dir;

@@ -3,11 +3,14 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <fstream>
 #include <sstream>
 
+#include "raymatch/core/array_io.h"
 #include "raymatch/core/calibration_file.h"
 #include "raymatch/simulate/tracer.h"
+#include "stats.h"
 #include "temp_dir.h"
 
 namespace raymatch::simulate {
@@ -158,6 +161,68 @@ TEST(SceneFile, PhotonTargetGivesTheRequestedMeanCount) {
   // The pilot's estimate has relative error ~1/sqrt(pilot hits) (~2e-3); the corner mean
   // ~1/sqrt(500 * 256) (3e-3). 2 % is > 4 sigma of both.
   EXPECT_NEAR(st.mean, 500, 10);
+}
+
+}  // namespace
+}  // namespace raymatch::simulate
+
+namespace raymatch::simulate {
+namespace {
+
+// A ray-list source: each listed ray is drawn with probability proportional to its weight and
+// starts where the list says it crosses the object plane. Ideal imaging in focus sends every
+// ray from (x, y) to the pixel of (x, y) whatever its direction: two rays (weights 3 and 1, one
+// tilted) must fill exactly their two pixels, in the ratio 3 : 1 within binomial noise.
+TEST(RayListSource, WeightsAndPositionsAreHonoured) {
+  testing::TempDir dir;
+  NdArray a;
+  a.shape = {2, 5};
+  a.values = {10.25, -5.25, 0.0, 0.0, 3.0,  // object-plane pixel (52, 42) of 64 x 64 at 0.5 um
+              -8.25, 6.25, 0.1, 0.05, 1.0};  // pixel (15, 19)
+  WriteNpy(dir / "rays.npy", a);
+  const Scene s = LoadScene(dir.Write("scene.toml", R"(name = "rays"
+[source]
+type = "ray_list"
+file = "rays.npy"
+[objective]
+focal_length_mm = 10
+na = 0.42
+[tube_lens]
+focal_length_mm = 200
+[camera]
+pixels = [64, 64]
+pixel_pitch_um = 10
+)"));
+  const Simulator sim(s);
+  const uint64_t n = 40000;
+  const Image img = sim.TracePlane(0, 0, n).counts;
+  const double A = img.at(52, 42), B = img.at(15, 19);
+  double total = 0;
+  for (float v : img.pixels) total += v;
+  EXPECT_EQ(A + B, double(n));
+  EXPECT_EQ(total, double(n));
+  EXPECT_LT(std::abs(testing::BinomialZ(A, n, 0.75)), 4.0);
+  // Bad lists: a direction beyond the unit circle, a wrong shape.
+  a.values[2] = 0.9, a.values[3] = 0.5;
+  WriteNpy(dir / "bad.npy", a);
+  EXPECT_NE(LoadError(std::string(R"([source]
+type = "ray_list"
+file = ")") + (dir / "bad.npy") + R"("
+[objective]
+focal_length_mm = 10
+na = 0.42
+[tube_lens]
+focal_length_mm = 200
+[camera]
+pixels = [4, 4]
+pixel_pitch_um = 10
+)").find("ray 0: direction cosines need u^2 + v^2 < 1"), std::string::npos);
+  a.shape = {5, 2};
+  WriteNpy(dir / "shape.npy", a);
+  EXPECT_NE(LoadError(std::string("[source]\ntype = \"ray_list\"\nfile = \"") + (dir / "shape.npy") +
+                      "\"\n[camera]\npixels = [4, 4]\npixel_pitch_um = 10\n")
+                .find("shape (N, 5)"),
+            std::string::npos);
 }
 
 }  // namespace

@@ -6,6 +6,7 @@
 #include <string>
 #include <vector>
 
+#include "raymatch/core/array_io.h"
 #include "raymatch/core/calibration_file.h"
 
 namespace raymatch::calibrate {
@@ -87,5 +88,11 @@ ZemaxImportSummary AngularMapFromZemax(const ZemaxSourceFile& file, const ZemaxI
 ZemaxImportSummary ImportZemaxLightField(const ZemaxSourceFile& file, const ZemaxImportOptions& o,
                                          const CalibrationData& base,
                                          const std::string& source_path = "");
+
+/// The rays as the simulator's ray list (scene source type "ray_list"): an (N, 5) array of
+/// x_um, y_um, l, m, flux per ray with n > 0 (others skipped; *skipped counts them). Positions
+/// are taken at the object plane in the light frame (ray z, location, rotation, scale ignored,
+/// as in AngularMapFromZemax); nothing is binned, so position-direction correlations are kept.
+NdArray ZemaxRayList(const ZemaxSourceFile& file, uint64_t* skipped = nullptr);
 
 }  // namespace raymatch::calibrate

@@ -18,7 +18,7 @@
 
 namespace raymatch::simulate {
 
-enum class SourceType { kCollimated, kCone, kPoint, kLightField };
+enum class SourceType { kCollimated, kCone, kPoint, kLightField, kRayList };
 enum class FieldShape { kDisc, kRect };
 
 /// Illumination. Collimated, cone and light-field sources define rays by where they cross the
@@ -42,6 +42,11 @@ struct SourceSpec {
   /// The spatial map's edge values continue beyond its rectangle out to the automatic field
   /// extent (set for maps from a calibration file, which cover about the camera's view).
   bool extend_spatial_map = false;
+  /// Ray list: weighted rays where they cross the object plane z = 0, each (x_um, y_um, u, v,
+  /// weight); rays are drawn with probability proportional to weight (and back-traced to the
+  /// source plane like the others). From a .npy file of shape (N, 5).
+  std::vector<std::array<double, 5>> rays;
+  std::string ray_file;
   std::string angular_map_file, spatial_map_file;
 };
 

@@ -180,19 +180,10 @@ TEST(RayListSource, WeightsAndPositionsAreHonoured) {
   a.values = {10.25, -5.25, 0.0, 0.0, 3.0,  // object-plane pixel (52, 42) of 64 x 64 at 0.5 um
               -8.25, 6.25, 0.1, 0.05, 1.0};  // pixel (15, 19)
   WriteNpy(dir / "rays.npy", a);
-  const Scene s = LoadScene(dir.Write("scene.toml", R"(name = "rays"
-[source]
-type = "ray_list"
-file = "rays.npy"
-[objective]
-focal_length_mm = 10
-na = 0.42
-[tube_lens]
-focal_length_mm = 200
-[camera]
-pixels = [64, 64]
-pixel_pitch_um = 10
-)"));
+  const std::string optics = "[objective]\nfocal_length_mm = 10\nna = 0.42\n[tube_lens]\nfocal_length_mm = 200\n";
+  const std::string list = "[source]\ntype = \"ray_list\"\nfile = \"";
+  const Scene s = LoadScene(dir.Write("scene.toml", list + "rays.npy\"\n" + optics +
+                                                        "[camera]\npixels = [64, 64]\npixel_pitch_um = 10\n"));
   const Simulator sim(s);
   const uint64_t n = 40000;
   const Image img = sim.TracePlane(0, 0, n).counts;
@@ -205,22 +196,13 @@ pixel_pitch_um = 10
   // Bad lists: a direction beyond the unit circle, a wrong shape.
   a.values[2] = 0.9, a.values[3] = 0.5;
   WriteNpy(dir / "bad.npy", a);
-  EXPECT_NE(LoadError(std::string(R"([source]
-type = "ray_list"
-file = ")") + (dir / "bad.npy") + R"("
-[objective]
-focal_length_mm = 10
-na = 0.42
-[tube_lens]
-focal_length_mm = 200
-[camera]
-pixels = [4, 4]
-pixel_pitch_um = 10
-)").find("ray 0: direction cosines need u^2 + v^2 < 1"), std::string::npos);
+  const std::string camera = "[camera]\npixels = [4, 4]\npixel_pitch_um = 10\n";
+  EXPECT_NE(LoadError(list + (dir / "bad.npy") + "\"\n" + optics + camera)
+                .find("ray 0: direction cosines need u^2 + v^2 < 1"),
+            std::string::npos);
   a.shape = {5, 2};
   WriteNpy(dir / "shape.npy", a);
-  EXPECT_NE(LoadError(std::string("[source]\ntype = \"ray_list\"\nfile = \"") + (dir / "shape.npy") +
-                      "\"\n[camera]\npixels = [4, 4]\npixel_pitch_um = 10\n")
+  EXPECT_NE(LoadError(list + (dir / "shape.npy") + "\"\n" + optics + camera)
                 .find("shape (N, 5)"),
             std::string::npos);
 }

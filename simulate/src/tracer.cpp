@@ -137,12 +137,12 @@ struct LightFieldSource {
 /// Weighted ray list at the object plane (e.g. imported from a Zemax source file): ray i with
 /// probability proportional to its weight.
 struct RayListSource {
-  std::shared_ptr<const std::vector<std::array<double, 5>>> rays;
+  const std::array<double, 5>* rays;  // the Simulator's own scene's list (not copied)
   Distribution1D weights;
   bool Sample(RayRng& rng, Vec3* p, Vec3* d) const {
     int i = 0;
     weights.Sample(rng.Uniform(), &i);
-    const auto& r = (*rays)[size_t(i)];
+    const auto& r = rays[i];
     *p = Vec3(r[0], r[1], 0);
     *d = Vec3(r[2], r[3], std::sqrt(1 - r[2] * r[2] - r[3] * r[3]));  // u^2 + v^2 < 1 (reader)
     return true;
@@ -654,8 +654,7 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
     case SourceType::kRayList: {
       std::vector<float> w;
       for (const auto& r : ss.rays) w.push_back(float(r[4]));
-      im.source = RayListSource{std::make_shared<const std::vector<std::array<double, 5>>>(ss.rays),
-                                Distribution1D(w.data(), int(w.size()))};
+      im.source = RayListSource{scene_.source.rays.data(), Distribution1D(w.data(), int(w.size()))};
       break;
     }
   }
@@ -676,7 +675,7 @@ bool Simulator::has_mesh_bvh() const { return impl_->geometry.has_meshes(); }
 
 std::vector<std::string> Simulator::Effects() const {
   static const char* src[] = {"source:collimated", "source:cone", "source:point",
-                              "source:lightfield"};
+                              "source:lightfield", "source:ray_list"};  // SourceType order
   std::vector<std::string> e{src[static_cast<int>(scene_.source.type)]};
   if (!impl_->geometry.empty()) {
     e.push_back("refraction");

@@ -185,6 +185,7 @@ TEST(RayListSource, WeightsAndPositionsAreHonoured) {
   const Scene s = LoadScene(dir.Write("scene.toml", list + "rays.npy\"\n" + optics +
                                                         "[camera]\npixels = [64, 64]\npixel_pitch_um = 10\n"));
   const Simulator sim(s);
+  EXPECT_EQ(sim.Effects().at(0), "source:ray_list");  // the sidecar names the source
   const uint64_t n = 40000;
   const Image img = sim.TracePlane(0, 0, n).counts;
   const double A = img.at(52, 42), B = img.at(15, 19);

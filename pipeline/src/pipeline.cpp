@@ -79,6 +79,33 @@ struct Experiment {
   double diameter_um = 0, temperature_K = 293.15, gain = 1;
 };
 
+/// The [camera] and [optics] tables of an experiment folder's metadata: the gain (photons per
+/// code value) is used; the other datasheet values are accepted, and the optics are
+/// informational (the calibration's optics are used).
+double ReadCameraGain(TomlReader& r) {
+  TomlReader cam = r.Table("camera");
+  const double gain = cam.Positive("gain_e_per_dn", 1.0);
+  cam.Positive("pixel_pitch_um", 1), cam.Integer("bit_depth", 16, 1, 32), cam.Number("well_capacity_e", 0), cam.Number("read_noise_e", 0);
+  cam.Finish();
+  r.Table("optics");
+  return gain;
+}
+
+compare::PrepareOptions Preparation(const std::string& dark_file, double gain) {
+  compare::PrepareOptions p;
+  p.dark_file = dark_file;
+  p.gain_e_per_dn = gain;
+  return p;
+}
+
+/// An experimental image in photons (dark-subtracted, times the gain), as compare-scan
+/// prepares it.
+Image Prepared(const Image& raw, const compare::PrepareOptions& p) {
+  Image dark;
+  if (!p.dark_file.empty()) dark = ReadImage(p.dark_file);
+  return compare::PrepareExperiment(raw, p, dark.empty() ? nullptr : &dark, nullptr);
+}
+
 Experiment ReadExperiment(const std::string& folder) {
   const std::string path = (fs::path(folder) / "metadata.toml").string();
   const toml::table t = ParseTomlFile(path);
@@ -89,11 +116,7 @@ Experiment ReadExperiment(const std::string& folder) {
   r.String("object", "");
   e.diameter_um = r.Positive("nominal_diameter_um");
   e.temperature_K = r.InRange("temperature_K", 261.15, 773.15, 293.15);
-  TomlReader cam = r.Table("camera");
-  e.gain = cam.Positive("gain_e_per_dn", 1.0);
-  cam.Positive("pixel_pitch_um", 1), cam.Integer("bit_depth", 16, 1, 32), cam.Number("well_capacity_e", 0), cam.Number("read_noise_e", 0);
-  cam.Finish();
-  r.Table("optics");  // the calibration's optics are used; the table is informational here
+  e.gain = ReadCameraGain(r);
   r.Finish();
   return e;
 }
@@ -187,13 +210,8 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   // exposure recovered from the background of the middle plane.
   const Experiment ex = ReadExperiment(cfg.experiment);
   const compare::Stack exp = compare::ReadStack(ex.scan_csv);
-  Image dark;
-  if (!ex.dark.empty()) dark = ReadImage(ex.dark);
-  compare::PrepareOptions prep;
-  prep.dark_file = ex.dark;
-  prep.gain_e_per_dn = ex.gain;
-  const Image mid = compare::PrepareExperiment(exp.images[exp.images.size() / 2], prep,
-                                               dark.empty() ? nullptr : &dark, nullptr);
+  const compare::PrepareOptions prep = Preparation(ex.dark, ex.gain);
+  const Image mid = Prepared(exp.images[exp.images.size() / 2], prep);
   // Background level: median of a border frame (1/8 of the smaller side), away from the object;
   // a whole-image median would be pulled down by the object's dark pixels.
   std::vector<float> v;
@@ -269,18 +287,9 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
       const std::string mdark = mr.Has("dark") ? (fs::path(cfg.merging) / mr.String("dark")).string() : "";
       const std::string mesh = fs::absolute(fs::path(cfg.merging) / mr.String("mesh")).string();
       const auto rot = mr.Vec3("mesh_rotation_deg", {0, 0, 0});
-      TomlReader mc = mr.Table("camera");
-      const double gain = mc.Positive("gain_e_per_dn", 1.0);
-      mc.Positive("pixel_pitch_um", 1), mc.Integer("bit_depth", 16, 1, 32), mc.Number("well_capacity_e", 0), mc.Number("read_noise_e", 0);
-      mc.Finish();
-      mr.Table("optics");
+      const double gain = ReadCameraGain(mr);
       mr.Finish();
-      compare::PrepareOptions mp_opt;
-      mp_opt.dark_file = mdark;
-      mp_opt.gain_e_per_dn = gain;
-      Image md;
-      if (!mdark.empty()) md = ReadImage(mdark);
-      const Image e = compare::PrepareExperiment(ReadImage(image), mp_opt, md.empty() ? nullptr : &md, nullptr);
+      const Image e = Prepared(ReadImage(image), Preparation(mdark, gain));
       std::ostringstream ms;
       ms.precision(10);
       ms << "name = \"mesh_object\"\ncalibration = \"calibration.toml\"\nseed = " << cfg.seed

@@ -187,7 +187,7 @@ CorrectorSummary CalibrateCorrector(const FlatFieldInput& in, const CorrectorOpt
                                        std::pow(in.camera.gain_e_per_dn, 2) / 12);
     for (int row = 0; row < cone.height; ++row)
       for (int col = 0; col < cone.width; ++col) {
-        const double X = (col + 0.5 - cone.width / 2.0) * p - cx, Y = (cone.height / 2.0 - row - 0.5) * p - cy;
+        const double X = PixX(col, cone.width, p) - cx, Y = PixY(row, cone.height, p) - cy;
         if (std::hypot(X, Y) > r_max) continue;
         const double e = cone.at(col, row);
         var += std::max(0.0, e) + rn2;

@@ -20,9 +20,6 @@ namespace {
 
 constexpr double kDeg = M_PI / 180;
 
-// Object-plane coordinates of a pixel centre (upright image, docs/conventions.md).
-double PixX(int col, int nx, double p) { return (col + 0.5 - nx / 2.0) * p; }
-double PixY(int row, int ny, double p) { return (ny / 2.0 - row - 0.5) * p; }
 
 constexpr double kOutside = -1e300;
 
@@ -183,34 +180,27 @@ Image SpatialMapFromFlat(const Image& photons, double pixel_um, int bin, double 
   const int nbx = photons.width / bin, nby = photons.height / bin;
   if (nbx < 1 || nby < 1) throw Error("the flat-field image is smaller than one bin of " + std::to_string(bin) + " pixels");
   const int x0 = (photons.width - nbx * bin) / 2, y0 = (photons.height - nby * bin) / 2;
-  const int px = (nbx + 3) / 4, py = (nby + 3) / 4;  // padding: a quarter of the view per side
-  Image map(nbx + 2 * px, nby + 2 * py);
-  double centre = 0;
+  Image map(nbx, nby);
   for (int by = 0; by < nby; ++by)
     for (int bx = 0; bx < nbx; ++bx) {
       double sum = 0;
       for (int y = 0; y < bin; ++y)
         for (int x = 0; x < bin; ++x) sum += photons.at(x0 + bx * bin + x, y0 + by * bin + y);
-      map.at(px + bx, py + by) = float(std::max(0.0, sum / (bin * bin)));
+      map.at(bx, by) = float(std::max(0.0, sum / (bin * bin)));
     }
   // Normalise to the mean of the central quarter of the view (relative irradiance).
+  double centre = 0;
   int cnt = 0;
   for (int by = nby / 4; by < nby - nby / 4; ++by)
-    for (int bx = nbx / 4; bx < nbx - nbx / 4; ++bx) centre += map.at(px + bx, py + by), ++cnt;
+    for (int bx = nbx / 4; bx < nbx - nbx / 4; ++bx) centre += map.at(bx, by), ++cnt;
   centre /= std::max(cnt, 1);
   if (!(centre > 0)) throw Error("the flat-field image has no light in the centre of the view");
   *lo = 1e300, *hi = -1e300;
-  for (int by = 0; by < nby; ++by)
-    for (int bx = 0; bx < nbx; ++bx) {
-      float& v = map.at(px + bx, py + by);
-      v = float(v / centre);
-      *lo = std::min(*lo, double(v)), *hi = std::max(*hi, double(v));
-    }
-  // Beyond the view the field continues with its edge values (rays reach the view obliquely
-  // from outside it when defocused or through objects).
-  for (int y = 0; y < map.height; ++y)
-    for (int x = 0; x < map.width; ++x)
-      map.at(x, y) = map.at(std::clamp(x, px, px + nbx - 1), std::clamp(y, py, py + nby - 1));
+  for (float& v : map.pixels) {
+    v = float(v / centre);
+    *lo = std::min(*lo, double(v)), *hi = std::max(*hi, double(v));
+  }
+  // Beyond the view the simulator continues the edge values (SourceSpec::extend_spatial_map).
   size_um[0] = map.width * bin * pixel_um;
   size_um[1] = map.height * bin * pixel_um;
   return map;

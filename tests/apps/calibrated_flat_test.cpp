@@ -64,11 +64,11 @@ TEST(CalibratedFlatField, SceneReproducesTheFlatFieldOfItsSpatialMap) {
   const CalibrationData uniform = c;
   double lo, hi;
   c.spatial_map = calibrate::SpatialMapFromFlat(flat, kObjPixel, 4, c.field_size_um, &lo, &hi);
-  // 20 x 15 bins of 4 px, padded by 5 and 4 bins per side: 30 x 23 bins of 2 um.
-  EXPECT_EQ(c.spatial_map.width, 30);
-  EXPECT_EQ(c.spatial_map.height, 23);
-  EXPECT_DOUBLE_EQ(c.field_size_um[0], 60);
-  EXPECT_DOUBLE_EQ(c.field_size_um[1], 46);
+  // 20 x 15 bins of 4 px (2 um): the camera's view.
+  EXPECT_EQ(c.spatial_map.width, 20);
+  EXPECT_EQ(c.spatial_map.height, 15);
+  EXPECT_DOUBLE_EQ(c.field_size_um[0], 40);
+  EXPECT_DOUBLE_EQ(c.field_size_um[1], 30);
   EXPECT_LT(lo, 0.92);
   EXPECT_GT(hi, 1.08);
 
@@ -77,7 +77,7 @@ TEST(CalibratedFlatField, SceneReproducesTheFlatFieldOfItsSpatialMap) {
   const CalibrationData back = ReadCalibrationFile(dir / "rt.toml");
   ASSERT_EQ(back.spatial_map.size(), c.spatial_map.size());
   EXPECT_EQ(back.spatial_map.pixels, c.spatial_map.pixels);
-  EXPECT_EQ(back.field_size_um[0], 60);
+  EXPECT_EQ(back.field_size_um[0], 40);
 
   // Expected chi^2 per pixel: 1 (two Poisson images) + the map's own noise (4 x 4 bin means,
   // 0.8 % -> +0.03) + the pattern's variation within a bin (+0.02); the tolerance 1.15 leaves

@@ -50,11 +50,15 @@ Image ConeToAngularMap(const Image& photons, double pixel_um, double dz_um, doub
                        double az, int n, double extent, double na, std::vector<char>* covered);
 
 /// Spatial map (relative irradiance at the object plane) from a flat-field image in photons:
-/// bin x bin pixel means, normalised to the central quarter of the view, padded by a quarter of
-/// the view on each side with the edge values. Returns the map and its rectangle (um); *lo and
-/// *hi give its range over the view.
+/// bin x bin pixel means over the view, normalised to the mean of its central quarter. Returns
+/// the map and its rectangle (um); *lo and *hi give its range.
 Image SpatialMapFromFlat(const Image& photons, double pixel_um, int bin, double size_um[2],
                          double* lo, double* hi);
+
+/// Object-plane coordinates (um) of a pixel centre, with pixel_um the object-plane pixel size
+/// (upright image, docs/conventions.md).
+inline double PixX(int col, int nx, double pixel_um) { return (col + 0.5 - nx / 2.0) * pixel_um; }
+inline double PixY(int row, int ny, double pixel_um) { return (ny / 2.0 - row - 0.5) * pixel_um; }
 
 /// Intensity-weighted centroid (object-plane um) of the pixels above `fraction` of the maximum.
 void Centroid(const Image& img, double pixel_um, double fraction, double* x, double* y,

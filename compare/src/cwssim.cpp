@@ -1,7 +1,10 @@
-// CW-SSIM (Sampat et al., IEEE TIP 18, 2385 (2009)) on a complex steerable pyramid built in
-// the frequency domain as Portilla & Simoncelli's buildSCFpyr: log-radial raised-cosine
-// high/low-pass masks, one-sided angular masks cos^(K-1) (so bands are analytic/complex), and
-// low-pass downsampling by cropping the centred spectrum.
+// CW-SSIM (Sampat et al., IEEE TIP 18, 2385 (2009)) as their cwssim_index.m computes it, on a
+// complex steerable pyramid built in the frequency domain as Portilla & Simoncelli's
+// buildSCFpyr: log-radial raised-cosine high/low-pass masks, one-sided angular masks
+// cos^(K-1) (so bands are analytic/complex), and low-pass downsampling by cropping the centred
+// spectrum. The masks are evaluated in closed form where buildSCFpyr interpolates lookup
+// tables (256 samples per octave, 1024 per pi); the difference is ~1e-5 on a mask and far
+// below 1e-6 on CW-SSIM (tests/compare/reference_cwssim.py uses the tables).
 #include <cmath>
 #include <complex>
 #include <opencv2/core.hpp>
@@ -59,17 +62,66 @@ std::vector<cd> Ifft2Unshift(const std::vector<cd>& s, int w, int h) {
   return out;
 }
 
-// Raised-cosine transition on log2 radius from `lo` to lo + 1: high-pass amplitude
-// sqrt((1 - cos(pi t)) / 2) = sin(pi t / 2) and low-pass cos(pi t / 2), t in [0, 1].
-double Hi(double x, double lo) { return std::sin(M_PI / 2 * std::clamp(x - lo, 0.0, 1.0)); }
-double Lo(double x, double lo) { return std::cos(M_PI / 2 * std::clamp(x - lo, 0.0, 1.0)); }
+// matlabPyrTools' masks are lookup tables read by pointOp: linear interpolation, the index
+// truncated toward zero and held inside the table. Using the same tables (rather than the
+// closed forms they sample) keeps raymatch within ~1e-10 of cwssim_index instead of ~1e-6.
+struct Table {
+  std::vector<double> y;
+  double origin = 0, increment = 1;
+  double operator()(double v) const {
+    const double pos = (v - origin) / increment;
+    const int index = std::clamp(int(pos), 0, int(y.size()) - 2);
+    return y[index] + (y[index + 1] - y[index]) * (pos - index);
+  }
+};
+
+// rcosFn(1, -1/2, [0 1]) with the square roots buildSCFpyr takes: the high-pass amplitude
+// |cos X| (0 at log2 r = -1 rising to 1 at 0) or the low-pass sqrt(1 - cos^2 X), 256
+// samples over the octave plus a repeated sample at each end. `octaves_down` shifts the
+// transition as buildSCFpyrLevs does at each level.
+Table RadialTable(bool high_pass, int octaves_down) {
+  constexpr int kSz = 256;
+  Table t;
+  std::vector<double> x;
+  for (int k = -kSz - 1; k <= 1; ++k) {
+    const double xk = M_PI * k / (2 * kSz);
+    const double yk = std::sqrt(std::pow(std::cos(xk), 2));
+    t.y.push_back(high_pass ? yk : std::sqrt(1.0 - yk * yk));
+    x.push_back(-0.5 + (2 / M_PI) * (xk + M_PI / 4) - octaves_down);
+  }
+  t.y.front() = t.y[1];
+  t.y.back() = t.y[t.y.size() - 2];
+  t.origin = x[0];
+  t.increment = x[1] - x[0];
+  return t;
+}
+
+// buildSCFpyrLevs' angular lobe 2 sqrt(c) cos^order(X), kept where the angle wrapped to
+// [-pi, pi) is within pi/2 of the band's direction (one lobe: analytic bands), tabulated at
+// pi/1024 over [-2 pi, pi] and read at (angle - pi k / K).
+Table AngularTable(int orientations, int k) {
+  constexpr int kLut = 1024;
+  const int order = orientations - 1;
+  const double c = std::pow(2.0, 2 * order) * std::pow(std::tgamma(order + 1), 2) /
+                   (orientations * std::tgamma(2 * order + 1));
+  Table t;
+  for (int i = -(2 * kLut + 1); i <= kLut + 1; ++i) {
+    const double x = M_PI * i / kLut;
+    const double a = M_PI + x, alfa = a - std::floor(a / (2 * M_PI)) * 2 * M_PI - M_PI;
+    t.y.push_back(std::abs(alfa) < M_PI / 2 ? 2 * std::sqrt(c) * std::pow(std::cos(x), order) : 0.0);
+  }
+  const double x0 = M_PI * -(2 * kLut + 1) / kLut, x1 = M_PI * -(2 * kLut) / kLut;
+  t.origin = x0 + M_PI * k / orientations;
+  t.increment = x1 - x0;
+  return t;
+}
 
 }  // namespace
 
 void CwSsimOptions::Validate() const {
   Require(data_range > 0 && std::isfinite(data_range), "CW-SSIM: data_range (L) must be > 0");
   Require(level >= 0 && level <= 20, "CW-SSIM: level must be 0 (auto) or 1..20");
-  Require(orientations >= 1 && orientations <= 32, "CW-SSIM: orientations must be 1..32");
+  Require(orientations >= 1 && orientations <= 16, "CW-SSIM: orientations must be 1..16 (buildSCFpyr's order 0..15)");
   Require(guard_band >= 0, "CW-SSIM: guard_band must be >= 0");
   Require(k >= 0, "CW-SSIM: k must be >= 0");
   Require(window >= 1 && window % 2 == 1, "CW-SSIM: window must be odd and >= 1");
@@ -100,24 +152,22 @@ CwSsimBands ComputeCwSsimBands(const Image& img, const CwSsimOptions& o, int lev
       s.angle[size_t(y) * s.w + x] = std::atan2(yr, xr);
     }
   // lo0: first low-pass (transition from log2 r = -1 to 0).
-  for (size_t i = 0; i < s.v.size(); ++i) s.v[i] *= Lo(s.log_rad[i], -1.0);
-  const int K = o.orientations, order = K - 1;
-  const double c = std::pow(2.0, 2 * order) * std::pow(std::tgamma(order + 1), 2) /
-                   (K * std::tgamma(2 * order + 1));
-  const double amp = 2 * std::sqrt(c);
+  const Table lo0 = RadialTable(false, 0);
+  for (size_t i = 0; i < s.v.size(); ++i) s.v[i] *= lo0(s.log_rad[i]);
+  const int K = o.orientations;
   for (int lev = 1;; ++lev) {
-    const double lo = -1.0 - lev;  // this octave's transition
+    // This level's octave: high-pass for its bands, low-pass before the next crop.
+    const Table hi = RadialTable(true, lev), lo = RadialTable(false, lev);
     if (lev == level) {
       CwSsimBands b;
-      b.width = s.w, b.height = s.h;
+      b.width = s.w, b.height = s.h, b.band_rows = s.h;
       for (int k = 0; k < K; ++k) {
         std::vector<cd> band(s.v.size());
-        const double a0 = M_PI * k / K;
-        for (size_t i = 0; i < s.v.size(); ++i) {
-          const double t = s.angle[i] - a0;  // one-sided: no wrap-around, as buildSCFpyr's LUT
-          const double am = std::abs(t) < M_PI / 2 ? amp * std::pow(std::cos(t), order) : 0.0;
-          band[i] = s.v[i] * am * Hi(s.log_rad[i], lo);
-        }
+        // The factor (-i)^(K-1) that buildSCFpyrLevs puts on every band is left out: a
+        // common unit phase cancels in |sum c1 c2*| and |c|^2.
+        const Table angular = AngularTable(K, k);
+        for (size_t i = 0; i < s.v.size(); ++i)
+          band[i] = s.v[i] * angular(s.angle[i]) * hi(s.log_rad[i]);
         const std::vector<cd> sp = Ifft2Unshift(band, s.w, s.h);
         // Guard band, in full-resolution pixels, scaled to this level.
         const int g = o.guard_band >> (level - 1);
@@ -144,7 +194,7 @@ CwSsimBands ComputeCwSsimBands(const Image& img, const CwSsimOptions& o, int lev
     for (int y = 0; y < lh; ++y)
       for (int x = 0; x < lw; ++x) {
         const size_t i = size_t(y + y0) * s.w + x + x0;
-        n.v.push_back(s.v[i] * Lo(s.log_rad[i], lo));
+        n.v.push_back(s.v[i] * lo(s.log_rad[i]));
         n.log_rad.push_back(s.log_rad[i]);
         n.angle.push_back(s.angle[i]);
       }
@@ -159,41 +209,56 @@ CwSsimResult CwSsimFromBands(const CwSsimBands& a, const CwSsimBands& b, const C
   CwSsimResult r;
   r.level = level;
   r.max_level = max_level;
-  const int w = a.width, h = a.height, M = o.window, rad = M / 2;
-  // Gaussian weights over the band: fspecial('gaussian', size, rows/4), normalised.
+  // cwssim_index: filter2(ones(M)/M^2, ., 'valid'), so the map is (h-M+1) x (w-M+1) and is
+  // pooled with fspecial('gaussian', map size, band rows / 4), normalised to sum 1.
+  const int M = o.window, w = a.width - M + 1, h = a.height - M + 1;
+  if (w < 1 || h < 1) {
+    throw CompareError(FailureKind::kInvalidInput,
+                       "CW-SSIM: the band at level " + std::to_string(level) + " (" +
+                           std::to_string(a.width) + "x" + std::to_string(a.height) +
+                           " after the guard band) is smaller than the " + std::to_string(M) +
+                           "x" + std::to_string(M) + " window");
+  }
   std::vector<double> gw(size_t(w) * h);
   double gs = 0;
-  const double sig = h / 4.0;
+  const double sig = a.band_rows / 4.0;
   for (int y = 0; y < h; ++y)
-    for (int x = 0; x < w; ++x)
-      gs += gw[size_t(y) * w + x] = std::exp(-(std::pow(x - (w - 1) / 2.0, 2) + std::pow(y - (h - 1) / 2.0, 2)) / (2 * sig * sig));
-  // Box-filter sums ('same', zero padding: filter2(ones(M)/M^2, .)).
+    for (int x = 0; x < w; ++x) {
+      const double dx = x - (w - 1) / 2.0, dy = y - (h - 1) / 2.0;
+      gs += gw[size_t(y) * w + x] = std::exp(-(dx * dx + dy * dy) / (2 * sig * sig));
+    }
+  // Mean over each M x M window lying wholly inside the band (separable running sums).
   auto box = [&](const std::vector<double>& f) {
-    std::vector<double> out(f.size(), 0.0);
+    std::vector<double> rows(size_t(w) * a.height), out(size_t(w) * h);
+    for (int y = 0; y < a.height; ++y)
+      for (int x = 0; x < w; ++x) {
+        double s = 0;
+        for (int d = 0; d < M; ++d) s += f[size_t(y) * a.width + x + d];
+        rows[size_t(y) * w + x] = s;
+      }
     for (int y = 0; y < h; ++y)
       for (int x = 0; x < w; ++x) {
         double s = 0;
-        for (int dy = -rad; dy <= rad; ++dy)
-          for (int dx = -rad; dx <= rad; ++dx) {
-            const int yy = y + dy, xx = x + dx;
-            if (yy >= 0 && yy < h && xx >= 0 && xx < w) s += f[size_t(yy) * w + xx];
-          }
+        for (int d = 0; d < M; ++d) s += rows[size_t(y + d) * w + x];
         out[size_t(y) * w + x] = s / (M * M);
       }
     return out;
   };
   double total = 0;
+  const size_t n = size_t(a.width) * a.height;
   for (size_t k = 0; k < a.re.size(); ++k) {
-    std::vector<double> cr(w * size_t(h)), ci(cr.size()), vv(cr.size());
-    for (size_t i = 0; i < cr.size(); ++i) {
+    std::vector<double> cr(n), ci(n), vv(n);
+    for (size_t i = 0; i < n; ++i) {
       const cd x(a.re[k][i], a.im[k][i]), y(b.re[k][i], b.im[k][i]);
       const cd c = x * std::conj(y);
       cr[i] = c.real(), ci[i] = c.imag(), vv[i] = std::norm(x) + std::norm(y);
     }
     const auto br = box(cr), bi = box(ci), bv = box(vv);
     double s = 0;
-    for (size_t i = 0; i < cr.size(); ++i) {
-      const double den = bv[i] + o.k;  // both bands zero with k = 0: identical, score 1
+    for (size_t i = 0; i < gw.size(); ++i) {
+      // Both bands exactly zero over the window with K = 0: cwssim_index gives NaN (0/0);
+      // the bands are identical there, so this scores 1 and no output is ever NaN.
+      const double den = bv[i] + o.k;
       s += gw[i] / gs * (den > 0 ? (2 * std::hypot(br[i], bi[i]) + o.k) / den : 1.0);
     }
     r.per_orientation.push_back(s);

@@ -128,11 +128,12 @@ struct CwSsimOptions {
   double data_range = 0;  ///< L, required (> 0); images are scaled by 255/L (see k).
   int level = 0;          ///< Pyramid level whose bands are compared (1 = finest);
                           ///< 0 = default: MaxCwSsimLevel() - 1 (one below the maximum).
-  int orientations = 16;  ///< Number of oriented bands (cwssim_index's `or`).
+  int orientations = 16;  ///< Number of oriented bands (cwssim_index's `or`), 1..16.
   int guard_band = 0;     ///< Pixels discarded at each border, in full-resolution pixels
                           ///< (divided by 2^(level-1) as in cwssim_index).
-  double k = 0.01;        ///< Stabilising constant, in units of (coefficient of an image
-                          ///< scaled to 0..255)^2, i.e. as for cwssim_index on 8-bit data.
+  double k = 0;           ///< Stabilising constant (cwssim_index's K; its default 0), in units
+                          ///< of (coefficient of an image scaled to 0..255)^2, i.e. as for
+                          ///< cwssim_index on 8-bit data. K = 0 makes CW-SSIM scale-invariant.
   int window = 7;         ///< Side of the square averaging window, pixels at the band.
   void Validate() const;
 };
@@ -147,12 +148,16 @@ struct CwSsimResult {
 /// floor(log2(min(width, height))) - 2, as maxPyrHt() for buildSCFpyr; at least 1.
 int MaxCwSsimLevel(int width, int height);
 
-/// CW-SSIM between two images.
+/// CW-SSIM between two images: per orientation, the local index
+/// (2 |sum c1 c2*| + K) / (sum |c1|^2 + |c2|^2 + K) over every window x window block lying
+/// wholly inside the band (MATLAB filter2 'valid'), averaged with Gaussian weights
+/// (sigma = band rows / 4, normalised); then the mean over orientations.
 CwSsimResult CwSsim(const Image& a, const Image& b, const CwSsimOptions& options);
 
 /// The complex bands of one pyramid level, for reuse when one image is compared with many.
 struct CwSsimBands {
-  int width = 0, height = 0;                    ///< Band size, pixels.
+  int width = 0, height = 0;                    ///< Band size after the guard band, pixels.
+  int band_rows = 0;                            ///< Band rows before the guard band (sigma).
   std::vector<std::vector<double>> re, im;      ///< [orientation][row-major pixel].
 };
 /// Builds the bands that CwSsim() compares (after scaling by 255/L and cropping guard bands).

@@ -60,7 +60,7 @@ Plane Downsample2(const Plane& p) {
   const int w = (p.width + 1) / 2, h = (p.height + 1) / 2;
   Plane out(w, h);
   for (int y = 0; y < h; ++y) {
-    const int y0 = 2 * y, y1 = std::min(2 * y + 1, p.height - 1);  // symmetric pad: n+1 -> n
+    const int y0 = 2 * y, y1 = std::min(2 * y + 1, p.height - 1);  // replicate: n -> n-1
     for (int x = 0; x < w; ++x) {
       const int x0 = 2 * x, x1 = std::min(2 * x + 1, p.width - 1);
       out.at(x, y) = 0.25 * (p.at(x0, y0) + p.at(x1, y0) + p.at(x0, y1) + p.at(x1, y1));

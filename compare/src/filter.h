@@ -25,7 +25,8 @@ std::vector<double> GaussianKernel(double sigma);
 /// the input (MATLAB imfilter(..., 'replicate', 'same')).
 Plane FilterReplicate(const Plane& p, const std::vector<double>& kernel);
 
-/// 2x2 mean with symmetric padding at the far edge, then every second sample from the first.
+/// multissim's downsampling: the 2x2 mean of each pixel and its right/lower neighbours (the
+/// last row/column replicated), keeping every second sample from the first.
 Plane Downsample2(const Plane& p);
 
 }  // namespace raymatch::compare

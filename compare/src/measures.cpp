@@ -77,7 +77,10 @@ struct SsimMaps {
   std::vector<double> l, cs;
 };
 
-SsimMaps ComputeSsimMaps(const Plane& x, const Plane& y, double sigma, double c1, double c2) {
+/// `clamp_variance`: multissim guards the variances against rounding below 0 (MATLAB's ssim
+/// does not).
+SsimMaps ComputeSsimMaps(const Plane& x, const Plane& y, double sigma, double c1, double c2,
+                         bool clamp_variance = false) {
   const std::vector<double> k = GaussianKernel(sigma);
   const size_t n = x.v.size();
   Plane xx = x, yy = y, xy = x;
@@ -94,7 +97,8 @@ SsimMaps ComputeSsimMaps(const Plane& x, const Plane& y, double sigma, double c1
   m.cs.resize(n);
   for (size_t i = 0; i < n; ++i) {
     const double mux = mx.v[i], muy = my.v[i];
-    const double vx = sxx.v[i] - mux * mux, vy = syy.v[i] - muy * muy;
+    double vx = sxx.v[i] - mux * mux, vy = syy.v[i] - muy * muy;
+    if (clamp_variance) vx = std::max(vx, 0.0), vy = std::max(vy, 0.0);
     const double cov = sxy.v[i] - mux * muy;
     m.l[i] = (2 * mux * muy + c1) / (mux * mux + muy * muy + c1);
     m.cs[i] = (2 * cov + c2) / (vx + vy + c2);
@@ -144,17 +148,9 @@ void MsSsimOptions::Validate() const {
   }
 }
 
-int MaxMsSsimScales(int width, int height, double sigma) {
-  const int taps = 2 * int(std::ceil(3 * sigma)) + 1;
+int MaxMsSsimScales(int width, int height) {
   int m = 1;
-  int w = width, h = height;
-  while (true) {
-    const int nw = (w + 1) / 2, nh = (h + 1) / 2;
-    if (nw < taps || nh < taps || m >= 30) break;
-    w = nw;
-    h = nh;
-    ++m;
-  }
+  for (int w = width, h = height; w > 1 && h > 1 && m < 30; w = (w + 1) / 2, h = (h + 1) / 2) ++m;
   return m;
 }
 
@@ -201,45 +197,42 @@ MsSsimResult MsSsim(const Image& a, const Image& b, const MsSsimOptions& options
   options.Validate();
   CheckComparable(a, b, "MS-SSIM");
   MsSsimResult r;
-  r.max_scales = MaxMsSsimScales(a.width, a.height, options.sigma);
+  r.max_scales = MaxMsSsimScales(a.width, a.height);
   r.num_scales = options.num_scales > 0 ? options.num_scales : std::max(1, r.max_scales - 1);
-  // Like multissim, allow any M whose coarsest scale still has at least one pixel; M above
-  // max_scales is permitted (MATLAB permits it) but the window then mostly sees padding.
-  Require((std::min(a.width, a.height) >> (r.num_scales - 1)) >= 1,
+  Require(r.num_scales <= r.max_scales,
           "MS-SSIM: " + std::to_string(r.num_scales) + " scales are too many for a " +
-              SizeText(a) + " image (at most " +
-              std::to_string(int(std::log2(std::min(a.width, a.height))) + 1) + ")");
+              SizeText(a) + " image (at most " + std::to_string(r.max_scales) +
+              ": every scale but the last must be at least 2x2 pixels)");
   const std::vector<double> w =
       MsSsimScaleWeights(options.weights, r.num_scales, options.custom_weights);
   const double c1 = std::pow(options.k1 * options.data_range, 2);
   const double c2 = std::pow(options.k2 * options.data_range, 2);
   Plane x = ToPlane(a), y = ToPlane(b);
-  double log_score = 0;
-  bool zero = false;
+  r.ms_ssim = 1;
   for (int j = 0; j < r.num_scales; ++j) {
-    const SsimMaps m = ComputeSsimMaps(x, y, options.sigma, c1, c2);
+    const SsimMaps m = ComputeSsimMaps(x, y, options.sigma, c1, c2, /*clamp_variance=*/true);
     MsSsimScale s;
     s.width = x.width;
     s.height = x.height;
     s.weight = w[j];
-    s.cs = Mean(m.cs);
-    double ss = 0;
-    for (size_t i = 0; i < m.l.size(); ++i) ss += m.l[i] * m.cs[i];
+    double cs = 0, ss = 0;
+    for (size_t i = 0; i < m.l.size(); ++i) {
+      cs += std::min(m.cs[i], 1.0);
+      ss += std::min(m.l[i] * m.cs[i], 1.0);
+    }
+    s.cs = cs / double(m.l.size());
     s.ssim = ss / double(m.l.size());
     r.scales.push_back(s);
-    // A negative mean cs/ssim raised to a fractional power has no real value; clamp at 0
-    // (anti-correlated images score 0), which keeps every output finite.
-    const double term = (j + 1 < r.num_scales) ? s.cs : s.ssim;
-    if (w[j] > 0) {
-      if (term <= 0) zero = true;
-      else log_score += w[j] * std::log(term);
-    }
+    double term = (j + 1 < r.num_scales) ? s.cs : s.ssim;
+    // A negative mean to a fractional power has no real value: multissim counts it as 0
+    // (anti-correlated images score 0); an integer power (weight 1 or 0) is taken as it is.
+    if (w[j] != std::floor(w[j])) term = std::max(term, 0.0);
+    r.ms_ssim *= std::pow(term, w[j]);
     if (j + 1 < r.num_scales) {
       x = Downsample2(x);
       y = Downsample2(y);
     }
   }
-  r.ms_ssim = zero ? 0.0 : std::exp(log_score);
   return r;
 }
 

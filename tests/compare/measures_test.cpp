@@ -166,6 +166,43 @@ TEST(Measures, AgreesWithScikitImageAndMatlabStyleReference) {
   }
 }
 
+// Against MATLAB itself: multissim values from MATLAB R2025b for a deterministic pair,
+// [X,Y] = meshgrid(1:32,1:32), A = uint8(X+Y), B = uint8(X+2*Y), multissim(A,B,...), as recorded
+// in the public regression test libs/image/tests/multissim_test.cpp of hotredman/numkit
+// (commit 065b2c2). MATLAB computes double inputs in double: A/255, B/255 with L = 1 gave
+// 0.8983752005 (10 digits printed), which raymatch must match to 1e-9. uint8 inputs are
+// computed in single precision (relative rounding 6e-8 per operation, summed over 11x11
+// windows and 1024 pixels), which moves the printed values by up to ~3e-7 from the exact
+// double result: 1e-6 for those.
+TEST(Measures, MsSsimMatchesMatlabMultissim) {
+  Image a(32, 32), b(32, 32);
+  for (int y = 0; y < 32; ++y)
+    for (int x = 0; x < 32; ++x) {
+      a.at(x, y) = float((x + 1) + (y + 1));      // X + Y, X the column index
+      b.at(x, y) = float((x + 1) + 2 * (y + 1));  // X + 2Y
+    }
+  EXPECT_EQ(MaxMsSsimScales(32, 32), 6);  // multissim accepts 'NumScales' up to 6 here
+  auto run = [&](int scales, double range, double sigma, MsSsimWeights weights) {
+    MsSsimOptions o;
+    o.data_range = range;
+    o.num_scales = scales;
+    o.sigma = sigma;
+    o.weights = weights;
+    return MsSsim(a, b, o).ms_ssim;
+  };
+  const auto kGauss = MsSsimWeights::kMatlab;
+  EXPECT_NEAR(run(5, 255, 1.5, kGauss), 0.8983752005, 1e-9);  // double inputs A/255, B/255
+  EXPECT_NEAR(run(5, 255, 1.5, kGauss), 0.8983750939, 1e-6);  // uint8 (single precision)
+  EXPECT_NEAR(run(1, 255, 1.5, kGauss), 0.8935790062, 1e-6);  // 'NumScales', 1
+  EXPECT_NEAR(run(3, 255, 1.5, kGauss), 0.9119560719, 1e-6);  // 'NumScales', 3
+  EXPECT_NEAR(run(5, 255, 1.5, MsSsimWeights::kWang2003), 0.8920533657, 1e-6);
+  EXPECT_NEAR(run(5, 255, 0.5, kGauss), 0.9531264305, 1e-6);  // 'Sigma', 0.5
+  EXPECT_NEAR(run(5, 128, 1.5, kGauss), 0.8723636866, 1e-6);  // 'DynamicRange', 128
+  EXPECT_NO_THROW(run(6, 255, 1.5, kGauss));
+  EXPECT_THROW(run(7, 255, 1.5, kGauss), CompareError);  // multissim: "too many scales"
+  EXPECT_THROW(run(20, 255, 1.5, kGauss), CompareError);
+}
+
 /// Runs a Python reference script and reads the numbers it prints (one line).
 std::vector<double> RunReference(const std::string& script, const std::string& args) {
   const std::string cmd = "/usr/bin/python3 " + std::string(RAYMATCH_SOURCE_DIR) +

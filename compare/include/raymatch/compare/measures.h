@@ -94,30 +94,38 @@ struct MsSsimOptions {
 struct MsSsimScale {
   int width = 0, height = 0;  ///< Image size at this scale, pixels.
   double weight = 0;          ///< Normalised exponent used for this scale.
-  double cs = 0;              ///< Mean contrast-structure term at this scale.
-  double ssim = 0;            ///< Mean SSIM at this scale (used for the last scale).
+  double cs = 0;              ///< Mean contrast-structure map at this scale (map clamped at 1).
+  double ssim = 0;            ///< Mean SSIM map at this scale (clamped at 1; used at scale M).
 };
 
 struct MsSsimResult {
-  double ms_ssim = 0;      ///< prod_{j<M} cs_j^w_j * ssim_M^w_M.
+  double ms_ssim = 0;      ///< prod_{j<M} cs_j^w_j * ssim_M^w_M (see MsSsim()).
   int num_scales = 0;      ///< M actually used.
   int max_scales = 0;      ///< MaxMsSsimScales() for this image size.
   std::vector<MsSsimScale> scales;
 };
 
-/// The largest number of scales for which the coarsest scale is still at least as large as
-/// the Gaussian window (2*ceil(3 sigma)+1) in both directions; at least 1.
-int MaxMsSsimScales(int width, int height, double sigma = 1.5);
+/// The most scales MATLAB multissim accepts for this size: every scale but the last must be
+/// at least 2 pixels in both directions (sizes go n -> ceil(n/2)), i.e.
+/// ceil(log2(min(width, height))) + 1; 1 for a 1-pixel-wide image. The coarsest scales are
+/// then tiny (1-2 pixels), which is why the paper's default is one scale fewer.
+int MaxMsSsimScales(int width, int height);
 
 /// The MS-SSIM weights for M scales (normalised to sum 1).
 std::vector<double> MsSsimScaleWeights(MsSsimWeights kind, int num_scales,
                                        const std::vector<double>& custom = {});
 
-/// Downsampling between scales, as multissim/Wang's msssim.m: 2x2 mean filter with symmetric
-/// padding, then every second pixel starting with the first: output size ceil(n/2).
+/// Downsampling between scales, as multissim: imfilter(x, ones(2)/4, 'replicate') (the 2x2
+/// mean of a pixel and its right/lower neighbours, the last row/column replicated), then
+/// every second pixel starting with the first: output size ceil(n/2).
 Image DownsampleByTwo(const Image& img);
 
-/// MATLAB multissim(): SSIM terms at each scale with the SSIM window and replicate padding.
+/// MATLAB multissim(): at scales 1..M-1 the contrast-structure map
+/// (2 cov + C2) / (var_x + var_y + C2), at scale M the full SSIM map, each with the SSIM
+/// window and replicate padding, variances clamped at 0 and map values at 1; the score is the
+/// product of the map means raised to their weights, a negative mean counting as 0 when its
+/// weight is not an integer (so the result is real and finite). Throws
+/// CompareError(kInvalidInput) for more scales than MaxMsSsimScales().
 MsSsimResult MsSsim(const Image& a, const Image& b, const MsSsimOptions& options);
 
 // ---------------------------------------------------------------------------------------------

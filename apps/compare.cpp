@@ -14,7 +14,9 @@ namespace {
 struct CompareCliOptions {
   std::string a, b, json;
   double data_range = 0;
-  int ms_scales = 0, cw_level = 0;
+  compare::MsSsimOptions ms;
+  compare::CwSsimOptions cw;
+  std::string ms_weights = "matlab";
   double fail_below = -1;  // MS-SSIM threshold for exit code 2
 };
 
@@ -33,12 +35,11 @@ int RunCompare(const CompareCliOptions& o) {
   const double L = o.data_range;
   compare::SsimOptions so;
   so.data_range = L;
-  compare::MsSsimOptions mo;
+  compare::MsSsimOptions mo = o.ms;
   mo.data_range = L;
-  mo.num_scales = o.ms_scales;
-  compare::CwSsimOptions co;
+  mo.weights = compare::ParseMsSsimWeights(o.ms_weights);
+  compare::CwSsimOptions co = o.cw;
   co.data_range = L;
-  co.level = o.cw_level;
   const auto ssim = compare::Ssim(a, b, so);
   const auto ms = compare::MsSsim(a, b, mo);
   const auto cw = compare::CwSsim(a, b, co);
@@ -51,8 +52,12 @@ int RunCompare(const CompareCliOptions& o) {
       {"mse", compare::MeanSquaredError(a, b)},
       {"psnr_db", compare::PeakSignalToNoiseRatio(a, b, L)},
       {"ssim", ssim.ssim},
-      {"ms_ssim", {{"value", ms.ms_ssim}, {"scales_used", ms.num_scales}, {"max_scales", ms.max_scales}, {"per_scale", scales}}},
-      {"cw_ssim", {{"value", cw.cw_ssim}, {"level", cw.level}, {"max_level", cw.max_level}, {"per_orientation", cw.per_orientation}}},
+      {"ms_ssim", {{"value", ms.ms_ssim}, {"scales_used", ms.num_scales}, {"max_scales", ms.max_scales},
+                   {"weights", compare::MsSsimWeightsName(mo.weights)}, {"sigma_px", mo.sigma},
+                   {"per_scale", scales}}},
+      {"cw_ssim", {{"value", cw.cw_ssim}, {"level", cw.level}, {"max_level", cw.max_level},
+                   {"orientations", co.orientations}, {"k", co.k}, {"window_px", co.window},
+                   {"per_orientation", cw.per_orientation}}},
       {"poisson", {{"chi2_per_pixel", po.chi2_per_pixel}, {"deviance_per_pixel", po.deviance_per_pixel}, {"clamped_pixels", po.clamped_pixels}}}};
   std::cout << j.dump(2) << "\n";
   if (!o.json.empty()) WriteTextFileAtomic(o.json, j.dump(2) + "\n");
@@ -73,8 +78,7 @@ void RegisterCompare(CLI::App& app, int* exit_code) {
   sub->add_option("-L,--data-range", o->data_range,
                   "Dynamic range L in pixel units (e.g. 4095 for 12-bit data in 16-bit files)")
       ->required()->check(CLI::PositiveNumber);
-  sub->add_option("--ms-ssim-scales", o->ms_scales, "MS-SSIM scales (default: one below the maximum)");
-  sub->add_option("--cw-ssim-level", o->cw_level, "CW-SSIM pyramid level (default: one below the maximum)");
+  AddMultiscaleOptions(sub, &o->ms, &o->cw, &o->ms_weights);
   sub->add_option("--json", o->json, "Also write the JSON to this file");
   sub->add_option("--fail-below", o->fail_below, "Exit 2 when MS-SSIM is below this value");
   sub->callback([o, exit_code] { *exit_code = RunCompareGuarded([&] { return RunCompare(*o); }); });

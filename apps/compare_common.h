@@ -1,13 +1,41 @@
 #pragma once
 // Exit codes shared by `compare` and `compare-scan` (OIIO idiff style, docs/compare.md).
+#include <CLI/CLI.hpp>
 #include <functional>
 #include <iostream>
+#include <string>
 
 #include "raymatch/compare/measures.h"
 
 namespace raymatch::apps {
 
 enum CompareExit { kOk = 0, kWarn = 1, kFail = 2, kSizeMismatch = 3, kFileError = 4 };
+
+/// The MS-SSIM and CW-SSIM settings both subcommands take. `weights` receives the name for
+/// --ms-ssim-weights; pass it to compare::ParseMsSsimWeights() after parsing.
+inline void AddMultiscaleOptions(CLI::App* sub, compare::MsSsimOptions* ms,
+                                 compare::CwSsimOptions* cw, std::string* weights) {
+  sub->add_option("--ms-ssim-scales", ms->num_scales,
+                  "MS-SSIM scales M (default: one below the most multissim accepts for the size)");
+  sub->add_option("--ms-ssim-weights", *weights,
+                  "MS-SSIM scale weights: matlab = multissim's fspecial('gaussian',[1 M],1), "
+                  "wang2003 = [0.0448 0.2856 0.3001 0.2363 0.1333] (M <= 5)")
+      ->check(CLI::IsMember({"matlab", "wang2003"}))
+      ->capture_default_str();
+  sub->add_option("--ms-ssim-sigma", ms->sigma, "Gaussian window sigma in pixels (MS-SSIM)")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
+  sub->add_option("--cw-ssim-level", cw->level,
+                  "CW-SSIM pyramid level, 1 = finest (default: one below the maximum)");
+  sub->add_option("--cw-ssim-orientations", cw->orientations, "CW-SSIM orientations (1..16)")
+      ->check(CLI::Range(1, 16))
+      ->capture_default_str();
+  sub->add_option("--cw-ssim-k", cw->k,
+                  "CW-SSIM constant K, in (coefficient of an image scaled to 0..255)^2 "
+                  "(cwssim_index's K; 0 = its default)")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
+}
 
 inline int RunCompareGuarded(const std::function<int()>& fn) {
   try {

@@ -232,18 +232,21 @@ FocusScanResult RunFocusScan(const Stack& exp, const Stack& sim, const FocusScan
   if (!(L > 0)) throw CompareError(FailureKind::kInvalidInput, "all images are blank");
   r.data_range = L;
   const int ms_max = MaxMsSsimScales(e0.width, e0.height);
-  r.ms_ssim_scales = o.ms_ssim_scales > 0 ? o.ms_ssim_scales : std::max(1, ms_max - 1);
+  MsSsimOptions mo = o.ms_ssim;
+  mo.data_range = L;
+  mo.num_scales = r.ms_ssim_scales = mo.num_scales > 0 ? mo.num_scales : std::max(1, ms_max - 1);
   const int cw_max = MaxCwSsimLevel(e0.width, e0.height);
-  r.cw_ssim_level = o.cw_ssim_level > 0 ? o.cw_ssim_level : std::max(1, cw_max - 1);
+  CwSsimOptions cwo = o.cw_ssim;
+  cwo.data_range = L;
+  cwo.level = r.cw_ssim_level = cwo.level > 0 ? cwo.level : std::max(1, cw_max - 1);
+  r.ms_ssim = mo;
+  r.cw_ssim = cwo;
   const size_t ne = r.exp_images.size(), ns = r.sim_images.size();
   for (Measure m : o.measures) {
     MeasureScan ms;
     ms.measure = m;
     ms.matrix.assign(ne, std::vector<double>(ns, 0));
     std::vector<CwSsimBands> eb, sb;
-    CwSsimOptions cwo;
-    cwo.data_range = L;
-    cwo.level = r.cw_ssim_level;
     if (m == Measure::kCwSsim) {
       for (const Image& e : r.exp_images) eb.push_back(ComputeCwSsimBands(e, cwo, cwo.level));
       for (const Image& s : r.sim_images) sb.push_back(ComputeCwSsimBands(s, cwo, cwo.level));
@@ -260,13 +263,7 @@ FocusScanResult RunFocusScan(const Stack& exp, const Stack& sim, const FocusScan
             v = Ssim(a, b, so).ssim;
             break;
           }
-          case Measure::kMsSsim: {
-            MsSsimOptions mo;
-            mo.data_range = L;
-            mo.num_scales = r.ms_ssim_scales;
-            v = MsSsim(a, b, mo).ms_ssim;
-            break;
-          }
+          case Measure::kMsSsim: v = MsSsim(a, b, mo).ms_ssim; break;
           case Measure::kCwSsim:
             v = CwSsimFromBands(eb[i], sb[j], cwo, cwo.level, cw_max).cw_ssim;
             break;
@@ -320,7 +317,11 @@ nlohmann::json FocusScanResult::ToJson() const {
           {"registration_shift_px", shift_px},
           {"simulation_scale", sim_scale},
           {"ms_ssim_scales", ms_ssim_scales},
+          {"ms_ssim_weights", MsSsimWeightsName(ms_ssim.weights)},
+          {"ms_ssim_sigma_px", ms_ssim.sigma},
           {"cw_ssim_level", cw_ssim_level},
+          {"cw_ssim_orientations", cw_ssim.orientations},
+          {"cw_ssim_k", cw_ssim.k},
           {"experiment_defocus_um", exp_defocus_um},
           {"simulation_defocus_um", sim_defocus_um},
           {"measures", ms}};

@@ -154,6 +154,22 @@ int MaxMsSsimScales(int width, int height) {
   return m;
 }
 
+const char* MsSsimWeightsName(MsSsimWeights w) {
+  switch (w) {
+    case MsSsimWeights::kMatlab: return "matlab";
+    case MsSsimWeights::kWang2003: return "wang2003";
+    case MsSsimWeights::kCustom: return "custom";
+  }
+  return "?";
+}
+
+MsSsimWeights ParseMsSsimWeights(const std::string& name) {
+  if (name == "matlab") return MsSsimWeights::kMatlab;
+  if (name == "wang2003") return MsSsimWeights::kWang2003;
+  throw CompareError(FailureKind::kInvalidInput,
+                     "MS-SSIM weights '" + name + "': expected 'matlab' or 'wang2003'");
+}
+
 std::vector<double> MsSsimScaleWeights(MsSsimWeights kind, int num_scales,
                                        const std::vector<double>& custom) {
   Require(num_scales >= 1, "MS-SSIM: need at least one scale");

@@ -108,8 +108,10 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
   const char* verdict = r.verdict == Verdict::kPass ? "pass" : r.verdict == Verdict::kWarning ? "warning" : "fail";
   html += "<p><b>Verdict: <span class='" + std::string(r.verdict == Verdict::kPass ? "pass" : "fail") +
           "'>" + verdict + "</span></b> &mdash; " + r.message + "</p>";
-  html += "<p>Dynamic range L = " + Fmt(r.data_range) + "; MS-SSIM scales " +
-          std::to_string(r.ms_ssim_scales) + "; CW-SSIM level " + std::to_string(r.cw_ssim_level) +
+  html += "<p>Dynamic range L = " + Fmt(r.data_range) + "; MS-SSIM " +
+          std::to_string(r.ms_ssim_scales) + " scales (" + MsSsimWeightsName(r.ms_ssim.weights) +
+          " weights); CW-SSIM level " + std::to_string(r.cw_ssim_level) + ", " +
+          std::to_string(r.cw_ssim.orientations) + " orientations, K " + Fmt(r.cw_ssim.k) +
           "; registration shift (x, y) = (" + Fmt(r.shift_px[0]) + ", " + Fmt(r.shift_px[1]) +
           ") px; simulation scaled by " + Fmt(r.sim_scale) + ".</p>";
   Montage(r, (d / "montage.png").string());

@@ -143,5 +143,35 @@ TEST(CompareCli, ExitCodes) {
   EXPECT_EQ(Raymatch("compare-scan " + tiny + " " + root + "scan.csv -o " + (dir / "x"), dir).code, 3);
 }
 
+// The multi-scale settings reach the measures and are recorded in the JSON; a setting outside
+// what cwssim_index/multissim accept is a usage error (exit 2) or a failed comparison.
+TEST(CompareCli, MultiscaleSettingsAreUsedAndRecorded) {
+  testing::TempDir dir;
+  const std::string root = std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample/drop46/";
+  const std::string pair = "compare " + root + "drop_z+00um.tif " + root + "drop_z+05um.tif -L 4095 ";
+  ASSERT_EQ(Raymatch(pair + "--json " + (dir / "d.json"), dir).code, 0);
+  ASSERT_EQ(Raymatch(pair + "--ms-ssim-weights wang2003 --ms-ssim-scales 5 --cw-ssim-orientations 8 "
+                            "--cw-ssim-k 0.01 --json " + (dir / "s.json"),
+                     dir).code,
+            0);
+  std::ifstream fd(dir / "d.json"), fs(dir / "s.json");
+  const auto d = nlohmann::json::parse(fd), s = nlohmann::json::parse(fs);
+  EXPECT_EQ(d["ms_ssim"]["weights"], "matlab");
+  EXPECT_EQ(d["ms_ssim"]["scales_used"], 7);  // 160x120: multissim accepts 8 scales
+  EXPECT_EQ(d["cw_ssim"]["orientations"], 16);
+  EXPECT_EQ(s["ms_ssim"]["weights"], "wang2003");
+  EXPECT_EQ(s["ms_ssim"]["scales_used"], 5);
+  EXPECT_NEAR(s["ms_ssim"]["per_scale"][0]["weight"].get<double>(), 0.0448 / 1.0001, 1e-12);
+  EXPECT_EQ(s["cw_ssim"]["orientations"], 8);
+  EXPECT_EQ(s["cw_ssim"]["per_orientation"].size(), 8u);
+  EXPECT_EQ(s["cw_ssim"]["k"], 0.01);
+  EXPECT_NE(s["cw_ssim"]["value"], d["cw_ssim"]["value"]);
+  EXPECT_EQ(Raymatch(pair + "--ms-ssim-weights gaussian", dir).code, 2);
+  EXPECT_EQ(Raymatch(pair + "--cw-ssim-orientations 32", dir).code, 2);
+  const CliRun too_many = Raymatch(pair + "--ms-ssim-scales 9", dir);
+  EXPECT_EQ(too_many.code, 2);
+  EXPECT_NE(too_many.err.find("at most 8"), std::string::npos) << too_many.err;
+}
+
 }  // namespace
 }  // namespace raymatch

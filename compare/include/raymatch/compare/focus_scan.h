@@ -46,8 +46,10 @@ struct FocusScanOptions {
   double data_range = 0;                        ///< L; 0 = the largest pixel of both stacks
   bool register_shift = true;                   ///< sub-pixel phase correlation at the middle plane
   bool normalize_background = true;             ///< scale simulation to the experiment's median
-  int ms_ssim_scales = 0;                       ///< 0 = one below the maximum (paper)
-  int cw_ssim_level = 0;                        ///< 0 = one below the maximum (paper)
+  /// MS-SSIM and CW-SSIM settings; data_range is set by the scan (the L above), and
+  /// num_scales / level 0 mean one below the maximum for the image size (the paper's choice).
+  MsSsimOptions ms_ssim;
+  CwSsimOptions cw_ssim;
   std::vector<Measure> measures = {Measure::kMse, Measure::kSsim, Measure::kMsSsim,
                                    Measure::kCwSsim, Measure::kPoissonChi2};
   /// Measures whose failure fails the test (the paper: MSE, MS-SSIM and CW-SSIM pass, SSIM not).
@@ -71,6 +73,8 @@ struct FocusScanResult {
   std::array<double, 2> shift_px{};   ///< applied to the experiment (x, y)
   double sim_scale = 1;               ///< factor applied to the simulation
   int ms_ssim_scales = 0, cw_ssim_level = 0;
+  MsSsimOptions ms_ssim;              ///< settings used (data_range = L, num_scales resolved)
+  CwSsimOptions cw_ssim;              ///< settings used (data_range = L, level resolved)
   Verdict verdict = Verdict::kFail;
   std::string message;
   std::vector<Image> exp_images, sim_images;  ///< prepared, for reports

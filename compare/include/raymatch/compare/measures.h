@@ -80,6 +80,11 @@ enum class MsSsimWeights {
   kCustom,    ///< MsSsimOptions::custom_weights (normalised to sum 1, as MATLAB does).
 };
 
+/// "matlab", "wang2003" or "custom"; ParseMsSsimWeights() reads the first two back.
+const char* MsSsimWeightsName(MsSsimWeights w);
+/// Throws CompareError(kInvalidInput) listing the accepted names.
+MsSsimWeights ParseMsSsimWeights(const std::string& name);
+
 struct MsSsimOptions {
   double data_range = 0;      ///< L, required (> 0).
   int num_scales = 0;         ///< Number of scales M; 0 = default: MaxMsSsimScales() - 1.

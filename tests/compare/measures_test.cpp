@@ -4,6 +4,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <random>
@@ -76,6 +77,51 @@ TEST(Measures, MoreNoiseIsWorseForEveryMeasure) {
     EXPECT_LT(ms, prev_ms);
     EXPECT_LT(cw, prev_cw);
     EXPECT_NEAR(mse, s * s, 0.1 * s * s);  // Gaussian noise: MSE = sigma^2 (+-10 % for 7680 px)
+    prev_mse = mse, prev_ssim = ssim, prev_ms = ms, prev_cw = cw;
+  }
+}
+
+// Defocus-like blur: a wider Gaussian blur of the same scene raises MSE and lowers every
+// similarity (all structure is lost progressively; no noise, so the order is exact).
+TEST(Measures, MoreBlurIsWorseForEveryMeasure) {
+  const Image a = Scene();
+  auto blur = [&](double sigma) {
+    const int r = int(std::ceil(3 * sigma));
+    std::vector<double> k(2 * r + 1);
+    double ks = 0;
+    for (int i = -r; i <= r; ++i) ks += k[i + r] = std::exp(-i * i / (2 * sigma * sigma));
+    Image tmp = a, out = a;
+    for (int pass = 0; pass < 2; ++pass) {
+      const Image& src = pass == 0 ? a : tmp;
+      Image& dst = pass == 0 ? tmp : out;
+      for (int y = 0; y < a.height; ++y)
+        for (int x = 0; x < a.width; ++x) {
+          double s = 0;
+          for (int i = -r; i <= r; ++i) {
+            const int xx = std::clamp(pass == 0 ? x + i : x, 0, a.width - 1);
+            const int yy = std::clamp(pass == 1 ? y + i : y, 0, a.height - 1);
+            s += k[i + r] * src.at(xx, yy);
+          }
+          dst.at(x, y) = float(s / ks);
+        }
+    }
+    return out;
+  };
+  SsimOptions so;
+  so.data_range = 1000;
+  MsSsimOptions mo;
+  mo.data_range = 1000;
+  CwSsimOptions co;
+  co.data_range = 1000;
+  double prev_mse = 0, prev_ssim = 1, prev_ms = 1, prev_cw = 1;
+  for (double s : {1.0, 2.0, 4.0}) {
+    const Image b = blur(s);
+    const double mse = MeanSquaredError(a, b), ssim = Ssim(a, b, so).ssim,
+                 ms = MsSsim(a, b, mo).ms_ssim, cw = CwSsim(a, b, co).cw_ssim;
+    EXPECT_GT(mse, prev_mse) << "blur sigma " << s;
+    EXPECT_LT(ssim, prev_ssim) << "blur sigma " << s;
+    EXPECT_LT(ms, prev_ms) << "blur sigma " << s;
+    EXPECT_LT(cw, prev_cw) << "blur sigma " << s;
     prev_mse = mse, prev_ssim = ssim, prev_ms = ms, prev_cw = cw;
   }
 }

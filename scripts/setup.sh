@@ -14,7 +14,7 @@ PACKAGES=(
   libceres-dev  # calibration fits
   libmrcal-dev  # light field from mrcal .cameramodel files (optional in CMake)
   libgtest-dev libgmock-dev libbenchmark-dev
-  python3 python3-numpy python3-skimage python3-tifffile
+  python3 python3-numpy python3-scipy python3-skimage python3-tifffile  # test references
 )
 
 missing=()

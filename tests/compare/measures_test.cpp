@@ -179,33 +179,50 @@ double InteriorMean(const Image& map, int border) {
   return sum / n;
 }
 
+/// Runs a Python reference script and reads the numbers it prints (one line).
+std::vector<double> RunReference(const std::string& script, const std::string& args) {
+  const std::string cmd = "/usr/bin/python3 " + std::string(RAYMATCH_SOURCE_DIR) +
+                          "/tests/compare/" + script + " " + args;
+  FILE* p = popen(cmd.c_str(), "r");
+  std::vector<double> out;
+  if (!p) return out;
+  double v = 0;
+  while (std::fscanf(p, "%lf", &v) == 1) out.push_back(v);
+  pclose(p);
+  return out;
+}
+
 // Against independent implementations, to 1e-6 (both compute in double; float inputs).
 TEST(Measures, AgreesWithScikitImageAndMatlabStyleReference) {
   if (std::system("/usr/bin/python3 -c 'import skimage, scipy, tifffile' 2>/dev/null") != 0)
     GTEST_SKIP() << "python3-skimage not installed";
   testing::TempDir dir;
-  const std::string script = std::string(RAYMATCH_SOURCE_DIR) + "/tests/compare/reference_ssim.py";
   int pair = 0;
-  for (double noise : {10.0, 80.0}) {
-    const Image a = Scene(), b = Noisy(Scene(96, 80, 0.7), noise, 7 + pair);
+  struct Pair {
+    int w, h;
+    double noise;
+  };
+  for (const Pair& c : {Pair{96, 80, 10.0}, Pair{96, 80, 80.0}, Pair{97, 83, 30.0}}) {
+    const double noise = c.noise;
+    const Image a = Scene(c.w, c.h), b = Noisy(Scene(c.w, c.h, 0.7), noise, 7 + pair);
     WriteFloatImage(dir / "a.tif", a, "");
     WriteFloatImage(dir / "b.tif", b, "");
     const double L = 1000;
     MsSsimOptions mo;
     mo.data_range = L;
     const MsSsimResult ms = MsSsim(a, b, mo);
-    const std::string cmd = "/usr/bin/python3 " + script + " " + (dir / "a.tif") + " " +
-                            (dir / "b.tif") + " 1000 " + std::to_string(ms.num_scales);
-    FILE* p = popen(cmd.c_str(), "r");
-    ASSERT_TRUE(p);
-    double sk = 0, matlab = 0, msref = 0;
-    ASSERT_EQ(std::fscanf(p, "%lf %lf %lf", &sk, &matlab, &msref), 3);
-    pclose(p);
+    const std::vector<double> ref =
+        RunReference("reference_ssim.py", (dir / "a.tif") + " " + (dir / "b.tif") + " 1000 " +
+                                              std::to_string(ms.num_scales));
+    ASSERT_EQ(ref.size(), 3u);
+    const double sk = ref[0], matlab = ref[1], msref = ref[2];
     SsimOptions so;
     so.data_range = L;
     so.keep_map = true;
     const SsimResult s = Ssim(a, b, so);
-    EXPECT_NEAR(InteriorMean(s.map, 5), sk, 1e-6) << "noise " << noise;  // map stored as float: ~1e-7
+    SCOPED_TRACE(::testing::Message() << c.w << "x" << c.h << ", noise " << noise << ", "
+                                      << ms.num_scales << " MS-SSIM scales");
+    EXPECT_NEAR(InteriorMean(s.map, 5), sk, 1e-6);  // map stored as float: ~1e-7
     EXPECT_NEAR(s.ssim, matlab, 1e-6);
     EXPECT_NEAR(ms.ms_ssim, msref, 1e-6);
     ++pair;
@@ -247,19 +264,6 @@ TEST(Measures, MsSsimMatchesMatlabMultissim) {
   EXPECT_NO_THROW(run(6, 255, 1.5, kGauss));
   EXPECT_THROW(run(7, 255, 1.5, kGauss), CompareError);  // multissim: "too many scales"
   EXPECT_THROW(run(20, 255, 1.5, kGauss), CompareError);
-}
-
-/// Runs a Python reference script and reads the numbers it prints (one line).
-std::vector<double> RunReference(const std::string& script, const std::string& args) {
-  const std::string cmd = "/usr/bin/python3 " + std::string(RAYMATCH_SOURCE_DIR) +
-                          "/tests/compare/" + script + " " + args;
-  FILE* p = popen(cmd.c_str(), "r");
-  std::vector<double> out;
-  if (!p) return out;
-  double v = 0;
-  while (std::fscanf(p, "%lf", &v) == 1) out.push_back(v);
-  pclose(p);
-  return out;
 }
 
 // CW-SSIM against tests/compare/reference_cwssim.py, an independent implementation organised

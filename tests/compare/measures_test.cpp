@@ -59,26 +59,44 @@ TEST(Measures, IdenticalImages) {
   EXPECT_NEAR(CwSsim(a, a, co).cw_ssim, 1.0, 1e-12);
 }
 
-TEST(Measures, MoreNoiseIsWorseForEveryMeasure) {
-  const Image a = Scene();
+/// MSE, SSIM, MS-SSIM and CW-SSIM between a and b (L = 1000, defaults otherwise).
+struct AllMeasures {
+  double mse, ssim, ms_ssim, cw_ssim;
+};
+AllMeasures MeasureAll(const Image& a, const Image& b) {
   SsimOptions so;
   so.data_range = 1000;
   MsSsimOptions mo;
   mo.data_range = 1000;
   CwSsimOptions co;
   co.data_range = 1000;
-  double prev_mse = 0, prev_ssim = 1, prev_ms = 1, prev_cw = 1;
-  for (double s : {5.0, 20.0, 60.0}) {
-    const Image b = Noisy(a, s, 3);
-    const double mse = MeanSquaredError(a, b), ssim = Ssim(a, b, so).ssim,
-                 ms = MsSsim(a, b, mo).ms_ssim, cw = CwSsim(a, b, co).cw_ssim;
-    EXPECT_GT(mse, prev_mse);
-    EXPECT_LT(ssim, prev_ssim);
-    EXPECT_LT(ms, prev_ms);
-    EXPECT_LT(cw, prev_cw);
-    EXPECT_NEAR(mse, s * s, 0.1 * s * s);  // Gaussian noise: MSE = sigma^2 (+-10 % for 7680 px)
-    prev_mse = mse, prev_ssim = ssim, prev_ms = ms, prev_cw = cw;
+  return {MeanSquaredError(a, b), Ssim(a, b, so).ssim, MsSsim(a, b, mo).ms_ssim,
+          CwSsim(a, b, co).cw_ssim};
+}
+
+/// Every image in `worse` must be further from `a` than the one before it by every measure.
+std::vector<AllMeasures> ExpectEveryMeasureWorsens(const Image& a, const std::vector<Image>& worse) {
+  std::vector<AllMeasures> all;
+  AllMeasures prev{0, 1, 1, 1};
+  for (size_t i = 0; i < worse.size(); ++i) {
+    const AllMeasures m = MeasureAll(a, worse[i]);
+    EXPECT_GT(m.mse, prev.mse) << "step " << i;
+    EXPECT_LT(m.ssim, prev.ssim) << "step " << i;
+    EXPECT_LT(m.ms_ssim, prev.ms_ssim) << "step " << i;
+    EXPECT_LT(m.cw_ssim, prev.cw_ssim) << "step " << i;
+    all.push_back(prev = m);
   }
+  return all;
+}
+
+TEST(Measures, MoreNoiseIsWorseForEveryMeasure) {
+  const Image a = Scene();
+  const std::vector<double> sigmas = {5.0, 20.0, 60.0};
+  std::vector<Image> noisy;
+  for (double s : sigmas) noisy.push_back(Noisy(a, s, 3));
+  const std::vector<AllMeasures> m = ExpectEveryMeasureWorsens(a, noisy);
+  for (size_t i = 0; i < sigmas.size(); ++i)  // Gaussian noise: MSE = sigma^2 (+-10 % for 7680 px)
+    EXPECT_NEAR(m[i].mse, sigmas[i] * sigmas[i], 0.1 * sigmas[i] * sigmas[i]);
 }
 
 // Defocus-like blur: a wider Gaussian blur of the same scene raises MSE and lowers every
@@ -91,7 +109,7 @@ TEST(Measures, MoreBlurIsWorseForEveryMeasure) {
     double ks = 0;
     for (int i = -r; i <= r; ++i) ks += k[i + r] = std::exp(-i * i / (2 * sigma * sigma));
     Image tmp = a, out = a;
-    for (int pass = 0; pass < 2; ++pass) {
+    for (int pass = 0; pass < 2; ++pass) {  // rows, then columns; replicate at the edges
       const Image& src = pass == 0 ? a : tmp;
       Image& dst = pass == 0 ? tmp : out;
       for (int y = 0; y < a.height; ++y)
@@ -107,23 +125,7 @@ TEST(Measures, MoreBlurIsWorseForEveryMeasure) {
     }
     return out;
   };
-  SsimOptions so;
-  so.data_range = 1000;
-  MsSsimOptions mo;
-  mo.data_range = 1000;
-  CwSsimOptions co;
-  co.data_range = 1000;
-  double prev_mse = 0, prev_ssim = 1, prev_ms = 1, prev_cw = 1;
-  for (double s : {1.0, 2.0, 4.0}) {
-    const Image b = blur(s);
-    const double mse = MeanSquaredError(a, b), ssim = Ssim(a, b, so).ssim,
-                 ms = MsSsim(a, b, mo).ms_ssim, cw = CwSsim(a, b, co).cw_ssim;
-    EXPECT_GT(mse, prev_mse) << "blur sigma " << s;
-    EXPECT_LT(ssim, prev_ssim) << "blur sigma " << s;
-    EXPECT_LT(ms, prev_ms) << "blur sigma " << s;
-    EXPECT_LT(cw, prev_cw) << "blur sigma " << s;
-    prev_mse = mse, prev_ssim = ssim, prev_ms = ms, prev_cw = cw;
-  }
+  ExpectEveryMeasureWorsens(a, {blur(1.0), blur(2.0), blur(4.0)});
 }
 
 // CW-SSIM is designed to tolerate small translations (Sampat 2009): a 1-pixel shift costs it

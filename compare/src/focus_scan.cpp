@@ -234,11 +234,11 @@ FocusScanResult RunFocusScan(const Stack& exp, const Stack& sim, const FocusScan
   const int ms_max = MaxMsSsimScales(e0.width, e0.height);
   MsSsimOptions mo = o.ms_ssim;
   mo.data_range = L;
-  mo.num_scales = r.ms_ssim_scales = mo.num_scales > 0 ? mo.num_scales : std::max(1, ms_max - 1);
+  mo.num_scales = mo.num_scales > 0 ? mo.num_scales : std::max(1, ms_max - 1);
   const int cw_max = MaxCwSsimLevel(e0.width, e0.height);
   CwSsimOptions cwo = o.cw_ssim;
   cwo.data_range = L;
-  cwo.level = r.cw_ssim_level = cwo.level > 0 ? cwo.level : std::max(1, cw_max - 1);
+  cwo.level = cwo.level > 0 ? cwo.level : std::max(1, cw_max - 1);
   r.ms_ssim = mo;
   r.cw_ssim = cwo;
   const size_t ne = r.exp_images.size(), ns = r.sim_images.size();
@@ -316,10 +316,10 @@ nlohmann::json FocusScanResult::ToJson() const {
           {"data_range", data_range},
           {"registration_shift_px", shift_px},
           {"simulation_scale", sim_scale},
-          {"ms_ssim_scales", ms_ssim_scales},
+          {"ms_ssim_scales", ms_ssim.num_scales},
           {"ms_ssim_weights", MsSsimWeightsName(ms_ssim.weights)},
           {"ms_ssim_sigma_px", ms_ssim.sigma},
-          {"cw_ssim_level", cw_ssim_level},
+          {"cw_ssim_level", cw_ssim.level},
           {"cw_ssim_orientations", cw_ssim.orientations},
           {"cw_ssim_k", cw_ssim.k},
           {"experiment_defocus_um", exp_defocus_um},

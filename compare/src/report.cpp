@@ -109,8 +109,8 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
   html += "<p><b>Verdict: <span class='" + std::string(r.verdict == Verdict::kPass ? "pass" : "fail") +
           "'>" + verdict + "</span></b> &mdash; " + r.message + "</p>";
   html += "<p>Dynamic range L = " + Fmt(r.data_range) + "; MS-SSIM " +
-          std::to_string(r.ms_ssim_scales) + " scales (" + MsSsimWeightsName(r.ms_ssim.weights) +
-          " weights); CW-SSIM level " + std::to_string(r.cw_ssim_level) + ", " +
+          std::to_string(r.ms_ssim.num_scales) + " scales (" + MsSsimWeightsName(r.ms_ssim.weights) +
+          " weights); CW-SSIM level " + std::to_string(r.cw_ssim.level) + ", " +
           std::to_string(r.cw_ssim.orientations) + " orientations, K " + Fmt(r.cw_ssim.k) +
           "; registration shift (x, y) = (" + Fmt(r.shift_px[0]) + ", " + Fmt(r.shift_px[1]) +
           ") px; simulation scaled by " + Fmt(r.sim_scale) + ".</p>";

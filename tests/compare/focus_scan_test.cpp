@@ -58,8 +58,8 @@ TEST(FocusScan, SyntheticScanPassesAndRecoversTheShift) {
   EXPECT_EQ(r.verdict, Verdict::kPass);
   EXPECT_NEAR(r.shift_px[0], -1.6, 0.1);
   EXPECT_NEAR(r.sim_scale, 2.0, 0.05);
-  EXPECT_EQ(r.ms_ssim_scales, MaxMsSsimScales(80, 64) - 1);
-  EXPECT_EQ(r.cw_ssim_level, MaxCwSsimLevel(80, 64) - 1);
+  EXPECT_EQ(r.ms_ssim.num_scales, MaxMsSsimScales(80, 64) - 1);
+  EXPECT_EQ(r.cw_ssim.level, MaxCwSsimLevel(80, 64) - 1);
   for (const MeasureScan& m : r.measures)
     for (const auto& row : m.matrix)
       for (double v : row) EXPECT_TRUE(std::isfinite(v));

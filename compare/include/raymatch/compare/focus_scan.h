@@ -72,7 +72,6 @@ struct FocusScanResult {
   double data_range = 0;
   std::array<double, 2> shift_px{};   ///< applied to the experiment (x, y)
   double sim_scale = 1;               ///< factor applied to the simulation
-  int ms_ssim_scales = 0, cw_ssim_level = 0;
   MsSsimOptions ms_ssim;              ///< settings used (data_range = L, num_scales resolved)
   CwSsimOptions cw_ssim;              ///< settings used (data_range = L, level resolved)
   Verdict verdict = Verdict::kFail;

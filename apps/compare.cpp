@@ -16,7 +16,6 @@ struct CompareCliOptions {
   double data_range = 0;
   compare::MsSsimOptions ms;
   compare::CwSsimOptions cw;
-  std::string ms_weights = "matlab";
   double fail_below = -1;  // MS-SSIM threshold for exit code 2
 };
 
@@ -37,7 +36,6 @@ int RunCompare(const CompareCliOptions& o) {
   so.data_range = L;
   compare::MsSsimOptions mo = o.ms;
   mo.data_range = L;
-  mo.weights = compare::ParseMsSsimWeights(o.ms_weights);
   compare::CwSsimOptions co = o.cw;
   co.data_range = L;
   const auto ssim = compare::Ssim(a, b, so);
@@ -78,7 +76,7 @@ void RegisterCompare(CLI::App& app, int* exit_code) {
   sub->add_option("-L,--data-range", o->data_range,
                   "Dynamic range L in pixel units (e.g. 4095 for 12-bit data in 16-bit files)")
       ->required()->check(CLI::PositiveNumber);
-  AddMultiscaleOptions(sub, &o->ms, &o->cw, &o->ms_weights);
+  AddMultiscaleOptions(sub, &o->ms, &o->cw);
   sub->add_option("--json", o->json, "Also write the JSON to this file");
   sub->add_option("--fail-below", o->fail_below, "Exit 2 when MS-SSIM is below this value");
   sub->callback([o, exit_code] { *exit_code = RunCompareGuarded([&] { return RunCompare(*o); }); });

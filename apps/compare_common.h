@@ -3,6 +3,7 @@
 #include <CLI/CLI.hpp>
 #include <functional>
 #include <iostream>
+#include <map>
 #include <string>
 
 #include "raymatch/compare/measures.h"
@@ -11,17 +12,21 @@ namespace raymatch::apps {
 
 enum CompareExit { kOk = 0, kWarn = 1, kFail = 2, kSizeMismatch = 3, kFileError = 4 };
 
-/// The MS-SSIM and CW-SSIM settings both subcommands take. `weights` receives the name for
-/// --ms-ssim-weights; pass it to compare::ParseMsSsimWeights() after parsing.
+/// The MS-SSIM and CW-SSIM settings both subcommands take.
 inline void AddMultiscaleOptions(CLI::App* sub, compare::MsSsimOptions* ms,
-                                 compare::CwSsimOptions* cw, std::string* weights) {
+                                 compare::CwSsimOptions* cw) {
+  using compare::MsSsimWeights;
+  const std::map<std::string, MsSsimWeights> weight_names = {
+      {compare::MsSsimWeightsName(MsSsimWeights::kMatlab), MsSsimWeights::kMatlab},
+      {compare::MsSsimWeightsName(MsSsimWeights::kWang2003), MsSsimWeights::kWang2003}};
   sub->add_option("--ms-ssim-scales", ms->num_scales,
                   "MS-SSIM scales M (default: one below the most multissim accepts for the size)");
-  sub->add_option("--ms-ssim-weights", *weights,
+  sub->add_option("--ms-ssim-weights", ms->weights,
                   "MS-SSIM scale weights: matlab = multissim's fspecial('gaussian',[1 M],1), "
                   "wang2003 = [0.0448 0.2856 0.3001 0.2363 0.1333] (M <= 5)")
-      ->check(CLI::IsMember({"matlab", "wang2003"}))
-      ->capture_default_str();
+      ->transform(CLI::CheckedTransformer(weight_names).description(""))
+      ->type_name("{matlab,wang2003}")
+      ->default_str("matlab");
   sub->add_option("--ms-ssim-sigma", ms->sigma, "Gaussian window sigma in pixels (MS-SSIM)")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();

@@ -14,7 +14,6 @@ struct ScanCliOptions {
   compare::FocusScanOptions scan;
   std::vector<int> roi;
   bool no_register = false, no_normalize = false;
-  std::string ms_weights = "matlab";
 };
 
 int RunScanCompare(ScanCliOptions o) {
@@ -23,7 +22,6 @@ int RunScanCompare(ScanCliOptions o) {
       throw compare::CompareError(compare::FailureKind::kInvalidInput, "--roi needs x,y,width,height");
     o.scan.prepare.roi = std::array<int, 4>{o.roi[0], o.roi[1], o.roi[2], o.roi[3]};
   }
-  o.scan.ms_ssim.weights = compare::ParseMsSsimWeights(o.ms_weights);
   o.scan.register_shift = !o.no_register;
   o.scan.normalize_background = !o.no_normalize;
   const compare::Stack e = compare::ReadStack(o.experiment);
@@ -61,7 +59,7 @@ void RegisterCompareScan(CLI::App& app, int* exit_code) {
   sub->add_option("--roi", o->roi, "Crop x,y,width,height (pixels) before comparing")->delimiter(',');
   sub->add_option("-L,--data-range", o->scan.data_range,
                   "Dynamic range L in photons (default: the largest pixel of both stacks)");
-  AddMultiscaleOptions(sub, &o->scan.ms_ssim, &o->scan.cw_ssim, &o->ms_weights);
+  AddMultiscaleOptions(sub, &o->scan.ms_ssim, &o->scan.cw_ssim);
   sub->add_flag("--no-register", o->no_register, "Skip sub-pixel registration");
   sub->add_flag("--no-normalize", o->no_normalize, "Do not scale the simulation to the experiment's background");
   sub->callback([o, exit_code] { *exit_code = RunCompareGuarded([&] { return RunScanCompare(*o); }); });

@@ -267,11 +267,15 @@ CwSsimResult CwSsimFromBands(const CwSsimBands& a, const CwSsimBands& b, const C
   return r;
 }
 
+int CwSsimLevelFor(const CwSsimOptions& o, int width, int height) {
+  return o.level > 0 ? o.level : std::max(1, MaxCwSsimLevel(width, height) - 1);
+}
+
 CwSsimResult CwSsim(const Image& a, const Image& b, const CwSsimOptions& o) {
   o.Validate();
   CheckComparable(a, b, "CW-SSIM");
   const int max_level = MaxCwSsimLevel(a.width, a.height);
-  const int level = o.level > 0 ? o.level : std::max(1, max_level - 1);
+  const int level = CwSsimLevelFor(o, a.width, a.height);
   return CwSsimFromBands(ComputeCwSsimBands(a, o, level), ComputeCwSsimBands(b, o, level), o,
                          level, max_level);
 }

@@ -231,14 +231,13 @@ FocusScanResult RunFocusScan(const Stack& exp, const Stack& sim, const FocusScan
   }
   if (!(L > 0)) throw CompareError(FailureKind::kInvalidInput, "all images are blank");
   r.data_range = L;
-  const int ms_max = MaxMsSsimScales(e0.width, e0.height);
   MsSsimOptions mo = o.ms_ssim;
   mo.data_range = L;
-  mo.num_scales = mo.num_scales > 0 ? mo.num_scales : std::max(1, ms_max - 1);
+  mo.num_scales = MsSsimScalesFor(mo, e0.width, e0.height);
   const int cw_max = MaxCwSsimLevel(e0.width, e0.height);
   CwSsimOptions cwo = o.cw_ssim;
   cwo.data_range = L;
-  cwo.level = cwo.level > 0 ? cwo.level : std::max(1, cw_max - 1);
+  cwo.level = CwSsimLevelFor(cwo, e0.width, e0.height);
   r.ms_ssim = mo;
   r.cw_ssim = cwo;
   const size_t ne = r.exp_images.size(), ns = r.sim_images.size();

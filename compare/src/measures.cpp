@@ -163,11 +163,9 @@ const char* MsSsimWeightsName(MsSsimWeights w) {
   return "?";
 }
 
-MsSsimWeights ParseMsSsimWeights(const std::string& name) {
-  if (name == "matlab") return MsSsimWeights::kMatlab;
-  if (name == "wang2003") return MsSsimWeights::kWang2003;
-  throw CompareError(FailureKind::kInvalidInput,
-                     "MS-SSIM weights '" + name + "': expected 'matlab' or 'wang2003'");
+int MsSsimScalesFor(const MsSsimOptions& options, int width, int height) {
+  return options.num_scales > 0 ? options.num_scales
+                                : std::max(1, MaxMsSsimScales(width, height) - 1);
 }
 
 std::vector<double> MsSsimScaleWeights(MsSsimWeights kind, int num_scales,
@@ -214,7 +212,7 @@ MsSsimResult MsSsim(const Image& a, const Image& b, const MsSsimOptions& options
   CheckComparable(a, b, "MS-SSIM");
   MsSsimResult r;
   r.max_scales = MaxMsSsimScales(a.width, a.height);
-  r.num_scales = options.num_scales > 0 ? options.num_scales : std::max(1, r.max_scales - 1);
+  r.num_scales = MsSsimScalesFor(options, a.width, a.height);
   Require(r.num_scales <= r.max_scales,
           "MS-SSIM: " + std::to_string(r.num_scales) + " scales are too many for a " +
               SizeText(a) + " image (at most " + std::to_string(r.max_scales) +

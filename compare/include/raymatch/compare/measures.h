@@ -80,10 +80,8 @@ enum class MsSsimWeights {
   kCustom,    ///< MsSsimOptions::custom_weights (normalised to sum 1, as MATLAB does).
 };
 
-/// "matlab", "wang2003" or "custom"; ParseMsSsimWeights() reads the first two back.
+/// "matlab", "wang2003" or "custom" (the names --ms-ssim-weights takes and the JSON records).
 const char* MsSsimWeightsName(MsSsimWeights w);
-/// Throws CompareError(kInvalidInput) listing the accepted names.
-MsSsimWeights ParseMsSsimWeights(const std::string& name);
 
 struct MsSsimOptions {
   double data_range = 0;      ///< L, required (> 0).
@@ -115,6 +113,10 @@ struct MsSsimResult {
 /// ceil(log2(min(width, height))) + 1; 1 for a 1-pixel-wide image. The coarsest scales are
 /// then tiny (1-2 pixels), which is why the paper's default is one scale fewer.
 int MaxMsSsimScales(int width, int height);
+
+/// The number of scales MsSsim() uses for this size: options.num_scales, or for 0 one below
+/// MaxMsSsimScales() (the paper's choice), at least 1.
+int MsSsimScalesFor(const MsSsimOptions& options, int width, int height);
 
 /// The MS-SSIM weights for M scales (normalised to sum 1).
 std::vector<double> MsSsimScaleWeights(MsSsimWeights kind, int num_scales,
@@ -160,6 +162,10 @@ struct CwSsimResult {
 
 /// floor(log2(min(width, height))) - 2, as maxPyrHt() for buildSCFpyr; at least 1.
 int MaxCwSsimLevel(int width, int height);
+
+/// The level CwSsim() uses for this size: options.level, or for 0 one below MaxCwSsimLevel()
+/// (the paper's choice), at least 1.
+int CwSsimLevelFor(const CwSsimOptions& options, int width, int height);
 
 /// CW-SSIM between two images: per orientation, the local index
 /// (2 |sum c1 c2*| + K) / (sum |c1|^2 + |c2|^2 + K) over every window x window block lying

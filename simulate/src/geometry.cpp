@@ -120,6 +120,8 @@ Geometry::Geometry(const std::vector<ObjectSpec>& objects) {
     eps_.push_back((o.shape == ShapeType::kMesh ? kMeshEpsilon : kAnalyticEpsilon) *
                    std::max(size, Length(o.center_um) * 1e-3 + size));
     extent_um_ = std::max(extent_um_, Length(o.center_um) + size);
+    bound_center_.push_back(o.center_um);
+    bound_radius_.push_back(size);
     if (o.shape != ShapeType::kMesh) min_z = std::min(min_z, o.center_um.z - size);
   }
   min_z_um_ = objects.empty() ? 0 : min_z;

@@ -436,8 +436,9 @@ SourceSpec CalibratedSource(const CalibrationData& c, const std::string& file) {
 
 double Magnification(const OpticsSpec& o) { return -o.tube_focal_mm / o.objective_focal_mm; }
 
-Scene LoadScene(const std::string& path) {
-  toml::table t = ParseTomlFile(path);
+Scene LoadScene(const std::string& path) { return LoadScene(ParseTomlFile(path), path); }
+
+Scene LoadScene(const toml::table& t, const std::string& path) {
   Scene s;
   s.file = path;
   TomlReader r(t, path, "");

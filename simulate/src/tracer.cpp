@@ -172,6 +172,17 @@ struct Optics {
   int nx = 0, ny = 0;
 };
 
+}  // namespace
+
+// Which of a plane's rays to trace: all of [0, n), a list of indices, or all but a sorted list.
+struct RaySelection {
+  const uint64_t* list = nullptr;
+  const uint64_t* skip = nullptr;
+  size_t skip_count = 0;
+};
+
+namespace {
+
 // Per-thread accumulation: integer counts, so sums do not depend on the partition.
 struct Accum {
   std::vector<uint32_t> image;
@@ -471,12 +482,22 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
 
 template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
 void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
-                double defocus, uint32_t plane, uint64_t begin, uint64_t end, Accum& acc) {
+                double defocus, uint32_t plane, uint64_t begin, uint64_t end,
+                const RaySelection& sel, Accum& acc) {
   const Geometry& geo = im.geometry;
   const Optics& op = im.optics;
   const bool has_objects = !geo.empty();
   TraceCounters& c = acc.counters;
-  for (uint64_t ray = begin; ray < end; ++ray) {
+  // Rays to leave out (ascending): the first one at or after this range.
+  const uint64_t* skip = sel.skip ? std::lower_bound(sel.skip, sel.skip + sel.skip_count, begin) : nullptr;
+  const uint64_t* skip_end = sel.skip ? sel.skip + sel.skip_count : nullptr;
+  for (uint64_t i = begin; i < end; ++i) {
+    // A subset of the plane's rays keeps each ray's own stream (TraceRays, TracePlaneExcept).
+    const uint64_t ray = sel.list ? sel.list[i] : i;
+    if (skip != skip_end && *skip == ray) {
+      ++skip;
+      continue;
+    }
     RayRng rng(trace.seed, plane, ray);
     Vec3 p, d;
     if (!src.Sample(rng, &p, &d)) {
@@ -630,9 +651,12 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
   for (double dz : scene.defocus_um) max_dz = std::max(max_dz, std::abs(dz));
   const double tan_max = std::tan(std::min(scene.source.half_angle_deg, 80.0) * kDeg) +
                          std::tan(std::asin(scene.optics.na));
-  const double auto_r = 1.05 * (view + (max_dz + im.geometry.extent_um()) * tan_max) + 1.0;
+  const double auto_r_objects = 1.05 * (view + (max_dz + im.geometry.extent_um()) * tan_max) + 1.0;
   const SourceSpec& ss = scene.source;
-  im.field_radius_um = ss.field_radius_um > 0 ? ss.field_radius_um : auto_r;
+  im.field_radius_um = ss.field_radius_um > 0 ? ss.field_radius_um : auto_r_objects;
+  // A given radius also bounds how far a measured spatial map is continued, so a fit that fixes
+  // it gets the same rays whatever the objects' extent.
+  const double auto_r = im.field_radius_um;
   switch (ss.type) {
     case SourceType::kCollimated: {
       const double t = ss.tilt_deg * kDeg, a = ss.azimuth_deg * kDeg;
@@ -697,6 +721,25 @@ std::vector<std::string> Simulator::Effects() const {
 
 PlaneResult Simulator::TracePlane(double defocus_um, uint32_t plane_index, uint64_t rays,
                                   const RunControl& control) const {
+  return Trace(defocus_um, plane_index, rays, {}, control);
+}
+
+PlaneResult Simulator::TracePlaneExcept(double defocus_um, uint32_t plane_index, uint64_t rays,
+                                        const std::vector<uint64_t>& excluded,
+                                        const RunControl& control) const {
+  RAYMATCH_CHECK(std::is_sorted(excluded.begin(), excluded.end()));
+  return Trace(defocus_um, plane_index, rays, {nullptr, excluded.data(), excluded.size()}, control);
+}
+
+PlaneResult Simulator::TraceRays(double defocus_um, uint32_t plane_index,
+                                 const std::vector<uint64_t>& ray_indices,
+                                 const RunControl& control) const {
+  return Trace(defocus_um, plane_index, ray_indices.size(), {ray_indices.data(), nullptr, 0},
+               control);
+}
+
+PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t rays,
+                             const RaySelection& sel, const RunControl& control) const {
   const Impl& im = *impl_;
   int threads = control.threads > 0 ? control.threads : scene_.trace.threads;
   if (threads <= 0) threads = static_cast<int>(std::thread::hardware_concurrency());
@@ -725,13 +768,13 @@ PlaneResult Simulator::TracePlane(double defocus_um, uint32_t plane_index, uint6
         [&](const auto& src) {
           auto dispatch = [&]<PartialReflection P>() {
             if (corr && mesh)
-              TraceRange<P, true, true>(im, src, ts, defocus_um, plane_index, b, e, acc);
+              TraceRange<P, true, true>(im, src, ts, defocus_um, plane_index, b, e, sel, acc);
             else if (corr)
-              TraceRange<P, true, false>(im, src, ts, defocus_um, plane_index, b, e, acc);
+              TraceRange<P, true, false>(im, src, ts, defocus_um, plane_index, b, e, sel, acc);
             else if (mesh)
-              TraceRange<P, false, true>(im, src, ts, defocus_um, plane_index, b, e, acc);
+              TraceRange<P, false, true>(im, src, ts, defocus_um, plane_index, b, e, sel, acc);
             else
-              TraceRange<P, false, false>(im, src, ts, defocus_um, plane_index, b, e, acc);
+              TraceRange<P, false, false>(im, src, ts, defocus_um, plane_index, b, e, sel, acc);
           };
           switch (pr) {
             case PartialReflection::kOff:
@@ -762,6 +805,8 @@ PlaneResult Simulator::TracePlane(double defocus_um, uint32_t plane_index, uint6
   PlaneResult res;
   res.defocus_um = defocus_um;
   res.rays = rays;
+  if (sel.skip)  // the listed rays below `rays` were left out
+    res.rays -= std::lower_bound(sel.skip, sel.skip + sel.skip_count, rays) - sel.skip;
   res.threads = threads;
   std::vector<uint64_t> sum(npix, 0);
   for (const Accum& a : accums) {
@@ -771,7 +816,7 @@ PlaneResult Simulator::TracePlane(double defocus_um, uint32_t plane_index, uint6
   res.counts = Image(scene_.camera.nx, scene_.camera.ny);
   for (size_t i = 0; i < npix; ++i) res.counts.pixels[i] = static_cast<float>(sum[i]);
   res.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  RAYMATCH_CHECK(res.counters.total_fates() == rays);  // every ray accounted for
+  RAYMATCH_CHECK(res.counters.total_fates() == res.rays);  // every ray accounted for
   return res;
 }
 
@@ -820,6 +865,51 @@ uint64_t Simulator::RaysForPhotonTarget(double photons_per_pixel, double* hppr) 
     throw Error(FileLocation{scene_.file},
                 "no light reaches the sensor in the flat field: check source field, NA and camera");
   return static_cast<uint64_t>(std::ceil(photons_per_pixel / per_ray_per_pixel));
+}
+
+void Simulator::SplitRaysBySphere(uint32_t plane_index, uint64_t rays, const Vec3& center_um,
+                                  double radius_um, std::vector<uint64_t>* near,
+                                  std::vector<uint64_t>* far) const {
+  const Impl& im = *impl_;
+  const double r2 = radius_um * radius_um;
+  constexpr uint64_t kChunk = 65536;
+  const uint64_t chunks = (rays + kChunk - 1) / kChunk;
+  // Per-chunk lists joined in chunk order: the result does not depend on the thread count.
+  std::vector<std::vector<uint64_t>> near_c(chunks), far_c(chunks);
+  tbb::parallel_for(uint64_t(0), chunks, [&](uint64_t ci) {
+    const uint64_t b = ci * kChunk, e = std::min(rays, b + kChunk);
+    std::visit(
+        [&](const auto& src) {
+          for (uint64_t ray = b; ray < e; ++ray) {
+            RayRng rng(scene_.trace.seed, plane_index, ray);
+            Vec3 p, d;
+            // A ray the source rejects ends at once (escaped) in either list.
+            const bool ok = src.Sample(rng, &p, &d);
+            bool is_near = false;
+            if (ok) {
+              // Distance from the centre to the straight line through p along unit d.
+              const Vec3 w = center_um - p;
+              const double t = Dot(w, d);
+              is_near = Dot(w, w) - t * t <= r2;
+            }
+            (is_near ? near_c[ci] : far_c[ci]).push_back(ray);
+          }
+        },
+        im.source);
+  });
+  for (uint64_t ci = 0; ci < chunks; ++ci) {
+    if (near) near->insert(near->end(), near_c[ci].begin(), near_c[ci].end());
+    if (far) far->insert(far->end(), far_c[ci].begin(), far_c[ci].end());
+  }
+}
+
+double Simulator::field_radius_um() const { return impl_->field_radius_um; }
+
+std::vector<std::pair<Vec3, double>> Simulator::ObjectBounds() const {
+  std::vector<std::pair<Vec3, double>> b;
+  for (size_t i = 0; i < scene_.objects.size(); ++i)
+    b.push_back({impl_->geometry.bound_center(int(i)), impl_->geometry.bound_radius(int(i))});
+  return b;
 }
 
 uint64_t Simulator::RaysPerImage() const {

@@ -59,6 +59,9 @@ class Geometry {
   /// Largest distance of any object point from the origin (for automatic field sizes).
   double extent_um() const { return extent_um_; }
   double min_z_um() const { return min_z_um_; }
+  /// A bounding sphere of object i (centre and radius, micrometres).
+  const Vec3& bound_center(int object) const { return bound_center_[object]; }
+  double bound_radius(int object) const { return bound_radius_[object]; }
 
  private:
   bool IntersectMesh(const Vec3& o, const Vec3& d, Hit* hit) const;
@@ -73,6 +76,8 @@ class Geometry {
   void* device_ = nullptr;  // RTCDevice
   void* scene_ = nullptr;   // RTCScene
   double extent_um_ = 0, min_z_um_ = 0;
+  std::vector<Vec3> bound_center_;
+  std::vector<double> bound_radius_;
 };
 
 // ---- inline analytic intersections (hot path) ----

@@ -11,6 +11,8 @@
 #include <string>
 #include <vector>
 
+#include <toml++/toml.h>
+
 #include "raymatch/core/error.h"
 #include "raymatch/core/image.h"
 #include "raymatch/core/vec.h"
@@ -134,6 +136,10 @@ struct Scene {
 /// Reads and validates a scene file. Throws raymatch::Error "file:line:col: error: ..." for
 /// syntax errors, unknown keys, wrong types, missing values and impossible numbers.
 Scene LoadScene(const std::string& path);
+
+/// The same from an already parsed table (e.g. a scene with values changed by a fit); `path`
+/// names it in messages and resolves relative file names.
+Scene LoadScene(const toml::table& table, const std::string& path);
 
 /// Checks cross-field consistency (objects before the objective, field large enough, ...);
 /// LoadScene calls it. Throws Error naming the offending value.

@@ -20,6 +20,8 @@
 
 namespace raymatch::simulate {
 
+struct RaySelection;  // tracer.cpp: which of a plane's rays to trace
+
 /// What became of a ray. Every traced ray ends in exactly one fate.
 enum class Fate : int {
   kDetected = 0,        ///< reached a sensor pixel
@@ -81,6 +83,26 @@ class Simulator {
   PlaneResult TracePlane(double defocus_um, uint32_t plane_index, uint64_t rays,
                          const RunControl& control = {}) const;
 
+  /// Traces only the listed rays of the plane, each with the stream TracePlane gives it, so
+  /// images of disjoint lists add up to the image of their union (fits trace once the rays
+  /// that cannot meet an object and re-trace only the others). Counters cover listed rays only.
+  PlaneResult TraceRays(double defocus_um, uint32_t plane_index,
+                        const std::vector<uint64_t>& ray_indices,
+                        const RunControl& control = {}) const;
+
+  /// Traces the rays [0, rays) of the plane except the listed ones (ascending indices): with
+  /// TraceRays on the same list, the two images add up to TracePlane's.
+  PlaneResult TracePlaneExcept(double defocus_um, uint32_t plane_index, uint64_t rays,
+                               const std::vector<uint64_t>& excluded,
+                               const RunControl& control = {}) const;
+
+  /// Splits the rays [0, rays) of a plane by whether the straight line of each (as the source
+  /// emits it, before any object) passes within `radius_um` of `center_um`. Either output may
+  /// be null; indices come out ascending. Rays the source rejects go to `far`.
+  void SplitRaysBySphere(uint32_t plane_index, uint64_t rays, const Vec3& center_um,
+                         double radius_um, std::vector<uint64_t>* near,
+                         std::vector<uint64_t>* far) const;
+
   /// Rays per image that give `photons_per_pixel` mean hits in the flat field, from a fixed-seed
   /// pilot run without objects (the experimenter's flat-field signal x well capacity).
   uint64_t RaysForPhotonTarget(double photons_per_pixel, double* hits_per_pixel_per_ray = nullptr) const;
@@ -105,11 +127,17 @@ class Simulator {
   const Scene& scene() const { return scene_; }
   double source_plane_z_um() const;
   double object_pixel_um() const;   ///< pixel pitch referred to the object plane
+  double field_radius_um() const;   ///< the source field radius in use (given or automatic)
+  /// A bounding sphere (centre, radius; micrometres) of each object, in scene order.
+  std::vector<std::pair<Vec3, double>> ObjectBounds() const;
   bool has_mesh_bvh() const;        ///< an Embree BVH was built
 
   struct Impl;  ///< defined in tracer.cpp only
 
  private:
+  PlaneResult Trace(double defocus_um, uint32_t plane_index, uint64_t rays,
+                    const RaySelection& selection, const RunControl& control) const;
+
   Scene scene_;
   std::unique_ptr<Impl> impl_;
 };

@@ -1,4 +1,4 @@
-#include "plot.h"
+#include "raymatch/compare/plot.h"
 
 #include <algorithm>
 #include <cmath>
@@ -7,7 +7,7 @@
 
 #include "raymatch/core/image_io.h"
 
-namespace raymatch::pipeline {
+namespace raymatch::compare {
 
 namespace {
 
@@ -73,14 +73,37 @@ void WritePlot(const std::string& path, const std::vector<Series>& series, const
 void WriteFalseColour(const std::string& path, const Image& img, int zoom) {
   double mx = 0;
   for (float v : img.pixels) mx = std::max(mx, double(v));
+  WriteFalseColour(path, img, 0.0, mx, zoom);
+}
+
+void WriteFalseColour(const std::string& path, const Image& img, double lo, double hi, int zoom) {
   cv::Mat g(img.height, img.width, CV_8U);
   for (int y = 0; y < img.height; ++y)
     for (int x = 0; x < img.width; ++x)
-      g.at<uchar>(y, x) = cv::saturate_cast<uchar>(mx > 0 ? img.at(x, y) / mx * 255 : 0);
+      g.at<uchar>(y, x) =
+          cv::saturate_cast<uchar>(hi > lo ? (img.at(x, y) - lo) / (hi - lo) * 255 : 0);
   cv::Mat c, big;
   cv::applyColorMap(g, c, cv::COLORMAP_VIRIDIS);
   cv::resize(c, big, cv::Size(img.width * zoom, img.height * zoom), 0, 0, cv::INTER_NEAREST);
   Save(path, big);
 }
 
-}  // namespace raymatch::pipeline
+void WriteDivergingMap(const std::string& path, const Image& img, double limit, int zoom) {
+  cv::Mat c(img.height, img.width, CV_8UC3);
+  for (int y = 0; y < img.height; ++y)
+    for (int x = 0; x < img.width; ++x) {
+      const double v = limit > 0 ? std::clamp(img.at(x, y) / limit, -1.0, 1.0) : 0.0;
+      const double a = 1 - std::abs(v);  // white at 0, full colour at the limit
+      // BGR: positive towards red (180, 30, 30 in RGB), negative towards blue (30, 70, 180).
+      const cv::Vec3d end = v >= 0 ? cv::Vec3d(30, 30, 180) : cv::Vec3d(180, 70, 30);
+      const cv::Vec3d px = end + (cv::Vec3d(255, 255, 255) - end) * a;
+      c.at<cv::Vec3b>(y, x) = cv::Vec3b(cv::saturate_cast<uchar>(px[0]),
+                                        cv::saturate_cast<uchar>(px[1]),
+                                        cv::saturate_cast<uchar>(px[2]));
+    }
+  cv::Mat big;
+  cv::resize(c, big, cv::Size(img.width * zoom, img.height * zoom), 0, 0, cv::INTER_NEAREST);
+  Save(path, big);
+}
+
+}  // namespace raymatch::compare

@@ -6,7 +6,7 @@
 #include <nlohmann/json.hpp>
 #include <sstream>
 
-#include "plot.h"
+#include "raymatch/compare/plot.h"
 #include "raymatch/compare/focus_scan.h"
 #include "raymatch/core/atomic_file.h"
 #include "raymatch/core/error.h"
@@ -18,6 +18,9 @@
 namespace fs = std::filesystem;
 
 namespace raymatch::pipeline {
+using compare::Series;
+using compare::WriteFalseColour;
+using compare::WritePlot;
 
 namespace {
 

@@ -5,7 +5,7 @@
 
 #include "raymatch/core/image.h"
 
-namespace raymatch::pipeline {
+namespace raymatch::compare {
 
 struct Series {
   std::vector<double> x, y, yerr;
@@ -19,4 +19,11 @@ void WritePlot(const std::string& path, const std::vector<Series>& series, const
 /// Writes an image as a false-colour (viridis) PNG, scaled to its maximum, upsampled by `zoom`.
 void WriteFalseColour(const std::string& path, const Image& img, int zoom);
 
-}  // namespace raymatch::pipeline
+/// The same mapped linearly from [lo, hi] (values outside clamp to the ends).
+void WriteFalseColour(const std::string& path, const Image& img, double lo, double hi, int zoom);
+
+/// A diverging map for signed data (e.g. residuals in standard deviations): -limit blue,
+/// 0 white, +limit red, clamped; upsampled by `zoom`.
+void WriteDivergingMap(const std::string& path, const Image& img, double limit, int zoom);
+
+}  // namespace raymatch::compare

@@ -10,7 +10,8 @@ void RegisterCompare(CLI::App& app, int* exit_code);      // apps/compare.cpp
 void RegisterCompareScan(CLI::App& app, int* exit_code);  // apps/compare_scan.cpp
 void RegisterCalibrate(CLI::App& app, int* exit_code);
 void RegisterRun(CLI::App& app, int* exit_code);          // apps/run.cpp
-void RegisterBench(CLI::App& app, int* exit_code);        // apps/bench.cpp ("accuracy")    // apps/calibrate.cpp ("lightfield", "corrector")
+void RegisterBench(CLI::App& app, int* exit_code);        // apps/bench.cpp ("accuracy")
+void RegisterFit(CLI::App& app, int* exit_code);          // apps/fit.cpp
 
 /// Runs `fn`, printing raymatch::Error and other exceptions to stderr; returns `error_code` then.
 int RunGuarded(const std::function<int()>& fn, int error_code = 1);

@@ -37,6 +37,9 @@ int main(int argc, char** argv) {
 #ifdef RAYMATCH_HAVE_CALIBRATE
   raymatch::apps::RegisterCalibrate(app, &exit_code);
 #endif
+#ifdef RAYMATCH_HAVE_FIT
+  raymatch::apps::RegisterFit(app, &exit_code);
+#endif
 #ifdef RAYMATCH_HAVE_PIPELINE
   raymatch::apps::RegisterRun(app, &exit_code);
   raymatch::apps::RegisterBench(app, &exit_code);

@@ -177,6 +177,20 @@ std::string TomlReader::Choice(const std::string& key, const std::vector<std::st
   Fail(key, "expected one of " + list + ", got \"" + v + "\"");
 }
 
+std::vector<std::string> TomlReader::Strings(const std::string& key) {
+  const toml::node* n = Node(key);
+  if (!n || !n->is_array()) TypeError(key, "an array of strings");
+  std::vector<std::string> out;
+  for (const toml::node& e : *n->as_array()) {
+    if (!e.is_string())
+      throw Error(LocOf(file_, e.source()),
+                  "'" + Path(key) + "': expected an array of strings, found " + TypeName(e));
+    out.push_back(e.as_string()->get());
+  }
+  if (out.empty()) Fail(key, "expected at least one string");
+  return out;
+}
+
 std::vector<double> TomlReader::Numbers(const std::string& key, size_t min_size,
                                         size_t max_size) {
   const toml::node* n = Node(key);

@@ -10,7 +10,8 @@
 
 #include <nlohmann/json.hpp>
 
-#include "plot.h"
+#include "raymatch/compare/plot.h"
+#include "raymatch/fit/fit.h"
 #include "raymatch/calibrate/corrector.h"
 #include "raymatch/calibrate/lightfield.h"
 #include "raymatch/compare/focus_scan.h"
@@ -27,6 +28,9 @@
 namespace fs = std::filesystem;
 
 namespace raymatch::pipeline {
+using compare::Series;
+using compare::WriteFalseColour;
+using compare::WritePlot;
 
 namespace {
 
@@ -38,6 +42,7 @@ struct Config {
   double ray_fraction = 1;
   uint64_t seed = 1;
   std::string partial_reflection = "unpolarized";
+  std::vector<std::string> fits;  // fit files (docs/fit.md) run with this calibration
 };
 
 Config ReadConfig(const std::string& path) {
@@ -68,6 +73,16 @@ Config ReadConfig(const std::string& path) {
     c.seed = uint64_t(s.Integer("seed", 1, 0, INT64_MAX));
     c.partial_reflection = s.Choice("partial_reflection", {"off", "unpolarized", "polarized"}, "unpolarized");
     s.Finish();
+  }
+  if (r.Has("fit")) {
+    TomlReader f = r.Table("fit");
+    // Each fit file's scene takes the calibration made here (its `calibration` key is replaced).
+    for (const std::string& file : f.Strings("files")) {
+      const std::string p = (base / file).lexically_normal().string();
+      if (!fs::is_regular_file(p)) f.Fail("files", "fit file not found: " + p);
+      c.fits.push_back(p);
+    }
+    f.Finish();
   }
   r.Finish();
   return c;
@@ -317,6 +332,34 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     });
   }
 
+  // 4c. Fits (docs/fit.md) with this calibration: 3D properties from single images.
+  std::string fit_html;
+  for (const std::string& file : cfg.fits) {
+    const std::string stem = fs::path(file).stem().string();
+    timed("fit " + stem, [&] {
+      say("fitting " + file);
+      const fit::FitSpec spec = fit::LoadFitSpec(file, "", fs::absolute(cal_file).string());
+      fit::FitOptions fo;
+      fo.threads = opt.threads;
+      fo.progress = opt.progress;
+      const fit::FitResult fr2 = fit::RunFit(spec, fo);
+      const std::string report = fit::WriteFitOutputs(spec, fr2, (out / "fit" / stem).string());
+      std::ostringstream hh;
+      hh.precision(6);
+      hh << "<h3><a href='fit/" << stem << "/report.html'>" << stem << "</a>: " << fit::MethodName(spec.method)
+         << " on " << fit::ErrorFunctionName(spec.error) << ", " << fr2.status << " (" << fr2.evaluations.size()
+         << " evaluations, " << fr2.total_seconds << " s)</h3><table><tr><th>parameter</th><th>best</th>"
+            "<th>sigma</th><th>Cramer-Rao bound</th></tr>";
+      for (const auto& p : fr2.parameters)
+        hh << "<tr><td>" << p.key << "</td><td>" << p.best << " " << p.unit << "</td><td>" << p.sigma
+           << "</td><td>" << p.sigma_cramer_rao << "</td></tr>";
+      hh << "</table>";
+      fit_html += hh.str();
+      sum.fits.push_back({stem, fr2.status});
+    });
+  }
+  if (!fit_html.empty()) fit_html = "<h2>Fits: 3D properties from the images</h2>" + fit_html;
+
   // 5. Report.
   const fs::path fig = out / "figures";
   EnsureDirectory(fig);
@@ -387,7 +430,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     h << "</td></tr>";
   }
   h << "</table>";
-  h << merging_html;
+  h << merging_html << fit_html;
   for (const auto& m : fr.measures)
     h << "<h3>" << compare::MeasureName(m.measure) << "</h3>"
       << Img((out / ("compare/heatmap_" + std::string(compare::MeasureName(m.measure)) + ".png")).string());

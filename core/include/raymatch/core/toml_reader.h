@@ -45,6 +45,7 @@ class TomlReader {
                      std::optional<std::string> fallback = std::nullopt);
   std::vector<double> Numbers(const std::string& key, size_t min_size = 1,
                               size_t max_size = SIZE_MAX);        ///< Required array.
+  std::vector<std::string> Strings(const std::string& key);      ///< Required, non-empty.
   /// Required array of arrays of `cols` numbers each, e.g. [[r, z], [r, z], ...].
   std::vector<std::vector<double>> NumberRows(const std::string& key, size_t cols);
   std::array<double, 3> Vec3(const std::string& key, std::array<double, 3> fallback);

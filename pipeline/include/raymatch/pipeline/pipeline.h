@@ -26,6 +26,7 @@ struct PipelineSummary {
   double photons_per_pixel = 0;
   std::vector<std::pair<std::string, double>> step_seconds;
   std::vector<std::string> reused;  ///< steps skipped because their inputs were unchanged
+  std::vector<std::pair<std::string, std::string>> fits;  ///< fit name, status
 };
 
 /// Runs the pipeline; throws raymatch::Error on bad input.

@@ -1,0 +1,177 @@
+#pragma once
+// Extracting 3D properties from images: simulated images are optimised against experimental
+// ones (paper section II.E, Fig. 9). A fit file names a scene, the experimental images with
+// their defocus, the free parameters by their scene key, an error function, a method and a ray
+// schedule (docs/fit.md).
+//
+// Noise model: an experimental pixel holds a Poisson count of mean mu(theta); the simulation
+// traces `ray_factor` times more rays than the experiment recorded photons and is scaled down,
+// so its own shot noise adds mu/ray_factor to the variance. With common random numbers every
+// evaluation reuses the same ray streams, so the error function is not re-noised at every step.
+#include <array>
+#include <functional>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <toml++/toml.h>
+
+#include "raymatch/core/error.h"
+#include "raymatch/core/image.h"
+
+namespace raymatch::fit {
+
+enum class ErrorFunction { kPoisson, kMse, kSsim, kMsSsim, kCwSsim };
+const char* ErrorFunctionName(ErrorFunction e);  ///< "poisson", "mse", "1-ssim", ...
+
+enum class Method { kGrid, kPattern, kLevenbergMarquardt };
+const char* MethodName(Method m);  ///< "grid", "pattern", "lm"
+
+/// One experimental image (photon counts after dark subtraction and gain).
+struct FitImage {
+  std::string file;
+  double defocus_um = 0;
+  std::string dark_file;      ///< subtracted in code values when given
+  double gain_e_per_dn = 1;   ///< photons per code value after dark subtraction
+  Image photons;              ///< prepared image (filled by LoadFitSpec)
+  FileLocation where;
+};
+
+/// A free parameter: a numeric value of the scene (or an image's defocus) by its key.
+struct Parameter {
+  std::string key;            ///< e.g. "object.drop.center_um[2]", "image[0].defocus_um"
+  double lower = 0, upper = 0, start = 0;
+  double step = 0;            ///< typical change: pattern mesh, grid spacing, FD step base
+  int points = 0;             ///< grid: samples from lower to upper (0: from step)
+  std::string unit;           ///< from the key's suffix (_um, _deg, ...) for reports
+  FileLocation where;
+};
+
+struct RaySchedule {
+  double ray_factor = 1;                     ///< simulated rays per experimental photon
+  std::vector<double> fractions{1.0 / 16, 0.25, 1.0};  ///< coarse-to-fine; last = final
+  bool common_random_numbers = true;
+  /// Photons per pixel of the experiment's flat background (0: the scene's trace value, or
+  /// when the scene gives none, the median of the first image's border frame).
+  double photons_per_pixel = 0;
+  bool reuse_background = true;              ///< trace rays that miss every object only once
+  /// Pixel binning per fraction (empty: the smallest b with b^2 x ray_factor x fraction >= 1).
+  std::vector<int> binning;
+};
+
+struct FitSpec {
+  std::string file;                          ///< the fit file
+  std::string scene_file;
+  std::string calibration_file;              ///< set in the scene when not empty
+  toml::table scene;                         ///< the parsed scene (values changed per evaluation)
+  std::vector<FitImage> images;
+  std::vector<Parameter> parameters;
+  ErrorFunction error = ErrorFunction::kPoisson;
+  Method method = Method::kLevenbergMarquardt;
+  RaySchedule rays;
+  uint64_t seed = 1;
+  int max_evaluations = 2000;
+  int repeat_seeds = 3;                      ///< repeated final fits with independent seeds
+  bool cramer_rao = true;
+  int slice_points = 7;                      ///< error-function slices per parameter (0: none)
+  int threads = 0;
+};
+
+/// Reads and checks a fit file: scene, images (read and prepared), parameter keys resolved in
+/// the scene (a key that does not exist or is not numeric is an error naming the fit file's
+/// line and the keys that exist). Throws Error "file:line:col: error: ...".
+FitSpec LoadFitSpec(const std::string& path);
+
+/// The same with the scene and/or the calibration given separately (empty: the fit file's):
+/// `scene_override` replaces the fit file's `scene`; `calibration_override` (or the fit file's
+/// `calibration` key) sets the scene's calibration file (light field, corrector, optics), e.g.
+/// the one `raymatch run` just made.
+FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
+                    const std::string& calibration_override = "");
+
+struct Evaluation {
+  std::vector<double> theta;
+  double error = 0;
+  double ray_fraction = 1;
+  int bin = 1;                ///< pixel binning the error was computed on
+  uint64_t rays = 0;          ///< rays traced in this evaluation (all images)
+  uint64_t seed = 0;
+  double seconds = 0;
+  std::string stage;          ///< "grid", "poll", "lm", "jacobian", "repeat", "fisher", "slice"
+};
+
+struct ParameterResult {
+  std::string key, unit;
+  double start = 0, best = 0, lower = 0, upper = 0;
+  double sigma_curvature = 0;  ///< from the Poisson likelihood's curvature (Gauss-Newton) at the optimum
+  /// The reported uncertainty: sigma_curvature x sqrt(1 + 1/(ray_factor x final fraction)),
+  /// since the simulation's own shot noise (variance mu / (ray_factor x fraction)) adds to the
+  /// experiment's in the fitted values.
+  double sigma = 0;
+  double sigma_repeat = 0;     ///< scatter of repeated fits with independent simulation seeds
+  double sigma_cramer_rao = 0; ///< Cramer-Rao bound of the image(s), noise-free expectation
+  /// Expected precision including the simulation's own shot noise:
+  /// CRB x sqrt(1 + 1/(ray_factor x final fraction)).
+  double sigma_expected = 0;
+  bool at_bound = false;
+  std::vector<double> slice_x, slice_error;  ///< error along this axis through the optimum
+};
+
+struct FitResult {
+  bool converged = false;
+  std::string status;          ///< "converged", "max_evaluations", "flat", ...
+  std::string message;
+  std::vector<ParameterResult> parameters;
+  std::vector<std::vector<double>> correlation;     ///< from the curvature covariance
+  std::vector<std::vector<double>> crb_correlation; ///< from the inverse Fisher information
+  double best_error = 0;
+  std::vector<Evaluation> evaluations;
+  std::vector<Image> best_images;   ///< expected photons per image at the optimum
+  std::vector<Image> residuals;     ///< (sim - exp)/sqrt(sim (1 + 1/ray_factor))
+  uint64_t photon_matched_rays = 0; ///< rays per image at ray fraction 1 before ray_factor
+  double region_radius_um = 0;      ///< region the objects can occupy (rays outside reused)
+  std::array<double, 3> region_center_um{};
+  double near_ray_fraction = 0;     ///< share of rays re-traced per evaluation
+  /// Grid landscape (method grid): axes values and errors in row-major order (last axis fastest).
+  std::vector<std::vector<double>> grid_axes;
+  std::vector<double> grid_errors;
+  std::vector<std::pair<std::string, double>> seconds;  ///< time split: setup, background, ...
+  double total_seconds = 0;
+};
+
+struct FitOptions {
+  int threads = 0;             ///< 0: the fit file's value, then all cores
+  bool progress = false;       ///< progress lines on stderr
+};
+
+/// Runs the fit. Throws Error on bad input or when no evaluation succeeds.
+FitResult RunFit(const FitSpec& spec, const FitOptions& options = {});
+
+/// Writes fit.json, evaluations.csv, best and residual images (TIFF + PNG), slice/landscape
+/// plots and report.html into `dir` (created). Returns the report's path.
+std::string WriteFitOutputs(const FitSpec& spec, const FitResult& result, const std::string& dir);
+
+// ----------------------------------------------------------------------------------------------
+// Building blocks (public for tests and benchmarks).
+
+/// The numeric scene value at `key` (see docs/fit.md for the key syntax); throws Error listing
+/// the keys that exist when it is missing or not a number.
+double SceneValue(const toml::table& scene, const std::string& key, const std::string& scene_file);
+
+/// Sets the numeric scene value at `key` (which must exist).
+void SetSceneValue(toml::table& scene, const std::string& key, double value,
+                   const std::string& scene_file);
+
+/// Poisson deviance 2 sum[mu - e + e ln(e/mu)] of counts `e` against means `mu` (mu floored at
+/// 1e-6 so a zero-mean pixel with counts stays finite).
+double PoissonDeviance(const Image& e, const Image& mu);
+
+/// Fisher information sum_p (dmu_i)(dmu_j)/mu over pixels from mean images and their
+/// derivatives (one image per parameter, per experimental image). Pixels with mu <= 0 skipped.
+std::vector<std::vector<double>> FisherInformation(const std::vector<Image>& mu,
+                                                   const std::vector<std::vector<Image>>& dmu);
+
+/// Inverse of a symmetric positive definite matrix (Eigen LDLT); empty when singular.
+std::vector<std::vector<double>> InverseSpd(const std::vector<std::vector<double>>& m);
+
+}  // namespace raymatch::fit

@@ -1,0 +1,602 @@
+// The fit: grid scan, generalised pattern search and Levenberg-Marquardt (Ceres) over
+// simulated images with common random numbers, then uncertainties (curvature of the Poisson
+// likelihood, repeated fits with independent simulation seeds, Cramer-Rao bound).
+#include <ceres/ceres.h>
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <iostream>
+#include <sstream>
+
+#include <unistd.h>
+
+#include "model.h"
+#include "raymatch/fit/fit.h"
+
+namespace raymatch::fit {
+
+namespace {
+
+using Clock = std::chrono::steady_clock;
+double Since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
+
+std::string Fmt(double v, int prec = 6) {
+  std::ostringstream os;
+  os.precision(prec);
+  os << v;
+  return os.str();
+}
+
+using Matrix = std::vector<std::vector<double>>;
+
+Matrix Correlation(const Matrix& cov) {
+  Matrix c = cov;
+  for (size_t i = 0; i < cov.size(); ++i)
+    for (size_t j = 0; j < cov.size(); ++j) {
+      const double d = std::sqrt(cov[i][i] * cov[j][j]);
+      c[i][j] = d > 0 ? cov[i][j] / d : 0;
+    }
+  return c;
+}
+
+/// Evaluations with bookkeeping: the record of every evaluation, the best so far, progress.
+class Runner {
+ public:
+  Runner(const FitSpec& spec, const FitOptions& opt, FitResult* res)
+      : spec_(spec), opt_(opt), res_(res), t0_(Clock::now()),
+        model_(spec, opt.threads > 0 ? opt.threads : spec.threads,
+               [&](const std::string& m) { Say(m); }) {}
+
+  FitModel& model() { return model_; }
+
+  void Say(const std::string& m) {
+    if (!opt_.progress) return;
+    std::fprintf(stderr, "%sraymatch fit: %s\n", isatty(2) ? "\r\033[K" : "", m.c_str());
+  }
+
+  /// Expected images at `th` with the ray fraction and binning of schedule level `level`.
+  std::vector<Image> Images(const std::vector<double>& th, size_t level, uint64_t seed,
+                            const std::string& stage, double* error) {
+    const auto t0 = Clock::now();
+    const double fraction = spec_.rays.fractions[level];
+    Evaluation ev;
+    ev.theta = th;
+    ev.ray_fraction = fraction;
+    ev.seed = seed;
+    ev.stage = stage;
+    std::vector<Image> mu = model_.Expected(th, fraction, seed, &ev.rays);
+    ev.bin = model_.BinAt(level);
+    ev.error = model_.Error(mu, ev.bin);
+    ev.seconds = Since(t0);
+    if (error) *error = ev.error;
+    res_->evaluations.push_back(ev);
+    if (stage != "fisher" && stage != "repeat" && stage != "slice" &&
+        (best_error_ < 0 || fraction > best_fraction_ || (fraction == best_fraction_ && ev.error < best_error_))) {
+      best_error_ = ev.error, best_fraction_ = fraction;
+    }
+    // Progress: a rewritten line on a terminal (at most twice a second), else a line every 10 s.
+    const double now = Since(t0_);
+    if (opt_.progress && now - last_progress_ >= (tty_ ? 0.5 : 10.0)) {
+      last_progress_ = now;
+      std::fprintf(stderr, "%sraymatch fit: %-8s eval %4zu of at most %d  error %-12s best %-12s "
+                   "ray fraction %-6s  %.0f s%s",
+                   tty_ ? "\r\033[K" : "", stage.c_str(), res_->evaluations.size(),
+                   spec_.max_evaluations, Fmt(ev.error).c_str(), Fmt(best_error_).c_str(),
+                   Fmt(fraction, 3).c_str(), now, tty_ ? "" : "\n");
+      std::fflush(stderr);
+    }
+    return mu;
+  }
+
+  double Eval(const std::vector<double>& th, size_t level, uint64_t seed, const std::string& stage) {
+    double e = 0;
+    Images(th, level, seed, stage, &e);
+    return e;
+  }
+
+  bool Budget() const { return int(res_->evaluations.size()) < spec_.max_evaluations; }
+  size_t Count() const { return res_->evaluations.size(); }
+
+  /// The seed of the streams used at every evaluation of the main fit (common random numbers),
+  /// or a fresh one per evaluation when they are switched off.
+  uint64_t Seed() { return spec_.rays.common_random_numbers ? spec_.seed : spec_.seed + 7919 * ++fresh_; }
+
+ private:
+  const FitSpec& spec_;
+  const FitOptions& opt_;
+  FitResult* res_;
+  Clock::time_point t0_;
+  FitModel model_;
+  double best_error_ = -1, best_fraction_ = 0;
+  bool tty_ = isatty(2) != 0;
+  double last_progress_ = -1e9;
+  uint64_t fresh_ = 0;
+};
+
+std::vector<double> Clip(std::vector<double> th, const FitSpec& spec) {
+  for (size_t i = 0; i < th.size(); ++i)
+    th[i] = std::clamp(th[i], spec.parameters[i].lower, spec.parameters[i].upper);
+  return th;
+}
+
+// ------------------------------------------------------------------------------------ grid
+
+std::vector<double> Grid(Runner& run, const FitSpec& spec, FitResult* res) {
+  const size_t P = spec.parameters.size();
+  res->grid_axes.assign(P, {});
+  size_t total = 1;
+  for (size_t i = 0; i < P; ++i) {
+    const Parameter& p = spec.parameters[i];
+    for (int k = 0; k < p.points; ++k)
+      res->grid_axes[i].push_back(p.points == 1 ? p.start : p.lower + (p.upper - p.lower) * k / (p.points - 1));
+    total *= p.points;
+  }
+  const size_t level = spec.rays.fractions.size() - 1;
+  std::vector<double> best;
+  double best_e = 0;
+  for (size_t n = 0; n < total; ++n) {
+    std::vector<double> th(P);
+    size_t r = n;
+    for (size_t i = P; i-- > 0;) {  // last axis fastest
+      th[i] = res->grid_axes[i][r % res->grid_axes[i].size()];
+      r /= res->grid_axes[i].size();
+    }
+    const double e = run.Eval(th, level, run.Seed(), "grid");
+    res->grid_errors.push_back(e);
+    if (best.empty() || e < best_e) best = th, best_e = e;
+  }
+  const auto [mn, mx] = std::minmax_element(res->grid_errors.begin(), res->grid_errors.end());
+  if (*mn == *mx) {
+    res->status = "flat";
+    res->message = "the error function has the same value at every grid point: the parameters do not change the image";
+  } else {
+    res->status = "converged";
+    res->converged = true;
+    res->message = "grid minimum of " + std::to_string(total) + " points";
+  }
+  return best;
+}
+
+// ------------------------------------------------------------------- generalised pattern search
+
+/// Compass search (Kolda, Lewis, Torczon, SIAM Review 45, 385 (2003), section 3): poll
+/// +-delta step_i e_i, move to the first point that decreases the error, otherwise halve the
+/// mesh; points beyond a bound are projected onto it. Coarse-to-fine: each ray fraction polls
+/// down to a mesh 4x finer than the previous one, the last down to step/64.
+std::vector<double> Pattern(Runner& run, const FitSpec& spec, FitResult* res) {
+  const size_t P = spec.parameters.size();
+  const size_t L = spec.rays.fractions.size();
+  std::vector<double> x;
+  for (const Parameter& p : spec.parameters) x.push_back(p.start);
+  double delta = 1;
+  std::vector<bool> moved(P, false);
+  bool budget = true;
+  for (size_t l = 0; l < L && budget; ++l) {
+    const double delta_min = std::pow(4.0, double(L - 1 - l)) / 64;
+    delta = std::max(delta, 2 * delta_min);
+    double fx = run.Eval(x, l, run.Seed(), "poll");
+    while (delta >= delta_min && (budget = run.Budget())) {
+      bool improved = false;
+      for (size_t i = 0; i < P && !improved; ++i)
+        for (int sgn : {+1, -1}) {
+          std::vector<double> y = x;
+          y[i] += sgn * delta * spec.parameters[i].step;
+          y = Clip(y, spec);
+          if (y[i] == x[i]) continue;
+          if (!(budget = run.Budget())) break;
+          const double fy = run.Eval(y, l, run.Seed(), "poll");
+          if (fy != fx) moved[i] = true;
+          if (fy < fx) {
+            x = y, fx = fy, improved = true;
+            break;
+          }
+        }
+      if (!budget) break;
+      if (!improved) delta *= 0.5;
+    }
+  }
+  if (std::none_of(moved.begin(), moved.end(), [](bool b) { return b; })) {
+    res->status = "flat";
+    res->message = "the error function did not change for any polled step: the parameters do not change the image";
+  } else if (!budget) {
+    res->status = "max_evaluations";
+    res->message = "stopped after max_evaluations = " + std::to_string(spec.max_evaluations);
+  } else {
+    res->status = "converged";
+    res->converged = true;
+    res->message = "pattern mesh below step/64";
+  }
+  return x;
+}
+
+// --------------------------------------------------------------- Levenberg-Marquardt (Ceres)
+
+/// Differences of the expected images and of the deviance residuals with common random numbers
+/// (the same ray streams on both sides): central (for the Fisher information and the reported
+/// curvature) or forward (for Levenberg-Marquardt's search directions: P instead of 2P
+/// evaluations); one-sided at a bound. Step: half the parameter's `step`.
+struct Differences {
+  std::vector<Image> mu;                  // at theta
+  std::vector<std::vector<Image>> dmu;    // [image][parameter] d mu / d theta_i
+  Eigen::MatrixXd jacobian;               // residuals x parameters
+  Eigen::VectorXd residuals;
+  std::vector<bool> flat;                 // parameter leaves every pixel unchanged
+};
+
+Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<double>& th,
+                          size_t level, uint64_t seed, const std::string& stage, bool central) {
+  FitModel& m = run.model();
+  const int bin = m.BinAt(level);
+  const size_t P = th.size(), R = m.num_residuals(bin);
+  Differences d;
+  double e = 0;
+  d.mu = run.Images(th, level, seed, stage, &e);
+  d.residuals.resize(R);
+  m.DevianceResiduals(d.mu, bin, d.residuals.data());
+  d.jacobian.resize(R, P);
+  d.dmu.assign(d.mu.size(), std::vector<Image>(P));
+  d.flat.assign(P, false);
+  Eigen::VectorXd rp(R), rm(R);
+  for (size_t i = 0; i < P; ++i) {
+    const Parameter& p = spec.parameters[i];
+    const double h = 0.5 * p.step;
+    std::vector<double> a = th, b = th;
+    std::vector<Image> mu_a, mu_b;
+    if (central) {
+      a[i] = std::min(th[i] + h, p.upper);
+      b[i] = std::max(th[i] - h, p.lower);
+      mu_a = run.Images(a, level, seed, stage, &e);
+      mu_b = run.Images(b, level, seed, stage, &e);
+      m.DevianceResiduals(mu_a, bin, rp.data());
+      m.DevianceResiduals(mu_b, bin, rm.data());
+    } else {  // forward (backward at the upper bound): one evaluation per parameter
+      (th[i] + h <= p.upper ? a[i] : b[i]) += th[i] + h <= p.upper ? h : -h;
+      const bool fwd = a[i] != th[i];
+      (fwd ? mu_a : mu_b) = run.Images(fwd ? a : b, level, seed, stage, &e);
+      (fwd ? mu_b : mu_a) = d.mu;
+      m.DevianceResiduals(mu_a, bin, rp.data());
+      m.DevianceResiduals(mu_b, bin, rm.data());
+    }
+    const double span = a[i] - b[i];
+    d.jacobian.col(i) = (rp - rm) / span;
+    bool same = true;
+    for (size_t k = 0; k < d.mu.size(); ++k) {
+      d.dmu[k][i] = Image(mu_a[k].width, mu_a[k].height);
+      for (size_t q = 0; q < mu_a[k].size(); ++q) {
+        d.dmu[k][i].pixels[q] = static_cast<float>((double(mu_a[k].pixels[q]) - mu_b[k].pixels[q]) / span);
+        same = same && mu_a[k].pixels[q] == mu_b[k].pixels[q];
+      }
+    }
+    d.flat[i] = same;
+  }
+  return d;
+}
+
+class ImageCost : public ceres::CostFunction {
+ public:
+  ImageCost(Runner& run, const FitSpec& spec, size_t level, uint64_t seed, std::vector<bool>* flat)
+      : run_(run), spec_(spec), level_(level), seed_(seed), flat_(flat) {
+    set_num_residuals(static_cast<int>(run.model().num_residuals(run.model().BinAt(level))));
+    mutable_parameter_block_sizes()->push_back(static_cast<int>(spec.parameters.size()));
+  }
+  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
+    const size_t P = spec_.parameters.size();
+    const std::vector<double> th = Clip(std::vector<double>(params[0], params[0] + P), spec_);
+    if (!run_.Budget()) return false;
+    if (jacobians && jacobians[0]) {
+      const Differences d = Differentiate(run_, spec_, th, level_, seed_, "lm", false);
+      std::copy(d.residuals.data(), d.residuals.data() + d.residuals.size(), residuals);
+      // Ceres wants row-major residuals x parameters.
+      Eigen::Map<Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>> J(
+          jacobians[0], d.jacobian.rows(), d.jacobian.cols());
+      J = d.jacobian;
+      *flat_ = d.flat;
+    } else {
+      double e = 0;
+      const std::vector<Image> mu = run_.Images(th, level_, seed_, "lm", &e);
+      run_.model().DevianceResiduals(mu, run_.model().BinAt(level_), residuals);
+    }
+    return true;
+  }
+
+ private:
+  Runner& run_;
+  const FitSpec& spec_;
+  size_t level_;
+  uint64_t seed_;
+  std::vector<bool>* flat_;
+};
+
+/// Stops a level once the search stalls at the resolution the ray streams allow: a successful
+/// step that lowered the deviance by less than 1 or moved every parameter by less than 1/32 of
+/// its `step`, or three unsuccessful iterations in a row (the error with fixed ray streams is
+/// piecewise constant at small scales).
+class StallCallback : public ceres::IterationCallback {
+ public:
+  StallCallback(const double* x, const FitSpec& spec, std::function<bool()> over_budget)
+      : x_(x), spec_(spec), last_(x, x + spec.parameters.size()), over_budget_(std::move(over_budget)) {}
+  ceres::CallbackReturnType operator()(const ceres::IterationSummary& s) override {
+    if (over_budget_()) return ceres::SOLVER_TERMINATE_SUCCESSFULLY;
+    if (s.iteration == 0) return ceres::SOLVER_CONTINUE;
+    if (!s.step_is_successful) return ++failures_ >= 3 ? ceres::SOLVER_TERMINATE_SUCCESSFULLY : ceres::SOLVER_CONTINUE;
+    failures_ = 0;
+    // Ceres' cost is half the deviance: a step worth less than 1 in deviance (0.5 in
+    // log-likelihood) is well inside one standard deviation of every parameter.
+    if (s.cost_change < 0.5) return ceres::SOLVER_TERMINATE_SUCCESSFULLY;
+    double moved = 0;
+    for (size_t i = 0; i < last_.size(); ++i) {
+      moved = std::max(moved, std::abs(x_[i] - last_[i]) / spec_.parameters[i].step);
+      last_[i] = x_[i];
+    }
+    return moved < 1.0 / 32 ? ceres::SOLVER_TERMINATE_SUCCESSFULLY : ceres::SOLVER_CONTINUE;
+  }
+
+ private:
+  const double* x_;
+  const FitSpec& spec_;
+  std::vector<double> last_;
+  std::function<bool()> over_budget_;
+  int failures_ = 0;
+};
+
+/// Levenberg-Marquardt on signed Poisson deviance residuals (sum of squares = deviance, so the
+/// least-squares optimum is the maximum-likelihood one), coarse-to-fine over the ray fractions.
+std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResult* res,
+                                       const std::vector<double>& start, uint64_t seed,
+                                       const std::vector<size_t>& levels, bool record) {
+  const size_t P = spec.parameters.size();
+  std::vector<double> x = start;
+  std::vector<bool> flat(P, false);
+  bool ok = true;
+  ceres::TerminationType term = ceres::CONVERGENCE;
+  for (size_t f : levels) {
+    ceres::Problem::Options po;
+    po.cost_function_ownership = ceres::TAKE_OWNERSHIP;
+    ceres::Problem problem(po);
+    problem.AddResidualBlock(new ImageCost(run, spec, f, seed, &flat), nullptr, x.data());
+    for (size_t i = 0; i < P; ++i) {
+      problem.SetParameterLowerBound(x.data(), int(i), spec.parameters[i].lower);
+      problem.SetParameterUpperBound(x.data(), int(i), spec.parameters[i].upper);
+    }
+    ceres::Solver::Options so;
+    so.linear_solver_type = ceres::DENSE_QR;
+    so.max_num_iterations = 15;
+    so.function_tolerance = 1e-7;
+    so.parameter_tolerance = 1e-7;
+    so.num_threads = 1;  // the tracer uses the cores
+    so.logging_type = ceres::SILENT;
+    so.minimizer_progress_to_stdout = false;
+    so.update_state_every_iteration = true;
+    // Each level gets at most 12 Jacobians' worth of evaluations (the coarse levels only need to
+    // bring the search near the optimum; the error there is too noisy to resolve it).
+    const size_t level_start = run.Count();
+    const size_t level_cap = 12 * (P + 2);
+    StallCallback stall(x.data(), spec, [&] { return run.Count() - level_start >= level_cap; });
+    so.callbacks.push_back(&stall);
+    ceres::Solver::Summary sum;
+    ceres::Solve(so, &problem, &sum);
+    term = sum.termination_type;
+    if (record)
+      run.Say("level " + std::to_string(f + 1) + " (ray fraction " + Fmt(spec.rays.fractions[f], 3) + ", bin " +
+              std::to_string(run.model().BinAt(f)) + "): " + std::to_string(sum.iterations.size()) +
+              " iterations, deviance " + Fmt(2 * sum.initial_cost) + " -> " + Fmt(2 * sum.final_cost) + ", " +
+              std::to_string(run.Count() - level_start) + " evaluations");
+    ok = ok && sum.IsSolutionUsable();
+    if (record && std::all_of(flat.begin(), flat.end(), [](bool b) { return b; })) break;
+  }
+  if (!record) return Clip(x, spec);
+  std::string flat_keys;
+  for (size_t i = 0; i < P; ++i)
+    if (flat[i]) flat_keys += (flat_keys.empty() ? "" : ", ") + spec.parameters[i].key;
+  if (!flat_keys.empty()) {
+    res->status = "flat";
+    res->message = "the image does not change with " + flat_keys + " (flat error function): the fit cannot move it";
+  } else if (!run.Budget()) {
+    res->status = "max_evaluations";
+    res->message = "stopped after max_evaluations = " + std::to_string(spec.max_evaluations);
+  } else {
+    res->converged = ok;
+    res->status = ok ? "converged" : "failed";
+    res->message = std::string("Levenberg-Marquardt: ") +
+                   (term == ceres::CONVERGENCE ? "converged" : "stopped without convergence");
+  }
+  return Clip(x, spec);
+}
+
+}  // namespace
+
+Matrix InverseSpd(const Matrix& m) {
+  const size_t n = m.size();
+  Eigen::MatrixXd a(n, n);
+  for (size_t i = 0; i < n; ++i)
+    for (size_t j = 0; j < n; ++j) a(i, j) = m[i][j];
+  Eigen::LDLT<Eigen::MatrixXd> ldlt(a);
+  if (ldlt.info() != Eigen::Success || !ldlt.isPositive()) return {};
+  for (int i = 0; i < ldlt.vectorD().size(); ++i)
+    if (!(ldlt.vectorD()(i) > 1e-300)) return {};
+  const Eigen::MatrixXd inv = ldlt.solve(Eigen::MatrixXd::Identity(n, n));
+  Matrix out(n, std::vector<double>(n));
+  for (size_t i = 0; i < n; ++i)
+    for (size_t j = 0; j < n; ++j) out[i][j] = inv(i, j);
+  return out;
+}
+
+Matrix FisherInformation(const std::vector<Image>& mu, const std::vector<std::vector<Image>>& dmu) {
+  const size_t P = dmu.empty() ? 0 : dmu[0].size();
+  Matrix F(P, std::vector<double>(P, 0.0));
+  for (size_t k = 0; k < mu.size(); ++k)
+    for (size_t q = 0; q < mu[k].size(); ++q) {
+      const double m = mu[k].pixels[q];
+      if (!(m > 0)) continue;
+      for (size_t i = 0; i < P; ++i)
+        for (size_t j = 0; j <= i; ++j) F[i][j] += double(dmu[k][i].pixels[q]) * dmu[k][j].pixels[q] / m;
+    }
+  for (size_t i = 0; i < P; ++i)
+    for (size_t j = i + 1; j < P; ++j) F[i][j] = F[j][i];
+  return F;
+}
+
+FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
+  const auto t_start = Clock::now();
+  FitResult res;
+  Runner run(spec, options, &res);
+  FitModel& model = run.model();
+  res.photon_matched_rays = model.photon_matched_rays();
+  res.region_center_um = {model.region_center().x, model.region_center().y, model.region_center().z};
+  res.region_radius_um = model.region_radius();
+  const double setup_s = Since(t_start);
+  const size_t P = spec.parameters.size();
+  const size_t final_level = spec.rays.fractions.size() - 1;
+  std::vector<size_t> all_levels;
+  for (size_t l = 0; l <= final_level; ++l) all_levels.push_back(l);
+
+  // 1. Search.
+  const auto t_search = Clock::now();
+  std::vector<double> start;
+  for (const Parameter& p : spec.parameters) start.push_back(p.start);
+  std::vector<double> best;
+  switch (spec.method) {
+    case Method::kGrid:
+      best = Grid(run, spec, &res);
+      break;
+    case Method::kPattern:
+      best = Pattern(run, spec, &res);
+      break;
+    case Method::kLevenbergMarquardt:
+      best = LevenbergMarquardt(run, spec, &res, start, spec.seed, all_levels, true);
+      break;
+  }
+  const double bg_search = model.background_seconds();
+  const double search_s = Since(t_search);
+  res.near_ray_fraction = model.near_fraction();
+
+  for (size_t i = 0; i < P; ++i) {
+    const Parameter& p = spec.parameters[i];
+    ParameterResult pr;
+    pr.key = p.key, pr.unit = p.unit, pr.start = p.start, pr.best = best[i];
+    pr.lower = p.lower, pr.upper = p.upper;
+    pr.at_bound = std::abs(best[i] - p.lower) < 1e-9 * (p.upper - p.lower) ||
+                  std::abs(best[i] - p.upper) < 1e-9 * (p.upper - p.lower);
+    res.parameters.push_back(pr);
+  }
+
+  // 2. Uncertainties at the optimum (skipped for a flat problem: there is no curvature).
+  const auto t_unc = Clock::now();
+  if (res.status != "flat") {
+    const Differences d = Differentiate(run, spec, best, final_level, spec.seed, "fisher", true);
+    res.best_images = d.mu;
+    const Eigen::MatrixXd JtJ = d.jacobian.transpose() * d.jacobian;
+    Matrix H(P, std::vector<double>(P));
+    for (size_t i = 0; i < P; ++i)
+      for (size_t j = 0; j < P; ++j) H[i][j] = JtJ(i, j);
+    const Matrix cov = InverseSpd(H);
+    if (!cov.empty()) {
+      const double k = spec.rays.ray_factor * spec.rays.fractions.back();
+      for (size_t i = 0; i < P; ++i) {
+        res.parameters[i].sigma_curvature = std::sqrt(cov[i][i]);
+        res.parameters[i].sigma = std::sqrt(cov[i][i] * (1 + 1 / k));
+      }
+      res.correlation = Correlation(cov);
+    }
+    if (spec.cramer_rao) {
+      const Matrix crb = InverseSpd(FisherInformation(d.mu, d.dmu));
+      if (!crb.empty()) {
+        for (size_t i = 0; i < P; ++i) {
+          res.parameters[i].sigma_cramer_rao = std::sqrt(crb[i][i]);
+          res.parameters[i].sigma_expected =
+              std::sqrt(crb[i][i] * (1 + 1 / (spec.rays.ray_factor * spec.rays.fractions.back())));
+        }
+        res.crb_correlation = Correlation(crb);
+      }
+    }
+    // Repeated fits with independent ray streams, from the optimum, at the final fraction.
+    if (spec.repeat_seeds >= 2) {
+      std::vector<std::vector<double>> reps;
+      for (int k = 1; k <= spec.repeat_seeds && run.Budget(); ++k) {
+        const uint64_t seed = spec.seed + 1000003ull * k;
+        if (spec.method == Method::kLevenbergMarquardt || spec.method == Method::kGrid) {
+          FitResult scratch;
+          reps.push_back(LevenbergMarquardt(run, spec, &scratch, best, seed, {final_level}, false));
+        } else {
+          // Pattern: a compass search at the final fraction with this seed, from the optimum.
+          std::vector<double> x = best;
+          double fx = run.Eval(x, final_level, seed, "repeat");
+          for (double delta = 0.25; delta >= 1.0 / 64 && run.Budget();) {
+            bool improved = false;
+            for (size_t i = 0; i < P && !improved; ++i)
+              for (int sgn : {+1, -1}) {
+                std::vector<double> y = x;
+                y[i] += sgn * delta * spec.parameters[i].step;
+                y = Clip(y, spec);
+                if (y[i] == x[i]) continue;
+                const double fy = run.Eval(y, final_level, seed, "repeat");
+                if (fy < fx) {
+                  x = y, fx = fy, improved = true;
+                  break;
+                }
+              }
+            if (!improved) delta *= 0.5;
+          }
+          reps.push_back(x);
+        }
+      }
+      if (reps.size() >= 2)
+        for (size_t i = 0; i < P; ++i) {
+          double m = 0, v = 0;
+          for (const auto& r : reps) m += r[i];
+          m /= double(reps.size());
+          for (const auto& r : reps) v += (r[i] - m) * (r[i] - m);
+          res.parameters[i].sigma_repeat = std::sqrt(v / double(reps.size() - 1));
+        }
+    }
+    // Error-function slices through the optimum: +-3 sigma (curvature), at least +-step/2.
+    if (spec.slice_points >= 3) {
+      for (size_t i = 0; i < P; ++i) {
+        ParameterResult& pr = res.parameters[i];
+        const double half = std::max(3 * pr.sigma_curvature, 0.5 * spec.parameters[i].step);
+        for (int k = 0; k < spec.slice_points && run.Budget(); ++k) {
+          std::vector<double> th = best;
+          th[i] = best[i] - half + 2 * half * k / (spec.slice_points - 1);
+          if (th[i] < pr.lower || th[i] > pr.upper) continue;
+          pr.slice_x.push_back(th[i]);
+          pr.slice_error.push_back(run.Eval(th, final_level, spec.seed, "slice"));
+        }
+      }
+    }
+  } else {
+    double e = 0;
+    res.best_images = run.Images(best, final_level, spec.seed, "best", &e);
+  }
+  for (size_t k = 0; k < res.best_images.size(); ++k) {
+    const Image& mu = res.best_images[k];
+    const Image& ex = spec.images[k].photons;
+    Image r(mu.width, mu.height);
+    for (size_t q = 0; q < mu.size(); ++q) {
+      const double var = std::max(1.0, double(mu.pixels[q])) *
+                         (1 + 1 / (spec.rays.ray_factor * spec.rays.fractions.back()));
+      r.pixels[q] = static_cast<float>((double(mu.pixels[q]) - ex.pixels[q]) / std::sqrt(var));
+    }
+    res.residuals.push_back(std::move(r));
+  }
+  {
+    const std::vector<Image>& mu = res.best_images;
+    res.best_error = model.Error(mu, model.BinAt(final_level));
+  }
+  const double unc_s = Since(t_unc);
+  const double bg_total = model.background_seconds();
+  res.seconds = {{"setup (region, source field, photon target)", setup_s},
+                 {"background rays (traced once per image and ray count)", bg_total},
+                 {"search evaluations", search_s - bg_search},
+                 {"uncertainties (derivatives, repeats, slices)", unc_s - (bg_total - bg_search)}};
+  res.total_seconds = Since(t_start);
+  if (options.progress && isatty(2)) std::fprintf(stderr, "\r\033[K");
+  for (const ParameterResult& p : res.parameters)
+    if (p.at_bound && res.status == "converged")
+      res.message += "; " + p.key + " ended at a bound: widen [lower, upper]";
+  return res;
+}
+
+}  // namespace raymatch::fit

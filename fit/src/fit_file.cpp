@@ -1,0 +1,322 @@
+// The fit file (docs/fit.md) and scene keys: reading, resolving and changing numeric values.
+#include <algorithm>
+#include <filesystem>
+#include <set>
+#include <sstream>
+
+#include "raymatch/compare/focus_scan.h"
+#include "raymatch/core/image_io.h"
+#include "raymatch/core/toml_reader.h"
+#include "raymatch/fit/fit.h"
+#include "raymatch/simulate/scene.h"
+
+namespace raymatch::fit {
+
+namespace fs = std::filesystem;
+
+const char* ErrorFunctionName(ErrorFunction e) {
+  static const char* n[] = {"poisson", "mse", "1-ssim", "1-ms-ssim", "1-cw-ssim"};
+  return n[int(e)];
+}
+const char* MethodName(Method m) {
+  static const char* n[] = {"grid", "pattern", "lm"};
+  return n[int(m)];
+}
+
+namespace {
+
+struct Segment {
+  std::string name;
+  std::optional<size_t> index;
+};
+
+std::vector<Segment> SplitKey(const std::string& key) {
+  std::vector<Segment> out;
+  std::stringstream ss(key);
+  std::string part;
+  while (std::getline(ss, part, '.')) {
+    Segment s;
+    const size_t b = part.find('[');
+    if (b != std::string::npos) {
+      const size_t e = part.find(']', b);
+      if (e != part.size() - 1 || e == b + 1)
+        throw Error("key '" + key + "': expected name[index] in '" + part + "'");
+      for (size_t k = b + 1; k < e; ++k)
+        if (!std::isdigit(static_cast<unsigned char>(part[k])))
+          throw Error("key '" + key + "': index in '" + part + "' must be a whole number");
+      s.index = std::stoul(part.substr(b + 1, e - b - 1));
+      part = part.substr(0, b);
+    }
+    if (part.empty()) throw Error("key '" + key + "': empty name between dots");
+    s.name = part;
+    out.push_back(s);
+  }
+  if (out.empty()) throw Error("empty key");
+  return out;
+}
+
+/// The numeric keys of a table (with [i] for numeric arrays), for messages.
+std::string NumericKeys(const toml::table& t) {
+  std::string s;
+  for (const auto& [k, v] : t) {
+    std::string name(k.str());
+    if (v.is_number()) {
+    } else if (const toml::array* a = v.as_array(); a && !a->empty() && a->is_homogeneous(toml::node_type::none) && (*a)[0].is_number()) {
+      name += "[0.." + std::to_string(a->size() - 1) + "]";
+    } else if (v.is_table() || v.is_array_of_tables()) {
+      name += v.is_table() ? ".*" : "[i].* or " + name + ".<name>.*";
+    } else {
+      continue;
+    }
+    s += (s.empty() ? "" : ", ") + name;
+  }
+  return s.empty() ? "(none)" : s;
+}
+
+/// Where a key's number lives: a table entry or an array element.
+struct Slot {
+  toml::table* table = nullptr;
+  std::string key;
+  toml::array* array = nullptr;
+  size_t index = 0;
+  toml::node* node = nullptr;
+};
+
+Slot Resolve(toml::table& root, const std::string& key, const std::string& scene_file) {
+  const std::vector<Segment> segs = SplitKey(key);
+  toml::table* t = &root;
+  std::string where = "the scene";
+  auto fail = [&](const std::string& why) -> Error {
+    return Error(FileLocation{scene_file}, "key '" + key + "': " + why + " (numeric keys of " +
+                                               where + ": " + NumericKeys(*t) + ")");
+  };
+  for (size_t i = 0; i < segs.size(); ++i) {
+    const Segment& s = segs[i];
+    toml::node* n = t->get(s.name);
+    if (!n) throw fail("no '" + s.name + "' in " + where);
+    const bool last = i + 1 == segs.size();
+    if (toml::array* a = n->as_array()) {
+      if (a->is_array_of_tables() && !a->empty()) {
+        toml::table* next = nullptr;
+        std::string label;
+        if (s.index) {
+          if (*s.index >= a->size())
+            throw fail("'" + s.name + "' has " + std::to_string(a->size()) + " entries");
+          next = (*a)[*s.index].as_table();
+          label = s.name + "[" + std::to_string(*s.index) + "]";
+        } else {
+          if (last) throw fail("'" + s.name + "' is a list of tables: name one");
+          const std::string& want = segs[++i].name;
+          std::string names;
+          for (auto& e : *a) {
+            toml::table* et = e.as_table();
+            const auto nm = (*et)["name"].value<std::string>();
+            names += (names.empty() ? "" : ", ") + nm.value_or("(unnamed)");
+            if (nm && *nm == want) next = et;
+          }
+          if (!next) throw fail("no " + s.name + " named '" + want + "' (names: " + names + ")");
+          if (segs[i].index) throw fail("'" + want + "' is a table, not a list");
+          label = s.name + " '" + want + "'";
+        }
+        if (i + 1 == segs.size()) throw fail("'" + label + "' is a table, not a number");
+        t = next;
+        where = label;
+        continue;
+      }
+      if (!s.index) throw fail("'" + s.name + "' is a list: give an index, e.g. " + s.name + "[0]");
+      if (!last) throw fail("'" + s.name + "[i]' is a number, not a table");
+      if (*s.index >= a->size())
+        throw fail("'" + s.name + "' has " + std::to_string(a->size()) + " values");
+      toml::node& e = (*a)[*s.index];
+      if (!e.is_number()) throw fail("'" + s.name + "[" + std::to_string(*s.index) + "]' is not a number");
+      return {nullptr, "", a, *s.index, &e};
+    }
+    if (s.index) throw fail("'" + s.name + "' is not a list");
+    if (toml::table* sub = n->as_table()) {
+      if (last) throw fail("'" + s.name + "' is a table, not a number");
+      t = sub;
+      where = "[" + s.name + "]";
+      continue;
+    }
+    if (!last) throw fail("'" + s.name + "' is a value, not a table");
+    if (!n->is_number()) throw fail("'" + s.name + "' is not a number");
+    return {t, s.name, nullptr, 0, n};
+  }
+  throw fail("incomplete key");
+}
+
+std::string UnitOf(const std::string& key) {
+  std::string base = key.substr(0, key.find('['));
+  base = base.substr(base.rfind('.') == std::string::npos ? 0 : base.rfind('.') + 1);
+  for (const char* u : {"_um", "_mm", "_deg", "_K", "_kg_m3"})
+    if (base.size() > std::string(u).size() && base.ends_with(u)) return std::string(u).substr(1);
+  return "";
+}
+
+std::string ResolvePath(const std::string& base_file, const std::string& p) {
+  const fs::path q(p);
+  return q.is_absolute() ? p : (fs::path(base_file).parent_path() / q).string();
+}
+
+}  // namespace
+
+double SceneValue(const toml::table& scene, const std::string& key, const std::string& scene_file) {
+  toml::table& t = const_cast<toml::table&>(scene);  // Resolve only reads through the slot here
+  const Slot s = Resolve(t, key, scene_file);
+  return s.node->value<double>().value();
+}
+
+void SetSceneValue(toml::table& scene, const std::string& key, double value,
+                   const std::string& scene_file) {
+  const Slot s = Resolve(scene, key, scene_file);
+  if (s.table) {
+    s.table->insert_or_assign(s.key, value);
+  } else {
+    s.array->replace(s.array->cbegin() + s.index, value);
+  }
+}
+
+FitSpec LoadFitSpec(const std::string& path) { return LoadFitSpec(path, ""); }
+
+FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
+                    const std::string& calibration_override) {
+  const toml::table t = ParseTomlFile(path);
+  TomlReader r(t, path, "");
+  FitSpec f;
+  f.file = path;
+  if (!scene_override.empty()) {
+    f.scene_file = scene_override;
+    r.String("scene", "");
+  } else {
+    f.scene_file = ResolvePath(path, r.String("scene"));
+  }
+  f.scene = ParseTomlFile(f.scene_file);
+  if (!calibration_override.empty()) {
+    f.calibration_file = fs::absolute(calibration_override).string();
+    r.String("calibration", "");
+  } else if (r.Has("calibration")) {
+    f.calibration_file = fs::absolute(ResolvePath(path, r.String("calibration"))).string();
+  }
+  if (!f.calibration_file.empty()) f.scene.insert_or_assign("calibration", f.calibration_file);
+  const simulate::Scene scene = simulate::LoadScene(f.scene, f.scene_file);  // checks it
+  f.seed = static_cast<uint64_t>(r.Integer("seed", 1, 0, INT64_MAX));
+  const std::string m = r.Choice("method", {"grid", "pattern", "lm"}, "lm");
+  f.method = m == "grid" ? Method::kGrid : m == "pattern" ? Method::kPattern : Method::kLevenbergMarquardt;
+  const std::string e = r.Choice("error", {"poisson", "mse", "ssim", "ms-ssim", "cw-ssim"}, "poisson");
+  f.error = e == "poisson" ? ErrorFunction::kPoisson
+            : e == "mse"   ? ErrorFunction::kMse
+            : e == "ssim"  ? ErrorFunction::kSsim
+            : e == "ms-ssim" ? ErrorFunction::kMsSsim
+                             : ErrorFunction::kCwSsim;
+  f.max_evaluations = static_cast<int>(r.Integer("max_evaluations", 2000, 1, 10000000));
+  f.threads = static_cast<int>(r.Integer("threads", 0, 0, 4096));
+
+  for (TomlReader im : r.Tables("image")) {
+    FitImage fi;
+    fi.where = im.Where();
+    fi.file = ResolvePath(path, im.String("file"));
+    fi.defocus_um = im.Number("defocus_um");
+    if (im.Has("dark")) fi.dark_file = ResolvePath(path, im.String("dark"));
+    fi.gain_e_per_dn = im.Positive("gain_e_per_dn", 1.0);
+    im.Finish();
+    Image raw, dark;
+    try {
+      raw = ReadImage(fi.file);
+      if (!fi.dark_file.empty()) dark = ReadImage(fi.dark_file);
+    } catch (const Error& err) {
+      throw Error(fi.where, err.what());
+    }
+    compare::PrepareOptions prep;
+    prep.dark_file = fi.dark_file;
+    prep.gain_e_per_dn = fi.gain_e_per_dn;
+    fi.photons = compare::PrepareExperiment(raw, prep, dark.empty() ? nullptr : &dark, nullptr);
+    if (fi.photons.width != scene.camera.nx || fi.photons.height != scene.camera.ny)
+      throw Error(fi.where, "image " + fi.file + " is " + std::to_string(fi.photons.width) + " x " +
+                                std::to_string(fi.photons.height) + " pixels; the scene's camera has " +
+                                std::to_string(scene.camera.nx) + " x " + std::to_string(scene.camera.ny));
+    f.images.push_back(std::move(fi));
+  }
+  if (f.images.empty()) r.Fail("image", "missing: give at least one [[image]] with file and defocus_um");
+
+  std::set<std::string> keys;
+  for (TomlReader p : r.Tables("parameter")) {
+    Parameter q;
+    q.where = p.Where();
+    q.key = p.String("key");
+    if (!keys.insert(q.key).second) p.Fail("key", "parameter '" + q.key + "' is given twice");
+    double current = 0;
+    if (q.key.starts_with("image")) {
+      // image[i].defocus_um: the defocus of one of this file's images.
+      const auto segs = SplitKey(q.key);
+      if (segs.size() != 2 || !segs[0].index || segs[0].name != "image" || segs[1].name != "defocus_um" ||
+          segs[1].index || *segs[0].index >= f.images.size())
+        p.Fail("key", "image keys are image[i].defocus_um with i < " + std::to_string(f.images.size()));
+      current = f.images[*segs[0].index].defocus_um;
+    } else {
+      try {
+        current = SceneValue(f.scene, q.key, f.scene_file);
+      } catch (const Error& err) {
+        p.Fail("key", err.what());
+      }
+    }
+    q.lower = p.Number("lower");
+    q.upper = p.Number("upper");
+    if (!(q.upper > q.lower)) p.Fail("upper", "must be greater than lower");
+    q.start = p.Number("start", current);
+    if (q.start < q.lower || q.start > q.upper)
+      p.Fail(p.Has("start") ? "start" : "key", "start value " + std::to_string(q.start) +
+                                                   " lies outside [lower, upper]");
+    q.step = p.Positive("step", (q.upper - q.lower) / 10);
+    q.points = static_cast<int>(p.Integer("points", 0, 2, 10001));
+    q.unit = UnitOf(q.key);
+    p.Finish();
+    f.parameters.push_back(q);
+  }
+  if (f.parameters.empty())
+    r.Fail("parameter", "missing: give at least one [[parameter]] with key, lower and upper");
+  if (f.method == Method::kGrid) {
+    double n = 1;
+    for (Parameter& q : f.parameters) {
+      if (q.points == 0) q.points = static_cast<int>(std::floor((q.upper - q.lower) / q.step + 1e-9)) + 1;
+      n *= std::max(q.points, 1);
+    }
+    if (n > f.max_evaluations)
+      r.Fail("method", "the grid has " + std::to_string(int64_t(n)) + " points, more than max_evaluations (" +
+                           std::to_string(f.max_evaluations) + ")");
+  }
+
+  if (r.Has("rays")) {
+    TomlReader ry = r.Table("rays");
+    f.rays.ray_factor = ry.InRange("ray_factor", 1.0 / 1024, 1024, 4);
+    if (ry.Has("fractions")) {
+      f.rays.fractions = ry.Numbers("fractions", 1, 32);
+      for (double v : f.rays.fractions)
+        if (!(v > 0 && v <= 1)) ry.Fail("fractions", "ray fractions must lie in (0, 1]");
+      if (!std::is_sorted(f.rays.fractions.begin(), f.rays.fractions.end()))
+        ry.Fail("fractions", "give the fractions coarse to fine (ascending)");
+    }
+    f.rays.common_random_numbers = ry.Bool("common_random_numbers", true);
+    f.rays.photons_per_pixel = ry.Positive("photons_per_pixel", 0.0);
+    f.rays.reuse_background = ry.Bool("reuse_background", true);
+    if (ry.Has("binning")) {
+      for (double b : ry.Numbers("binning", f.rays.fractions.size(), f.rays.fractions.size())) {
+        if (!(b >= 1 && b <= 64 && b == std::floor(b)))
+          ry.Fail("binning", "expected whole numbers in [1, 64], one per ray fraction");
+        f.rays.binning.push_back(int(b));
+      }
+    }
+    ry.Finish();
+  }
+  if (r.Has("uncertainty")) {
+    TomlReader u = r.Table("uncertainty");
+    f.repeat_seeds = static_cast<int>(u.Integer("repeat_seeds", 3, 0, 1000));
+    if (f.repeat_seeds == 1) u.Fail("repeat_seeds", "0 (none) or at least 2 repeated fits");
+    f.cramer_rao = u.Bool("cramer_rao", true);
+    f.slice_points = static_cast<int>(u.Integer("slice_points", 7, 0, 1001));
+    u.Finish();
+  }
+  r.Finish();
+  return f;
+}
+
+}  // namespace raymatch::fit

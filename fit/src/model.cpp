@@ -1,0 +1,279 @@
+#include "model.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+
+#include "raymatch/compare/measures.h"
+
+namespace raymatch::fit {
+
+namespace {
+
+double Seconds(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+/// Signed deviance residual of one pixel: sign(mu - e) sqrt(2 [mu - e + e ln(e/mu)]).
+/// Counts below 0 (dark subtraction of read noise) are taken as 0.
+inline double DevianceResidual(double e, double mu) {
+  mu = std::max(mu, 1e-6);
+  e = std::max(e, 0.0);
+  const double d = 2 * (mu - e + (e > 0 ? e * std::log(e / mu) : 0.0));
+  const double r = std::sqrt(std::max(d, 0.0));
+  return mu >= e ? r : -r;
+}
+
+}  // namespace
+
+double PoissonDeviance(const Image& e, const Image& mu) {
+  double s = 0;
+  for (size_t i = 0; i < e.size(); ++i) {
+    const double r = DevianceResidual(e.pixels[i], mu.pixels[i]);
+    s += r * r;
+  }
+  return s;
+}
+
+FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const std::string&)> say)
+    : spec_(spec), threads_(threads), say_(std::move(say)) {
+  const size_t P = spec.parameters.size();
+  for (const Parameter& p : spec.parameters)
+    if (!(p.key.starts_with("object") || p.key.starts_with("image"))) split_allowed_ = false;
+  split_allowed_ = split_allowed_ && spec.rays.reuse_background;
+
+  // The parameter box's corners (or, for many parameters, its axis end points): the region the
+  // objects can occupy and the largest automatic source field.
+  std::vector<std::vector<double>> probes;
+  std::vector<double> start;
+  for (const Parameter& p : spec.parameters) start.push_back(p.start);
+  probes.push_back(start);
+  if (P <= 10) {
+    for (uint32_t c = 0; c < (1u << P); ++c) {
+      std::vector<double> th(P);
+      for (size_t i = 0; i < P; ++i) th[i] = (c >> i) & 1 ? spec.parameters[i].upper : spec.parameters[i].lower;
+      probes.push_back(th);
+    }
+  } else {
+    for (size_t i = 0; i < P; ++i)
+      for (double v : {spec.parameters[i].lower, spec.parameters[i].upper}) {
+        std::vector<double> th = start;
+        th[i] = v;
+        probes.push_back(th);
+      }
+  }
+  std::vector<std::pair<Vec3, double>> bounds;
+  double max_field = 0;
+  for (const auto& th : probes) {
+    const simulate::Simulator sim(SceneAt(th));
+    for (const auto& b : sim.ObjectBounds()) bounds.push_back(b);
+    max_field = std::max(max_field, sim.field_radius_um());
+  }
+  {
+    const simulate::Scene s = SceneAt(start);
+    if (s.source.type != simulate::SourceType::kPoint && s.source.field_radius_um == 0)
+      field_radius_ = max_field;
+  }
+  const simulate::Scene s0 = SceneAt(start);  // with the fixed field
+  if (bounds.empty()) {
+    split_allowed_ = false;
+  } else {
+    Vec3 lo(1e300, 1e300, 1e300), hi(-1e300, -1e300, -1e300);
+    for (const auto& [c, r] : bounds) {
+      lo = Vec3(std::min(lo.x, c.x - r), std::min(lo.y, c.y - r), std::min(lo.z, c.z - r));
+      hi = Vec3(std::max(hi.x, c.x + r), std::max(hi.y, c.y + r), std::max(hi.z, c.z + r));
+    }
+    region_center_ = (lo + hi) * 0.5;
+    for (const auto& [c, r] : bounds)
+      region_radius_ = std::max(region_radius_, Length(c - region_center_) + r);
+    region_radius_ = 1.02 * region_radius_ + 0.5;  // margin: a micrometre-scale safety shell
+  }
+
+  // Photon-matched rays: the experiment's flat-background photons per pixel.
+  double ppp = spec.rays.photons_per_pixel;
+  const toml::table* trace = spec.scene["trace"].as_table();
+  const bool scene_rays = trace && trace->contains("rays");
+  if (ppp == 0 && !scene_rays) ppp = s0.trace.photons_per_pixel;
+  if (ppp == 0 && !scene_rays) {
+    // Median of a border frame of the first image (1/8 of the smaller side), as `run` does.
+    const Image& im = spec.images[0].photons;
+    std::vector<float> v;
+    const int bw = std::max(1, std::min(im.width, im.height) / 8);
+    for (int y = 0; y < im.height; ++y)
+      for (int x = 0; x < im.width; ++x)
+        if (x < bw || y < bw || x >= im.width - bw || y >= im.height - bw) v.push_back(im.at(x, y));
+    std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+    ppp = v[v.size() / 2];
+    if (!(ppp > 0))
+      throw raymatch::Error(FileLocation{spec.file}, "the first image's background is not positive: give "
+                                           "[rays] photons_per_pixel");
+    say_("background of the first image: " + std::to_string(ppp) + " photons per pixel");
+  }
+  photon_matched_rays_ = ppp > 0 ? simulate::Simulator(s0).RaysForPhotonTarget(ppp) : s0.trace.rays;
+  for (const FitImage& f : spec.images)
+    for (float v : f.photons.pixels) data_range_ = std::max(data_range_, double(v));
+}
+
+simulate::Scene FitModel::SceneAt(const std::vector<double>& theta) const {
+  toml::table t = spec_.scene;
+  for (size_t i = 0; i < theta.size(); ++i)
+    if (!spec_.parameters[i].key.starts_with("image"))
+      SetSceneValue(t, spec_.parameters[i].key, theta[i], spec_.scene_file);
+  simulate::Scene s = simulate::LoadScene(t, spec_.scene_file);
+  s.defocus_um = DefocusAt(theta);
+  if (field_radius_ > 0) s.source.field_radius_um = field_radius_;
+  simulate::ValidateScene(s);
+  return s;
+}
+
+std::vector<double> FitModel::DefocusAt(const std::vector<double>& theta) const {
+  std::vector<double> d;
+  for (const FitImage& f : spec_.images) d.push_back(f.defocus_um);
+  for (size_t i = 0; i < theta.size(); ++i) {
+    const std::string& k = spec_.parameters[i].key;
+    if (k.starts_with("image[")) d[std::stoul(k.substr(6))] = theta[i];
+  }
+  return d;
+}
+
+uint64_t FitModel::RaysAt(double fraction) const {
+  return std::max<uint64_t>(1, std::llround(double(photon_matched_rays_) * spec_.rays.ray_factor * fraction));
+}
+
+double FitModel::ScaleAt(double fraction) const {
+  return double(photon_matched_rays_) / double(RaysAt(fraction));
+}
+
+std::vector<Image> FitModel::Expected(const std::vector<double>& theta, double fraction,
+                                      uint64_t seed, uint64_t* rays_traced) {
+  simulate::Scene scene = SceneAt(theta);
+  scene.trace.seed = seed;
+  const simulate::Simulator sim(scene);
+  const uint64_t n = RaysAt(fraction);
+  const double scale = ScaleAt(fraction);
+  simulate::RunControl rc;
+  rc.threads = threads_;
+  bool inside = split_allowed_;
+  if (inside)
+    for (const auto& [c, r] : sim.ObjectBounds())
+      inside = inside && Length(c - region_center_) + r <= region_radius_;
+  std::vector<Image> out;
+  for (size_t i = 0; i < spec_.images.size(); ++i) {
+    const double dz = scene.defocus_um[i];
+    const uint32_t plane = static_cast<uint32_t>(i);
+    Image counts;
+    if (inside) {
+      auto& near = near_[{i, n, seed}];
+      if (!near) {
+        const auto t0 = std::chrono::steady_clock::now();
+        near = std::make_shared<std::vector<uint64_t>>();
+        sim.SplitRaysBySphere(plane, n, region_center_, region_radius_, near.get(), nullptr);
+        near_fraction_ = double(near->size()) / double(n);
+        background_seconds_ += Seconds(t0);
+      }
+      auto key = std::make_tuple(i, n, seed, dz);
+      auto bg = background_.find(key);
+      if (bg == background_.end()) {
+        const auto t0 = std::chrono::steady_clock::now();
+        if (background_.size() >= 64) background_.erase(background_.begin());  // bounded memory
+        bg = background_.emplace(key, sim.TracePlaneExcept(dz, plane, n, *near, rc).counts).first;
+        background_seconds_ += Seconds(t0);
+        if (rays_traced) *rays_traced += n - near->size();
+      }
+      counts = sim.TraceRays(dz, plane, *near, rc).counts;
+      for (size_t p = 0; p < counts.size(); ++p) counts.pixels[p] += bg->second.pixels[p];
+      if (rays_traced) *rays_traced += near->size();
+    } else {
+      counts = sim.TracePlane(dz, plane, n, rc).counts;
+      if (rays_traced) *rays_traced += n;
+    }
+    for (float& v : counts.pixels) v = static_cast<float>(v * scale);
+    out.push_back(std::move(counts));
+  }
+  return out;
+}
+
+Image BinImage(const Image& a, int b) {
+  if (b <= 1) return a;
+  Image o(std::max(1, a.width / b), std::max(1, a.height / b));
+  for (int y = 0; y < o.height * b && y < a.height; ++y)
+    for (int x = 0; x < o.width * b && x < a.width; ++x) o.at(x / b, y / b) += a.at(x, y);
+  return o;
+}
+
+int FitModel::BinAt(size_t level) const {
+  if (level < spec_.rays.binning.size()) return spec_.rays.binning[level];
+  // The SSIM family is multi-scale or windowed already (the paper's MS-SSIM held its optimum
+  // down to 1/1024 of the rays unbinned); binning serves the per-pixel Poisson deviance and MSE.
+  if (spec_.error != ErrorFunction::kPoisson && spec_.error != ErrorFunction::kMse) return 1;
+  const double k = spec_.rays.ray_factor * spec_.rays.fractions[level];
+  int b = 1;
+  while (b * b * k < 1 - 1e-9) ++b;
+  return b;
+}
+
+const std::vector<Image>& FitModel::Experiment(int bin) const {
+  std::lock_guard<std::mutex> lk(binned_mutex_);
+  auto& v = binned_experiment_[bin];
+  if (v.empty())
+    for (const FitImage& f : spec_.images) v.push_back(BinImage(f.photons, bin));
+  return v;
+}
+
+double FitModel::Error(const std::vector<Image>& mu_in, int bin) const {
+  const std::vector<Image>& exp = Experiment(bin);
+  std::vector<Image> mu;
+  for (const Image& m : mu_in) mu.push_back(BinImage(m, bin));
+  double s = 0;
+  size_t npix = 0;
+  for (size_t i = 0; i < mu.size(); ++i) {
+    const Image& e = exp[i];
+    switch (spec_.error) {
+      case ErrorFunction::kPoisson:
+        s += PoissonDeviance(e, mu[i]);
+        break;
+      case ErrorFunction::kMse:
+        for (size_t p = 0; p < e.size(); ++p) s += (double(mu[i].pixels[p]) - e.pixels[p]) * (double(mu[i].pixels[p]) - e.pixels[p]);
+        npix += e.size();
+        break;
+      case ErrorFunction::kSsim: {
+        compare::SsimOptions o;
+        o.data_range = data_range_ * bin * bin;
+        s += 1 - compare::Ssim(e, mu[i], o).ssim;
+        break;
+      }
+      case ErrorFunction::kMsSsim: {
+        compare::MsSsimOptions o;
+        o.data_range = data_range_ * bin * bin;
+        s += 1 - compare::MsSsim(e, mu[i], o).ms_ssim;
+        break;
+      }
+      case ErrorFunction::kCwSsim: {
+        compare::CwSsimOptions o;
+        o.data_range = data_range_ * bin * bin;
+        s += 1 - compare::CwSsim(e, mu[i], o).cw_ssim;
+        break;
+      }
+    }
+  }
+  if (spec_.error == ErrorFunction::kMse) return s / double(std::max<size_t>(npix, 1));
+  if (spec_.error != ErrorFunction::kPoisson) return s / double(mu.size());
+  return s;
+}
+
+size_t FitModel::num_residuals(int bin) const {
+  size_t n = 0;
+  for (const Image& e : Experiment(bin)) n += e.size();
+  return n;
+}
+
+void FitModel::DevianceResiduals(const std::vector<Image>& mu, int bin, double* out) const {
+  const std::vector<Image>& exp = Experiment(bin);
+  for (size_t i = 0; i < mu.size(); ++i) {
+    const Image& e = exp[i];
+    const Image m = BinImage(mu[i], bin);
+    for (size_t p = 0; p < e.size(); ++p) *out++ = DevianceResidual(e.pixels[p], m.pixels[p]);
+  }
+}
+
+}  // namespace raymatch::fit

@@ -1,0 +1,75 @@
+#pragma once
+// Expected images for a parameter vector, traced with common random numbers, re-tracing only
+// the rays that can meet an object.
+#include <functional>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <tuple>
+
+#include "raymatch/core/vec.h"
+#include "raymatch/fit/fit.h"
+#include "raymatch/simulate/tracer.h"
+
+namespace raymatch::fit {
+
+class FitModel {
+ public:
+  /// Prepares the model: the region the objects can occupy over the parameter box, a fixed
+  /// source field (so every evaluation draws the same rays), the photon-matched ray count.
+  FitModel(const FitSpec& spec, int threads, std::function<void(const std::string&)> say);
+
+  /// Expected photon images (one per experimental image) at `theta` with `fraction` of the
+  /// final rays and ray streams `seed`. Adds the rays traced to `*rays_traced`.
+  std::vector<Image> Expected(const std::vector<double>& theta, double fraction, uint64_t seed,
+                              uint64_t* rays_traced);
+
+  /// The error function against the experiment (lower is better), on images binned `bin` x
+  /// `bin` (sums of Poisson counts are Poisson; a remainder row/column is dropped).
+  double Error(const std::vector<Image>& mu, int bin = 1) const;
+
+  /// Signed deviance residuals of every (binned) pixel of every image: sum of squares = deviance.
+  void DevianceResiduals(const std::vector<Image>& mu, int bin, double* out) const;
+  size_t num_residuals(int bin = 1) const;
+
+  /// The binning a ray fraction gets: the fit file's, or the smallest b with
+  /// b^2 x ray_factor x fraction >= 1 (the simulation's counts per binned pixel at least the
+  /// experiment's photons per pixel, so its shot noise does not dominate the error).
+  int BinAt(size_t level) const;
+
+  /// Rays per image at `fraction` (ray_factor x photon-matched x fraction).
+  uint64_t RaysAt(double fraction) const;
+  /// Counts -> photons scale at `fraction`.
+  double ScaleAt(double fraction) const;
+
+  uint64_t photon_matched_rays() const { return photon_matched_rays_; }
+  const Vec3& region_center() const { return region_center_; }
+  double region_radius() const { return region_radius_; }
+  double near_fraction() const { return near_fraction_; }
+  double background_seconds() const { return background_seconds_; }
+  /// The scene with `theta` applied (for metadata and checks).
+  simulate::Scene SceneAt(const std::vector<double>& theta) const;
+  /// The image defocus values at `theta`.
+  std::vector<double> DefocusAt(const std::vector<double>& theta) const;
+
+ private:
+  const FitSpec& spec_;
+  int threads_;
+  std::function<void(const std::string&)> say_;
+  bool split_allowed_ = true;
+  double field_radius_ = 0;   // fixed source field radius (0: the scene's own)
+  Vec3 region_center_;
+  double region_radius_ = 0;
+  uint64_t photon_matched_rays_ = 0;
+  double data_range_ = 1;     // L for the SSIM family (largest experimental pixel)
+  double near_fraction_ = 0;
+  double background_seconds_ = 0;
+  // Caches: rays near the region per (image, rays, seed); background per (..., defocus).
+  std::map<std::tuple<size_t, uint64_t, uint64_t>, std::shared_ptr<std::vector<uint64_t>>> near_;
+  std::map<std::tuple<size_t, uint64_t, uint64_t, double>, Image> background_;
+  mutable std::map<int, std::vector<Image>> binned_experiment_;
+  mutable std::mutex binned_mutex_;
+  const std::vector<Image>& Experiment(int bin) const;
+};
+
+}  // namespace raymatch::fit

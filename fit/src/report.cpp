@@ -1,0 +1,219 @@
+// Fit outputs: fit.json, evaluations.csv, best/residual images, plots and report.html.
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <sstream>
+
+#include <nlohmann/json.hpp>
+
+#include "raymatch/compare/plot.h"
+#include "raymatch/core/atomic_file.h"
+#include "raymatch/core/html.h"
+#include "raymatch/core/image_io.h"
+#include "raymatch/core/provenance.h"
+#include "raymatch/fit/fit.h"
+
+namespace raymatch::fit {
+
+namespace fs = std::filesystem;
+
+namespace {
+
+std::string Num(double v, int prec = 6) {
+  if (!std::isfinite(v)) return "n/a";
+  std::ostringstream os;
+  os.precision(prec);
+  os << v;
+  return os.str();
+}
+
+/// JSON number or null (never NaN in an output).
+nlohmann::json J(double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); }
+
+nlohmann::json Matrix(const std::vector<std::vector<double>>& m) {
+  nlohmann::json a = nlohmann::json::array();
+  for (const auto& row : m) {
+    nlohmann::json r = nlohmann::json::array();
+    for (double v : row) r.push_back(J(v));
+    a.push_back(r);
+  }
+  return a;
+}
+
+std::string Esc(const std::string& s) {
+  std::string o;
+  for (char c : s) o += c == '<' ? "&lt;" : c == '>' ? "&gt;" : c == '&' ? "&amp;" : std::string(1, c);
+  return o;
+}
+
+}  // namespace
+
+std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std::string& dir_s) {
+  const fs::path dir(dir_s);
+  EnsureDirectory(dir);
+  const size_t P = spec.parameters.size();
+
+  // fit.json
+  nlohmann::json j;
+  j["provenance"] = ProvenanceJson();
+  j["fit_file"] = spec.file;
+  j["fit_file_checksum"] = FileChecksum(spec.file);
+  j["scene_file"] = spec.scene_file;
+  j["scene_file_checksum"] = FileChecksum(spec.scene_file);
+  j["method"] = MethodName(spec.method);
+  j["error_function"] = ErrorFunctionName(spec.error);
+  j["seed"] = spec.seed;
+  j["status"] = res.status;
+  j["converged"] = res.converged;
+  j["message"] = res.message;
+  j["best_error"] = J(res.best_error);
+  j["rays"] = {{"ray_factor", spec.rays.ray_factor},
+               {"fractions", spec.rays.fractions},
+               {"common_random_numbers", spec.rays.common_random_numbers},
+               {"photon_matched_rays_per_image", res.photon_matched_rays},
+               {"reuse_background", spec.rays.reuse_background},
+               {"region_center_um", res.region_center_um},
+               {"region_radius_um", J(res.region_radius_um)},
+               {"retraced_ray_fraction", J(res.near_ray_fraction)}};
+  for (const FitImage& im : spec.images)
+    j["images"].push_back({{"file", im.file}, {"defocus_um", im.defocus_um}, {"dark", im.dark_file},
+                           {"gain_e_per_dn", im.gain_e_per_dn}});
+  for (const ParameterResult& p : res.parameters)
+    j["parameters"].push_back({{"key", p.key},
+                               {"unit", p.unit},
+                               {"start", p.start},
+                               {"best", J(p.best)},
+                               {"lower", p.lower},
+                               {"upper", p.upper},
+                               {"at_bound", p.at_bound},
+                               {"sigma", J(p.sigma)},
+                               {"sigma_curvature", J(p.sigma_curvature)},
+                               {"sigma_repeat_seeds", J(p.sigma_repeat)},
+                               {"sigma_cramer_rao", J(p.sigma_cramer_rao)},
+                               {"sigma_expected_with_simulation_noise", J(p.sigma_expected)},
+                               {"slice", {{"x", p.slice_x}, {"error", p.slice_error}}}});
+  j["correlation_curvature"] = Matrix(res.correlation);
+  j["correlation_cramer_rao"] = Matrix(res.crb_correlation);
+  if (!res.grid_axes.empty()) j["grid"] = {{"axes", res.grid_axes}, {"errors", res.grid_errors}};
+  for (const auto& [k, v] : res.seconds) j["seconds"][k] = v;
+  j["seconds"]["total"] = res.total_seconds;
+  std::ostringstream csv;
+  csv.precision(10);
+  csv << "index,stage";
+  for (const Parameter& p : spec.parameters) csv << "," << p.key;
+  csv << ",ray_fraction,bin,rays,seed,error,seconds\n";
+  size_t idx = 0;
+  for (const Evaluation& e : res.evaluations) {
+    nlohmann::json ev = {{"stage", e.stage}, {"theta", e.theta}, {"ray_fraction", e.ray_fraction},
+                         {"bin", e.bin}, {"rays", e.rays}, {"seed", e.seed}, {"error", J(e.error)}, {"seconds", e.seconds}};
+    j["evaluations"].push_back(ev);
+    csv << idx++ << "," << e.stage;
+    for (double v : e.theta) csv << "," << v;
+    csv << "," << e.ray_fraction << "," << e.bin << "," << e.rays << "," << e.seed << "," << e.error << "," << e.seconds << "\n";
+  }
+  WriteTextFileAtomic(dir / "fit.json", j.dump(2) + "\n");
+  WriteTextFileAtomic(dir / "evaluations.csv", csv.str());
+
+  // Images: best expected image and residual map per experimental image.
+  std::string imgs;
+  for (size_t k = 0; k < res.best_images.size(); ++k) {
+    const std::string stem = "image" + std::to_string(k);
+    nlohmann::json meta = {{"what", "expected photons per pixel at the fit optimum"},
+                           {"fit_file", spec.file}, {"image", spec.images[k].file},
+                           {"provenance", ProvenanceJson()}};
+    WriteFloatImage((dir / (stem + "_best.tif")).string(), res.best_images[k], meta.dump());
+    meta["what"] = "residual (sim - exp) / sqrt(sim (1 + 1/(ray_factor x fraction)))";
+    WriteFloatImage((dir / (stem + "_residual.tif")).string(), res.residuals[k], meta.dump());
+    double mx = 0;
+    for (float v : spec.images[k].photons.pixels) mx = std::max(mx, double(v));
+    WritePngPreview((dir / (stem + "_experiment.png")).string(), spec.images[k].photons, 0, mx);
+    WritePngPreview((dir / (stem + "_best.png")).string(), res.best_images[k], 0, mx);
+    compare::WriteDivergingMap((dir / (stem + "_residual.png")).string(), res.residuals[k], 4.0, 2);
+    double chi2 = 0;
+    for (float v : res.residuals[k].pixels) chi2 += double(v) * v;
+    chi2 /= double(std::max<size_t>(1, res.residuals[k].size()));
+    imgs += "<h3>" + Esc(spec.images[k].file) + " (defocus " + Num(spec.images[k].defocus_um) +
+            " um)</h3><table><tr><td>experiment</td><td>simulation at the optimum</td><td>residual "
+            "(blue -4 ... red +4 sigma); mean square " + Num(chi2, 4) + "</td></tr><tr><td>" +
+            EmbeddedPng((dir / (stem + "_experiment.png")).string()) + "</td><td>" +
+            EmbeddedPng((dir / (stem + "_best.png")).string()) + "</td><td>" +
+            EmbeddedPng((dir / (stem + "_residual.png")).string()) + "</td></tr></table>\n";
+  }
+
+  // Plots: slices per parameter; grid landscape (1 or 2 axes).
+  std::string plots;
+  for (size_t i = 0; i < P; ++i) {
+    const ParameterResult& p = res.parameters[i];
+    if (p.slice_x.size() < 2) continue;
+    const std::string png = "slice_" + std::to_string(i) + ".png";
+    compare::Series s;
+    s.x = p.slice_x, s.y = p.slice_error;
+    compare::Series dot;
+    dot.points = true;
+    dot.x = {p.best};
+    dot.y = {*std::min_element(p.slice_error.begin(), p.slice_error.end())};
+    compare::WritePlot((dir / png).string(), {s, dot}, "error along " + p.key + " through the optimum",
+                       p.key + (p.unit.empty() ? "" : " (" + p.unit + ")"), ErrorFunctionName(spec.error));
+    plots += EmbeddedPng((dir / png).string()) + "\n";
+  }
+  if (res.grid_axes.size() == 1) {
+    compare::Series s;
+    s.x = res.grid_axes[0], s.y = res.grid_errors;
+    compare::WritePlot((dir / "landscape.png").string(), {s}, "grid scan", spec.parameters[0].key,
+                       ErrorFunctionName(spec.error));
+    plots += EmbeddedPng((dir / "landscape.png").string()) + "\n";
+  } else if (res.grid_axes.size() == 2) {
+    const int nx = int(res.grid_axes[1].size()), ny = int(res.grid_axes[0].size());
+    Image m(nx, ny);
+    for (int r = 0; r < ny; ++r)
+      for (int c = 0; c < nx; ++c) m.at(c, r) = static_cast<float>(res.grid_errors[size_t(r) * nx + c]);
+    const auto [lo, hi] = std::minmax_element(res.grid_errors.begin(), res.grid_errors.end());
+    compare::WriteFalseColour((dir / "landscape.png").string(), m, *lo, *hi, std::max(4, 240 / std::max(nx, ny)));
+    plots += "<p>Grid landscape: columns " + Esc(spec.parameters[1].key) + " from " + Num(res.grid_axes[1].front()) +
+             " to " + Num(res.grid_axes[1].back()) + ", rows " + Esc(spec.parameters[0].key) + " from " +
+             Num(res.grid_axes[0].front()) + " (top) to " + Num(res.grid_axes[0].back()) +
+             "; colour: " + ErrorFunctionName(spec.error) + " from " + Num(*lo) + " (dark) to " + Num(*hi) +
+             " (yellow).</p>" + EmbeddedPng((dir / "landscape.png").string()) + "\n";
+  }
+
+  std::ostringstream h;
+  h << "<!doctype html><html><head><meta charset=\"utf-8\"><title>raymatch fit</title><style>"
+       "body{font-family:sans-serif;max-width:1100px;margin:2em auto}table{border-collapse:collapse}"
+       "td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}img{image-rendering:pixelated;"
+       "max-width:100%}</style></head><body>\n<h1>raymatch fit</h1>\n<p>"
+    << Esc(spec.file) << ": " << MethodName(spec.method) << " on " << ErrorFunctionName(spec.error)
+    << ", status <b>" << Esc(res.status) << "</b>: " << Esc(res.message) << ". " << res.evaluations.size()
+    << " evaluations in " << Num(res.total_seconds, 3) << " s; best error " << Num(res.best_error) << ".</p>\n"
+    << "<h2>Parameters</h2><table><tr><th>key</th><th>unit</th><th>start</th><th>best</th>"
+       "<th>sigma (reported)</th><th>curvature only</th><th>repeat seeds (simulation noise)</th>"
+       "<th>Cramer-Rao bound</th><th>CRB incl. simulation noise</th><th>bounds</th></tr>\n";
+  for (const ParameterResult& p : res.parameters)
+    h << "<tr><td style=\"text-align:left\">" << Esc(p.key) << "</td><td>" << p.unit << "</td><td>"
+      << Num(p.start) << "</td><td>" << Num(p.best, 8) << (p.at_bound ? " (at bound)" : "") << "</td><td>"
+      << Num(p.sigma, 3) << "</td><td>" << Num(p.sigma_curvature, 3) << "</td><td>" << Num(p.sigma_repeat, 3) << "</td><td>"
+      << Num(p.sigma_cramer_rao, 3) << "</td><td>" << Num(p.sigma_expected, 3) << "</td><td>["
+      << Num(p.lower) << ", " << Num(p.upper) << "]</td></tr>\n";
+  h << "</table>\n";
+  if (!res.correlation.empty()) {
+    h << "<h2>Correlations (curvature covariance)</h2><table><tr><th></th>";
+    for (const Parameter& p : spec.parameters) h << "<th>" << Esc(p.key) << "</th>";
+    h << "</tr>";
+    for (size_t i = 0; i < P; ++i) {
+      h << "<tr><th>" << Esc(spec.parameters[i].key) << "</th>";
+      for (size_t k = 0; k < P; ++k) h << "<td>" << Num(res.correlation[i][k], 3) << "</td>";
+      h << "</tr>";
+    }
+    h << "</table>\n";
+  }
+  h << "<h2>Images</h2>\n" << imgs << "<h2>Error function</h2>\n" << plots << "<h2>Time</h2><table>";
+  for (const auto& [k, v] : res.seconds) h << "<tr><td style=\"text-align:left\">" << Esc(k) << "</td><td>" << Num(v, 3) << " s</td></tr>";
+  h << "</table>\n<p>Rays: " << res.photon_matched_rays << " photon-matched rays per image x ray factor "
+    << spec.rays.ray_factor << "; re-traced share per evaluation " << Num(res.near_ray_fraction, 3)
+    << " (rays that can meet an object; the others traced once). Every evaluation: evaluations.csv; "
+       "everything: fit.json.</p></body></html>\n";
+  const fs::path report = dir / "report.html";
+  WriteTextFileAtomic(report, h.str());
+  return report.string();
+}
+
+}  // namespace raymatch::fit

@@ -231,6 +231,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
      << exp.images[0].width << ", " << exp.images[0].height << "]\n\n[trace]\nphotons_per_pixel = "
      << sum.photons_per_pixel * frac << "   # background photons x ray fraction " << frac
      << "\npartial_reflection = \"" << cfg.partial_reflection << "\"\n\n[scan]\ndefocus_um = [";
+  sc.precision(17);  // every distinct focus position stays distinct (plane file names)
   for (size_t i = 0; i < exp.defocus_um.size(); ++i) sc << (i ? ", " : "") << exp.defocus_um[i];
   sc << "]\n";
   const fs::path scene_file = out / "scene.toml";

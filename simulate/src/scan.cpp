@@ -3,7 +3,9 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdlib>
 #include <filesystem>
+#include <set>
 #include <sstream>
 
 #include "raymatch/core/atomic_file.h"
@@ -17,9 +19,25 @@ namespace fs = std::filesystem;
 namespace raymatch::simulate {
 
 std::string PlaneStem(const std::string& name, double defocus_um) {
+  const double z = defocus_um == 0 ? 0.0 : defocus_um;  // no "-0.00"
+  // Two decimals as long as they name the value exactly; otherwise as many more as it takes
+  // for the name to read back as the same double, so distinct planes never share a file.
   char buf[64];
-  std::snprintf(buf, sizeof buf, "_z%+07.2fum", defocus_um == 0 ? 0.0 : defocus_um);
-  return name + buf;
+  for (int digits = 2; digits <= 17; ++digits) {
+    std::snprintf(buf, sizeof buf, "%+0*.*f", digits + 5, digits, z);
+    if (std::strtod(buf, nullptr) == z) break;
+  }
+  return name + "_z" + buf + "um";
+}
+
+// Shortest text that reads back as the same double (the CSV index and messages).
+static std::string FormatDefocus(double z) {
+  char buf[64];
+  for (int digits = 1; digits <= 17; ++digits) {
+    std::snprintf(buf, sizeof buf, "%.*g", digits, z);
+    if (std::strtod(buf, nullptr) == z) break;
+  }
+  return buf;
 }
 
 static const char* PrName(PartialReflection p) {
@@ -80,6 +98,12 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
 
 ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
   const auto t0 = std::chrono::steady_clock::now();
+  std::set<std::string> stems;
+  for (double dz : scene.defocus_um)
+    if (!stems.insert(PlaneStem(scene.name, dz)).second)
+      throw Error(FileLocation{scene.file},
+                  "focus position " + FormatDefocus(dz) +
+                      " um is listed twice in defocus_um; each plane needs its own position");
   EnsureDirectory(opt.output_dir);
   Simulator sim(scene);
   ScanSummary sum;
@@ -123,7 +147,7 @@ ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
                       {"image", fs::path(out.image).filename().string()},
                       {"png", out.png.empty() ? "" : fs::path(out.png).filename().string()},
                       {"sidecar", fs::path(out.sidecar).filename().string()}});
-    csv << dz << "," << fs::path(out.image).filename().string() << ","
+    csv << FormatDefocus(dz) << "," << fs::path(out.image).filename().string() << ","
         << (out.png.empty() ? "" : fs::path(out.png).filename().string()) << ","
         << fs::path(out.sidecar).filename().string() << "," << r.rays << ","
         << r.counters.fates[int(Fate::kDetected)] << "," << out.mean_counts << "," << r.seconds

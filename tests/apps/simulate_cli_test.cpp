@@ -4,6 +4,8 @@
 
 #include <filesystem>
 #include <fstream>
+#include <set>
+#include <sstream>
 #include <nlohmann/json.hpp>
 
 #include "raymatch/core/image_io.h"
@@ -106,6 +108,34 @@ TEST(SimulateCli, BadSceneGivesLocatedErrorAndNoOutput) {
   // Usage errors exit 2.
   EXPECT_EQ(Raymatch("simulate", dir).code, 2);
   EXPECT_EQ(Raymatch("simulate " + (dir / "missing.toml"), dir).code, 2);
+}
+
+// Issue 15 defect 2: names rounded to 0.01 um made 48.331 and 48.334 one file (a plane lost
+// silently). Distinct positions give distinct files; a repeated position is an error.
+TEST(SimulateCli, CloseFocusPositionsGetTheirOwnFiles) {
+  testing::TempDir dir;
+  const std::string scene = dir.Write("tiny.toml", kScene);
+  const CliRun r = Raymatch("simulate " + scene + " -q --no-png --rays 2000 --defocus-um "
+                            "48.331,48.334,-0.125,0.1 -o " + (dir / "out"), dir);
+  ASSERT_EQ(r.code, 0) << r.err;
+  for (const char* z : {"+048.331", "+048.334", "-000.125", "+000.10"})
+    EXPECT_TRUE(fs::exists(dir / ("out/tiny_z" + std::string(z) + "um.tif"))) << z;
+  std::ifstream idx(dir / "out/tiny_scan.json");
+  const auto planes = nlohmann::json::parse(idx)["planes"];
+  ASSERT_EQ(planes.size(), 4u);
+  std::set<std::string> images;
+  for (const auto& p : planes) images.insert(p["image"].get<std::string>());
+  EXPECT_EQ(images.size(), 4u);
+  std::ifstream csv(dir / "out/tiny_scan.csv");
+  std::stringstream text;
+  text << csv.rdbuf();
+  EXPECT_NE(text.str().find("48.331,"), std::string::npos) << text.str();
+
+  const CliRun twice = Raymatch("simulate " + scene + " -q --no-png --rays 2000 --defocus-um "
+                                "5,0,5 -o " + (dir / "dup"), dir);
+  EXPECT_EQ(twice.code, 1);
+  EXPECT_NE(twice.err.find("focus position 5 um is listed twice"), std::string::npos) << twice.err;
+  EXPECT_FALSE(fs::exists(dir / "dup"));
 }
 
 TEST(SimulateCli, SampleSceneIsValid) {

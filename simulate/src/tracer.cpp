@@ -230,7 +230,8 @@ Optics MakeOptics(const Scene& s) {
   Optics o;
   const OpticsSpec& sp = s.optics;
   const double f = sp.objective_focal_mm * 1e3;
-  const double tan_na = std::tan(std::asin(sp.na));
+  // NA = n sin(theta) in the medium the objective looks into (docs/conventions.md).
+  const double tan_na = std::tan(std::asin(AcceptanceSin(s)));
   double z;
   if (sp.model == ObjectiveModel::kSingle) {
     o.lenses[0] = {f, f, 0};
@@ -250,7 +251,7 @@ Optics MakeOptics(const Scene& s) {
   }
   o.stop_after = o.num_lenses;
   // The stop at the back focal plane is a pure angle filter: height there = f tan(theta).
-  // Radius f tan(asin NA) passes exactly the rays a real (sine-condition) objective of this NA
+  // Radius f tan(asin(NA / n)) passes exactly the rays a real (sine-condition) objective of this NA
   // accepts from an on-axis point (docs/optics.md).
   const double stop_r = f * tan_na;
   o.stop_r2 = stop_r * stop_r;
@@ -629,7 +630,7 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
   double max_dz = 0;
   for (double dz : scene.defocus_um) max_dz = std::max(max_dz, std::abs(dz));
   const double tan_max = std::tan(std::min(scene.source.half_angle_deg, 80.0) * kDeg) +
-                         std::tan(std::asin(scene.optics.na));
+                         std::tan(std::asin(AcceptanceSin(scene)));
   const double auto_r = 1.05 * (view + (max_dz + im.geometry.extent_um()) * tan_max) + 1.0;
   const SourceSpec& ss = scene.source;
   im.field_radius_um = ss.field_radius_um > 0 ? ss.field_radius_um : auto_r;

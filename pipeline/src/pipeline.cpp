@@ -379,7 +379,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     << "<h2>Corrector</h2><pre>" << co_report << "</pre>" << Img((fig / "transmissions.png").string())
     << "<h2>Experiment (top) and simulation (bottom)</h2><p>Exposure recovered from the "
        "background: " << sum.photons_per_pixel << " photons per pixel; simulated with ray fraction "
-    << frac << ". Registration shift " << fr.shift_px[0] << ", " << fr.shift_px[1] << " px.</p>"
+    << frac << ". " << fr.RegistrationSummary() << ".</p>"
     << Img((out / "compare/montage.png").string())
     << "<h2>Focus-scan test</h2><table><tr><th>measure</th><th>verdict</th><th>best simulated z per experimental z (um)</th></tr>";
   for (size_t i = 0; i < fr.measures.size(); ++i) {

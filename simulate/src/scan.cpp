@@ -51,8 +51,26 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
   nlohmann::json fates = nlohmann::json::object();
   for (int i = 0; i < kNumFates; ++i) fates[FateName(Fate(i))] = r.counters.fates[i];
   nlohmann::json objects = nlohmann::json::array();
-  for (const ObjectSpec& o : s.objects)
-    objects.push_back({{"name", o.name}, {"index", o.index}, {"material", o.material}});
+  for (const ObjectSpec& o : s.objects) {
+    nlohmann::json obj = {{"name", o.name}, {"index", o.index}, {"material", o.material}};
+    if (!o.density_source.empty()) {
+      obj["density_kg_m3"] = o.density_kg_m3;
+      obj["density"] = o.density_source == "given"
+                           ? "given (density_kg_m3 in the scene)"
+                           : "defaulted (Tanaka et al. 2001, Metrologia 38:301, at temperature_K)";
+      obj["density_given"] = o.density_source == "given";
+    }
+    objects.push_back(obj);
+  }
+  // Debye path classes of the first departure from the first object hit: p = 0 reflected
+  // externally, p >= 1 transmitted after p - 1 internal reflections (the last class: p >= 7).
+  nlohmann::json path_classes = nlohmann::json::object();
+  for (int k = 0; k < kNumPathClasses; ++k) {
+    const std::string key = k == 0                     ? "p0_reflected"
+                            : k == kNumPathClasses - 1 ? "p" + std::to_string(k) + "_or_more"
+                                                       : "p" + std::to_string(k);
+    path_classes[key] = r.counters.path_class[k];
+  }
   const PixelStats st = ComputeStats(r.counts);
   nlohmann::json j = {
       {"provenance", ProvenanceJson()},
@@ -72,6 +90,13 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
       {"rays_per_second", r.seconds > 0 ? r.rays / r.seconds : 0.0},
       {"effects", sim.Effects()},
       {"partial_reflection", PrName(s.trace.partial_reflection)},
+      {"objective",
+       {{"na", s.optics.na},
+        {"acceptance_sin_theta_in_medium", AcceptanceSin(s)},
+        {"na_convention", "NA = medium_index x sin(theta_max) (docs/conventions.md)"},
+        {"focal_length_mm", s.optics.objective_focal_mm},
+        {"model", s.optics.model == ObjectiveModel::kSingle ? "single" : "two_lens"}}},
+      {"path_classes", path_classes},
       {"counters",
        {{"interface_events", r.counters.interface_events},
         {"fresnel_evaluations", r.counters.fresnel_evaluations},

@@ -131,11 +131,14 @@ void ReadMaterial(TomlReader& r, const Scene& scene, ObjectSpec& o) {
   double rho;
   if (r.Has("density_kg_m3")) {
     rho = r.InRange("density_kg_m3", 0, 2000, 998, true, false);
+    o.density_source = "given";
   } else {
     if (T < 273.15 || T > 313.15)
       r.Fail("temperature_K", "outside 273.15-313.15 K the density must be given (density_kg_m3)");
     rho = WaterDensityTanaka(T);
+    o.density_source = "defaulted";
   }
+  o.density_kg_m3 = rho;
   const WaterIndex w = WaterRefractiveIndex(T, rho, scene.wavelength_um);
   o.index = w.n;
   std::ostringstream os;

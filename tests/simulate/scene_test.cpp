@@ -113,6 +113,21 @@ TEST(SceneFile, NaIsQuotedInTheMedium) {
             std::string::npos);
 }
 
+// Issue 15 defect 7: whether a water density was given or defaulted is kept for the sidecar.
+TEST(SceneFile, WaterDensityGivenOrDefaultedIsRecorded) {
+  testing::TempDir dir;
+  const Scene given = LoadScene(dir.Write(
+      "a.toml", Replace(kGood, "index = 1.33",
+                        "material = \"water\"\ntemperature_K = 298.15\ndensity_kg_m3 = 997.0")));
+  EXPECT_EQ(given.objects[0].density_source, "given");
+  EXPECT_DOUBLE_EQ(given.objects[0].density_kg_m3, 997.0);
+  const Scene defaulted = LoadScene(dir.Write(
+      "b.toml", Replace(kGood, "index = 1.33", "material = \"water\"\ntemperature_K = 298.15")));
+  EXPECT_EQ(defaulted.objects[0].density_source, "defaulted");
+  EXPECT_NEAR(defaulted.objects[0].density_kg_m3, 997.05, 0.01);  // Tanaka 2001 at 25 C
+  EXPECT_EQ(LoadScene(dir.Write("c.toml", kGood)).objects[0].density_source, "");
+}
+
 TEST(SceneFile, ObjectBeyondTheObjectiveIsRejected) {
   EXPECT_NE(LoadError(Replace(kGood, "radius_um = 10", "radius_um = 10\ncenter_um = [0, 0, 2e4]"))
                 .find("reaches the objective"),

@@ -69,6 +69,10 @@ struct ObjectSpec {
   std::string shape_description;         ///< how a generated mesh was made
   double index = 1.0;                    ///< absolute refractive index
   std::string material;                  ///< "constant" or "water (IAPWS R9-97, T=..., rho=...)"
+  double density_kg_m3 = 0;              ///< water: the density used (0 for a constant index)
+  /// water: "given" (density_kg_m3 in the file) or "defaulted" (Tanaka et al. 2001 at T);
+  /// empty for a constant index.
+  std::string density_source;
   /// Gradient-index field inside the object (null: homogeneous, never integrated).
   std::shared_ptr<const IndexField> index_field;
   FileLocation where;                    ///< for messages

@@ -290,6 +290,30 @@ Vec3 RandomPerpendicular(const Vec3& d, double u) {
 
 enum class GrinOutcome { kHit, kStepCap, kNoSurface };
 
+/// A spherically symmetric field (n depends on |p - centre| only: Luneburg, fish-eye) conserves
+/// the ray's angular momentum L = (r - c) x T (Bouguer's formula, Born & Wolf sec. 3.2.1) and
+/// the eikonal |T| = n. Near a tangent exit a position error e moves the exit by e / alpha
+/// along the surface (alpha: the exit angle to it), so each accepted state is projected back
+/// onto both invariants (Hairer, Lubich & Wanner, Geometric Numerical Integration, 2006,
+/// sec. IV.4): the orbit keeps its exact shape and the exit angle follows from L.
+bool IsCentralField(const IndexField& f) {
+  return f.type == IndexFieldType::kLuneburg || f.type == IndexFieldType::kFishEye;
+}
+
+void ProjectOnInvariants(const IndexField& f, const Vec3& center, const Vec3& l, GrinState* s) {
+  const double l2 = Dot(l, l);
+  Vec3 p = s->r - center;
+  if (l2 > 0) p = p - l * (Dot(p, l) / l2);  // back into the plane of the orbit
+  const double p2 = Dot(p, p);
+  if (!(p2 > 0)) return;
+  const double n = f.Index(p);
+  const Vec3 t_perp = Cross(l, p) / p2;  // p x t_perp = l for p normal to l
+  const double radial2 = n * n - Dot(t_perp, t_perp);
+  const double sign = Dot(s->t, p) >= 0 ? 1.0 : -1.0;
+  s->r = center + p;
+  s->t = t_perp + p * (sign * std::sqrt(std::max(0.0, radial2)) / std::sqrt(p2));
+}
+
 /// Follows a curved ray inside gradient-index object `obj` from `o` (direction `d`) to the next
 /// surface. Each accepted step's chord is tested against the surfaces; a step whose chord crosses
 /// one is shortened (the crossing parameter scales the step) until the crossing chord is shorter
@@ -304,12 +328,26 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
   const Geometry& geo = im.geometry;
   const double surface_tol = std::min(1e-3, 1e-5 * im.size[obj]);
   GrinState s{o, d * f.Index(o - center)};
+  const bool central = IsCentralField(f);
+  const Vec3 angular_momentum = Cross(o - center, s.t);
+  // The orbit of a central field leaves the sphere it entered at the angle alpha to the surface
+  // with cos(pi/2 - alpha) = |L| / (n R). Near a tangent exit (alpha -> 0) the exit point moves by
+  // e / alpha for a position error e and the direction by e / (alpha R), so the step tolerance
+  // shrinks with alpha^2 below alpha = 0.01 (down to 1e-6 of the setting): rays entering
+  // within ~5e-5 R of a Luneburg lens's edge, and only those, take smaller steps.
+  GrinSettings local = cfg;
+  if (central) {
+    const double r0 = Length(o - center), n0 = f.Index(o - center);
+    const double sin_exit = r0 > 0 ? Length(angular_momentum) / (n0 * r0) : 0.0;
+    const double alpha = std::sqrt(std::max(0.0, 1 - std::min(1.0, sin_exit * sin_exit)));
+    local.tolerance_um = cfg.tolerance_um * std::clamp(alpha * alpha / 1e-4, 1e-6, 1.0);
+  }
   double dt = 0.05 * im.size[obj] / Length(s.t);
   ++c.grin_segments;
   for (int step = 0; step < cfg.max_steps; ++step) {
     GrinState s1 = s;
     double used = 0, next = dt;
-    AdaptiveStep(f, center, cfg, &s1, &next, &used);
+    AdaptiveStep(f, center, local, &s1, &next, &used);
     ++c.grin_steps;
     for (int shrink = 0;; ++shrink) {
       const Vec3 chord = s1.r - s.r;
@@ -319,6 +357,7 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
       if constexpr (kMesh) ++c.mesh_queries;
       const bool crosses = L > 0 && geo.Intersect<kMesh>(s.r, chord / L, &h) && h.t <= L;
       if (!crosses) {
+        if (central) ProjectOnInvariants(f, center, angular_momentum, &s1);
         s = s1;
         dt = next;
         break;
@@ -332,12 +371,18 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
         if (Dot(*dout, h.normal) <= 0) *dout = chord / L;
         return GrinOutcome::kHit;
       }
-      // Aim the (shorter) step at the crossing point; it is within the accepted error.
-      used *= std::max(0.05, 0.999 * h.t / L);
+      // Aim the (shorter) step at the crossing point; it is within the accepted error. Near a
+      // tangent exit the straight chord leaves the surface much later than the curved path
+      // (both bend alike), so aiming shortened the step by ~0.1 % a try and after 60 tries the
+      // ray left at the chord's far end, past its true exit and turned backwards (issue 15).
+      // From the second try on the step is at least halved: a bisection on the path.
+      const double aim = std::max(0.05, 0.999 * h.t / L);
+      used *= shrink == 0 ? aim : std::min(0.5, aim);
       next = used;
       s1 = SharmaStep(f, center, s, used);
       const double nn = f.Index(s1.r - center), tl = Length(s1.t);
       if (tl > 0) s1.t = s1.t * (nn / tl);
+      if (central) ProjectOnInvariants(f, center, angular_momentum, &s1);
     }
   }
   return GrinOutcome::kStepCap;

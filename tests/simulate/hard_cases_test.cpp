@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <tuple>
 
 #include "raymatch/simulate/index_field.h"
 #include "raymatch/simulate/tracer.h"
@@ -172,6 +173,36 @@ TEST(HardCases, DegenerateTriangles) {
   s.source.type = SourceType::kCone;
   s.source.half_angle_deg = 20;
   ExpectSane(Simulator(s).TracePlane(0, 0, 100000));
+}
+
+// Issue 15 defect 4: a mesh header that declares more elements than its file can hold is an
+// error naming the file before the reader allocates for them (binary PLY and binary STL).
+TEST(HardCases, MeshHeadersClaimingHugeCountsAreRejected) {
+  testing::TempDir dir;
+  std::string stl(80, ' ');
+  const uint32_t triangles = 400000000;
+  stl.append(reinterpret_cast<const char*>(&triangles), 4);
+  stl.append(100, '\0');
+  const std::string ply =
+      "ply\nformat binary_little_endian 1.0\nelement vertex 1000000000\nproperty float x\n"
+      "property float y\nproperty float z\nelement face 1000000000\n"
+      "property list uchar int vertex_indices\nend_header\n" + std::string(64, '\0');
+  for (const auto& [name, text, what] :
+       {std::tuple{"huge.stl", stl, "STL triangles"}, std::tuple{"huge.ply", ply, "PLY elements"}}) {
+    Scene s = Base();
+    ObjectSpec o;
+    o.shape = ShapeType::kMesh;
+    o.mesh_file = dir.Write(name, text);
+    o.index = 1.5;
+    s.objects = {o};
+    try {
+      Simulator sim(s);
+      ADD_FAILURE() << name << " was read";
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find(name), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find(what), std::string::npos) << e.what();
+    }
+  }
 }
 
 // Very steep gradient: the index jumps by 0.3 within one cell of a grid.

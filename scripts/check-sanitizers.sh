@@ -36,12 +36,12 @@ sample=datasets-sample/drop46
 "$bin" simulate "$sample/scene.toml" -q --rays 20000 --defocus-um -5,0,5 --threads 2 -o "$out/simulate"
 "$bin" compare "$sample/drop_z+00um.tif" "$sample/drop_z+05um.tif" -L 4095 --json "$out/compare.json" >/dev/null
 rc=0
-"$bin" compare-scan "$sample/scan.csv" "$out/simulate/$(basename "$sample")_scan.json" \
-  --dark "$sample/dark.tif" --gain 1.0989 -o "$out/compare-scan" >/dev/null || rc=$?
-[ "$rc" -le 2 ] || { echo "compare-scan failed with $rc" >&2; exit 1; }  # 0-2: a verdict
-rc=0
 "$bin" run datasets-sample/pipeline.toml -o "$out/run" --ray-fraction 0.02 --threads 2 --force || rc=$?
 [ "$rc" -le 2 ] || { echo "run failed with $rc" >&2; exit 1; }  # 0-2: the verdict
+rc=0
+"$bin" compare-scan "$sample/scan.csv" "$out/run/simulation/sim_scan.json" \
+  --dark "$sample/dark.tif" --gain 1.0989 -o "$out/compare-scan" >/dev/null || rc=$?
+[ "$rc" -le 2 ] || { echo "compare-scan failed with $rc" >&2; exit 1; }  # 0-2: a verdict
 # Bad input must give an error, not a sanitizer report.
 if "$bin" compare "$sample/drop_z+00um.tif" "$sample/drop_z+05um.tif" -L 0 2>/dev/null; then
   echo "compare -L 0 should fail" >&2

@@ -70,12 +70,12 @@ void RegisterCompare(CLI::App& app, int* exit_code) {
       "compare",
       "Compare two images: MSE, PSNR, SSIM (as MATLAB ssim), MS-SSIM (as MATLAB multissim),\n"
       "CW-SSIM (Sampat 2009) and Poisson chi-square/deviance per pixel. Prints JSON.\n"
-      "Exit: 0 ok, 2 below --fail-below, 3 size mismatch, 4 file error.");
+      "Exit: 0 ok, 2 below --fail-below or invalid options/input, 3 size mismatch, 4 file error.");
   sub->add_option("a", o->a, "First image (e.g. experiment)")->required();
   sub->add_option("b", o->b, "Second image (e.g. simulation)")->required();
   sub->add_option("-L,--data-range", o->data_range,
                   "Dynamic range L in pixel units (e.g. 4095 for 12-bit data in 16-bit files)")
-      ->required()->check(CLI::PositiveNumber);
+      ->required()->check(DataRangeCheck(false));
   AddMultiscaleOptions(sub, &o->ms, &o->cw);
   sub->add_option("--json", o->json, "Also write the JSON to this file");
   sub->add_option("--fail-below", o->fail_below, "Exit 2 when MS-SSIM is below this value");

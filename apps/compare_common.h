@@ -1,6 +1,7 @@
 #pragma once
 // Exit codes shared by `compare` and `compare-scan` (OIIO idiff style, docs/compare.md).
 #include <CLI/CLI.hpp>
+#include <cmath>
 #include <functional>
 #include <iostream>
 #include <map>
@@ -11,6 +12,26 @@
 namespace raymatch::apps {
 
 enum CompareExit { kOk = 0, kWarn = 1, kFail = 2, kSizeMismatch = 3, kFileError = 4 };
+
+/// A data range L: a finite number > 0 (or also 0 when `zero_means_auto`). CLI11's own
+/// PositiveNumber/Range checks print the double range with a 300-digit upper bound.
+inline CLI::Validator DataRangeCheck(bool zero_means_auto) {
+  return CLI::Validator(
+      [zero_means_auto](std::string& s) -> std::string {
+        double v = 0;
+        std::size_t used = 0;
+        try {
+          v = std::stod(s, &used);
+        } catch (const std::exception&) {
+          used = 0;
+        }
+        const bool ok = used == s.size() && std::isfinite(v) && (v > 0 || (zero_means_auto && v == 0));
+        if (ok) return "";
+        return "the data range L must be a number " + std::string(zero_means_auto ? ">= 0 (0 = automatic)" : "> 0") +
+               " in pixel units, e.g. 4095 for 12-bit data or 65535 for 16-bit; got '" + s + "'";
+      },
+      zero_means_auto ? "L >= 0" : "L > 0");
+}
 
 /// The MS-SSIM and CW-SSIM settings both subcommands take.
 inline void AddMultiscaleOptions(CLI::App* sub, compare::MsSsimOptions* ms,

@@ -48,7 +48,8 @@ void RegisterCompareScan(CLI::App& app, int* exit_code) {
       "MS-SSIM, CW-SSIM and Poisson chi-square; passes when each best match is the same defocus\n"
       "within one step. Stacks: CSV 'defocus_um,file' or the simulator's <name>_scan.json.\n"
       "Writes JSON, CSV, PNG heatmaps, a montage and report.html.\n"
-      "Exit: 0 pass, 1 some primary measures fail, 2 all fail, 3 size mismatch, 4 file error.");
+      "Exit: 0 pass, 1 some primary measures fail, 2 all fail or invalid options/input,\n"
+      "3 size mismatch, 4 file error.");
   sub->add_option("experiment", o->experiment, "Experimental stack index (.csv or .json)")->required();
   sub->add_option("simulation", o->simulation, "Simulated stack index (.csv or .json)")->required();
   sub->add_option("-o,--output", o->output, "Output directory")->capture_default_str();
@@ -58,7 +59,8 @@ void RegisterCompareScan(CLI::App& app, int* exit_code) {
       ->capture_default_str();
   sub->add_option("--roi", o->roi, "Crop x,y,width,height (pixels) before comparing")->delimiter(',');
   sub->add_option("-L,--data-range", o->scan.data_range,
-                  "Dynamic range L in photons (default: the largest pixel of both stacks)");
+                  "Dynamic range L in photons (default: the largest pixel of both stacks)")
+      ->check(DataRangeCheck(true));
   AddMultiscaleOptions(sub, &o->scan.ms_ssim, &o->scan.cw_ssim);
   sub->add_flag("--no-register", o->no_register, "Skip sub-pixel registration");
   sub->add_flag("--no-normalize", o->no_normalize, "Do not scale the simulation to the experiment's background");

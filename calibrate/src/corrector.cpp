@@ -157,7 +157,8 @@ CorrectorSummary CalibrateCorrector(const FlatFieldInput& in, const CorrectorOpt
                                     const CalibrationData* base) {
   CorrectorSummary s;
   if (base) s.data = *base;
-  const double M = in.optics.magnification(), p = in.camera.pixel_pitch_um / M, na = in.optics.na;
+  const double M = in.optics.magnification(), p = in.camera.pixel_pitch_um / M,
+               na = in.optics.acceptance_sin();  // NA / n: a sine in the medium
   Image dark;
   if (!in.dark.empty()) dark = ReadImage(in.dark);
   const Image* dk = dark.empty() ? nullptr : &dark;
@@ -221,7 +222,7 @@ CorrectorSummary CalibrateCorrector(const FlatFieldInput& in, const CorrectorOpt
   if (!base || d.objective_focal_mm == 0) {
     d.objective_focal_mm = in.optics.objective_focal_mm;
     d.working_distance_mm = in.optics.working_distance_mm;
-    d.na = na;
+    d.na = in.optics.na;
     d.tube_focal_mm = in.optics.tube_focal_mm;
     d.pixel_pitch_um = in.camera.pixel_pitch_um;
     d.wavelength_um = in.optics.wavelength_um;

@@ -29,8 +29,12 @@ void ReadCommon(TomlReader& r, CameraInfo* cam, OpticsInfo* opt) {
   c.Finish();
   TomlReader o = r.Table("optics");
   opt->objective_focal_mm = o.Positive("objective_focal_mm");
-  opt->na = o.InRange("na", 0, 1, 0, true, true);
-  if (!o.Has("na")) o.Fail("na", "required");
+  if (!o.Has("na")) o.Fail("na", "required: numerical aperture NA = n sin(theta), 0 < NA < medium_index");
+  opt->medium_index = o.InRange("medium_index", 1.0, 3.0, 1.0);
+  opt->na = o.InRange("na", 0, 3, 0, true, true);
+  if (opt->na >= opt->medium_index)
+    o.Fail("na", "NA = n sin(theta) must be below medium_index = " +
+                     std::to_string(opt->medium_index) + " (docs/conventions.md)");
   opt->working_distance_mm = o.Positive("working_distance_mm", opt->objective_focal_mm);
   opt->tube_focal_mm = o.Positive("tube_focal_mm");
   opt->wavelength_um = o.InRange("wavelength_um", 0.2, 2.0, 0.462);

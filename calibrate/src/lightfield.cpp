@@ -124,7 +124,7 @@ LightFieldSummary FromCameraModel(const LightFieldInput& in, const LightFieldOpt
   if (!in.dark.empty()) dark = ReadImage(in.dark);
   const Image* dk = dark.empty() ? nullptr : &dark;
   const int n = o.map_size;
-  const double extent = o.extent > 0 ? o.extent : std::min(1.0, 1.15 * in.optics.na);
+  const double extent = o.extent > 0 ? o.extent : std::min(1.0, 1.15 * in.optics.acceptance_sin());
   Image map(n, n);
   std::vector<int> count(size_t(n) * n, 0);
   double max_s = 0;
@@ -148,7 +148,7 @@ LightFieldSummary FromCameraModel(const LightFieldInput& in, const LightFieldOpt
   for (size_t i = 0; i < map.size(); ++i) {
     if (count[i]) map.pixels[i] = std::max(0.f, map.pixels[i] / float(count[i]));
     const double u = (2 * (i % n + 0.5) / n - 1) * extent, v = (1 - 2 * (i / n + 0.5) / n) * extent;
-    if (u * u + v * v < in.optics.na * in.optics.na && !count[i]) ++unmeasured;
+    if (u * u + v * v < in.optics.acceptance_sin() * in.optics.acceptance_sin() && !count[i]) ++unmeasured;
   }
   if (unmeasured)
     s.warnings.push_back(std::to_string(unmeasured) +
@@ -289,23 +289,23 @@ LightFieldSummary FromCones(const LightFieldInput& in, const LightFieldOptions& 
   if (f.rms_radius_residual_um > 0.5 * p)
     s.warnings.push_back("the cone cross-section does not scale with dz (radius residual " +
                          std::to_string(f.rms_radius_residual_um) + " um > half a pixel): check dz_um values");
-  const double na_deg = std::asin(in.optics.na) / kDeg;
+  const double na_deg = std::asin(in.optics.acceptance_sin()) / kDeg;
   f.cut_by_na = f.half_angle_deg > na_deg - 0.5;
   // Angular map: average of the cone images' radiance (where measured).
   const int n = o.map_size;
-  const double extent = o.extent > 0 ? o.extent : std::min(1.0, 1.15 * in.optics.na);
+  const double extent = o.extent > 0 ? o.extent : std::min(1.0, 1.15 * in.optics.acceptance_sin());
   Image map(n, n);
   std::vector<int> count(size_t(n) * n, 0);
   for (size_t k = 0; k < cones.size(); ++k) {
     std::vector<char> cov;
-    const Image m = ConeToAngularMap(cones[k], p, in.cones[k].dz_um, apex[0], apex[1], apex[2], n, extent, in.optics.na, &cov);
+    const Image m = ConeToAngularMap(cones[k], p, in.cones[k].dz_um, apex[0], apex[1], apex[2], n, extent, in.optics.acceptance_sin(), &cov);
     for (size_t i = 0; i < m.size(); ++i)
       if (cov[i]) map.pixels[i] += m.pixels[i], ++count[i];
   }
   size_t unmeasured = 0;
   for (size_t i = 0; i < map.size(); ++i) {
     const double u = (2 * (i % n + 0.5) / n - 1) * extent, v = (1 - 2 * (i / n + 0.5) / n) * extent;
-    if (u * u + v * v < in.optics.na * in.optics.na && !count[i]) ++unmeasured;
+    if (u * u + v * v < in.optics.acceptance_sin() * in.optics.acceptance_sin() && !count[i]) ++unmeasured;
     if (count[i]) map.pixels[i] = std::max(0.f, map.pixels[i] / float(count[i]));  // radiance >= 0
   }
   if (unmeasured)
@@ -318,7 +318,7 @@ LightFieldSummary FromCones(const LightFieldInput& in, const LightFieldOptions& 
     // Mean radiance of the outermost measured ring, continued to the given angle.
     double ring = 0;
     int rn = 0;
-    const double s_lo = std::sin((na_deg - 2) * kDeg), s_na = in.optics.na;
+    const double s_lo = std::sin((na_deg - 2) * kDeg), s_na = in.optics.acceptance_sin();
     for (size_t i = 0; i < map.size(); ++i) {
       const double u = (2 * (i % n + 0.5) / n - 1) * extent, v = (1 - 2 * (i / n + 0.5) / n) * extent;
       const double sr = std::hypot(u, v);
@@ -338,7 +338,7 @@ LightFieldSummary FromCones(const LightFieldInput& in, const LightFieldOptions& 
   CalibrationData& d = s.data;
   d.angular_map = map;
   d.angular_extent = extent;
-  d.na_limit = in.optics.na;
+  d.na_limit = in.optics.acceptance_sin();  // a sine in the calibration medium
   d.cone_half_angle_deg = f.half_angle_deg;
   d.light_field_note = note.str();
   FillOptics(in, &d);

@@ -112,8 +112,7 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
           std::to_string(r.ms_ssim.num_scales) + " scales (" + MsSsimWeightsName(r.ms_ssim.weights) +
           " weights); CW-SSIM level " + std::to_string(r.cw_ssim.level) + ", " +
           std::to_string(r.cw_ssim.orientations) + " orientations, K " + Fmt(r.cw_ssim.k) +
-          "; registration shift (x, y) = (" + Fmt(r.shift_px[0]) + ", " + Fmt(r.shift_px[1]) +
-          ") px; simulation scaled by " + Fmt(r.sim_scale) + ".</p>";
+          "; " + r.RegistrationSummary() + "; simulation scaled by " + Fmt(r.sim_scale) + ".</p>";
   Montage(r, (d / "montage.png").string());
   html += "<h2>Experiment (top) and simulation (bottom)</h2><p>Defocus (um): ";
   for (double z : r.exp_defocus_um) html += Fmt(z) + " ";

@@ -32,6 +32,21 @@ double Load(const char* p, bool swap) {
 
 }  // namespace
 
+size_t CheckedValueCount(const std::string& path, const std::vector<size_t>& shape) {
+  if (shape.empty()) Fail(path, "empty array (no dimensions)");
+  uint64_t n = 1;
+  std::string dims;
+  for (size_t d : shape) dims += (dims.empty() ? "" : " x ") + std::to_string(d);
+  for (size_t d : shape) {
+    if (d == 0) Fail(path, "empty array (shape " + dims + ")");
+    if (d > kMaxArrayValues || n * d > kMaxArrayValues)
+      Fail(path, "shape " + dims + " is more than the limit of " +
+                     std::to_string(kMaxArrayValues) + " values");
+    n *= d;
+  }
+  return static_cast<size_t>(n);
+}
+
 NdArray ReadNpy(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
   if (!in) Fail(path, "cannot open file for reading");
@@ -51,13 +66,15 @@ NdArray ReadNpy(const std::string& path) {
   } else {
     Fail(path, "unsupported .npy format version " + std::to_string(major));
   }
+  if (!in || hlen > (1u << 20))
+    Fail(path, "bad .npy header length " + std::to_string(hlen) + " (expected at most 1 MiB)");
   std::string header(hlen, '\0');
   if (!in.read(header.data(), hlen)) Fail(path, "truncated .npy header");
   std::smatch m;
   if (!std::regex_search(header, m, std::regex("'descr':\\s*'([<>|=])([fiub])(\\d+)'")))
     Fail(path, "unsupported dtype in header: " + header);
   const char endian = m[1].str()[0], kind = m[2].str()[0];
-  const int bytes = std::stoi(m[3].str());
+  const int bytes = m[3].str().size() > 2 ? 0 : std::stoi(m[3].str());
   const bool fortran = std::regex_search(header, std::regex("'fortran_order':\\s*True"));
   if (!std::regex_search(header, m, std::regex("'shape':\\s*\\(([^)]*)\\)")))
     Fail(path, "no shape in header");
@@ -65,10 +82,20 @@ NdArray ReadNpy(const std::string& path) {
   const std::string dims = m[1].str();
   const std::regex number("\\d+");
   for (std::sregex_iterator it(dims.begin(), dims.end(), number), end; it != end; ++it)
-    a.shape.push_back(std::stoull(it->str()));
-  size_t n = 1;
-  for (size_t d : a.shape) n *= d;
-  if (a.shape.empty() || n == 0) Fail(path, "empty array");
+    if (it->str().size() > 18) Fail(path, "dimension " + it->str() + " in the header is too large");
+    else a.shape.push_back(std::stoull(it->str()));
+  if (bytes != 1 && bytes != 2 && bytes != 4 && bytes != 8)
+    Fail(path, "unsupported dtype " + std::string(1, kind) + std::to_string(bytes));
+  const size_t n = CheckedValueCount(path, a.shape);
+  // The header's shape must fit in what the file holds before anything is allocated.
+  const std::streamoff data_start = in.tellg();
+  in.seekg(0, std::ios::end);
+  const std::streamoff data_bytes = in.tellg() - data_start;
+  in.seekg(data_start);
+  if (data_bytes < 0 || uint64_t(data_bytes) < uint64_t(n) * bytes)
+    Fail(path, "truncated data: the header's shape needs " + std::to_string(n) + " values (" +
+                   std::to_string(uint64_t(n) * bytes) + " bytes), the file holds " +
+                   std::to_string(std::max<std::streamoff>(data_bytes, 0)) + " bytes");
   std::vector<char> raw(n * bytes);
   if (!in.read(raw.data(), raw.size())) Fail(path, "truncated data: expected " + std::to_string(n) + " values");
   const bool little = std::endian::native == std::endian::little;
@@ -141,8 +168,16 @@ NdArray ReadHdf5(const std::string& path, const std::string& dataset) {
   std::vector<hsize_t> dims(std::max(nd, 0));
   H5Sget_simple_extent_dims(sp, dims.data(), nullptr);
   NdArray a;
-  size_t n = 1;
-  for (hsize_t x : dims) a.shape.push_back(x), n *= x;
+  for (hsize_t x : dims) a.shape.push_back(x);
+  size_t n = 0;
+  try {
+    n = CheckedValueCount(path + ":" + dataset, a.shape);
+  } catch (const Error&) {
+    H5Sclose(sp);
+    H5Dclose(d);
+    H5Fclose(f);
+    throw;
+  }
   a.values.resize(n);
   const herr_t st = n ? H5Dread(d, H5T_NATIVE_DOUBLE, H5S_ALL, H5S_ALL, H5P_DEFAULT, a.values.data()) : -1;
   H5Sclose(sp);

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <filesystem>
 
 #include "raymatch/core/atomic_file.h"
@@ -49,7 +50,42 @@ void WriteWithOiio(const std::string& path, const OIIO::ImageSpec& spec, OIIO::T
   CommitTemporary(tmp, path);
 }
 
+template <class T>
+double ValueAt(const unsigned char* p) {
+  T v;
+  std::memcpy(&v, p, sizeof(T));
+  return static_cast<double>(v);
+}
+
 }  // namespace
+
+void CheckDeclaredImageSize(const std::string& path, int64_t width, int64_t height,
+                            int64_t channels, int64_t bytes_per_value,
+                            const std::string& compression) {
+  auto fail = [&](const std::string& why) {
+    throw Error(FileLocation{path}, "declares " + std::to_string(width) + " x " +
+                                        std::to_string(height) + " pixels x " +
+                                        std::to_string(channels) + " channel(s): " + why);
+  };
+  if (width <= 0 || height <= 0 || channels <= 0) fail("expected positive sizes");
+  if (width > kMaxImageSide || height > kMaxImageSide)
+    fail("more than " + std::to_string(kMaxImageSide) + " pixels on a side");
+  if (channels > 16) fail("more than 16 channels");
+  if (width * height > kMaxImagePixels)
+    fail("more than " + std::to_string(kMaxImagePixels) + " pixels in all");
+  std::error_code ec;
+  const uintmax_t file_bytes = std::filesystem::file_size(path, ec);
+  if (ec) return;
+  const uint64_t raw = uint64_t(width) * height * channels * bytes_per_value;
+  // An uncompressed file stores every value; a compressed one cannot shrink data by more than
+  // deflate's limit of about 1032:1 (taken as 2000:1 here, plus room for headers).
+  const bool uncompressed = compression.empty() || compression == "none";
+  const uint64_t limit = uncompressed ? uint64_t(file_bytes) : uint64_t(file_bytes) * 2000 + 65536;
+  if (raw > limit)
+    fail(std::to_string(raw) + " bytes of pixel data, but the file has only " +
+         std::to_string(file_bytes) + " bytes (" + (uncompressed ? "uncompressed" : compression) +
+         "); truncated or corrupt");
+}
 
 Image ReadImage(const std::string& path, ImageFileInfo* info) {
   if (!std::filesystem::exists(path)) throw Error(FileLocation{path}, "file not found");
@@ -58,18 +94,39 @@ Image ReadImage(const std::string& path, ImageFileInfo* info) {
   const OIIO::ImageSpec& spec = in->spec();
   if (spec.width <= 0 || spec.height <= 0 || spec.depth > 1)
     throw Error(FileLocation{path}, "not a 2D image");
+  CheckDeclaredImageSize(path, spec.width, spec.height, spec.nchannels,
+                         spec.format.size() ? spec.format.size() : 4,
+                         spec.get_string_attribute("compression", "unknown"));
   const double tmax = TypeMax(spec.format);
-  std::vector<float> buf(size_t(spec.width) * spec.height * spec.nchannels);
-  if (!in->read_image(0, 0, 0, spec.nchannels, OIIO::TypeDesc::FLOAT, buf.data()))
+  // Integer files are read in their own type: OIIO's conversion to float goes through a
+  // normalised single-precision value, which multiplied back is off by up to 4e-3 code values.
+  const bool integer = tmax > 1.0;
+  const OIIO::TypeDesc read_type = integer ? OIIO::TypeDesc(OIIO::TypeDesc::BASETYPE(spec.format.basetype))
+                                           : OIIO::TypeDesc(OIIO::TypeDesc::DOUBLE);
+  const size_t values = size_t(spec.width) * spec.height * spec.nchannels;
+  std::vector<unsigned char> raw(values * read_type.size());
+  if (!in->read_image(0, 0, 0, spec.nchannels, read_type, raw.data()))
     throw Error(FileLocation{path}, "cannot read pixels: " + in->geterror());
+  auto value = [&](size_t k) -> double {
+    const unsigned char* p = raw.data() + k * read_type.size();
+    switch (read_type.basetype) {
+      case OIIO::TypeDesc::UINT8: return ValueAt<uint8_t>(p);
+      case OIIO::TypeDesc::INT8: return ValueAt<int8_t>(p);
+      case OIIO::TypeDesc::UINT16: return ValueAt<uint16_t>(p);
+      case OIIO::TypeDesc::INT16: return ValueAt<int16_t>(p);
+      case OIIO::TypeDesc::UINT32: return ValueAt<uint32_t>(p);
+      case OIIO::TypeDesc::INT32: return ValueAt<int32_t>(p);
+      default: return ValueAt<double>(p);
+    }
+  };
   Image img(spec.width, spec.height);
   // Average colour channels (ignoring alpha) so RGB captures of a grey scene still load.
   const int nc = spec.nchannels >= 3 ? 3 : 1;
   for (size_t i = 0; i < img.size(); ++i) {
     double s = 0;
-    for (int c = 0; c < nc; ++c) s += buf[i * spec.nchannels + c];
-    const double v = s / nc * tmax;  // OIIO normalises integer types to [0,1]
-    if (!std::isfinite(v))
+    for (int c = 0; c < nc; ++c) s += value(i * spec.nchannels + c);
+    const double v = s / nc;  // code values of an integer file, stored values of a float one
+    if (!std::isfinite(v) || !std::isfinite(static_cast<float>(v)))
       throw Error(FileLocation{path}, "pixel (" + std::to_string(i % spec.width) + ", " +
                                           std::to_string(i / spec.width) + ") is NaN or Inf");
     img.pixels[i] = static_cast<float>(v);

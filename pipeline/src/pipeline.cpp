@@ -246,6 +246,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
      << exp.images[0].width << ", " << exp.images[0].height << "]\n\n[trace]\nphotons_per_pixel = "
      << sum.photons_per_pixel * frac << "   # background photons x ray fraction " << frac
      << "\npartial_reflection = \"" << cfg.partial_reflection << "\"\n\n[scan]\ndefocus_um = [";
+  sc.precision(17);  // every distinct focus position stays distinct (plane file names)
   for (size_t i = 0; i < exp.defocus_um.size(); ++i) sc << (i ? ", " : "") << exp.defocus_um[i];
   sc << "]\n";
   const fs::path scene_file = out / "scene.toml";
@@ -421,7 +422,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     << "<h2>Corrector</h2><pre>" << co_report << "</pre>" << Img((fig / "transmissions.png").string())
     << "<h2>Experiment (top) and simulation (bottom)</h2><p>Exposure recovered from the "
        "background: " << sum.photons_per_pixel << " photons per pixel; simulated with ray fraction "
-    << frac << ". Registration shift " << fr.shift_px[0] << ", " << fr.shift_px[1] << " px.</p>"
+    << frac << ". " << fr.RegistrationSummary() << ".</p>"
     << Img((out / "compare/montage.png").string())
     << "<h2>Focus-scan test</h2><table><tr><th>measure</th><th>verdict</th><th>best simulated z per experimental z (um)</th></tr>";
   for (size_t i = 0; i < fr.measures.size(); ++i) {

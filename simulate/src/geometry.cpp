@@ -6,6 +6,10 @@
 
 #include <assimp/Importer.hpp>
 #include <cmath>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
 
 #include "raymatch/core/error.h"
 #include "raymatch/simulate/shapes.h"
@@ -19,9 +23,58 @@ namespace {
 constexpr double kAnalyticEpsilon = 1e-9;
 constexpr double kMeshEpsilon = 2e-5;
 
+bool IsStlFile(const std::string& path) {
+  std::string ext = std::filesystem::path(path).extension().string();
+  for (char& c : ext) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+  return ext == ".stl";
+}
+
+// Declared element counts in a PLY or binary STL header must fit in the file before Assimp
+// allocates for them: every PLY element takes at least one byte, every binary STL triangle 50.
+void CheckMeshFileSizes(const ObjectSpec& o) {
+  std::error_code ec;
+  const uintmax_t size = std::filesystem::file_size(o.mesh_file, ec);
+  if (ec) throw Error(o.where, "cannot read mesh '" + o.mesh_file + "': " + ec.message());
+  constexpr uintmax_t kMaxMeshBytes = uintmax_t(2) << 30;
+  if (size > kMaxMeshBytes)
+    throw Error(o.where, "mesh '" + o.mesh_file + "' is " + std::to_string(size) +
+                             " bytes, more than the limit of 2 GiB");
+  std::ifstream in(o.mesh_file, std::ios::binary);
+  char head[84] = {};
+  in.read(head, sizeof head);
+  const std::streamsize got = in.gcount();
+  if (got >= 3 && std::string(head, 3) == "ply") {
+    in.clear();
+    in.seekg(0);
+    std::string line;
+    uintmax_t declared = 0;
+    for (int k = 0; k < 10000 && std::getline(in, line); ++k) {
+      if (line.rfind("end_header", 0) == 0) break;
+      std::istringstream ls(line);
+      std::string word, name;
+      uintmax_t count = 0;
+      if (ls >> word >> name >> count && word == "element") {
+        declared += count;
+        if (declared > size)
+          throw Error(o.where, "mesh '" + o.mesh_file + "' declares " + std::to_string(declared) +
+                                   " PLY elements but has only " + std::to_string(size) +
+                                   " bytes; truncated or corrupt");
+      }
+    }
+  } else if (got == 84 && std::string(head, 5) != "solid" && IsStlFile(o.mesh_file)) {
+    uint32_t triangles;
+    std::memcpy(&triangles, head + 80, 4);  // binary STL: little-endian count after the header
+    if (84 + uintmax_t(triangles) * 50 > size)
+      throw Error(o.where, "mesh '" + o.mesh_file + "' declares " + std::to_string(triangles) +
+                               " STL triangles but has only " + std::to_string(size) +
+                               " bytes; truncated or corrupt");
+  }
+}
+
 // The object's mesh in object-local micrometres: generated, or read with Assimp and scaled.
 TriangleMesh LocalMesh(const ObjectSpec& o) {
   if (o.mesh) return *o.mesh;
+  CheckMeshFileSizes(o);
   Assimp::Importer importer;
   const aiScene* sc = importer.ReadFile(
       o.mesh_file, aiProcess_Triangulate | aiProcess_JoinIdenticalVertices |

@@ -3,7 +3,9 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdlib>
 #include <filesystem>
+#include <set>
 #include <sstream>
 
 #include "raymatch/core/atomic_file.h"
@@ -17,9 +19,25 @@ namespace fs = std::filesystem;
 namespace raymatch::simulate {
 
 std::string PlaneStem(const std::string& name, double defocus_um) {
+  const double z = defocus_um == 0 ? 0.0 : defocus_um;  // no "-0.00"
+  // Two decimals as long as they name the value exactly; otherwise as many more as it takes
+  // for the name to read back as the same double, so distinct planes never share a file.
   char buf[64];
-  std::snprintf(buf, sizeof buf, "_z%+07.2fum", defocus_um == 0 ? 0.0 : defocus_um);
-  return name + buf;
+  for (int digits = 2; digits <= 17; ++digits) {
+    std::snprintf(buf, sizeof buf, "%+0*.*f", digits + 5, digits, z);
+    if (std::strtod(buf, nullptr) == z) break;
+  }
+  return name + "_z" + buf + "um";
+}
+
+// Shortest text that reads back as the same double (the CSV index and messages).
+static std::string FormatDefocus(double z) {
+  char buf[64];
+  for (int digits = 1; digits <= 17; ++digits) {
+    std::snprintf(buf, sizeof buf, "%.*g", digits, z);
+    if (std::strtod(buf, nullptr) == z) break;
+  }
+  return buf;
 }
 
 static const char* PrName(PartialReflection p) {
@@ -33,8 +51,26 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
   nlohmann::json fates = nlohmann::json::object();
   for (int i = 0; i < kNumFates; ++i) fates[FateName(Fate(i))] = r.counters.fates[i];
   nlohmann::json objects = nlohmann::json::array();
-  for (const ObjectSpec& o : s.objects)
-    objects.push_back({{"name", o.name}, {"index", o.index}, {"material", o.material}});
+  for (const ObjectSpec& o : s.objects) {
+    nlohmann::json obj = {{"name", o.name}, {"index", o.index}, {"material", o.material}};
+    if (!o.density_source.empty()) {
+      obj["density_kg_m3"] = o.density_kg_m3;
+      obj["density"] = o.density_source == "given"
+                           ? "given (density_kg_m3 in the scene)"
+                           : "defaulted (Tanaka et al. 2001, Metrologia 38:301, at temperature_K)";
+      obj["density_given"] = o.density_source == "given";
+    }
+    objects.push_back(obj);
+  }
+  // Debye path classes of the first departure from the first object hit: p = 0 reflected
+  // externally, p >= 1 transmitted after p - 1 internal reflections (the last class: p >= 7).
+  nlohmann::json path_classes = nlohmann::json::object();
+  for (int k = 0; k < kNumPathClasses; ++k) {
+    const std::string key = k == 0                     ? "p0_reflected"
+                            : k == kNumPathClasses - 1 ? "p" + std::to_string(k) + "_or_more"
+                                                       : "p" + std::to_string(k);
+    path_classes[key] = r.counters.path_class[k];
+  }
   const PixelStats st = ComputeStats(r.counts);
   nlohmann::json j = {
       {"provenance", ProvenanceJson()},
@@ -54,6 +90,13 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
       {"rays_per_second", r.seconds > 0 ? r.rays / r.seconds : 0.0},
       {"effects", sim.Effects()},
       {"partial_reflection", PrName(s.trace.partial_reflection)},
+      {"objective",
+       {{"na", s.optics.na},
+        {"acceptance_sin_theta_in_medium", AcceptanceSin(s)},
+        {"na_convention", "NA = medium_index x sin(theta_max) (docs/conventions.md)"},
+        {"focal_length_mm", s.optics.objective_focal_mm},
+        {"model", s.optics.model == ObjectiveModel::kSingle ? "single" : "two_lens"}}},
+      {"path_classes", path_classes},
       {"counters",
        {{"interface_events", r.counters.interface_events},
         {"fresnel_evaluations", r.counters.fresnel_evaluations},
@@ -80,6 +123,12 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
 
 ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
   const auto t0 = std::chrono::steady_clock::now();
+  std::set<std::string> stems;
+  for (double dz : scene.defocus_um)
+    if (!stems.insert(PlaneStem(scene.name, dz)).second)
+      throw Error(FileLocation{scene.file},
+                  "focus position " + FormatDefocus(dz) +
+                      " um is listed twice in defocus_um; each plane needs its own position");
   EnsureDirectory(opt.output_dir);
   Simulator sim(scene);
   ScanSummary sum;
@@ -123,7 +172,7 @@ ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
                       {"image", fs::path(out.image).filename().string()},
                       {"png", out.png.empty() ? "" : fs::path(out.png).filename().string()},
                       {"sidecar", fs::path(out.sidecar).filename().string()}});
-    csv << dz << "," << fs::path(out.image).filename().string() << ","
+    csv << FormatDefocus(dz) << "," << fs::path(out.image).filename().string() << ","
         << (out.png.empty() ? "" : fs::path(out.png).filename().string()) << ","
         << fs::path(out.sidecar).filename().string() << "," << r.rays << ","
         << r.counters.fates[int(Fate::kDetected)] << "," << out.mean_counts << "," << r.seconds

@@ -131,11 +131,14 @@ void ReadMaterial(TomlReader& r, const Scene& scene, ObjectSpec& o) {
   double rho;
   if (r.Has("density_kg_m3")) {
     rho = r.InRange("density_kg_m3", 0, 2000, 998, true, false);
+    o.density_source = "given";
   } else {
     if (T < 273.15 || T > 313.15)
       r.Fail("temperature_K", "outside 273.15-313.15 K the density must be given (density_kg_m3)");
     rho = WaterDensityTanaka(T);
+    o.density_source = "defaulted";
   }
+  o.density_kg_m3 = rho;
   const WaterIndex w = WaterRefractiveIndex(T, rho, scene.wavelength_um);
   o.index = w.n;
   std::ostringstream os;
@@ -382,14 +385,18 @@ void ReadCorrector(TomlReader& top, OpticsSpec* out) {
   }
 }
 
-OpticsSpec ReadOptics(TomlReader& top) {
+OpticsSpec ReadOptics(TomlReader& top, double medium_index) {
   OpticsSpec o;
   TomlReader obj = top.Table("objective");
   const std::string model = obj.Choice("model", {"single", "two_lens"}, "single");
   o.model = model == "single" ? ObjectiveModel::kSingle : ObjectiveModel::kTwoLens;
   o.objective_focal_mm = obj.Positive("focal_length_mm");
-  o.na = obj.InRange("na", 0, 1, 0, true, true);
-  if (!obj.Has("na")) obj.Fail("na", "required: numerical aperture in (0, 1)");
+  // NA = n sin(theta) with n the scene's medium (dry: 1, water dipping: 1.33), so NA < n.
+  if (!obj.Has("na")) obj.Fail("na", "required: numerical aperture NA = n sin(theta), 0 < NA < medium_index");
+  o.na = obj.InRange("na", 0, 3, 0, true, true);
+  if (o.na >= medium_index)
+    obj.Fail("na", "NA = n sin(theta) must be below the medium's index n = medium_index = " +
+                       std::to_string(medium_index) + " (docs/conventions.md)");
   if (o.model == ObjectiveModel::kTwoLens) {
     o.working_distance_mm = obj.Positive("working_distance_mm");
     o.back_focal_mm = obj.Positive("back_focal_distance_mm");
@@ -434,6 +441,8 @@ SourceSpec CalibratedSource(const CalibrationData& c, const std::string& file) {
   return s;
 }
 
+double AcceptanceSin(const Scene& s) { return s.optics.na / s.medium_index; }
+
 double Magnification(const OpticsSpec& o) { return -o.tube_focal_mm / o.objective_focal_mm; }
 
 Scene LoadScene(const std::string& path) { return LoadScene(ParseTomlFile(path), path); }
@@ -469,11 +478,15 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
   int i = 0;
   for (TomlReader& o : r.Tables("object")) s.objects.push_back(ReadObject(o, s, i++));
   if (r.Has("objective") || !cal) {
-    s.optics = ReadOptics(r);
+    s.optics = ReadOptics(r, s.medium_index);
   } else {
     s.optics.model = ObjectiveModel::kSingle;
     s.optics.objective_focal_mm = cal->objective_focal_mm;
     s.optics.na = cal->na;
+    if (s.optics.na >= s.medium_index)
+      r.Fail("calibration", "the calibration's NA " + std::to_string(cal->na) +
+                                " is not below medium_index " + std::to_string(s.medium_index) +
+                                " (NA = n sin(theta), docs/conventions.md)");
     s.optics.working_distance_mm = cal->working_distance_mm;
     s.optics.tube_focal_mm = cal->tube_focal_mm;
     if (r.Has("tube_lens")) r.Fail("tube_lens", "give [objective] too, or neither (both come from the calibration)");

@@ -241,7 +241,8 @@ Optics MakeOptics(const Scene& s) {
   Optics o;
   const OpticsSpec& sp = s.optics;
   const double f = sp.objective_focal_mm * 1e3;
-  const double tan_na = std::tan(std::asin(sp.na));
+  // NA = n sin(theta) in the medium the objective looks into (docs/conventions.md).
+  const double tan_na = std::tan(std::asin(AcceptanceSin(s)));
   double z;
   if (sp.model == ObjectiveModel::kSingle) {
     o.lenses[0] = {f, f, 0};
@@ -261,7 +262,7 @@ Optics MakeOptics(const Scene& s) {
   }
   o.stop_after = o.num_lenses;
   // The stop at the back focal plane is a pure angle filter: height there = f tan(theta).
-  // Radius f tan(asin NA) passes exactly the rays a real (sine-condition) objective of this NA
+  // Radius f tan(asin(NA / n)) passes exactly the rays a real (sine-condition) objective of this NA
   // accepts from an on-axis point (docs/optics.md).
   const double stop_r = f * tan_na;
   o.stop_r2 = stop_r * stop_r;
@@ -300,6 +301,30 @@ Vec3 RandomPerpendicular(const Vec3& d, double u) {
 
 enum class GrinOutcome { kHit, kStepCap, kNoSurface };
 
+/// A spherically symmetric field (n depends on |p - centre| only: Luneburg, fish-eye) conserves
+/// the ray's angular momentum L = (r - c) x T (Bouguer's formula, Born & Wolf sec. 3.2.1) and
+/// the eikonal |T| = n. Near a tangent exit a position error e moves the exit by e / alpha
+/// along the surface (alpha: the exit angle to it), so each accepted state is projected back
+/// onto both invariants (Hairer, Lubich & Wanner, Geometric Numerical Integration, 2006,
+/// sec. IV.4): the orbit keeps its exact shape and the exit angle follows from L.
+bool IsCentralField(const IndexField& f) {
+  return f.type == IndexFieldType::kLuneburg || f.type == IndexFieldType::kFishEye;
+}
+
+void ProjectOnInvariants(const IndexField& f, const Vec3& center, const Vec3& l, GrinState* s) {
+  const double l2 = Dot(l, l);
+  Vec3 p = s->r - center;
+  if (l2 > 0) p = p - l * (Dot(p, l) / l2);  // back into the plane of the orbit
+  const double p2 = Dot(p, p);
+  if (!(p2 > 0)) return;
+  const double n = f.Index(p);
+  const Vec3 t_perp = Cross(l, p) / p2;  // p x t_perp = l for p normal to l
+  const double radial2 = n * n - Dot(t_perp, t_perp);
+  const double sign = Dot(s->t, p) >= 0 ? 1.0 : -1.0;
+  s->r = center + p;
+  s->t = t_perp + p * (sign * std::sqrt(std::max(0.0, radial2)) / std::sqrt(p2));
+}
+
 /// Follows a curved ray inside gradient-index object `obj` from `o` (direction `d`) to the next
 /// surface. Each accepted step's chord is tested against the surfaces; a step whose chord crosses
 /// one is shortened (the crossing parameter scales the step) until the crossing chord is shorter
@@ -314,12 +339,26 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
   const Geometry& geo = im.geometry;
   const double surface_tol = std::min(1e-3, 1e-5 * im.size[obj]);
   GrinState s{o, d * f.Index(o - center)};
+  const bool central = IsCentralField(f);
+  const Vec3 angular_momentum = Cross(o - center, s.t);
+  // The orbit of a central field leaves the sphere it entered at the angle alpha to the surface
+  // with cos(pi/2 - alpha) = |L| / (n R). Near a tangent exit (alpha -> 0) the exit point moves by
+  // e / alpha for a position error e and the direction by e / (alpha R), so the step tolerance
+  // shrinks with alpha^2 below alpha = 0.01 (down to 1e-6 of the setting): rays entering
+  // within ~5e-5 R of a Luneburg lens's edge, and only those, take smaller steps.
+  GrinSettings local = cfg;
+  if (central) {
+    const double r0 = Length(o - center), n0 = f.Index(o - center);
+    const double sin_exit = r0 > 0 ? Length(angular_momentum) / (n0 * r0) : 0.0;
+    const double alpha = std::sqrt(std::max(0.0, 1 - std::min(1.0, sin_exit * sin_exit)));
+    local.tolerance_um = cfg.tolerance_um * std::clamp(alpha * alpha / 1e-4, 1e-6, 1.0);
+  }
   double dt = 0.05 * im.size[obj] / Length(s.t);
   ++c.grin_segments;
   for (int step = 0; step < cfg.max_steps; ++step) {
     GrinState s1 = s;
     double used = 0, next = dt;
-    AdaptiveStep(f, center, cfg, &s1, &next, &used);
+    AdaptiveStep(f, center, local, &s1, &next, &used);
     ++c.grin_steps;
     for (int shrink = 0;; ++shrink) {
       const Vec3 chord = s1.r - s.r;
@@ -329,6 +368,7 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
       if constexpr (kMesh) ++c.mesh_queries;
       const bool crosses = L > 0 && geo.Intersect<kMesh>(s.r, chord / L, &h) && h.t <= L;
       if (!crosses) {
+        if (central) ProjectOnInvariants(f, center, angular_momentum, &s1);
         s = s1;
         dt = next;
         break;
@@ -342,12 +382,18 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
         if (Dot(*dout, h.normal) <= 0) *dout = chord / L;
         return GrinOutcome::kHit;
       }
-      // Aim the (shorter) step at the crossing point; it is within the accepted error.
-      used *= std::max(0.05, 0.999 * h.t / L);
+      // Aim the (shorter) step at the crossing point; it is within the accepted error. Near a
+      // tangent exit the straight chord leaves the surface much later than the curved path
+      // (both bend alike), so aiming shortened the step by ~0.1 % a try and after 60 tries the
+      // ray left at the chord's far end, past its true exit and turned backwards (issue 15).
+      // From the second try on the step is at least halved: a bisection on the path.
+      const double aim = std::max(0.05, 0.999 * h.t / L);
+      used *= shrink == 0 ? aim : std::min(0.5, aim);
       next = used;
       s1 = SharmaStep(f, center, s, used);
       const double nn = f.Index(s1.r - center), tl = Length(s1.t);
       if (tl > 0) s1.t = s1.t * (nn / tl);
+      if (central) ProjectOnInvariants(f, center, angular_momentum, &s1);
     }
   }
   return GrinOutcome::kStepCap;
@@ -650,7 +696,7 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
   double max_dz = 0;
   for (double dz : scene.defocus_um) max_dz = std::max(max_dz, std::abs(dz));
   const double tan_max = std::tan(std::min(scene.source.half_angle_deg, 80.0) * kDeg) +
-                         std::tan(std::asin(scene.optics.na));
+                         std::tan(std::asin(AcceptanceSin(scene)));
   const double auto_r_objects = 1.05 * (view + (max_dz + im.geometry.extent_um()) * tan_max) + 1.0;
   const SourceSpec& ss = scene.source;
   im.field_radius_um = ss.field_radius_um > 0 ? ss.field_radius_um : auto_r_objects;

@@ -4,6 +4,8 @@
 
 #include <filesystem>
 #include <fstream>
+#include <set>
+#include <sstream>
 #include <nlohmann/json.hpp>
 
 #include "raymatch/core/image_io.h"
@@ -108,6 +110,58 @@ TEST(SimulateCli, BadSceneGivesLocatedErrorAndNoOutput) {
   EXPECT_EQ(Raymatch("simulate " + (dir / "missing.toml"), dir).code, 2);
 }
 
+// Issue 15 defect 2: names rounded to 0.01 um made 48.331 and 48.334 one file (a plane lost
+// silently). Distinct positions give distinct files; a repeated position is an error.
+TEST(SimulateCli, CloseFocusPositionsGetTheirOwnFiles) {
+  testing::TempDir dir;
+  const std::string scene = dir.Write("tiny.toml", kScene);
+  const CliRun r = Raymatch("simulate " + scene + " -q --no-png --rays 2000 --defocus-um "
+                            "48.331,48.334,-0.125,0.1 -o " + (dir / "out"), dir);
+  ASSERT_EQ(r.code, 0) << r.err;
+  for (const char* z : {"+048.331", "+048.334", "-000.125", "+000.10"})
+    EXPECT_TRUE(fs::exists(dir / ("out/tiny_z" + std::string(z) + "um.tif"))) << z;
+  std::ifstream idx(dir / "out/tiny_scan.json");
+  const auto planes = nlohmann::json::parse(idx)["planes"];
+  ASSERT_EQ(planes.size(), 4u);
+  std::set<std::string> images;
+  for (const auto& p : planes) images.insert(p["image"].get<std::string>());
+  EXPECT_EQ(images.size(), 4u);
+  std::ifstream csv(dir / "out/tiny_scan.csv");
+  std::stringstream text;
+  text << csv.rdbuf();
+  EXPECT_NE(text.str().find("48.331,"), std::string::npos) << text.str();
+
+  const CliRun twice = Raymatch("simulate " + scene + " -q --no-png --rays 2000 --defocus-um "
+                                "5,0,5 -o " + (dir / "dup"), dir);
+  EXPECT_EQ(twice.code, 1);
+  EXPECT_NE(twice.err.find("focus position 5 um is listed twice"), std::string::npos) << twice.err;
+  EXPECT_FALSE(fs::exists(dir / "dup"));
+}
+
+// Issue 15 defect 7: the sidecar records the objective's NA, how a water density was chosen and
+// the per-order (Debye path class) counts.
+TEST(SimulateCli, SidecarRecordsNaDensityAndPathClasses) {
+  testing::TempDir dir;
+  std::string text = kScene;
+  text.replace(text.find("material = \"water\""), 18,
+               "material = \"water\"\ntemperature_K = 293.15");
+  const std::string scene = dir.Write("tiny.toml", "medium_index = 1.33\n" + text);
+  ASSERT_EQ(Raymatch("simulate " + scene + " -q --no-png --rays 20000 --defocus-um 0 -o " +
+                         (dir / "out"), dir).code, 0);
+  std::ifstream js(dir / "out/tiny_z+000.00um.json");
+  const auto j = nlohmann::json::parse(js);
+  EXPECT_EQ(j["objective"]["na"], 0.42);
+  EXPECT_DOUBLE_EQ(j["objective"]["acceptance_sin_theta_in_medium"].get<double>(), 0.42 / 1.33);
+  EXPECT_EQ(j["objects"][0]["density_given"], false);
+  EXPECT_NE(j["objects"][0]["density"].get<std::string>().find("defaulted"), std::string::npos);
+  uint64_t classes = 0;
+  ASSERT_EQ(j["path_classes"].size(), 8u);
+  for (auto& [k, v] : j["path_classes"].items()) classes += v.get<uint64_t>();
+  EXPECT_GT(j["path_classes"]["p1"].get<uint64_t>(), 0u);
+  EXPECT_LE(classes, j["counters"]["rays_hitting_objects"].get<uint64_t>());
+  EXPECT_GT(classes, 0u);
+}
+
 TEST(SimulateCli, SampleSceneIsValid) {
   testing::TempDir dir;
   const CliRun r = Raymatch("simulate " + std::string(RAYMATCH_SOURCE_DIR) +
@@ -141,6 +195,26 @@ TEST(CompareCli, ExitCodes) {
   EXPECT_EQ(Raymatch("compare-scan " + (dir / "none.csv") + " " + root + "scan.csv", dir).code, 4);
   const std::string tiny = dir.Write("tiny.csv", "0,tiny.tif\n");
   EXPECT_EQ(Raymatch("compare-scan " + tiny + " " + root + "scan.csv -o " + (dir / "x"), dir).code, 3);
+}
+
+// Issue 15 defect 7: `-L 0` is a usage error (exit 2, docs/compare.md) whose message says what L
+// must be, not CLI11's range with a 300-digit upper bound.
+TEST(CompareCli, DataRangeMessageIsShort) {
+  testing::TempDir dir;
+  const std::string root = std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample/drop46/";
+  for (const char* L : {"0", "-3", "abc"}) {
+    const CliRun r = Raymatch("compare " + root + "drop_z+00um.tif " + root + "drop_z+05um.tif -L " + L, dir);
+    EXPECT_EQ(r.code, 2) << L;
+    EXPECT_NE(r.err.find("the data range L must be a number > 0"), std::string::npos) << r.err;
+    EXPECT_LT(r.err.size(), 400u) << r.err;
+  }
+  const CliRun neg = Raymatch("compare-scan " + root + "scan.csv " + root + "scan.csv -L -1 -o " + (dir / "n"), dir);
+  EXPECT_EQ(neg.code, 2);
+  EXPECT_NE(neg.err.find("the data range L must be a number >= 0"), std::string::npos) << neg.err;
+  std::ifstream doc(std::string(RAYMATCH_SOURCE_DIR) + "/docs/compare.md");
+  std::stringstream d;
+  d << doc.rdbuf();
+  EXPECT_NE(d.str().find("**or invalid options or input**"), std::string::npos);
 }
 
 // The multi-scale settings reach the measures and are recorded in the JSON; a setting outside

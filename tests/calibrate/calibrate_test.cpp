@@ -151,6 +151,40 @@ TEST(LightField, RecoversTheConeFromSyntheticImages) {
   EXPECT_LT(std::sqrt(ss / n - mean * mean) / mean, 0.05);
 }
 
+// Issue 15 defect 3: NA = n sin(theta) (Born & Wolf sec. 8.6). Calibrated through a water-dipping
+// objective (medium_index 1.33), an NA 0.42 objective sees sin(theta) <= 0.316 (18.4 deg): a
+// 20 deg cone reaches that edge and is reported cut, and the map is cut at NA / n; through a
+// dry objective the same cone is inside the NA (24.8 deg).
+TEST(LightField, NaIsQuotedInTheCalibrationMedium) {
+  testing::TempDir dry, water;
+  WriteFolder(dry, 20, {20, 30, 40});
+  WriteFolder(water, 20, {20, 30, 40});
+  std::ofstream(water / "metadata.toml", std::ios::app) << "medium_index = 1.33\n";
+  const LightFieldSummary d = CalibrateLightField(ReadLightFieldInput(dry.path().string()), {});
+  const LightFieldSummary w = CalibrateLightField(ReadLightFieldInput(water.path().string()), {});
+  EXPECT_FALSE(d.cone.cut_by_na) << d.BriefReport();
+  EXPECT_TRUE(w.cone.cut_by_na) << w.BriefReport();
+  EXPECT_DOUBLE_EQ(d.data.na_limit, 0.42);
+  EXPECT_DOUBLE_EQ(w.data.na_limit, 0.42 / 1.33);
+  EXPECT_DOUBLE_EQ(w.data.na, 0.42);
+  // NA 1.4 is impossible in water.
+  testing::TempDir bad;
+  WriteFolder(bad, 20, {20, 30});
+  std::ofstream(bad / "metadata.toml", std::ios::app) << "medium_index = 1.33\n";
+  std::ifstream in(bad / "metadata.toml");
+  std::stringstream ss;
+  ss << in.rdbuf();
+  std::string t = ss.str();
+  t.replace(t.find("na = 0.42"), 9, "na = 1.40");
+  std::ofstream(bad / "metadata.toml") << t;
+  try {
+    ReadLightFieldInput(bad.path().string());
+    ADD_FAILURE();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("must be below medium_index"), std::string::npos) << e.what();
+  }
+}
+
 TEST(LightField, BadInputs) {
   testing::TempDir blank;
   WriteFolder(blank, 15, {20, 30}, true);

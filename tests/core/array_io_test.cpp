@@ -57,5 +57,32 @@ TEST(ArrayIo, BadFilesSayWhy) {
   }
 }
 
+
+// Issue 15 defect 4: a header's declared shape is checked against limits and the file size
+// before anything is allocated.
+TEST(ArrayIo, NpyDeclaredShapeIsCheckedBeforeAllocating) {
+  testing::TempDir dir;
+  auto npy = [&](const std::string& shape) {
+    std::string header = "{'descr': '<f8', 'fortran_order': False, 'shape': " + shape + ", }";
+    while ((10 + header.size() + 1) % 64) header += ' ';
+    header += '\n';
+    std::string out = "\x93NUMPY";
+    out += char(1), out += char(0), out += char(header.size() & 0xff), out += char(header.size() >> 8);
+    return out + header + std::string(16, '\0');  // two float64 values
+  };
+  for (auto [shape, what] : {std::pair{"(100000, 100000)", "more than the limit"},
+                             std::pair{"(4294967296, 4294967296, 4294967296)", "more than the limit"},
+                             std::pair{"(1000, 1000)", "truncated data"}}) {
+    try {
+      ReadNpy(dir.Write("big.npy", npy(shape)));
+      ADD_FAILURE() << shape;
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find("big.npy: error:"), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find(what), std::string::npos) << e.what();
+    }
+  }
+  EXPECT_EQ(ReadNpy(dir.Write("two.npy", npy("(2,)"))).values, (std::vector<double>{0, 0}));
+}
+
 }  // namespace
 }  // namespace raymatch

@@ -3,7 +3,9 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <tuple>
 
+#include "raymatch/simulate/index_field.h"
 #include "raymatch/simulate/tracer.h"
 #include "stats.h"
 #include "temp_dir.h"
@@ -58,6 +60,53 @@ TEST(HardCases, GrazingAndPolarRays) {
     const PlaneResult r = Simulator(s).TracePlane(0, 0, 100000);
     ExpectSane(r);
   }
+}
+
+// Issue 15 defect 5: a Luneburg lens n = sqrt(2 - (r/R)^2) in vacuum (Luneburg, Mathematical
+// Theory of Optics, 1964, sec. 28) sends every ray of a collimated beam to its rear pole, and by
+// the sine condition the ray entering at height h leaves there at sin(theta) = h/R to the axis.
+// Rays entering within 6e-5 R of the edge are nearly tangent where they enter and leave
+// (exit angle alpha = sqrt(1 - (h/R)^2) to the surface, 0.011 down to 0); 675 of 20,000 used to
+// leave past the pole heading backwards, counted as escaped: at a tangent exit the straight
+// chord crosses the surface near its far end, the step shrank 0.1 % a try and the ray left at
+// the chord's end. Every ray of the strip h = 0.99994 R .. R must leave forwards (z' > 0), at
+// the pole (within 1 um) and at the sine-condition angle (|sin - h/R| < 1e-3), with the default
+// integrator tolerance.
+TEST(HardCases, GrazingRaysThroughALuneburgLens) {
+  const double R = 20;
+  Scene s = Base();
+  s.trace.partial_reflection = PartialReflection::kOff;
+  ObjectSpec o;
+  o.shape = ShapeType::kSphere;
+  o.radius_um = R;
+  auto f = std::make_shared<IndexField>();
+  f->type = IndexFieldType::kLuneburg;
+  f->n0 = 1.0;
+  f->radius_um = R;
+  o.index_field = f;
+  o.index = f->Index(Vec3());
+  s.objects = {o};
+  const Simulator sim(s);
+  const int n = 20000;
+  int escaped = 0, ended = 0, far = 0;
+  double worst_sin = 0;
+  for (int i = 0; i < n; ++i) {
+    const double h = R * (0.99994 + 0.00006 * (i + 0.5) / n);
+    const Simulator::ObjectExit e = sim.TraceThroughObjects(Vec3(h, 0, -2 * R), Vec3(0, 0, 1), i);
+    if (e.ended) {
+      ++ended;
+      continue;
+    }
+    ASSERT_TRUE(IsFinite(e.origin) && IsFinite(e.direction));
+    if (e.direction.z <= 0) ++escaped;
+    // Leaves near the rear pole, at sin(theta) = h / R towards the axis.
+    if (Length(e.origin - Vec3(0, 0, R)) > 0.05 * R) ++far;
+    worst_sin = std::max(worst_sin, std::abs(-e.direction.x - h / R));
+  }
+  EXPECT_EQ(ended, 0);
+  EXPECT_EQ(escaped, 0);
+  EXPECT_EQ(far, 0);
+  EXPECT_LT(worst_sin, 1e-3);
 }
 
 // An air bubble in water: entering it, incidence beyond asin(1/1.333) = 48.6 deg is totally
@@ -124,6 +173,36 @@ TEST(HardCases, DegenerateTriangles) {
   s.source.type = SourceType::kCone;
   s.source.half_angle_deg = 20;
   ExpectSane(Simulator(s).TracePlane(0, 0, 100000));
+}
+
+// Issue 15 defect 4: a mesh header that declares more elements than its file can hold is an
+// error naming the file before the reader allocates for them (binary PLY and binary STL).
+TEST(HardCases, MeshHeadersClaimingHugeCountsAreRejected) {
+  testing::TempDir dir;
+  std::string stl(80, ' ');
+  const uint32_t triangles = 400000000;
+  stl.append(reinterpret_cast<const char*>(&triangles), 4);
+  stl.append(100, '\0');
+  const std::string ply =
+      "ply\nformat binary_little_endian 1.0\nelement vertex 1000000000\nproperty float x\n"
+      "property float y\nproperty float z\nelement face 1000000000\n"
+      "property list uchar int vertex_indices\nend_header\n" + std::string(64, '\0');
+  for (const auto& [name, text, what] :
+       {std::tuple{"huge.stl", stl, "STL triangles"}, std::tuple{"huge.ply", ply, "PLY elements"}}) {
+    Scene s = Base();
+    ObjectSpec o;
+    o.shape = ShapeType::kMesh;
+    o.mesh_file = dir.Write(name, text);
+    o.index = 1.5;
+    s.objects = {o};
+    try {
+      Simulator sim(s);
+      ADD_FAILURE() << name << " was read";
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find(name), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find(what), std::string::npos) << e.what();
+    }
+  }
 }
 
 // Very steep gradient: the index jumps by 0.3 within one cell of a grid.

@@ -63,6 +63,37 @@ TEST(Collimated, TiltBeyondTheNaIsBlocked) {
   EXPECT_EQ(F(Simulator(s).TracePlane(0, 0, 10000), Fate::kOutsideNa), 10000u);
 }
 
+// Issue 15 defect 3: NA = n sin(theta) (Born & Wolf, Principles of Optics, 7th ed., sec. 8.6;
+// a dipping objective's NA is quoted in its immersion medium). In water (n = 1.33) an NA 0.42
+// objective accepts sin(theta) <= 0.42/1.33 = 0.316 (18.4 deg), not 0.42 (24.8 deg): a beam
+// tilted 21 deg in the water is blocked, one at 17 deg passes. Deterministic: no tolerance.
+TEST(Collimated, AcceptanceInAMediumIsNaOverN) {
+  Scene s = Base();
+  s.medium_index = 1.33;
+  s.source.type = SourceType::kCollimated;
+  s.source.field_radius_um = 20;
+  s.source.azimuth_deg = 30;
+  s.source.tilt_deg = 17;  // sin = 0.292 < 0.316
+  EXPECT_EQ(F(Simulator(s).TracePlane(0, 0, 10000), Fate::kDetected), 10000u);
+  s.source.tilt_deg = 21;  // sin = 0.358: inside NA 0.42, outside NA/n
+  EXPECT_EQ(F(Simulator(s).TracePlane(0, 0, 10000), Fate::kOutsideNa), 10000u);
+  EXPECT_DOUBLE_EQ(AcceptanceSin(s), 0.42 / 1.33);
+}
+
+// The isotropic point source in water: the stop passes (1 - cos(asin(NA/n))) / (1 - cos 40 deg)
+// of the rays (binomial, |z| < 4).
+TEST(PointImagingInWater, StopPassesTheNaOverNCone) {
+  Scene s = Base();
+  s.medium_index = 1.33;
+  s.source.type = SourceType::kPoint;
+  s.source.half_angle_deg = 40;
+  const uint64_t N = 400000;
+  const double det = F(Simulator(s).TracePlane(0, 0, N), Fate::kDetected);
+  const double sa = 0.42 / 1.33;
+  const double p = (1 - std::sqrt(1 - sa * sa)) / (1 - std::cos(40 * kPi / 180));
+  EXPECT_LT(std::abs(testing::BinomialZ(det, N, p)), 4.0) << det / N << " vs " << p;
+}
+
 // Light-field source: half the radiance in a cell near the axis, half in a cell entirely beyond
 // sin(theta) = 0.45 > NA: exactly half the rays must be blocked, and the detected ones give the
 // flat-field mean N/2 * a_pix / (pi Rf^2).

@@ -76,7 +76,8 @@ TEST(SceneFile, ErrorsSayWhereAndWhat) {
   EXPECT_EQ(LoadError(Replace(g, "radius_um = 10", "radius_um = -10")),
             "scene.toml:7:13: error: 'object[0].radius_um': expected a positive number, got -10");
   EXPECT_NE(LoadError(Replace(g, "na = 0.42", "na = 1.0"))
-                .find("scene.toml:11:6: error: 'objective.na': expected a number in (0, 1)"),
+                .find("scene.toml:11:6: error: 'objective.na': NA = n sin(theta) must be below "
+                      "the medium's index n = medium_index = 1.0"),
             std::string::npos);
   EXPECT_NE(LoadError(Replace(g, "pixels = [32, 16]", "pixels = [0, 16]"))
                 .find("scene.toml:15:10: error: 'camera.pixels': expected two whole numbers"),
@@ -95,6 +96,36 @@ TEST(SceneFile, ErrorsSayWhereAndWhat) {
                 .find("expected one of \"sphere\", \"ellipsoid\", \"box\", \"mesh\""),
             std::string::npos);
   EXPECT_NE(LoadError("name = \n").find("scene.toml:1:"), std::string::npos);  // syntax
+}
+
+// Issue 15 defect 3: NA = n sin(theta) with n the medium (a water-dipping NA 1.0 objective is
+// valid in water, not in air); the acceptance sine is NA / n.
+TEST(SceneFile, NaIsQuotedInTheMedium) {
+  testing::TempDir dir;
+  const Scene s = LoadScene(dir.Write(
+      "scene.toml", Replace(Replace(kGood, "na = 0.42", "na = 1.0"), "name = \"t\"",
+                            "name = \"t\"\nmedium_index = 1.33")));
+  EXPECT_DOUBLE_EQ(s.optics.na, 1.0);
+  EXPECT_DOUBLE_EQ(AcceptanceSin(s), 1.0 / 1.33);
+  EXPECT_NE(LoadError(Replace(Replace(kGood, "na = 0.42", "na = 1.4"), "name = \"t\"",
+                              "name = \"t\"\nmedium_index = 1.33"))
+                .find("'objective.na': NA = n sin(theta) must be below"),
+            std::string::npos);
+}
+
+// Issue 15 defect 7: whether a water density was given or defaulted is kept for the sidecar.
+TEST(SceneFile, WaterDensityGivenOrDefaultedIsRecorded) {
+  testing::TempDir dir;
+  const Scene given = LoadScene(dir.Write(
+      "a.toml", Replace(kGood, "index = 1.33",
+                        "material = \"water\"\ntemperature_K = 298.15\ndensity_kg_m3 = 997.0")));
+  EXPECT_EQ(given.objects[0].density_source, "given");
+  EXPECT_DOUBLE_EQ(given.objects[0].density_kg_m3, 997.0);
+  const Scene defaulted = LoadScene(dir.Write(
+      "b.toml", Replace(kGood, "index = 1.33", "material = \"water\"\ntemperature_K = 298.15")));
+  EXPECT_EQ(defaulted.objects[0].density_source, "defaulted");
+  EXPECT_NEAR(defaulted.objects[0].density_kg_m3, 997.05, 0.01);  // Tanaka 2001 at 25 C
+  EXPECT_EQ(LoadScene(dir.Write("c.toml", kGood)).objects[0].density_source, "");
 }
 
 TEST(SceneFile, ObjectBeyondTheObjectiveIsRejected) {

@@ -18,7 +18,12 @@ struct CameraInfo {
 struct OpticsInfo {
   double objective_focal_mm = 0, na = 0, working_distance_mm = 0, tube_focal_mm = 0;
   double wavelength_um = 0.462;
+  /// Index of the medium the objective looked into during calibration ([optics] medium_index,
+  /// default 1: a dry objective in air/vacuum). NA = medium_index x sin(theta_max).
+  double medium_index = 1.0;
   double magnification() const { return tube_focal_mm / objective_focal_mm; }
+  /// sin of the largest accepted angle to the axis in that medium: NA / n (docs/conventions.md).
+  double acceptance_sin() const { return na / medium_index; }
 };
 
 struct ConeImage {

@@ -70,7 +70,15 @@ struct FocusScanResult {
   std::vector<double> exp_defocus_um, sim_defocus_um;
   std::vector<MeasureScan> measures;
   double data_range = 0;
-  std::array<double, 2> shift_px{};   ///< applied to the experiment (x, y)
+  std::array<double, 2> shift_px{};   ///< applied to the experiment (x, y); 0 where not significant
+  /// The registration's estimate before the significance test, its shot-noise standard error
+  /// (infinite where the images hold no measurable gradient) and per axis whether it was
+  /// applied (|estimate| > 3 sigma). Nothing applied when registration is off.
+  std::array<double, 2> shift_estimate_px{};
+  std::array<double, 2> shift_sigma_px{};
+  std::array<bool, 2> shift_applied{};
+  bool registration_run = false;
+  std::string RegistrationSummary() const;  ///< one line for reports
   double sim_scale = 1;               ///< factor applied to the simulation
   MsSsimOptions ms_ssim;              ///< settings used (data_range = L, num_scales resolved)
   CwSsimOptions cw_ssim;              ///< settings used (data_range = L, level resolved)

@@ -2,6 +2,7 @@
 // N-dimensional numeric arrays from NumPy .npy files and HDF5 datasets (CFD grids, index and
 // density fields). Values are converted to double; C (row-major) order, last axis fastest.
 #include <cstddef>
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -12,6 +13,13 @@ struct NdArray {
   std::vector<double> values;  ///< row-major, size = product of shape
   size_t size() const { return values.size(); }
 };
+
+/// Most values an array file may declare (2^28, 2 GiB as double); checked before allocating.
+inline constexpr uint64_t kMaxArrayValues = uint64_t(1) << 28;
+
+/// The number of values of `shape`; throws Error naming `path` for an empty shape, a zero
+/// dimension or more than kMaxArrayValues values (no overflow).
+size_t CheckedValueCount(const std::string& path, const std::vector<size_t>& shape);
 
 /// Reads a .npy file (format versions 1-3; little/big-endian float32/float64/int/uint of 1-8
 /// bytes; C or Fortran order, Fortran is transposed to C order). Throws Error naming the file.

@@ -1,5 +1,6 @@
 #pragma once
 // Image files through OpenImageIO. Writers are atomic: the file appears complete or not at all.
+#include <cstdint>
 #include <map>
 #include <string>
 
@@ -15,8 +16,19 @@ struct ImageFileInfo {
   double type_max = 1.0;   ///< Largest code value of an integer type (255, 65535), 1 for float.
 };
 
+/// Limits on declared image sizes, checked before any pixel memory is allocated.
+inline constexpr int64_t kMaxImageSide = 65536;
+inline constexpr int64_t kMaxImagePixels = int64_t(1) << 28;  ///< 16384 x 16384
+
+/// Throws Error naming `path` when a header's declared size is beyond the limits above or
+/// larger than the file can hold (`compression` "none" or "": every byte stored).
+void CheckDeclaredImageSize(const std::string& path, int64_t width, int64_t height,
+                            int64_t channels, int64_t bytes_per_value,
+                            const std::string& compression);
+
 /// Reads the first channel (or the mean of RGB) as float in the file's own code values:
 /// a 16-bit file gives 0..65535, an 8-bit file 0..255, a float file its stored values.
+/// Integer pixels are read in their own type, so integer code values come back exactly.
 /// Throws Error naming the file when it cannot be read or holds NaN/Inf.
 Image ReadImage(const std::string& path, ImageFileInfo* info = nullptr);
 

@@ -37,14 +37,16 @@ struct ScanSummary {
   std::vector<std::string> effects;
 };
 
-/// Runs the scene's focus scan and writes all outputs. Throws Error on failure; files already
+/// Runs the scene's focus scan and writes all outputs. Throws Error on failure (a focus position
+/// listed twice fails before anything is written); files already
 /// finished stay (each is complete), nothing half-written remains.
 ScanSummary RunScan(const Scene& scene, const ScanOptions& options);
 
 /// The sidecar metadata for one traced plane (also embedded in the TIFF ImageDescription).
 nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_t plane_index);
 
-/// "<name>_z+012.50um" style stem for a defocus value.
+/// "<name>_z+012.50um" style stem for a defocus value: two decimals when they read back as the
+/// same double, else more (up to 17), so distinct values always give distinct stems.
 std::string PlaneStem(const std::string& name, double defocus_um);
 
 }  // namespace raymatch::simulate

@@ -71,6 +71,10 @@ struct ObjectSpec {
   std::string shape_description;         ///< how a generated mesh was made
   double index = 1.0;                    ///< absolute refractive index
   std::string material;                  ///< "constant" or "water (IAPWS R9-97, T=..., rho=...)"
+  double density_kg_m3 = 0;              ///< water: the density used (0 for a constant index)
+  /// water: "given" (density_kg_m3 in the file) or "defaulted" (Tanaka et al. 2001 at T);
+  /// empty for a constant index.
+  std::string density_source;
   /// Gradient-index field inside the object (null: homogeneous, never integrated).
   std::shared_ptr<const IndexField> index_field;
   FileLocation where;                    ///< for messages
@@ -88,7 +92,10 @@ struct CorrectorSpec {
 struct OpticsSpec {
   ObjectiveModel model = ObjectiveModel::kSingle;
   double objective_focal_mm = 10;       ///< effective focal length f
-  double na = 0.42;                     ///< numerical aperture (acceptance sin(theta) in medium 1)
+  /// Numerical aperture NA = n sin(theta_max), n the medium the objective looks into
+  /// (Scene::medium_index: dipping/immersion), so it accepts sin(theta) <= NA / n in that medium
+  /// (docs/conventions.md). Must be below n.
+  double na = 0.42;
   double working_distance_mm = 20;      ///< two-lens: front focal plane to first lens
   double back_focal_mm = 0;             ///< two-lens: last lens to back focal plane (stop)
   double tube_focal_mm = 200;
@@ -144,6 +151,9 @@ Scene LoadScene(const toml::table& table, const std::string& path);
 /// Checks cross-field consistency (objects before the objective, field large enough, ...);
 /// LoadScene calls it. Throws Error naming the offending value.
 void ValidateScene(const Scene& scene);
+
+/// sin of the largest angle to the axis the objective accepts in the scene's medium: NA / n.
+double AcceptanceSin(const Scene& scene);
 
 /// Magnification of the objective + tube lens (negative: inverted image).
 double Magnification(const OpticsSpec& optics);

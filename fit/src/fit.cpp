@@ -287,7 +287,7 @@ class ImageCost : public ceres::CostFunction {
     const std::vector<double> th = Clip(std::vector<double>(params[0], params[0] + P), spec_);
     if (!run_.Budget()) return false;
     if (jacobians && jacobians[0]) {
-      const Differences d = Differentiate(run_, spec_, th, level_, seed_, "lm", false);
+      const Differences d = Differentiate(run_, spec_, th, level_, seed_, "lm", true);
       std::copy(d.residuals.data(), d.residuals.data() + d.residuals.size(), residuals);
       // Ceres wants row-major residuals x parameters.
       Eigen::Map<Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>> J(
@@ -321,7 +321,7 @@ class StallCallback : public ceres::IterationCallback {
   ceres::CallbackReturnType operator()(const ceres::IterationSummary& s) override {
     if (over_budget_()) return ceres::SOLVER_TERMINATE_SUCCESSFULLY;
     if (s.iteration == 0) return ceres::SOLVER_CONTINUE;
-    if (!s.step_is_successful) return ++failures_ >= 3 ? ceres::SOLVER_TERMINATE_SUCCESSFULLY : ceres::SOLVER_CONTINUE;
+    if (!s.step_is_successful) return ++failures_ >= 5 ? ceres::SOLVER_TERMINATE_SUCCESSFULLY : ceres::SOLVER_CONTINUE;
     failures_ = 0;
     // Ceres' cost is half the deviance: a step worth less than 1 in deviance (0.5 in
     // log-likelihood) is well inside one standard deviation of every parameter.
@@ -357,23 +357,22 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
     po.cost_function_ownership = ceres::TAKE_OWNERSHIP;
     ceres::Problem problem(po);
     problem.AddResidualBlock(new ImageCost(run, spec, f, seed, &flat), nullptr, x.data());
-    for (size_t i = 0; i < P; ++i) {
-      problem.SetParameterLowerBound(x.data(), int(i), spec.parameters[i].lower);
-      problem.SetParameterUpperBound(x.data(), int(i), spec.parameters[i].upper);
-    }
+    // Bounds are kept by clipping inside the cost (not Ceres' bound constraints, whose projected
+    // line search evaluates the Jacobian, i.e. P more images, at every trial point).
     ceres::Solver::Options so;
     so.linear_solver_type = ceres::DENSE_QR;
-    so.max_num_iterations = 15;
+    so.max_num_iterations = 60;
     so.function_tolerance = 1e-7;
     so.parameter_tolerance = 1e-7;
     so.num_threads = 1;  // the tracer uses the cores
     so.logging_type = ceres::SILENT;
     so.minimizer_progress_to_stdout = false;
     so.update_state_every_iteration = true;
-    // Each level gets at most 12 Jacobians' worth of evaluations (the coarse levels only need to
-    // bring the search near the optimum; the error there is too noisy to resolve it).
+    // Evaluation caps per level: coarse levels are cheap and carry the search through the curved
+    // valleys of z, radius and index (40 Jacobians' worth); the final level refines (12).
     const size_t level_start = run.Count();
-    const size_t level_cap = 12 * (P + 2);
+    const bool last = f + 1 == spec.rays.fractions.size();
+    const size_t level_cap = (last ? 12 : 40) * (P + 2);
     StallCallback stall(x.data(), spec, [&] { return run.Count() - level_start >= level_cap; });
     so.callbacks.push_back(&stall);
     ceres::Solver::Summary sum;
@@ -401,7 +400,9 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
     res->converged = ok;
     res->status = ok ? "converged" : "failed";
     res->message = std::string("Levenberg-Marquardt: ") +
-                   (term == ceres::CONVERGENCE ? "converged" : "stopped without convergence");
+                   (term == ceres::CONVERGENCE || term == ceres::USER_SUCCESS
+                        ? "converged (steps below what the ray streams resolve)"
+                        : "stopped without convergence");
   }
   return Clip(x, spec);
 }
@@ -425,17 +426,22 @@ Matrix InverseSpd(const Matrix& m) {
 }
 
 Matrix FisherInformation(const std::vector<Image>& mu, const std::vector<std::vector<Image>>& dmu) {
-  const size_t P = dmu.empty() ? 0 : dmu[0].size();
+  return FisherInformation(mu, dmu, dmu);
+}
+
+Matrix FisherInformation(const std::vector<Image>& mu, const std::vector<std::vector<Image>>& dmu_a,
+                         const std::vector<std::vector<Image>>& dmu_b) {
+  const size_t P = dmu_a.empty() ? 0 : dmu_a[0].size();
   Matrix F(P, std::vector<double>(P, 0.0));
   for (size_t k = 0; k < mu.size(); ++k)
     for (size_t q = 0; q < mu[k].size(); ++q) {
       const double m = mu[k].pixels[q];
       if (!(m > 0)) continue;
       for (size_t i = 0; i < P; ++i)
-        for (size_t j = 0; j <= i; ++j) F[i][j] += double(dmu[k][i].pixels[q]) * dmu[k][j].pixels[q] / m;
+        for (size_t j = 0; j < P; ++j)
+          F[i][j] += 0.5 * (double(dmu_a[k][i].pixels[q]) * dmu_b[k][j].pixels[q] +
+                            double(dmu_b[k][i].pixels[q]) * dmu_a[k][j].pixels[q]) / m;
     }
-  for (size_t i = 0; i < P; ++i)
-    for (size_t j = i + 1; j < P; ++j) F[i][j] = F[j][i];
   return F;
 }
 
@@ -486,28 +492,36 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
   // 2. Uncertainties at the optimum (skipped for a flat problem: there is no curvature).
   const auto t_unc = Clock::now();
   if (res.status != "flat") {
+    // Derivatives from two independent sets of ray streams. The noise of a Monte Carlo
+    // difference adds a positive bias to any sum of squared derivatives (J^T J, Fisher), which
+    // would make the information look larger than it is; the cross product of two independent
+    // estimates is free of it (its noise averages out instead of adding up).
     const Differences d = Differentiate(run, spec, best, final_level, spec.seed, "fisher", true);
+    const Differences d2 = Differentiate(run, spec, best, final_level, spec.seed + 7777777, "fisher", true);
     res.best_images = d.mu;
-    const Eigen::MatrixXd JtJ = d.jacobian.transpose() * d.jacobian;
+    const Eigen::MatrixXd JtJ =
+        0.5 * (d.jacobian.transpose() * d2.jacobian + d2.jacobian.transpose() * d.jacobian);
     Matrix H(P, std::vector<double>(P));
     for (size_t i = 0; i < P; ++i)
       for (size_t j = 0; j < P; ++j) H[i][j] = JtJ(i, j);
     const Matrix cov = InverseSpd(H);
+    const double k = spec.rays.ray_factor * spec.rays.fractions.back();
     if (!cov.empty()) {
-      const double k = spec.rays.ray_factor * spec.rays.fractions.back();
       for (size_t i = 0; i < P; ++i) {
         res.parameters[i].sigma_curvature = std::sqrt(cov[i][i]);
         res.parameters[i].sigma = std::sqrt(cov[i][i] * (1 + 1 / k));
       }
       res.correlation = Correlation(cov);
+    } else {
+      res.message += "; the curvature does not determine every parameter (information matrix not "
+                     "positive definite): their uncertainties are not reported";
     }
     if (spec.cramer_rao) {
-      const Matrix crb = InverseSpd(FisherInformation(d.mu, d.dmu));
+      const Matrix crb = InverseSpd(FisherInformation(d.mu, d.dmu, d2.dmu));
       if (!crb.empty()) {
         for (size_t i = 0; i < P; ++i) {
           res.parameters[i].sigma_cramer_rao = std::sqrt(crb[i][i]);
-          res.parameters[i].sigma_expected =
-              std::sqrt(crb[i][i] * (1 + 1 / (spec.rays.ray_factor * spec.rays.fractions.back())));
+          res.parameters[i].sigma_expected = std::sqrt(crb[i][i] * (1 + 1 / k));
         }
         res.crb_correlation = Correlation(crb);
       }

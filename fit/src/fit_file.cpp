@@ -287,7 +287,7 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
 
   if (r.Has("rays")) {
     TomlReader ry = r.Table("rays");
-    f.rays.ray_factor = ry.InRange("ray_factor", 1.0 / 1024, 1024, 4);
+    f.rays.ray_factor = ry.InRange("ray_factor", 1.0 / 1024, 1024, 1);
     if (ry.Has("fractions")) {
       f.rays.fractions = ry.Numbers("fractions", 1, 32);
       for (double v : f.rays.fractions)

@@ -171,6 +171,13 @@ double PoissonDeviance(const Image& e, const Image& mu);
 std::vector<std::vector<double>> FisherInformation(const std::vector<Image>& mu,
                                                    const std::vector<std::vector<Image>>& dmu);
 
+/// The same from two independent Monte Carlo estimates of the derivatives:
+/// sum (dmu_a_i dmu_b_j + dmu_b_i dmu_a_j) / (2 mu). Unlike the square of one noisy estimate,
+/// whose noise adds a positive bias (information that is not there), it is unbiased.
+std::vector<std::vector<double>> FisherInformation(const std::vector<Image>& mu,
+                                                   const std::vector<std::vector<Image>>& dmu_a,
+                                                   const std::vector<std::vector<Image>>& dmu_b);
+
 /// Inverse of a symmetric positive definite matrix (Eigen LDLT); empty when singular.
 std::vector<std::vector<double>> InverseSpd(const std::vector<std::vector<double>>& m);
 

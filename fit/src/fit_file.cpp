@@ -298,6 +298,7 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     f.rays.common_random_numbers = ry.Bool("common_random_numbers", true);
     f.rays.photons_per_pixel = ry.Positive("photons_per_pixel", 0.0);
     f.rays.reuse_background = ry.Bool("reuse_background", true);
+    f.rays.fit_exposure = ry.Bool("fit_exposure", true);
     if (ry.Has("binning")) {
       for (double b : ry.Numbers("binning", f.rays.fractions.size(), f.rays.fractions.size())) {
         if (!(b >= 1 && b <= 64 && b == std::floor(b)))

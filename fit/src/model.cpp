@@ -187,7 +187,18 @@ std::vector<Image> FitModel::Expected(const std::vector<double>& theta, double f
       counts = sim.TracePlane(dz, plane, n, rc).counts;
       if (rays_traced) *rays_traced += n;
     }
-    for (float& v : counts.pixels) v = static_cast<float>(v * scale);
+    double s = scale;
+    if (spec_.rays.fit_exposure) {
+      // The exposure is a nuisance parameter: its maximum-likelihood value for Poisson counts
+      // is sum(e) / sum(mu) in closed form (profiled out at every evaluation). A fixed exposure
+      // would turn any error in the photon count (the experiment's, or the 0.4 % of the
+      // photon-target pilot) into a shift of z, radius and index, which change how much light
+      // leaves the aperture.
+      double se = 0, sm = 0;
+      for (size_t p = 0; p < counts.size(); ++p) se += std::max(0.0f, spec_.images[i].photons.pixels[p]), sm += counts.pixels[p];
+      if (sm > 0 && se > 0) s = se / sm;
+    }
+    for (float& v : counts.pixels) v = static_cast<float>(v * s);
     out.push_back(std::move(counts));
   }
   return out;

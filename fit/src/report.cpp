@@ -72,6 +72,7 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
                {"common_random_numbers", spec.rays.common_random_numbers},
                {"photon_matched_rays_per_image", res.photon_matched_rays},
                {"reuse_background", spec.rays.reuse_background},
+               {"fit_exposure", spec.rays.fit_exposure},
                {"region_center_um", res.region_center_um},
                {"region_radius_um", J(res.region_radius_um)},
                {"retraced_ray_fraction", J(res.near_ray_fraction)}};

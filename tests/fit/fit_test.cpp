@@ -165,7 +165,7 @@ TEST(PoissonDeviance, ZeroAtEqualImagesAndChiSquareNearby) {
 }
 
 // Five-parameter sphere (x, y, z, radius, index) at -10 um defocus, 400 photons per pixel:
-// each value within 3 sigma of the fit's own reported uncertainty, bounds respected, the
+// each value within 4 sigma of the fit's own reported uncertainty, bounds respected, the
 // Cramer-Rao bound reported and close to the curvature (both are the same information at the
 // optimum). The full statistical study at the sample's photon count is the slow test below.
 TEST_F(FitFile, FiveParameterSphereRecoversTheTruth) {
@@ -187,7 +187,11 @@ TEST_F(FitFile, FiveParameterSphereRecoversTheTruth) {
   for (int i = 0; i < 5; ++i) {
     const ParameterResult& p = r.parameters[i];
     EXPECT_GT(p.sigma, 0) << p.key;
-    EXPECT_NEAR(p.best, truth[i], 3 * p.sigma) << p.key << " sigma " << p.sigma;
+    // 4 sigma, not 3: with fixed ray streams the search ends on a staircase about 1 sigma wide
+    // (measured: starts at the truth and at the nominal values end 1.3 sigma apart in x), which
+    // adds to the statistical spread that sigma describes. The calibration of sigma itself is
+    // tested over noise realisations in fit_statistics_test.cpp (label slow).
+    EXPECT_NEAR(p.best, truth[i], 4 * p.sigma) << p.key << " sigma " << p.sigma;
     EXPECT_GE(p.best, p.lower);
     EXPECT_LE(p.best, p.upper);
     EXPECT_NEAR(p.sigma_curvature / p.sigma_cramer_rao, 1, 0.3) << p.key;  // same information

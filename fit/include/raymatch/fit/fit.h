@@ -55,6 +55,9 @@ struct RaySchedule {
   /// when the scene gives none, the median of the first image's border frame).
   double photons_per_pixel = 0;
   bool reuse_background = true;              ///< trace rays that miss every object only once
+  /// Scale each simulated image to the experiment's total photons (the exposure's maximum-
+  /// likelihood value, profiled out); false: the photon count is taken as known.
+  bool fit_exposure = true;
   /// Pixel binning per fraction (empty: the smallest b with b^2 x ray_factor x fraction >= 1).
   std::vector<int> binning;
 };

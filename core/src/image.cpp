@@ -36,4 +36,15 @@ Mat3 RotationFromEulerDeg(double ax, double by, double cz) {
   return r;
 }
 
+double BorderMedian(const Image& img) {
+  std::vector<float> v;
+  const int bw = std::max(1, std::min(img.width, img.height) / 8);
+  for (int y = 0; y < img.height; ++y)
+    for (int x = 0; x < img.width; ++x)
+      if (x < bw || y < bw || x >= img.width - bw || y >= img.height - bw) v.push_back(img.at(x, y));
+  if (v.empty()) return 0;
+  std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+  return v[v.size() / 2];
+}
+
 }  // namespace raymatch

@@ -162,6 +162,35 @@ std::vector<double> Grid(Runner& run, const FitSpec& spec, FitResult* res) {
 
 // ------------------------------------------------------------------- generalised pattern search
 
+/// One compass search at schedule level `level` from *x: poll +-delta step_i along each axis,
+/// move to the first point that lowers the error, else halve delta, until delta < delta_min.
+/// Marks in *moved the parameters whose polls changed the error. False when the evaluation
+/// budget ran out.
+bool Compass(Runner& run, const FitSpec& spec, size_t level, const std::function<uint64_t()>& seed,
+             const std::string& stage, std::vector<double>* x, double* delta, double delta_min,
+             std::vector<bool>* moved) {
+  double fx = run.Eval(*x, level, seed(), stage);
+  while (*delta >= delta_min) {
+    bool improved = false;
+    for (size_t i = 0; i < x->size() && !improved; ++i)
+      for (int sgn : {+1, -1}) {
+        std::vector<double> y = *x;
+        y[i] += sgn * *delta * spec.parameters[i].step;
+        y = Clip(y, spec);
+        if (y[i] == (*x)[i]) continue;
+        if (!run.Budget()) return false;
+        const double fy = run.Eval(y, level, seed(), stage);
+        if (fy != fx) (*moved)[i] = true;
+        if (fy < fx) {
+          *x = y, fx = fy, improved = true;
+          break;
+        }
+      }
+    if (!improved) *delta *= 0.5;
+  }
+  return true;
+}
+
 /// Compass search (Kolda, Lewis, Torczon, SIAM Review 45, 385 (2003), section 3): poll
 /// +-delta step_i e_i, move to the first point that decreases the error, otherwise halve the
 /// mesh; points beyond a bound are projected onto it. Coarse-to-fine: each ray fraction polls
@@ -177,26 +206,7 @@ std::vector<double> Pattern(Runner& run, const FitSpec& spec, FitResult* res) {
   for (size_t l = 0; l < L && budget; ++l) {
     const double delta_min = std::pow(4.0, double(L - 1 - l)) / 64;
     delta = std::max(delta, 2 * delta_min);
-    double fx = run.Eval(x, l, run.Seed(), "poll");
-    while (delta >= delta_min && (budget = run.Budget())) {
-      bool improved = false;
-      for (size_t i = 0; i < P && !improved; ++i)
-        for (int sgn : {+1, -1}) {
-          std::vector<double> y = x;
-          y[i] += sgn * delta * spec.parameters[i].step;
-          y = Clip(y, spec);
-          if (y[i] == x[i]) continue;
-          if (!(budget = run.Budget())) break;
-          const double fy = run.Eval(y, l, run.Seed(), "poll");
-          if (fy != fx) moved[i] = true;
-          if (fy < fx) {
-            x = y, fx = fy, improved = true;
-            break;
-          }
-        }
-      if (!budget) break;
-      if (!improved) delta *= 0.5;
-    }
+    budget = Compass(run, spec, l, [&] { return run.Seed(); }, "poll", &x, &delta, delta_min, &moved);
   }
   if (std::none_of(moved.begin(), moved.end(), [](bool b) { return b; })) {
     res->status = "flat";
@@ -566,23 +576,9 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
         } else {
           // Pattern: a compass search at the final fraction with this seed, from the optimum.
           std::vector<double> x = best;
-          double fx = run.Eval(x, final_level, seed, "repeat");
-          for (double delta = 0.25; delta >= 1.0 / 64 && run.Budget();) {
-            bool improved = false;
-            for (size_t i = 0; i < P && !improved; ++i)
-              for (int sgn : {+1, -1}) {
-                std::vector<double> y = x;
-                y[i] += sgn * delta * spec.parameters[i].step;
-                y = Clip(y, spec);
-                if (y[i] == x[i]) continue;
-                const double fy = run.Eval(y, final_level, seed, "repeat");
-                if (fy < fx) {
-                  x = y, fx = fy, improved = true;
-                  break;
-                }
-              }
-            if (!improved) delta *= 0.5;
-          }
+          std::vector<bool> moved(P, false);
+          double delta = 0.25;
+          Compass(run, spec, final_level, [&] { return seed; }, "repeat", &x, &delta, 1.0 / 64, &moved);
           reps.push_back(x);
         }
       }

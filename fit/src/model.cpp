@@ -95,15 +95,7 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
   const bool scene_rays = trace && trace->contains("rays");
   if (ppp == 0 && !scene_rays) ppp = s0.trace.photons_per_pixel;
   if (ppp == 0 && !scene_rays) {
-    // Median of a border frame of the first image (1/8 of the smaller side), as `run` does.
-    const Image& im = spec.images[0].photons;
-    std::vector<float> v;
-    const int bw = std::max(1, std::min(im.width, im.height) / 8);
-    for (int y = 0; y < im.height; ++y)
-      for (int x = 0; x < im.width; ++x)
-        if (x < bw || y < bw || x >= im.width - bw || y >= im.height - bw) v.push_back(im.at(x, y));
-    std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
-    ppp = v[v.size() / 2];
+    ppp = BorderMedian(spec.images[0].photons);  // as `run` recovers the exposure
     if (!(ppp > 0))
       throw raymatch::Error(FileLocation{spec.file}, "the first image's background is not positive: give "
                                            "[rays] photons_per_pixel");

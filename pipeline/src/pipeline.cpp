@@ -227,15 +227,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   const compare::Stack exp = compare::ReadStack(ex.scan_csv);
   const compare::PrepareOptions prep = Preparation(ex.dark, ex.gain);
   const Image mid = Prepared(exp.images[exp.images.size() / 2], prep);
-  // Background level: median of a border frame (1/8 of the smaller side), away from the object;
-  // a whole-image median would be pulled down by the object's dark pixels.
-  std::vector<float> v;
-  const int bw = std::max(1, std::min(mid.width, mid.height) / 8);
-  for (int y = 0; y < mid.height; ++y)
-    for (int x = 0; x < mid.width; ++x)
-      if (x < bw || y < bw || x >= mid.width - bw || y >= mid.height - bw) v.push_back(mid.at(x, y));
-  std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
-  sum.photons_per_pixel = v[v.size() / 2];
+  sum.photons_per_pixel = BorderMedian(mid);
   const double frac = opt.ray_fraction > 0 ? opt.ray_fraction : cfg.ray_fraction;
   std::ostringstream sc;
   sc.precision(10);

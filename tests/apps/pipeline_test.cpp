@@ -28,6 +28,7 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
   ASSERT_EQ(std::system((std::string(RAYMATCH_GENERATOR) + " " + data + " --quick >/dev/null").c_str()), 0);
   std::filesystem::copy_file(std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample/pipeline.toml",
                              data + "/pipeline.toml");
+  std::filesystem::copy(std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample/fit", data + "/fit");
   const std::string cmd = std::string(RAYMATCH_BIN) + " run " + data + "/pipeline.toml -o " +
                           (dir / "out") + " --ray-fraction 0.5 >" + (dir / "log.txt") + " 2>&1";
   const int status = std::system(cmd.c_str());

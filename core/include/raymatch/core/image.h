@@ -27,4 +27,9 @@ struct PixelStats {
 };
 PixelStats ComputeStats(const Image& img);
 
+/// Median of a border frame 1/8 of the smaller side wide (at least 1 pixel): the background
+/// level of an image whose object sits in the middle (a whole-image median would be pulled
+/// down by the object's dark pixels). 0 for an empty image.
+double BorderMedian(const Image& img);
+
 }  // namespace raymatch

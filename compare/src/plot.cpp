@@ -17,9 +17,14 @@ void Save(const std::string& path, const cv::Mat& bgr) {
   WriteRgbPng(path, rgb.cols, rgb.rows, rgb.ptr<unsigned char>());
 }
 
-std::string Num(double v) {
+/// A tick label with enough significant digits to tell ticks `step` apart (22.95, 23, 23.05
+/// rather than 23, 23, 23).
+std::string Num(double v, double step) {
+  int digits = 3;
+  if (step > 0 && v != 0)
+    digits = std::clamp(int(std::ceil(std::log10(std::abs(v) / step))) + 2, 3, 10);
   std::ostringstream os;
-  os.precision(3);
+  os.precision(digits);
   os << v;
   return os.str();
 }
@@ -46,8 +51,8 @@ void WritePlot(const std::string& path, const std::vector<Series>& series, const
   cv::rectangle(m, cv::Point(l, t), cv::Point(W - r, H - b), cv::Scalar(0, 0, 0), 1);
   for (int k = 0; k <= 4; ++k) {
     const double xv = x0 + k * (x1 - x0) / 4, yv = y0 + k * (y1 - y0) / 4;
-    cv::putText(m, Num(xv), cv::Point(X(xv) - 12, H - b + 18), cv::FONT_HERSHEY_SIMPLEX, 0.4, cv::Scalar(0, 0, 0));
-    cv::putText(m, Num(yv), cv::Point(4, Y(yv) + 4), cv::FONT_HERSHEY_SIMPLEX, 0.4, cv::Scalar(0, 0, 0));
+    cv::putText(m, Num(xv, (x1 - x0) / 4), cv::Point(X(xv) - 12, H - b + 18), cv::FONT_HERSHEY_SIMPLEX, 0.4, cv::Scalar(0, 0, 0));
+    cv::putText(m, Num(yv, (y1 - y0) / 4), cv::Point(4, Y(yv) + 4), cv::FONT_HERSHEY_SIMPLEX, 0.4, cv::Scalar(0, 0, 0));
     cv::line(m, cv::Point(l, Y(yv)), cv::Point(W - r, Y(yv)), cv::Scalar(225, 225, 225), 1);
   }
   const cv::Scalar colours[] = {cv::Scalar(180, 90, 30), cv::Scalar(40, 40, 200), cv::Scalar(40, 150, 40)};

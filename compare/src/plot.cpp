@@ -5,17 +5,12 @@
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 
+#include "bgr_png.h"
 #include "raymatch/core/image_io.h"
 
 namespace raymatch::compare {
 
 namespace {
-
-void Save(const std::string& path, const cv::Mat& bgr) {
-  cv::Mat rgb;
-  cv::cvtColor(bgr, rgb, cv::COLOR_BGR2RGB);
-  WriteRgbPng(path, rgb.cols, rgb.rows, rgb.ptr<unsigned char>());
-}
 
 /// A tick label with enough significant digits to tell ticks `step` apart (22.95, 23, 23.05
 /// rather than 23, 23, 23).
@@ -72,7 +67,7 @@ void WritePlot(const std::string& path, const std::vector<Series>& series, const
   cv::putText(m, title, cv::Point(l, 22), cv::FONT_HERSHEY_SIMPLEX, 0.55, cv::Scalar(0, 0, 0), 1);
   cv::putText(m, xlabel, cv::Point(W / 2 - 40, H - 12), cv::FONT_HERSHEY_SIMPLEX, 0.45, cv::Scalar(0, 0, 0));
   cv::putText(m, ylabel, cv::Point(4, t - 8), cv::FONT_HERSHEY_SIMPLEX, 0.45, cv::Scalar(0, 0, 0));
-  Save(path, m);
+  WriteBgrPng(path, m);
 }
 
 void WriteFalseColour(const std::string& path, const Image& img, int zoom) {
@@ -90,7 +85,7 @@ void WriteFalseColour(const std::string& path, const Image& img, double lo, doub
   cv::Mat c, big;
   cv::applyColorMap(g, c, cv::COLORMAP_VIRIDIS);
   cv::resize(c, big, cv::Size(img.width * zoom, img.height * zoom), 0, 0, cv::INTER_NEAREST);
-  Save(path, big);
+  WriteBgrPng(path, big);
 }
 
 void WriteDivergingMap(const std::string& path, const Image& img, double limit, int zoom) {
@@ -108,7 +103,7 @@ void WriteDivergingMap(const std::string& path, const Image& img, double limit, 
     }
   cv::Mat big;
   cv::resize(c, big, cv::Size(img.width * zoom, img.height * zoom), 0, 0, cv::INTER_NEAREST);
-  Save(path, big);
+  WriteBgrPng(path, big);
 }
 
 }  // namespace raymatch::compare

@@ -9,6 +9,7 @@
 #include "raymatch/compare/focus_scan.h"
 #include "raymatch/core/atomic_file.h"
 #include "raymatch/core/html.h"
+#include "bgr_png.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/provenance.h"
 
@@ -18,11 +19,6 @@ namespace raymatch::compare {
 
 namespace {
 
-void WriteMat(const std::string& path, const cv::Mat& bgr) {
-  cv::Mat rgb;
-  cv::cvtColor(bgr, rgb, cv::COLOR_BGR2RGB);
-  WriteRgbPng(path, rgb.cols, rgb.rows, rgb.ptr<unsigned char>());
-}
 
 /// Heatmap of a matrix (rows: experiment, columns: simulation), viridis, best cells outlined.
 void Heatmap(const MeasureScan& m, const std::string& path) {
@@ -46,7 +42,7 @@ void Heatmap(const MeasureScan& m, const std::string& path) {
     cv::rectangle(big, cv::Rect(m.expected[i] * cell + 9, i * cell + 9, cell - 18, cell - 18),
                   cv::Scalar(0, 0, 255), cv::FILLED);
   }
-  WriteMat(path, big);
+  WriteBgrPng(path, big);
 }
 
 /// Experiment (top row) and simulation at the nearest defocus (bottom row), same grey scale.
@@ -69,7 +65,7 @@ void Montage(const FocusScanResult& r, const std::string& path) {
         }
     }
   }
-  WriteMat(path, out);
+  WriteBgrPng(path, out);
 }
 
 std::string Fmt(double v) {

@@ -97,16 +97,7 @@ Scene LensScene() {
 TEST(Grin, LuneburgLensFocusesOnItsRearPole) {
   const double R = 20;
   Scene s = LensScene();
-  ObjectSpec o;
-  o.shape = ShapeType::kSphere;
-  o.radius_um = R;
-  auto f = std::make_shared<IndexField>();
-  f->type = IndexFieldType::kLuneburg;
-  f->n0 = 1.0;
-  f->radius_um = R;
-  o.index_field = f;
-  o.index = f->Index(Vec3());
-  s.objects = {o};
+  s.objects = {testing::LuneburgSphere(R)};
   s.source.type = SourceType::kCollimated;
   s.source.field_radius_um = 0.4 * R;
   s.trace.grin.tolerance_um = 1e-7;

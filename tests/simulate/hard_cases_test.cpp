@@ -76,16 +76,7 @@ TEST(HardCases, GrazingRaysThroughALuneburgLens) {
   const double R = 20;
   Scene s = Base();
   s.trace.partial_reflection = PartialReflection::kOff;
-  ObjectSpec o;
-  o.shape = ShapeType::kSphere;
-  o.radius_um = R;
-  auto f = std::make_shared<IndexField>();
-  f->type = IndexFieldType::kLuneburg;
-  f->n0 = 1.0;
-  f->radius_um = R;
-  o.index_field = f;
-  o.index = f->Index(Vec3());
-  s.objects = {o};
+  s.objects = {testing::LuneburgSphere(R)};
   const Simulator sim(s);
   const int n = 20000;
   int escaped = 0, ended = 0, far = 0;

@@ -1,7 +1,12 @@
-// raymatch bench accuracy: what accuracy costs in time (docs/performance.md).
+// raymatch bench accuracy | fit-grid: what accuracy costs in time (docs/performance.md).
+#include <algorithm>
+#include <filesystem>
 #include <iostream>
+#include <sstream>
 
 #include "commands.h"
+#include "raymatch/core/atomic_file.h"
+#include "raymatch/fit/fit.h"
 #include "raymatch/pipeline/accuracy.h"
 
 namespace raymatch::apps {
@@ -38,6 +43,57 @@ void RegisterBench(CLI::App& app, int* exit_code) {
         std::cout << "\n";
       }
       std::cout << "wrote " << r.csv << " and " << r.plot << "\n";
+      return 0;
+    });
+  });
+
+  struct GridOptions {
+    std::string fit_file, calibration, output = "bench-fit-grid";
+    std::vector<double> fractions{1.0 / 1024, 1.0 / 256, 1.0 / 64, 1.0 / 16, 0.25, 1.0};
+    std::vector<std::string> errors{"poisson", "mse", "ms-ssim", "cw-ssim"};
+    int threads = 0;
+  };
+  auto g = std::make_shared<GridOptions>();
+  CLI::App* gs = bench->add_subcommand(
+      "fit-grid",
+      "The paper's Fig. 9 study: evaluate a grid fit file at each ray fraction with each error\n"
+      "function; report evaluations per second and where each optimum lands. Writes\n"
+      "OUTPUT/grid_study.csv.");
+  gs->add_option("fit_file", g->fit_file, "Fit file with method = \"grid\" (docs/fit.md)")->required()->check(CLI::ExistingFile);
+  gs->add_option("--calibration", g->calibration, "Calibration file for the fit's scene");
+  gs->add_option("--fractions", g->fractions, "Ray fractions (of the photon-matched rays)")->delimiter(',');
+  gs->add_option("--errors", g->errors, "Error functions: poisson, mse, ssim, ms-ssim, cw-ssim")->delimiter(',');
+  gs->add_option("--threads", g->threads, "Worker threads");
+  gs->add_option("-o,--output", g->output, "Output folder")->capture_default_str();
+  gs->callback([g, exit_code] {
+    *exit_code = RunGuarded([&] {
+      const fit::FitSpec spec = fit::LoadFitSpec(g->fit_file, "", g->calibration);
+      std::vector<fit::ErrorFunction> errors;
+      for (const std::string& e : g->errors) {
+        const std::vector<std::pair<std::string, fit::ErrorFunction>> names = {
+            {"poisson", fit::ErrorFunction::kPoisson}, {"mse", fit::ErrorFunction::kMse},
+            {"ssim", fit::ErrorFunction::kSsim}, {"ms-ssim", fit::ErrorFunction::kMsSsim},
+            {"cw-ssim", fit::ErrorFunction::kCwSsim}};
+        auto it = std::find_if(names.begin(), names.end(), [&](const auto& n) { return n.first == e; });
+        if (it == names.end()) throw Error("--errors: unknown error function '" + e + "'");
+        errors.push_back(it->second);
+      }
+      fit::FitOptions fo;
+      fo.threads = g->threads;
+      const auto rows = fit::RunGridStudy(spec, g->fractions, errors, fo);
+      std::ostringstream csv;
+      csv << "error,fraction,bin,evaluations,seconds,evaluations_per_second";
+      for (const auto& p : spec.parameters) csv << "," << p.key;
+      csv << "\n";
+      for (const auto& r : rows) {
+        csv << r.error << "," << r.fraction << "," << r.bin << "," << r.evaluations << "," << r.seconds << ","
+            << r.evaluations / std::max(r.seconds, 1e-9);
+        for (double v : r.best) csv << "," << v;
+        csv << "\n";
+      }
+      EnsureDirectory(g->output);
+      WriteTextFileAtomic(std::filesystem::path(g->output) / "grid_study.csv", csv.str());
+      std::cout << csv.str() << "wrote " << g->output << "/grid_study.csv\n";
       return 0;
     });
   });

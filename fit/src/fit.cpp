@@ -530,7 +530,7 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
 
   // 2. Uncertainties at the optimum (skipped for a flat problem: there is no curvature).
   const auto t_unc = Clock::now();
-  if (res.status != "flat") {
+  if (res.status != "flat" && spec.uncertainties) {
     // Derivatives from two independent sets of ray streams. The noise of a Monte Carlo
     // difference adds a positive bias to any sum of squared derivatives (J^T J, Fisher), which
     // would make the information look larger than it is; the cross product of two independent
@@ -636,6 +636,35 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
     if (p.at_bound && res.status == "converged")
       res.message += "; " + p.key + " ended at a bound: widen [lower, upper]";
   return res;
+}
+
+std::vector<GridStudyRow> RunGridStudy(const FitSpec& spec, const std::vector<double>& fractions,
+                                       const std::vector<ErrorFunction>& errors,
+                                       const FitOptions& options) {
+  std::vector<GridStudyRow> rows;
+  for (ErrorFunction e : errors)
+    for (double f : fractions) {
+      FitSpec s = spec;
+      s.method = Method::kGrid;
+      s.error = e;
+      s.rays.fractions = {f};
+      s.rays.binning.clear();
+      s.uncertainties = false;
+      s.repeat_seeds = 0;
+      s.slice_points = 0;
+      for (Parameter& p : s.parameters)
+        if (p.points == 0) p.points = static_cast<int>(std::floor((p.upper - p.lower) / p.step + 1e-9)) + 1;
+      const FitResult r = RunFit(s, options);
+      GridStudyRow row;
+      row.error = ErrorFunctionName(e);
+      row.fraction = f;
+      row.bin = r.evaluations.empty() ? 1 : r.evaluations.front().bin;
+      row.evaluations = r.evaluations.size();
+      row.seconds = r.total_seconds;
+      for (const ParameterResult& p : r.parameters) row.best.push_back(p.best);
+      rows.push_back(row);
+    }
+  return rows;
 }
 
 }  // namespace raymatch::fit

@@ -77,6 +77,7 @@ struct FitSpec {
   int repeat_seeds = 3;                      ///< repeated final fits with independent seeds
   bool cramer_rao = true;
   int slice_points = 7;                      ///< error-function slices per parameter (0: none)
+  bool uncertainties = true;                 ///< false: search only (benchmarks)
   int threads = 0;
 };
 
@@ -153,6 +154,22 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options = {});
 /// Writes fit.json, evaluations.csv, best and residual images (TIFF + PNG), slice/landscape
 /// plots and report.html into `dir` (created). Returns the report's path.
 std::string WriteFitOutputs(const FitSpec& spec, const FitResult& result, const std::string& dir);
+
+/// One row of a grid study: where one error function's grid minimum lands at one ray fraction.
+struct GridStudyRow {
+  std::string error;
+  double fraction = 1;
+  int bin = 1;
+  size_t evaluations = 0;
+  double seconds = 0;
+  std::vector<double> best;
+};
+
+/// The paper's Fig. 9 study: the fit file's grid evaluated at each ray fraction with each error
+/// function (search only). For `raymatch bench fit-grid`.
+std::vector<GridStudyRow> RunGridStudy(const FitSpec& spec, const std::vector<double>& fractions,
+                                       const std::vector<ErrorFunction>& errors,
+                                       const FitOptions& options = {});
 
 // ----------------------------------------------------------------------------------------------
 // Building blocks (public for tests and benchmarks).

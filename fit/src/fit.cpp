@@ -651,9 +651,7 @@ std::vector<GridStudyRow> RunGridStudy(const FitSpec& spec, const std::vector<do
       s.rays.binning.clear();
       s.uncertainties = false;
       s.repeat_seeds = 0;
-      s.slice_points = 0;
-      for (Parameter& p : s.parameters)
-        if (p.points == 0) p.points = static_cast<int>(std::floor((p.upper - p.lower) / p.step + 1e-9)) + 1;
+      s.slice_points = 0;  // grid points per axis: set by LoadFitSpec
       const FitResult r = RunFit(s, options);
       GridStudyRow row;
       row.error = ErrorFunctionName(e);

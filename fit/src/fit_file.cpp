@@ -274,14 +274,14 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
   }
   if (f.parameters.empty())
     r.Fail("parameter", "missing: give at least one [[parameter]] with key, lower and upper");
+  double grid_points = 1;
+  for (Parameter& q : f.parameters) {  // grid samples (used by method grid and bench fit-grid)
+    if (q.points == 0) q.points = static_cast<int>(std::floor((q.upper - q.lower) / q.step + 1e-9)) + 1;
+    grid_points *= std::max(q.points, 1);
+  }
   if (f.method == Method::kGrid) {
-    double n = 1;
-    for (Parameter& q : f.parameters) {
-      if (q.points == 0) q.points = static_cast<int>(std::floor((q.upper - q.lower) / q.step + 1e-9)) + 1;
-      n *= std::max(q.points, 1);
-    }
-    if (n > f.max_evaluations)
-      r.Fail("method", "the grid has " + std::to_string(int64_t(n)) + " points, more than max_evaluations (" +
+    if (grid_points > f.max_evaluations)
+      r.Fail("method", "the grid has " + std::to_string(int64_t(grid_points)) + " points, more than max_evaluations (" +
                            std::to_string(f.max_evaluations) + ")");
   }
 

@@ -69,12 +69,11 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
     for (const auto& b : sim.ObjectBounds()) bounds.push_back(b);
     max_field = std::max(max_field, sim.field_radius_um());
   }
-  {
-    const simulate::Scene s = SceneAt(start);
-    if (s.source.type != simulate::SourceType::kPoint && s.source.field_radius_um == 0)
-      field_radius_ = max_field;
+  simulate::Scene s0 = SceneAt(start);
+  if (s0.source.type != simulate::SourceType::kPoint && s0.source.field_radius_um == 0) {
+    field_radius_ = max_field;
+    s0.source.field_radius_um = field_radius_;  // as SceneAt() applies it from now on
   }
-  const simulate::Scene s0 = SceneAt(start);  // with the fixed field
   if (bounds.empty()) {
     split_allowed_ = false;
   } else {

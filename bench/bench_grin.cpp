@@ -27,11 +27,20 @@ Scene Optics() {
   return s;
 }
 
+/// Integrator variants compared in the same run (issue 13): 0 = the former step doubling
+/// without uniform-cell steps, 1 = the embedded controller alone, 2 = embedded + uniform cells
+/// (the default).
+void SetVariant(GrinSettings* g, int64_t variant) {
+  g->step_doubling = variant == 0;
+  if (variant < 2) g->uniform_tolerance = -1;
+}
+
 void BM_LuneburgTolerance(benchmark::State& state) {
   const double R = 23, tol = std::pow(10.0, -double(state.range(0)));
   Scene s = Optics();
   s.trace.partial_reflection = PartialReflection::kOff;
   s.trace.grin.tolerance_um = tol;
+  SetVariant(&s.trace.grin, state.range(1));
   ObjectSpec o;
   o.shape = ShapeType::kSphere;
   o.radius_um = R;
@@ -61,7 +70,11 @@ void BM_LuneburgTolerance(benchmark::State& state) {
   state.counters["steps_per_s"] =
       benchmark::Counter(steps * state.iterations(), benchmark::Counter::kIsRate);
 }
-BENCHMARK(BM_LuneburgTolerance)->DenseRange(3, 9, 1)->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK(BM_LuneburgTolerance)
+    ->ArgsProduct({benchmark::CreateDenseRange(3, 9, 1), {0, 1}})
+    ->ArgNames({"tol_exp", "variant"})
+    ->Unit(benchmark::kMillisecond)
+    ->UseRealTime();
 
 /// Water drop (R = 23 um) with a spherical compression shell (+20 kg/m^3 at r = 15 um, width
 /// 1.5 um) as an n(r, z) grid with 0.25 um spacing, or the same as a 3D grid.
@@ -114,8 +127,15 @@ void BM_DropImageTolerance(benchmark::State& state) {
   RunControl one;
   one.threads = 1;
   const uint64_t rays = 100000;
-  static const PlaneResult ref = Simulator(DropScene(false, 1e-9)).TracePlane(0, 0, rays, one);
-  const Simulator sim(DropScene(false, std::pow(10.0, -double(state.range(0)))));
+  // Reference: the former integrator at 1e-9 um, without uniform-cell steps.
+  static const PlaneResult ref = [&] {
+    Scene r = DropScene(false, 1e-9);
+    SetVariant(&r.trace.grin, 0);
+    return Simulator(r).TracePlane(0, 0, rays, one);
+  }();
+  Scene scene = DropScene(false, std::pow(10.0, -double(state.range(0))));
+  SetVariant(&scene.trace.grin, state.range(1));
+  const Simulator sim(scene);
   double diff = 0, total = 0, steps = 0;
   for (auto _ : state) {
     const PlaneResult r = sim.TracePlane(0, 0, rays, one);
@@ -131,19 +151,29 @@ void BM_DropImageTolerance(benchmark::State& state) {
   state.counters["rel_L1_vs_ref"] = diff / total;
   state.counters["steps_per_ray"] = steps / rays;
 }
-BENCHMARK(BM_DropImageTolerance)->DenseRange(2, 8, 1)->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK(BM_DropImageTolerance)
+    ->ArgsProduct({benchmark::CreateDenseRange(2, 8, 1), {0, 2}})
+    ->ArgNames({"tol_exp", "variant"})
+    ->Unit(benchmark::kMillisecond)
+    ->UseRealTime();
 
 void BM_Grid3DDropImage(benchmark::State& state) {
   RunControl one;
   one.threads = 1;
-  const Simulator sim(DropScene(true, 1e-5));
+  Scene scene = DropScene(true, 1e-5);
+  SetVariant(&scene.trace.grin, state.range(0));
+  const Simulator sim(scene);
   const uint64_t rays = 50000;
-  double steps = 0;
-  for (auto _ : state) steps = sim.TracePlane(0, 0, rays, one).counters.grin_steps;
+  double steps = 0, straight = 0;
+  for (auto _ : state) {
+    const PlaneResult r = sim.TracePlane(0, 0, rays, one);
+    steps = r.counters.grin_steps, straight = r.counters.grin_uniform_steps;
+  }
   state.SetItemsProcessed(state.iterations() * rays);
   state.counters["steps_per_ray"] = steps / rays;
+  state.counters["uniform_steps_per_ray"] = straight / rays;
 }
-BENCHMARK(BM_Grid3DDropImage)->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK(BM_Grid3DDropImage)->DenseRange(0, 2, 1)->ArgName("variant")->Unit(benchmark::kMillisecond)->UseRealTime();
 
 }  // namespace
 }  // namespace raymatch::simulate

@@ -107,10 +107,11 @@ void IndexField::Eval(const Vec3& p, double* n, Vec3* grad) const {
 }
 
 double IndexField::MaxStepUm() const {
+  constexpr double kF = 0.5;
   switch (type) {
-    case IndexFieldType::kGridRZ: return 0.5 * std::min(spacing_um.x, spacing_um.z);
+    case IndexFieldType::kGridRZ: return kF * std::min(spacing_um.x, spacing_um.z);
     case IndexFieldType::kGrid3D:
-      return 0.5 * std::min({spacing_um.x, spacing_um.y, spacing_um.z});
+      return kF * std::min({spacing_um.x, spacing_um.y, spacing_um.z});
     default: return 0;
   }
 }
@@ -131,9 +132,11 @@ GrinState SharmaStep(const IndexField& f, const Vec3& c, const GrinState& s, dou
   return o;
 }
 
-int AdaptiveStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, GrinState* s,
-                 double* dt, double* used) {
-  double cap = cfg.max_step_um > 0 ? cfg.max_step_um : f.MaxStepUm();
+namespace {
+
+// The former controller: step doubling of Sharma steps (three steps per try).
+int StepDoubling(const IndexField& f, const Vec3& c, const GrinSettings& cfg, double cap,
+                 GrinState* s, double* dt, double* used) {
   int evals = 0;
   for (int tries = 0;; ++tries) {
     double n = f.Index(s->r - c);
@@ -156,6 +159,161 @@ int AdaptiveStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, Gr
     }
     *dt *= std::clamp(0.9 * std::pow(cfg.tolerance_um / err, 0.2), 0.1, 0.5);
   }
+}
+
+double StepCap(const IndexField& f, const GrinSettings& cfg) {
+  return cfg.max_step_um > 0 ? cfg.max_step_um : f.MaxStepUm();
+}
+
+}  // namespace
+
+GrinPoint MakeGrinPoint(const IndexField& f, const Vec3& c, const Vec3& r, const Vec3& t) {
+  GrinPoint p;
+  p.r = r;
+  Vec3 g;
+  f.Eval(r - c, &p.n, &g);
+  p.d = g * p.n;
+  const double tl = Length(t);
+  p.t = tl > 0 ? t * (p.n / tl) : t;
+  return p;
+}
+
+GrinPoint SharmaStep(const IndexField& f, const Vec3& c, const GrinPoint& s, double dt,
+                     double* err) {
+  auto D = [&](const Vec3& r) {
+    double n;
+    Vec3 g;
+    f.Eval(r - c, &n, &g);
+    return g * n;
+  };
+  const Vec3 A = s.d * dt;
+  const Vec3 B = D(s.r + s.t * (dt / 2) + A * (dt / 8)) * dt;
+  const Vec3 C = D(s.r + s.t * dt + B * (dt / 2)) * dt;
+  if (err) *err = Length(A - B * 2 + C) * (std::abs(dt) / 6);
+  return MakeGrinPoint(f, c, s.r + (s.t + (A + B * 2) / 6) * dt, s.t + (A + B * 4 + C) / 6);
+}
+
+int AdaptiveStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, GrinPoint* s,
+                 double* dt, double* used) {
+  const double cap = StepCap(f, cfg);
+  if (cfg.step_doubling) {
+    GrinState st{s->r, s->t};
+    const int evals = StepDoubling(f, c, cfg, cap, &st, dt, used);
+    *s = MakeGrinPoint(f, c, st.r, st.t);
+    return evals + 1;
+  }
+  if (cap > 0) *dt = std::min(*dt, cap / s->n);  // ds = n dt
+  for (int tries = 0;; ++tries) {
+    double err = 0;
+    const GrinPoint next = SharmaStep(f, c, *s, *dt, &err);
+    if (err <= cfg.tolerance_um || tries > 60) {
+      *s = next;
+      *used = *dt;
+      // The estimate is of third order (error ~ dt^4): the fourth root of the ratio.
+      const double grow = err > 0 ? 0.9 * std::sqrt(std::sqrt(cfg.tolerance_um / err)) : 4.0;
+      *dt *= std::clamp(grow, 0.2, 4.0);
+      return 3 * (tries + 1);
+    }
+    *dt *= std::clamp(0.9 * std::sqrt(std::sqrt(cfg.tolerance_um / err)), 0.1, 0.5);
+  }
+}
+
+int AdaptiveStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, GrinState* s,
+                 double* dt, double* used) {
+  GrinPoint p = MakeGrinPoint(f, c, s->r, s->t);
+  const int evals = AdaptiveStep(f, c, cfg, &p, dt, used);
+  s->r = p.r, s->t = p.t;
+  return evals + 1;
+}
+
+// ---- Uniform cells ----------------------------------------------------------------------
+
+UniformCells::UniformCells(const IndexField& f, double tolerance) {
+  if (tolerance < 0) return;
+  if (f.type == IndexFieldType::kGrid3D) {
+    cx_ = f.nx - 1, cy_ = f.ny - 1, cz_ = f.nz - 1;
+  } else if (f.type == IndexFieldType::kGridRZ) {
+    rz_ = true;
+    cx_ = f.nx - 1, cy_ = 1, cz_ = f.nz - 1;
+  } else {
+    return;
+  }
+  if (cx_ < 1 || cy_ < 1 || cz_ < 1) return;
+  origin_ = f.origin_um, spacing_ = f.spacing_um;
+  dist_.assign(size_t(cx_) * cy_ * cz_, 0);
+  auto node = [&](int k, int j, int i) {
+    return rz_ ? f.values[size_t(k) * f.nx + i] : f.values[(size_t(k) * f.ny + j) * f.nx + i];
+  };
+  auto at = [&](int k, int j, int i) -> uint8_t& { return dist_[(size_t(k) * cy_ + j) * cx_ + i]; };
+  const int dj = rz_ ? 0 : 1;
+  for (int k = 0; k < cz_; ++k)
+    for (int j = 0; j < cy_; ++j)
+      for (int i = 0; i < cx_; ++i) {
+        double lo = node(k, j, i), hi = lo;
+        for (int a = 0; a < 2; ++a)
+          for (int b = 0; b <= dj; ++b)
+            for (int e = 0; e < 2; ++e) {
+              const double v = node(k + a, j + b, i + e);
+              lo = std::min(lo, v), hi = std::max(hi, v);
+            }
+        at(k, j, i) = hi - lo <= tolerance ? 255 : 0;
+      }
+  // An axisymmetric grid that starts on the axis continues through it (r >= 0 mirrors): the
+  // cell at r index -1 is cell 0. Other edges count as non-uniform (the field beyond them is
+  // extrapolated, not sampled).
+  const bool mirror_r = rz_ && f.origin_um.x <= 0;
+  auto neighbour = [&](int k, int j, int i) -> int {
+    if (rz_ && j != 0) return -1;  // no such neighbour (no y axis)
+    if (i < 0 && mirror_r) i = -1 - i;
+    if (k < 0 || k >= cz_ || j < 0 || j >= cy_ || i < 0 || i >= cx_) return 0;
+    return at(k, j, i);
+  };
+  // Two-pass chamfer transform with the 26-neighbourhood: exact for the Chebyshev distance.
+  auto pass = [&](int k, int j, int i, int sgn) {
+    uint8_t& d = at(k, j, i);
+    if (d == 0) return;
+    int m = d;
+    for (int a = -1; a <= 1; ++a)
+      for (int b = -1; b <= 1; ++b)
+        for (int e = -1; e <= 1; ++e) {
+          // Neighbours already visited in this pass's order.
+          const int order = a != 0 ? a : (b != 0 ? b : e);
+          if (order * sgn >= 0) continue;
+          const int v = neighbour(k + a, j + b, i + e);
+          if (v >= 0) m = std::min(m, v + 1);
+        }
+    d = static_cast<uint8_t>(std::min(m, 255));
+  };
+  for (int k = 0; k < cz_; ++k)
+    for (int j = 0; j < cy_; ++j)
+      for (int i = 0; i < cx_; ++i) pass(k, j, i, 1);
+  for (int k = cz_ - 1; k >= 0; --k)
+    for (int j = cy_ - 1; j >= 0; --j)
+      for (int i = cx_ - 1; i >= 0; --i) pass(k, j, i, -1);
+}
+
+size_t UniformCells::uniform_cells() const {
+  size_t n = 0;
+  for (uint8_t d : dist_) n += d > 0;
+  return n;
+}
+
+double UniformCells::FreeLength(const Vec3& p) const {
+  if (dist_.empty()) return 0;
+  // Cell coordinates along each used axis (r, z for axisymmetric grids).
+  const double ux = ((rz_ ? std::sqrt(p.x * p.x + p.y * p.y) : p.x) - origin_.x) / spacing_.x;
+  const double uy = rz_ ? 0.5 : (p.y - origin_.y) / spacing_.y;
+  const double uz = (p.z - origin_.z) / spacing_.z;
+  if (!(ux >= 0 && ux < cx_ && uy >= 0 && uy < cy_ && uz >= 0 && uz < cz_)) return 0;
+  const int i = static_cast<int>(ux), j = static_cast<int>(uy), k = static_cast<int>(uz);
+  const int d = dist_[(size_t(k) * cy_ + j) * cx_ + i];
+  if (d == 0) return 0;
+  // Every cell within Chebyshev distance d - 1 of this one is uniform: a straight path may go
+  // as far as the nearest face of that block along any axis.
+  auto room = [&](double u, int c) { return std::min(u - (c - (d - 1)), c + d - u); };
+  double len = std::min(room(ux, i) * spacing_.x, room(uz, k) * spacing_.z);
+  if (!rz_) len = std::min(len, room(uy, j) * spacing_.y);
+  return std::max(0.0, len);
 }
 
 }  // namespace raymatch::simulate

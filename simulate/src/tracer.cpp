@@ -41,6 +41,7 @@ void TraceCounters::Add(const TraceCounters& o) {
   rays_hitting_objects += o.rays_hitting_objects;
   grin_steps += o.grin_steps;
   grin_segments += o.grin_segments;
+  grin_uniform_steps += o.grin_uniform_steps;
 }
 
 uint64_t TraceCounters::total_fates() const {
@@ -197,6 +198,7 @@ struct Simulator::Impl {
   Optics optics;
   std::vector<double> index;             // per object
   std::vector<const IndexField*> field;  // per object; null = homogeneous
+  std::vector<UniformCells> uniform;      // per object; empty unless a grid field
   std::vector<Vec3> center;
   std::vector<double> size;  // characteristic size (for first GRIN steps)
   bool has_grin = false;
@@ -311,17 +313,17 @@ bool IsCentralField(const IndexField& f) {
   return f.type == IndexFieldType::kLuneburg || f.type == IndexFieldType::kFishEye;
 }
 
-void ProjectOnInvariants(const IndexField& f, const Vec3& center, const Vec3& l, GrinState* s) {
+void ProjectOnInvariants(const IndexField& f, const Vec3& center, const Vec3& l, GrinPoint* s) {
   const double l2 = Dot(l, l);
   Vec3 p = s->r - center;
   if (l2 > 0) p = p - l * (Dot(p, l) / l2);  // back into the plane of the orbit
   const double p2 = Dot(p, p);
   if (!(p2 > 0)) return;
-  const double n = f.Index(p);
   const Vec3 t_perp = Cross(l, p) / p2;  // p x t_perp = l for p normal to l
-  const double radial2 = n * n - Dot(t_perp, t_perp);
   const double sign = Dot(s->t, p) >= 0 ? 1.0 : -1.0;
-  s->r = center + p;
+  const GrinPoint q = MakeGrinPoint(f, center, center + p, s->t);  // n and D at the new point
+  const double radial2 = q.n * q.n - Dot(t_perp, t_perp);
+  *s = q;
   s->t = t_perp + p * (sign * std::sqrt(std::max(0.0, radial2)) / std::sqrt(p2));
 }
 
@@ -329,16 +331,18 @@ void ProjectOnInvariants(const IndexField& f, const Vec3& center, const Vec3& l,
 /// surface. Each accepted step's chord is tested against the surfaces; a step whose chord crosses
 /// one is shortened (the crossing parameter scales the step) until the crossing chord is shorter
 /// than 1e-3 um or 1e-5 of the object size, then the ray leaves at the chord's hit point with
-/// the direction T/|T| at the step's end.
+/// the direction T/|T| at the step's end. Across uniform cells of a grid the ray goes straight
+/// in one step (exact there), to the surface if it is nearer.
 template <bool kMesh>
 GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cfg, int obj,
                                const Vec3& o, const Vec3& d, Hit* hit, Vec3* hp, Vec3* dout,
                                TraceCounters& c) {
   const IndexField& f = *im.field[obj];
+  const UniformCells* uniform = im.uniform[obj].empty() ? nullptr : &im.uniform[obj];
   const Vec3& center = im.center[obj];
   const Geometry& geo = im.geometry;
   const double surface_tol = std::min(1e-3, 1e-5 * im.size[obj]);
-  GrinState s{o, d * f.Index(o - center)};
+  GrinPoint s = MakeGrinPoint(f, center, o, d);
   const bool central = IsCentralField(f);
   const Vec3 angular_momentum = Cross(o - center, s.t);
   // The orbit of a central field leaves the sphere it entered at the angle alpha to the surface
@@ -348,15 +352,34 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
   // within ~5e-5 R of a Luneburg lens's edge, and only those, take smaller steps.
   GrinSettings local = cfg;
   if (central) {
-    const double r0 = Length(o - center), n0 = f.Index(o - center);
-    const double sin_exit = r0 > 0 ? Length(angular_momentum) / (n0 * r0) : 0.0;
+    const double r0 = Length(o - center);
+    const double sin_exit = r0 > 0 ? Length(angular_momentum) / (s.n * r0) : 0.0;
     const double alpha = std::sqrt(std::max(0.0, 1 - std::min(1.0, sin_exit * sin_exit)));
     local.tolerance_um = cfg.tolerance_um * std::clamp(alpha * alpha / 1e-4, 1e-6, 1.0);
   }
   double dt = 0.05 * im.size[obj] / Length(s.t);
   ++c.grin_segments;
   for (int step = 0; step < cfg.max_steps; ++step) {
-    GrinState s1 = s;
+    if (uniform) {
+      // Straight across uniform cells when that beats the next curved step.
+      const double free = uniform->FreeLength(s.r - center);
+      if (free > dt * s.n) {
+        const Vec3 dir = s.t / s.n;
+        Hit h;
+        ++c.shape_queries;
+        if constexpr (kMesh) ++c.mesh_queries;
+        ++c.grin_uniform_steps;
+        if (geo.Intersect<kMesh>(s.r, dir, &h) && h.t <= free) {
+          *hit = h;
+          *hp = s.r + dir * h.t;
+          *dout = dir;
+          return GrinOutcome::kHit;
+        }
+        s = MakeGrinPoint(f, center, s.r + dir * free, s.t);
+        continue;
+      }
+    }
+    GrinPoint s1 = s;
     double used = 0, next = dt;
     AdaptiveStep(f, center, local, &s1, &next, &used);
     ++c.grin_steps;
@@ -390,9 +413,12 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
       const double aim = std::max(0.05, 0.999 * h.t / L);
       used *= shrink == 0 ? aim : std::min(0.5, aim);
       next = used;
-      s1 = SharmaStep(f, center, s, used);
-      const double nn = f.Index(s1.r - center), tl = Length(s1.t);
-      if (tl > 0) s1.t = s1.t * (nn / tl);
+      if (cfg.step_doubling) {
+        const GrinState g = SharmaStep(f, center, GrinState{s.r, s.t}, used);
+        s1 = MakeGrinPoint(f, center, g.r, g.t);
+      } else {
+        s1 = SharmaStep(f, center, s, used);
+      }
       if (central) ProjectOnInvariants(f, center, angular_momentum, &s1);
     }
   }
@@ -679,6 +705,8 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
   for (const ObjectSpec& o : scene.objects) {
     im.index.push_back(o.index);
     im.field.push_back(o.index_field.get());
+    im.uniform.push_back(o.index_field ? UniformCells(*o.index_field, scene.trace.grin.uniform_tolerance)
+                                       : UniformCells());
     im.center.push_back(o.center_um);
     im.size.push_back(o.shape == ShapeType::kSphere ? o.radius_um : Length(o.semi_axes_um));
     im.has_grin = im.has_grin || o.index_field != nullptr;

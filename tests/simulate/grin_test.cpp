@@ -134,15 +134,75 @@ TEST(Grin, UniformGridMatchesHomogeneousSphere) {
   f->origin_um = {0, 0, -11};
   f->values.assign(12 * 23, 1.4);
   s.objects[0].index_field = f;
+  // Curved steps everywhere (uniform-cell steps off), then straight steps across the uniform
+  // cells (the default): both follow the straight rays of the homogeneous sphere.
+  s.trace.grin.uniform_tolerance = -1;
   const PlaneResult b = Simulator(s).TracePlane(4, 0, 200000);
-  double diff = 0, total = 0;
-  for (size_t i = 0; i < a.counts.size(); ++i) {
-    diff += std::abs(a.counts.pixels[i] - b.counts.pixels[i]);
-    total += a.counts.pixels[i];
+  s.trace.grin.uniform_tolerance = GrinSettings().uniform_tolerance;
+  const PlaneResult c = Simulator(s).TracePlane(4, 0, 200000);
+  for (const PlaneResult* r : {&b, &c}) {
+    double diff = 0, total = 0;
+    for (size_t i = 0; i < a.counts.size(); ++i) {
+      diff += std::abs(a.counts.pixels[i] - r->counts.pixels[i]);
+      total += a.counts.pixels[i];
+    }
+    EXPECT_LT(diff / total, 1e-3);
   }
-  EXPECT_LT(diff / total, 1e-3);
   EXPECT_GT(b.counters.grin_steps, 0u);
+  EXPECT_EQ(b.counters.grin_uniform_steps, 0u);
+  EXPECT_GT(c.counters.grin_uniform_steps, 0u);
+  EXPECT_LT(c.counters.grin_steps, b.counters.grin_steps / 10);
   EXPECT_EQ(a.counters.grin_steps, 0u);  // homogeneous objects never enter the integrator
+}
+
+// The uniform-cell map: the Chebyshev distance in cells to the nearest non-uniform cell or the
+// grid's edge, and a free length that never reaches a non-uniform cell (checked by sampling
+// straight paths of that length in random directions from random points).
+TEST(Grin, UniformCellsNeverReachANonUniformCell) {
+  IndexField f;
+  f.type = IndexFieldType::kGrid3D;
+  f.nx = 21, f.ny = 17, f.nz = 19;
+  f.spacing_um = {0.5, 0.7, 0.6};
+  f.origin_um = {-5, -5.6, -5.4};
+  f.values.assign(size_t(f.nx) * f.ny * f.nz, 1.33);
+  // A non-uniform blob: the node (12, 8, 9) raised (its 8 neighbouring cells change).
+  f.values[(size_t(9) * f.ny + 8) * f.nx + 12] = 1.34;
+  const UniformCells u(f, 1e-13);
+  ASSERT_FALSE(u.empty());
+  EXPECT_EQ(u.uniform_cells(), size_t(20 * 16 * 18 - 8));
+  auto cell_uniform = [&](const Vec3& p) {  // evaluated directly from the node values
+    const int i = int(std::floor((p.x - f.origin_um.x) / f.spacing_um.x));
+    const int j = int(std::floor((p.y - f.origin_um.y) / f.spacing_um.y));
+    const int k = int(std::floor((p.z - f.origin_um.z) / f.spacing_um.z));
+    if (i < 0 || j < 0 || k < 0 || i >= f.nx - 1 || j >= f.ny - 1 || k >= f.nz - 1) return false;
+    return !(i >= 11 && i <= 12 && j >= 7 && j <= 8 && k >= 8 && k <= 9);
+  };
+  RayRng rng(7, 0, 0);
+  int positive = 0;
+  for (int trial = 0; trial < 20000; ++trial) {
+    const Vec3 p(-5 + 10 * rng.Uniform(), -5.6 + 11.2 * rng.Uniform(), -5.4 + 10.8 * rng.Uniform());
+    const double len = u.FreeLength(p);
+    if (len <= 0) continue;
+    ++positive;
+    ASSERT_TRUE(cell_uniform(p));
+    const Vec3 d = Normalize(Vec3(rng.Uniform() - 0.5, rng.Uniform() - 0.5, rng.Uniform() - 0.5));
+    for (int k = 0; k <= 20; ++k)
+      ASSERT_TRUE(cell_uniform(p + d * (len * k / 20 * (1 - 1e-12)))) << trial;
+  }
+  EXPECT_GT(positive, 10000);
+  // An axisymmetric grid that starts on the axis continues through it: a point near the axis
+  // far from the non-uniform cells may cross the axis.
+  IndexField rz;
+  rz.type = IndexFieldType::kGridRZ;
+  rz.nx = 11, rz.ny = 1, rz.nz = 21;
+  rz.spacing_um = {1, 1, 1};
+  rz.origin_um = {0, 0, -10};
+  rz.values.assign(size_t(rz.nx) * rz.nz, 1.4);
+  const UniformCells urz(rz, 1e-13);
+  EXPECT_GT(urz.FreeLength({0.2, 0.1, 0.3}), 3.0);
+  // Outside the grid there is no free length (the field is extrapolated there).
+  EXPECT_EQ(urz.FreeLength({0, 0, -12}), 0.0);
+  EXPECT_EQ(u.FreeLength({100, 0, 0}), 0.0);
 }
 
 // An axisymmetric grid and the equivalent 3D grid give the same image statistically:

@@ -5,6 +5,7 @@
 #include <sstream>
 
 #include "commands.h"
+#include "mpi_session.h"
 #include "raymatch/core/atomic_file.h"
 #include "raymatch/fit/fit.h"
 #include "raymatch/pipeline/accuracy.h"
@@ -32,7 +33,9 @@ void RegisterBench(CLI::App& app, int* exit_code) {
   a->add_option("-o,--output", o->output_dir, "Output folder")->capture_default_str();
   a->callback([o, exit_code] {
     *exit_code = RunGuarded([&] {
-      const auto r = pipeline::RunAccuracyStudy(*o);
+      pipeline::AccuracyOptions ao = *o;
+      ao.output_dir = RankOutput(ao.output_dir);
+      const auto r = pipeline::RunAccuracyStudy(ao);
       std::cout << "fraction  rays  seconds  rays/s  rel.noise  MS-SSIM(ref)";
       if (!r.rows.empty() && !r.rows[0].vs_experiment.empty()) std::cout << "  MS-SSIM(exp)";
       std::cout << "\n";
@@ -91,8 +94,9 @@ void RegisterBench(CLI::App& app, int* exit_code) {
         for (double v : r.best) csv << "," << v;
         csv << "\n";
       }
-      EnsureDirectory(g->output);
-      WriteTextFileAtomic(std::filesystem::path(g->output) / "grid_study.csv", csv.str());
+      const std::string out = RankOutput(g->output);
+      EnsureDirectory(out);
+      WriteTextFileAtomic(std::filesystem::path(out) / "grid_study.csv", csv.str());
       std::cout << csv.str() << "wrote " << g->output << "/grid_study.csv\n";
       return 0;
     });

@@ -2,6 +2,7 @@
 #include <iostream>
 
 #include "commands.h"
+#include "mpi_session.h"
 #include "raymatch/core/error.h"
 #include "raymatch/fit/fit.h"
 
@@ -21,7 +22,7 @@ int RunFitCommand(const FitCliOptions& o) {
   fo.threads = o.threads;
   fo.progress = !o.quiet;
   const fit::FitResult r = fit::RunFit(spec, fo);
-  const std::string report = fit::WriteFitOutputs(spec, r, o.output);
+  const std::string report = fit::WriteFitOutputs(spec, r, RankOutput(o.output));
   std::cout << "fit " << r.status << ": " << r.message << "\n";
   for (const auto& p : r.parameters)
     std::cout << "  " << p.key << " = " << p.best << (p.unit.empty() ? "" : " " + p.unit)

@@ -2,6 +2,7 @@
 #include <iostream>
 
 #include "commands.h"
+#include "mpi_session.h"
 #include "raymatch/core/error.h"
 #include "raymatch/core/provenance.h"
 #include "raymatch/core/version.h"
@@ -12,9 +13,9 @@ int RunGuarded(const std::function<int()>& fn, int error_code) {
   try {
     return fn();
   } catch (const raymatch::Error& e) {
-    std::cerr << "raymatch: " << e.what() << "\n";
+    ReportError(std::string("raymatch: ") + e.what() + "\n", error_code);
   } catch (const std::exception& e) {
-    std::cerr << "raymatch: error: " << e.what() << "\n";
+    ReportError(std::string("raymatch: error: ") + e.what() + "\n", error_code);
   }
   return error_code;
 }
@@ -22,11 +23,14 @@ int RunGuarded(const std::function<int()>& fn, int error_code) {
 }  // namespace raymatch::apps
 
 int main(int argc, char** argv) {
+  raymatch::apps::MpiSession mpi(&argc, &argv);  // a cluster of one unless started by mpirun
   raymatch::SetCommandLine(argc, argv);
   CLI::App app{
       "raymatch: Monte Carlo ray-traced brightfield microscope images of transparent objects.\n"
       "Lengths are in micrometres (_um) unless a name says otherwise (_mm, _deg)."};
-  app.set_version_flag("--version", std::string("raymatch ") + raymatch::kVersion);
+  app.set_version_flag("--version", std::string("raymatch ") + raymatch::kVersion +
+                                        "\ncompiled-in options: MPI " +
+                                        (raymatch::apps::MpiCompiledIn() ? "on" : "off"));
   app.require_subcommand(1);
   int exit_code = 0;
   raymatch::apps::RegisterSimulate(app, &exit_code);

@@ -2,6 +2,8 @@
 #include <iostream>
 
 #include "commands.h"
+#include "mpi_session.h"
+#include "raymatch/core/cluster.h"
 #include "raymatch/pipeline/pipeline.h"
 
 namespace raymatch::apps {
@@ -21,7 +23,12 @@ void RegisterRun(CLI::App& app, int* exit_code) {
   sub->add_flag("--force", o->force, "Recompute every step");
   sub->callback([o, exit_code] {
     *exit_code = RunGuarded([&] {
-      const auto s = pipeline::RunPipeline(*o);
+      pipeline::PipelineOptions po = *o;
+      po.output_dir = RankOutput(po.output_dir);
+      // Under MPI every rank runs every step: reuse decisions from each rank's own folder
+      // could differ, and the ranks must trace the same images in the same order.
+      if (GetCluster().size > 1) po.force = true;
+      const auto s = pipeline::RunPipeline(po);
       std::cout << "raymatch run: cone half-angle " << s.cone_half_angle_deg << " deg; exposure "
                 << s.photons_per_pixel << " photons/pixel; verdict "
                 << (s.verdict == 0 ? "pass" : s.verdict == 1 ? "warning" : "fail") << "\n  report: "

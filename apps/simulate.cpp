@@ -5,6 +5,7 @@
 #include <sstream>
 
 #include "commands.h"
+#include "mpi_session.h"
 #include "raymatch/core/error.h"
 #include "raymatch/simulate/scan.h"
 #include "raymatch/simulate/scene.h"
@@ -38,7 +39,7 @@ int RunSimulate(const SimulateCliOptions& o) {
   simulate::ValidateScene(scene);
   for (const auto& w : scene.warnings) std::cerr << "raymatch: warning: " << w << "\n";
   simulate::ScanOptions so;
-  so.output_dir = o.output_dir;
+  so.output_dir = RankOutput(o.output_dir);
   so.control.progress = o.progress || (!o.quiet && isatty(STDERR_FILENO));
   if (o.rays > 0) so.rays = o.rays;
   so.write_png = !o.no_png;

@@ -13,6 +13,8 @@
 #include <cstdio>
 #include <mutex>
 #include <thread>
+
+#include "raymatch/core/cluster.h"
 #include <variant>
 
 #include "raymatch/core/error.h"
@@ -29,6 +31,32 @@ const char* FateName(Fate f) {
                                 "lost_inside",        "grin_step_cap"};
   return names[static_cast<int>(f)];
 }
+
+namespace {
+
+// All counters as one array (for the MPI sum) and back.
+template <typename C, typename F>
+void ForEachCounter(C& c, F&& f) {
+  for (auto& v : c.fates) f(v);
+  f(c.interface_events), f(c.fresnel_evaluations), f(c.corrector_tests), f(c.mesh_queries);
+  f(c.shape_queries), f(c.rays_hitting_objects), f(c.grin_steps), f(c.grin_segments);
+  f(c.grin_uniform_steps);
+  for (auto& v : c.path_class) f(v);
+}
+
+std::vector<uint64_t> PackCounters(const TraceCounters& c) {
+  std::vector<uint64_t> out;
+  ForEachCounter(c, [&](uint64_t v) { out.push_back(v); });
+  return out;
+}
+
+TraceCounters UnpackCounters(const uint64_t* p) {
+  TraceCounters c;
+  ForEachCounter(c, [&](uint64_t& v) { v = *p++; });
+  return c;
+}
+
+}  // namespace
 
 void TraceCounters::Add(const TraceCounters& o) {
   for (int i = 0; i < kNumFates; ++i) fates[i] += o.fates[i];
@@ -825,13 +853,20 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
     return a;
   });
   const auto t0 = std::chrono::steady_clock::now();
-  Progress progress(control.progress, control.label, rays);
+  // MPI ranks (core/cluster.h) take every size-th chunk; integer counts summed over the ranks
+  // give the image of one process bit for bit. Rank 0's progress stands for the whole job.
+  const Cluster& cluster = GetCluster();
+  const uint64_t rank = uint64_t(cluster.rank), ranks = uint64_t(std::max(1, cluster.size));
   const PartialReflection pr =
       im.geometry.empty() ? PartialReflection::kOff : scene_.trace.partial_reflection;
   const bool corr = scene_.optics.corrector.enabled;
   const bool mesh = im.geometry.has_meshes();
   constexpr uint64_t kChunk = 8192;
   const uint64_t chunks = (rays + kChunk - 1) / kChunk;
+  const uint64_t my_chunks = chunks > rank ? (chunks - rank + ranks - 1) / ranks : 0;
+  Progress progress(control.progress && cluster.is_root(),
+                    ranks > 1 ? control.label + " (" + std::to_string(ranks) + " ranks)" : control.label,
+                    std::min(rays, my_chunks * kChunk));
 
   auto run_chunk = [&](uint64_t ci) {
     const uint64_t b = ci * kChunk, e = std::min(rays, b + kChunk);
@@ -870,9 +905,9 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
   tbb::global_control limit(tbb::global_control::max_allowed_parallelism, threads);
   tbb::task_arena arena(threads);
   arena.execute([&] {
-    tbb::parallel_for(tbb::blocked_range<uint64_t>(0, chunks, 1),
+    tbb::parallel_for(tbb::blocked_range<uint64_t>(0, my_chunks, 1),
                       [&](const tbb::blocked_range<uint64_t>& r) {
-                        for (uint64_t ci = r.begin(); ci != r.end(); ++ci) run_chunk(ci);
+                        for (uint64_t k = r.begin(); k != r.end(); ++k) run_chunk(rank + k * ranks);
                       });
   });
 
@@ -882,10 +917,19 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
   if (sel.skip)  // the listed rays below `rays` were left out
     res.rays -= std::lower_bound(sel.skip, sel.skip + sel.skip_count, rays) - sel.skip;
   res.threads = threads;
+  res.ranks = static_cast<int>(ranks);
   std::vector<uint64_t> sum(npix, 0);
   for (const Accum& a : accums) {
     for (size_t i = 0; i < npix; ++i) sum[i] += a.image[i];
     res.counters.Add(a.counters);
+  }
+  if (ranks > 1 && cluster.sum) {
+    std::vector<uint64_t> packed = PackCounters(res.counters);
+    const size_t nc = packed.size();
+    packed.insert(packed.end(), sum.begin(), sum.end());
+    cluster.sum(packed.data(), packed.size());
+    res.counters = UnpackCounters(packed.data());
+    std::copy(packed.begin() + long(nc), packed.end(), sum.begin());
   }
   res.counts = Image(scene_.camera.nx, scene_.camera.ny);
   for (size_t i = 0; i < npix; ++i) res.counts.pixels[i] = static_cast<float>(sum[i]);

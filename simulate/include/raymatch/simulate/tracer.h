@@ -63,7 +63,8 @@ struct PlaneResult {
   uint64_t rays = 0;
   TraceCounters counters;
   double seconds = 0;
-  int threads = 0;
+  int threads = 0;       ///< worker threads per process
+  int ranks = 1;         ///< MPI ranks that traced the image together (core/cluster.h)
 };
 
 /// Controls that do not change the physics.

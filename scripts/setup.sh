@@ -13,6 +13,7 @@ PACKAGES=(
   libopenvdb-dev  # iso-surfaces of volume-fraction grids
   libceres-dev  # calibration fits
   libmrcal-dev  # light field from mrcal .cameramodel files (optional in CMake)
+  libopenmpi-dev openmpi-bin  # MPI across machines (optional in CMake: RAYMATCH_MPI)
   libgtest-dev libgmock-dev libbenchmark-dev
   python3 python3-numpy python3-scipy python3-skimage python3-tifffile  # test references
 )

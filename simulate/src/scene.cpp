@@ -542,6 +542,8 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
     s.trace.grin.tolerance_um = tr.Positive("grin_tolerance_um", s.trace.grin.tolerance_um);
     s.trace.grin.max_step_um = tr.Positive("grin_max_step_um", 0.0);
     s.trace.grin.max_steps = static_cast<int>(tr.Integer("grin_max_steps", s.trace.grin.max_steps, 1, 1000000000));
+    s.trace.grin.uniform_tolerance =
+        tr.InRange("grin_uniform_tolerance", -1.0, 1e-3, s.trace.grin.uniform_tolerance);
     tr.Finish();
   }
   if (s.trace.rays == 0 && s.trace.photons_per_pixel == 0) s.trace.rays = 1000000;

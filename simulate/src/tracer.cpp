@@ -811,7 +811,7 @@ std::vector<std::string> Simulator::Effects() const {
     if (scene_.trace.partial_reflection == PartialReflection::kPolarized)
       e.push_back("partial_reflection:polarized");
   }
-  if (impl_->has_grin) e.push_back("gradient_index:sharma_adaptive");
+  if (impl_->has_grin) e.push_back("gradient_index:sharma_embedded");
   if (impl_->geometry.has_meshes()) e.push_back("mesh_bvh:embree");
   if (scene_.optics.corrector.enabled) e.push_back("angular_corrector");
   e.push_back(scene_.optics.model == ObjectiveModel::kSingle ? "objective:single_ideal_lens"

@@ -9,6 +9,9 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <list>
+#include <memory>
+#include <mutex>
 #include <sstream>
 
 #include "raymatch/core/error.h"
@@ -103,11 +106,54 @@ TriangleMesh LocalMesh(const ObjectSpec& o) {
   return m;
 }
 
+// A mesh file read, checked and oriented, in object-local micrometres. Fits build a scene per
+// evaluation with the same mesh (only its pose or material changes), so the last few are kept,
+// keyed by path, scale, size and modification time: a changed file is read again.
+struct OrientedMesh {
+  TriangleMesh mesh;
+  MeshReport report;
+};
+
+std::shared_ptr<const OrientedMesh> Orient(TriangleMesh m) {
+  auto out = std::make_shared<OrientedMesh>();
+  out->report = CheckAndOrientMesh(&m);
+  out->mesh = std::move(m);
+  return out;
+}
+
+std::shared_ptr<const OrientedMesh> CachedLocalMesh(const ObjectSpec& o) {
+  if (o.mesh) return Orient(*o.mesh);
+  std::error_code ec;
+  const auto size = std::filesystem::file_size(o.mesh_file, ec);
+  const auto mtime = std::filesystem::last_write_time(o.mesh_file, ec);
+  if (ec) return Orient(LocalMesh(o));  // LocalMesh reports the unreadable file
+  char scale[32];
+  std::snprintf(scale, sizeof scale, "%a", o.mesh_scale_um);
+  const std::string key = o.mesh_file + "|" + scale + "|" + std::to_string(size) + "|" +
+                          std::to_string(mtime.time_since_epoch().count());
+  static std::mutex mu;
+  static std::list<std::pair<std::string, std::shared_ptr<const OrientedMesh>>> cache;  // MRU first
+  {
+    std::lock_guard<std::mutex> lock(mu);
+    for (auto it = cache.begin(); it != cache.end(); ++it)
+      if (it->first == key) {
+        cache.splice(cache.begin(), cache, it);
+        return it->second;
+      }
+  }
+  auto m = Orient(LocalMesh(o));
+  std::lock_guard<std::mutex> lock(mu);
+  cache.emplace_front(key, m);
+  if (cache.size() > 4) cache.pop_back();
+  return m;
+}
+
 void LoadMesh(const ObjectSpec& o, std::vector<float>* verts, std::vector<unsigned>* idx,
               MeshInfo* info) {
-  TriangleMesh m = LocalMesh(o);
+  const std::shared_ptr<const OrientedMesh> om = CachedLocalMesh(o);
+  const TriangleMesh& m = om->mesh;
+  const MeshReport& rep = om->report;
   const std::string what = o.mesh ? o.shape_description : "mesh '" + o.mesh_file + "'";
-  const MeshReport rep = CheckAndOrientMesh(&m);
   if (rep.triangles == 0) throw Error(o.where, what + " has no usable triangles");
   if (!rep.ok())
     throw Error(o.where, what + " does not enclose a volume: " + rep.Summary() +

@@ -170,6 +170,35 @@ pixel_pitch_um = 20
   }
 }
 
+// A mesh file is read once for scenes built again and again (fits); an edited file is read anew.
+TEST(MeshChecks, EditedMeshFileIsReadAgain) {
+  testing::TempDir dir;
+  const char* tet = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\n";
+  dir.Write("m.obj", tet);
+  const std::string scene = dir.Write("s.toml", R"(
+[source]
+type = "cone"
+half_angle_deg = 20
+[[object]]
+type = "mesh"
+file = "m.obj"
+scale_um = 10
+index = 1.5
+[camera]
+pixels = [16, 16]
+pixel_pitch_um = 20
+)" + testing::kOpticsToml);
+  const Scene s = LoadScene(scene);
+  const double r1 = Simulator(s).ObjectBounds()[0].second;
+  EXPECT_EQ(Simulator(s).ObjectBounds()[0].second, r1);  // from the cache: the same mesh
+  // The same tetrahedron twice as large (a different size and modification time).
+  dir.Write("m.obj", "v 0 0 0\nv 2 0 0\nv 0 2 0\nv 0 0 2\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\n");
+  EXPECT_NEAR(Simulator(s).ObjectBounds()[0].second, 2 * r1, 1e-9 * r1);
+  // An edit that leaves a hole is caught again (nothing stale is reused).
+  dir.Write("m.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\n");
+  EXPECT_THROW(Simulator{s}, Error);
+}
+
 TEST(MeshChecks, RevolutionSceneFromOutlinePoints) {
   testing::TempDir dir;
   const std::string scene = dir.Write("s.toml", R"(

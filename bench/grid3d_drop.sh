@@ -5,6 +5,7 @@
 # Grid3DDropImage). Writes the grid with NumPy and the scene into OUT, then times
 # `raymatch simulate` on all cores.
 # Usage: bench/grid3d_drop.sh [OUT=build/grid3d-drop] [extra simulate options, e.g. --threads 1]
+#        RAYMATCH_LAUNCH="mpirun -n 2" bench/grid3d_drop.sh ...   (MPI ranks; docs/scale-out.md)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 out=${1:-build/grid3d-drop}
@@ -51,4 +52,5 @@ partial_reflection = "unpolarized"
 [scan]
 defocus_um = [0]
 TOML
-/usr/bin/time -f "wall %e s, max RSS %M kB" build/release/apps/raymatch simulate "$out/scene.toml" -o "$out/images" "$@"
+# shellcheck disable=SC2086
+/usr/bin/time -f "wall %e s, max RSS %M kB" ${RAYMATCH_LAUNCH:-} build/release/apps/raymatch simulate "$out/scene.toml" -o "$out/images" "$@"

@@ -388,16 +388,22 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
   double dt = 0.05 * im.size[obj] / Length(s.t);
   ++c.grin_segments;
   for (int step = 0; step < cfg.max_steps; ++step) {
+    // Paths shorter than the clearance cannot reach a surface (spheres only; 0 otherwise).
+    const double clearance = geo.SurfaceClearance(s.r);
     if (uniform) {
       // Straight across uniform cells when that beats the next curved step.
       const double free = uniform->FreeLength(s.r - center);
       if (free > dt * s.n) {
         const Vec3 dir = s.t / s.n;
         Hit h;
-        ++c.shape_queries;
-        if constexpr (kMesh) ++c.mesh_queries;
         ++c.grin_uniform_steps;
-        if (geo.Intersect<kMesh>(s.r, dir, &h) && h.t <= free) {
+        bool crosses = false;
+        if (free >= clearance) {
+          ++c.shape_queries;
+          if constexpr (kMesh) ++c.mesh_queries;
+          crosses = geo.Intersect<kMesh>(s.r, dir, &h) && h.t <= free;
+        }
+        if (crosses) {
           *hit = h;
           *hp = s.r + dir * h.t;
           *dout = dir;
@@ -415,9 +421,12 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
       const Vec3 chord = s1.r - s.r;
       const double L = Length(chord);
       Hit h;
-      ++c.shape_queries;
-      if constexpr (kMesh) ++c.mesh_queries;
-      const bool crosses = L > 0 && geo.Intersect<kMesh>(s.r, chord / L, &h) && h.t <= L;
+      bool crosses = false;
+      if (L >= clearance) {
+        ++c.shape_queries;
+        if constexpr (kMesh) ++c.mesh_queries;
+        crosses = L > 0 && geo.Intersect<kMesh>(s.r, chord / L, &h) && h.t <= L;
+      }
       if (!crosses) {
         if (central) ProjectOnInvariants(f, center, angular_momentum, &s1);
         s = s1;

@@ -58,6 +58,14 @@ class Geometry {
   const std::vector<MeshInfo>& meshes() const { return mesh_info_; }
   /// Largest distance of any object point from the origin (for automatic field sizes).
   double extent_um() const { return extent_um_; }
+  /// A lower bound of the distance from `p` to every object surface: exact when all objects
+  /// are spheres, 0 (no bound) otherwise. A path shorter than it cannot cross a surface.
+  double SurfaceClearance(const Vec3& p) const {
+    if (!ellipsoids_.empty() || !boxes_.empty() || scene_) return 0;
+    double d = 1e300;
+    for (const auto& s : spheres_) d = std::min(d, std::abs(Length(p - s.center) - s.radius));
+    return d;
+  }
   double min_z_um() const { return min_z_um_; }
   /// A bounding sphere of object i (centre and radius, micrometres).
   const Vec3& bound_center(int object) const { return bound_center_[object]; }

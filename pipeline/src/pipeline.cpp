@@ -171,7 +171,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   EnsureDirectory(out);
   PipelineSummary sum;
   auto say = [&](const std::string& m) {
-    if (opt.progress) std::cerr << "raymatch run: " << m << std::endl;
+    if (opt.steps) std::cerr << "raymatch run: " << m << std::endl;
   };
   auto timed = [&](const std::string& name, const std::function<void()>& fn) {
     const auto t0 = clock::now();

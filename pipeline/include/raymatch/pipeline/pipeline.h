@@ -13,7 +13,8 @@ struct PipelineOptions {
   std::string output_dir;        ///< overrides the file's `output` when set
   double ray_fraction = 0;       ///< overrides [simulation] ray_fraction when > 0
   int threads = 0;
-  bool progress = true;
+  bool progress = false;         ///< progress bars on stderr (`raymatch run`: on a TTY or --progress)
+  bool steps = true;             ///< one line per step on stderr (`raymatch run -q`: off)
   bool force = false;            ///< recompute every step
 };
 

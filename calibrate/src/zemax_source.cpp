@@ -112,9 +112,9 @@ void WriteZemaxSourceFile(const std::string& path, const ZemaxSourceFile& f) {
   {
     std::ofstream out(tmp, std::ios::binary);
     out.write(w.bytes.data(), std::streamsize(w.bytes.size()));
-    if (!out.good()) {
-      std::error_code ec;
-      std::filesystem::remove(tmp, ec);
+    out.close();
+    if (!out) {
+      DiscardTemporary(tmp);
       throw Error(FileLocation{path}, "cannot write the Zemax source file");
     }
   }

@@ -170,6 +170,10 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   const fs::path out = opt.output_dir.empty() ? fs::path(cfg.output) : fs::path(opt.output_dir);
   EnsureDirectory(out);
   PipelineSummary sum;
+  // index.html describes one complete run: removed now, written last, so that an interrupted
+  // or failed run leaves no report mixing this run's files with the previous one's.
+  sum.report = (out / "index.html").string();
+  RemoveStaleOutput(sum.report);
   auto say = [&](const std::string& m) {
     if (opt.steps) std::cerr << "raymatch run: " << m << std::endl;
   };
@@ -198,6 +202,9 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     co_report = rj.at("corrector").get<std::string>();
     sum.reused.push_back("calibrate");
   } else {
+    // A step's stamp goes before it rewrites its outputs and comes back after the last one, so an
+    // interrupted step is never taken for finished (and reused) by the next run.
+    RemoveStaleOutput(out / ".calibration.stamp");
     timed("calibrate", [&] {
       say("calibrating the light field (" + cfg.lightfield + ")");
       calibrate::LightFieldOptions lo;
@@ -253,6 +260,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     say("simulation unchanged: reusing " + sim_index.string());
     sum.reused.push_back("simulate");
   } else {
+    RemoveStaleOutput(out / ".simulation.stamp");
     timed("simulate", [&] {
       say("simulating " + std::to_string(exp.defocus_um.size()) + " planes at " +
           std::to_string(sum.photons_per_pixel * frac) + " photons per pixel");
@@ -429,7 +437,6 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   for (const auto& r : sum.reused) h << "<tr><td>" << r << "</td><td>reused (inputs unchanged)</td></tr>";
   h << "</table><p>Files: <code>calibration.toml</code>, <code>scene.toml</code>, <code>simulation/</code>, "
        "<code>compare/</code> (report.html, CSV, JSON), <code>figures/</code>.</p></body></html>\n";
-  sum.report = (out / "index.html").string();
   WriteTextFileAtomic(sum.report, h.str());
   return sum;
 }

@@ -5,8 +5,9 @@
 // exist or describing a mix of two runs), a non-zero exit with a clear message (or the
 // signal's own status), and a re-run must succeed.
 //
-// The signal is sent the moment a temporary `*.partial-*` file appears in the output folder
-// (polled every 0.2 ms), i.e. while an output is being written: the hardest moment. Full disk
+// In `simulate` the signal is sent the moment a temporary `*.partial-*` file appears in the
+// output folder (polled every 0.2 ms), i.e. while an output is being written: the hardest
+// moment; in `run`, when its simulation has written its first file. Full disk
 // and read-only folders use small tmpfs mounts and need root; without root (or where mount is
 // refused) those tests are skipped with the reason, except the read-only folder, which falls
 // back to chmod 0555 when not root.

@@ -1,4 +1,6 @@
 // raymatch run: the main job (calibrate -> simulate -> compare -> report).
+#include <unistd.h>
+
 #include <iostream>
 
 #include "commands.h"
@@ -21,7 +23,14 @@ void RegisterRun(CLI::App& app, int* exit_code) {
                   "Fraction of the photon-matched ray count (e.g. 0.0625 for a quick look)");
   sub->add_option("--threads", o->threads, "Worker threads (default: all cores)");
   sub->add_flag("--force", o->force, "Recompute every step");
-  sub->callback([o, exit_code] {
+  auto progress = std::make_shared<bool>(false), quiet = std::make_shared<bool>(false);
+  sub->add_flag("--progress", *progress, "Always show progress bars on stderr (default: on a TTY)");
+  sub->add_flag("-q,--quiet", *quiet, "No summary, no step messages and no progress");
+  sub->callback([o, progress, quiet, exit_code] {
+    // As `simulate`: progress bars (carriage returns) only on a terminal unless asked for, so
+    // that a log file holds lines; the one-line step messages stay unless --quiet.
+    o->progress = *progress || (!*quiet && isatty(STDERR_FILENO));
+    o->steps = !*quiet;
     *exit_code = RunGuarded([&] {
       pipeline::PipelineOptions po = *o;
       po.output_dir = RankOutput(po.output_dir);
@@ -29,6 +38,7 @@ void RegisterRun(CLI::App& app, int* exit_code) {
       // could differ, and the ranks must trace the same images in the same order.
       if (GetCluster().size > 1) po.force = true;
       const auto s = pipeline::RunPipeline(po);
+      if (*quiet) return s.verdict;
       std::cout << "raymatch run: cone half-angle " << s.cone_half_angle_deg << " deg; exposure "
                 << s.photons_per_pixel << " photons/pixel; verdict "
                 << (s.verdict == 0 ? "pass" : s.verdict == 1 ? "warning" : "fail") << "\n  report: "

@@ -5,6 +5,7 @@
 #include <cstring>
 #include <fstream>
 #include <iterator>
+#include <limits>
 
 #include "raymatch/core/atomic_file.h"
 #include "raymatch/core/error.h"
@@ -47,6 +48,14 @@ class ByteReader {
     const uint32_t v = U32();
     float f;
     std::memcpy(&f, &v, 4);
+    return f;
+  }
+  /// A float that must be finite (NaN or Inf is an error naming its byte and `what`).
+  float FiniteF32(const std::string& what) {
+    const size_t at = pos_;
+    const float f = F32();
+    if (!std::isfinite(f))
+      throw Error(FileLocation{file_}, "byte " + std::to_string(at) + ": " + what + " is not a finite number");
     return f;
   }
   std::string Chars(size_t n) {
@@ -112,9 +121,9 @@ void WriteZemaxSourceFile(const std::string& path, const ZemaxSourceFile& f) {
   {
     std::ofstream out(tmp, std::ios::binary);
     out.write(w.bytes.data(), std::streamsize(w.bytes.size()));
-    if (!out.good()) {
-      std::error_code ec;
-      std::filesystem::remove(tmp, ec);
+    out.close();
+    if (!out) {
+      DiscardTemporary(tmp);
       throw Error(FileLocation{path}, "cannot write the Zemax source file");
     }
   }
@@ -139,7 +148,7 @@ ZemaxSourceFile ReadZemaxSourceFile(const std::string& path) {
   h.description = r.Chars(100);
   for (float* v : {&h.source_flux, &h.ray_set_flux, &h.wavelength_um, &h.inclination_begin,
                    &h.inclination_end, &h.azimuth_begin, &h.azimuth_end})
-    *v = r.F32();
+    *v = r.FiniteF32("header value");
   h.dimension_units = r.I32();
   try {
     ZemaxUnitUm(h.dimension_units);
@@ -162,9 +171,16 @@ ZemaxSourceFile ReadZemaxSourceFile(const std::string& path) {
                                         std::to_string(h.num_rays) + " rays of " + std::to_string(per) +
                                         " bytes need " + std::to_string(expect));
   f.rays.resize(h.num_rays);
-  for (ZemaxRay& ray : f.rays) {
-    for (float* v : {&ray.x, &ray.y, &ray.z, &ray.l, &ray.m, &ray.n, &ray.flux}) *v = r.F32();
-    if (h.ray_format == 2) ray.wavelength_um = r.F32();
+  // Every ray value must be finite and every flux non-negative: a NaN or a negative weight
+  // would turn the angular map's field radius (a flux-weighted RMS) into NaN.
+  for (size_t k = 0; k < f.rays.size(); ++k) {
+    ZemaxRay& ray = f.rays[k];
+    const std::string what = "ray " + std::to_string(k);
+    for (float* v : {&ray.x, &ray.y, &ray.z, &ray.l, &ray.m, &ray.n, &ray.flux}) *v = r.FiniteF32(what);
+    if (h.ray_format == 2) ray.wavelength_um = r.FiniteF32(what);
+    if (ray.flux < 0)
+      throw Error(FileLocation{path}, "byte " + std::to_string(r.pos() - (h.ray_format == 2 ? 8 : 4)) + ": " +
+                                          what + " has a negative flux");
   }
   return f;
 }
@@ -229,8 +245,11 @@ ZemaxImportSummary AngularMapFromZemax(const ZemaxSourceFile& f, const ZemaxImpo
   const double unit = ZemaxUnitUm(f.header.dimension_units);
   double ext = o.extent;
   if (!(ext > 0)) {
-    for (const ZemaxRay& r : f.rays)
-      if (r.n > 0) ext = std::max({ext, std::abs(double(r.l)), std::abs(double(r.m))});
+    for (const ZemaxRay& r : f.rays) {
+      const double norm = std::sqrt(double(r.l) * r.l + double(r.m) * r.m + double(r.n) * r.n);
+      if (r.n > 0 && norm > 0 && std::isfinite(norm))  // the same normalisation as the binning below
+        ext = std::max({ext, std::abs(r.l / norm), std::abs(r.m / norm)});
+    }
     ext = std::min(1.0, ext * 1.02);
   }
   if (!(ext > 0)) throw Error("no forward rays (n > 0) in the Zemax source");
@@ -240,17 +259,19 @@ ZemaxImportSummary AngularMapFromZemax(const ZemaxSourceFile& f, const ZemaxImpo
   double w_sum = 0, r2_sum = 0;
   for (const ZemaxRay& r : f.rays) {
     const double norm = std::sqrt(double(r.l) * r.l + double(r.m) * r.m + double(r.n) * r.n);
-    if (!(r.n > 0) || !(norm > 0)) {
+    if (!(r.n > 0) || !(norm > 0) || !std::isfinite(norm) || !(r.flux >= 0) || !std::isfinite(r.flux) ||
+        !std::isfinite(r.x) || !std::isfinite(r.y)) {
       ++s.rays_skipped;
       continue;
     }
     // Direction cosines are normalised defensively (Zemax writes unit vectors).
     const double u = r.l / norm, v = r.m / norm;
-    const int col = int(std::floor((u / ext + 1) / 2 * n)), row = int(std::floor((1 - v / ext) / 2 * n));
-    if (col < 0 || col >= n || row < 0 || row >= n) {
+    const double fc = std::floor((u / ext + 1) / 2 * n), fr = std::floor((1 - v / ext) / 2 * n);
+    if (!(fc >= 0 && fc < n && fr >= 0 && fr < n)) {  // compared as doubles: no out-of-range cast
       ++s.rays_skipped;
       continue;
     }
+    const int col = int(fc), row = int(fr);
     acc[size_t(row) * n + col] += r.flux;
     const double x = r.x * unit, y = r.y * unit;
     w_sum += r.flux, r2_sum += r.flux * (x * x + y * y);
@@ -258,7 +279,13 @@ ZemaxImportSummary AngularMapFromZemax(const ZemaxSourceFile& f, const ZemaxImpo
   }
   if (!(w_sum > 0)) throw Error("the Zemax source carries no flux in forward rays");
   const double cell = (2 * ext / n) * (2 * ext / n);
-  for (size_t i = 0; i < acc.size(); ++i) map.pixels[i] = float(std::max(0.0, acc[i]) / cell);
+  for (size_t i = 0; i < acc.size(); ++i) {
+    const double radiance = std::max(0.0, acc[i]) / cell;
+    if (!(radiance <= std::numeric_limits<float>::max()))  // the map is float32: no Inf
+      throw Error("the Zemax rays' radiance " + std::to_string(radiance) +
+                  " exceeds the float range of the angular map (fluxes too large: rescale them)");
+    map.pixels[i] = float(radiance);
+  }
   if (s.rays_skipped)
     s.warnings.push_back(std::to_string(s.rays_skipped) + " rays skipped (backward, zero or outside the map)");
   s.data.angular_map = map;
@@ -294,7 +321,8 @@ NdArray ZemaxRayList(const ZemaxSourceFile& f, uint64_t* skipped) {
   NdArray a;
   uint64_t skip = 0;
   for (const ZemaxRay& r : f.rays) {
-    if (!(r.n > 0) || !(r.flux >= 0) || !(double(r.l) * r.l + double(r.m) * r.m < 1)) {
+    if (!(r.n > 0) || !(r.flux >= 0) || !(double(r.l) * r.l + double(r.m) * r.m < 1) || !std::isfinite(r.flux) ||
+        !std::isfinite(r.x) || !std::isfinite(r.y)) {
       ++skip;
       continue;
     }

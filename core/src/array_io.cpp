@@ -191,7 +191,11 @@ void WriteHdf5(const std::string& path, const std::string& dataset, const NdArra
   const std::filesystem::path tmp = TemporaryPathFor(path);
   H5Eset_auto2(H5E_DEFAULT, nullptr, nullptr);
   const hid_t f = H5Fcreate(tmp.c_str(), H5F_ACC_TRUNC, H5P_DEFAULT, H5P_DEFAULT);
-  if (f < 0) Fail(path, "cannot create HDF5 file");
+  if (f < 0) {
+    const std::string hint = WriteFailureHint(path);
+    DiscardTemporary(tmp);
+    Fail(path, "cannot create HDF5 file" + (hint.empty() ? "" : ": " + hint));
+  }
   std::vector<hsize_t> dims(a.shape.begin(), a.shape.end());
   const hid_t sp = H5Screate_simple(static_cast<int>(dims.size()), dims.data(), nullptr);
   const hid_t lcpl = H5Pcreate(H5P_LINK_CREATE);
@@ -199,11 +203,13 @@ void WriteHdf5(const std::string& path, const std::string& dataset, const NdArra
   const hid_t d = H5Dcreate2(f, dataset.c_str(), H5T_IEEE_F64LE, sp, lcpl, H5P_DEFAULT,
                              H5P_DEFAULT);
   H5Pclose(lcpl);
-  const herr_t st = H5Dwrite(d, H5T_NATIVE_DOUBLE, H5S_ALL, H5S_ALL, H5P_DEFAULT, a.values.data());
-  H5Dclose(d);
-  H5Sclose(sp);
-  H5Fclose(f);
-  if (st < 0) Fail(path, "cannot write dataset '" + dataset + "'");
+  const herr_t st = d < 0 ? herr_t(-1) : H5Dwrite(d, H5T_NATIVE_DOUBLE, H5S_ALL, H5S_ALL, H5P_DEFAULT, a.values.data());
+  const herr_t closed = (d < 0 ? 0 : H5Dclose(d)) | H5Sclose(sp) | H5Fclose(f);  // a full disk can show here
+  if (st < 0 || closed < 0) {
+    const std::string hint = WriteFailureHint(path);
+    DiscardTemporary(tmp);
+    Fail(path, "cannot write dataset '" + dataset + "'" + (hint.empty() ? "" : ": " + hint));
+  }
   CommitTemporary(tmp, path);
 }
 

@@ -82,8 +82,7 @@ void WriteCalibrationFile(const std::string& path, const CalibrationData& d) {
       }
     }
   } catch (...) {
-    std::error_code ec;
-    for (auto& [tmp, fin] : sides) fs::remove(tmp, ec);
+    for (auto& [tmp, fin] : sides) DiscardTemporary(tmp);
     throw;
   }
   if (d.has_corrector()) {
@@ -97,9 +96,8 @@ void WriteCalibrationFile(const std::string& path, const CalibrationData& d) {
     for (auto& [tmp, fin] : sides) CommitTemporary(tmp, fin);
     CommitTemporary(toml_tmp, path);
   } catch (...) {
-    std::error_code ec;
-    for (auto& [tmp, fin] : sides) fs::remove(tmp, ec);
-    fs::remove(toml_tmp, ec);
+    for (auto& [tmp, fin] : sides) DiscardTemporary(tmp);
+    DiscardTemporary(toml_tmp);
     throw;
   }
 }

@@ -39,13 +39,16 @@ std::string FormatFor(const std::string& path) {
 void WriteWithOiio(const std::string& path, const OIIO::ImageSpec& spec, OIIO::TypeDesc in_type,
                    const void* data) {
   const std::string format = FormatFor(path);
-  const std::filesystem::path tmp = TemporaryPathFor(path);
   auto out = OIIO::ImageOutput::create(format);
   if (!out) throw Error(FileLocation{path}, "OpenImageIO has no writer for " + format);
+  const std::filesystem::path tmp = TemporaryPathFor(path);
   if (!out->open(tmp.string(), spec) || !out->write_image(in_type, data) || !out->close()) {
-    std::error_code ec;
-    std::filesystem::remove(tmp, ec);
-    throw Error(FileLocation{path}, "cannot write image: " + out->geterror());
+    std::string why = out->geterror();
+    out.reset();  // closes the file before it is removed
+    const std::string hint = WriteFailureHint(path);  // OpenImageIO's message rarely says why
+    if (!hint.empty()) why = hint + ": " + why;
+    DiscardTemporary(tmp);
+    throw Error(FileLocation{path}, "cannot write image: " + why);
   }
   CommitTemporary(tmp, path);
 }

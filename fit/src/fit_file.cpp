@@ -1,5 +1,7 @@
 // The fit file (docs/fit.md) and scene keys: reading, resolving and changing numeric values.
 #include <algorithm>
+#include <cmath>
+#include <cstdio>
 #include <filesystem>
 #include <set>
 #include <sstream>
@@ -176,6 +178,16 @@ void SetSceneValue(toml::table& scene, const std::string& key, double value,
   }
 }
 
+namespace {
+constexpr int kMaxGridPoints = 10001;  ///< grid samples per parameter
+/// A grid's size for a message (the product of the axes can exceed any integer type).
+std::string GridCount(double n) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, n < 1e15 ? "%.0f" : "%.3g", n);
+  return buf;
+}
+}  // namespace
+
 FitSpec LoadFitSpec(const std::string& path) { return LoadFitSpec(path, ""); }
 
 FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
@@ -266,8 +278,17 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     if (q.start < q.lower || q.start > q.upper)
       p.Fail(p.Has("start") ? "start" : "key", "start value " + std::to_string(q.start) +
                                                    " lies outside [lower, upper]");
+    if (!std::isfinite(q.upper - q.lower)) p.Fail("upper", "upper - lower must be a finite number");
     q.step = p.Positive("step", (q.upper - q.lower) / 10);
-    q.points = static_cast<int>(p.Integer("points", 0, 2, 10001));
+    q.points = static_cast<int>(p.Integer("points", 0, 2, kMaxGridPoints));
+    if (q.points == 0) {  // grid samples from the step (used by method grid and bench fit-grid)
+      // In double first: a tiny step over a wide range must not overflow the int.
+      const double n = std::floor((q.upper - q.lower) / q.step + 1e-9) + 1;
+      if (!(n <= kMaxGridPoints))
+        p.Fail("step", "gives " + std::to_string(n) + " grid points from lower to upper; at most " +
+                           std::to_string(kMaxGridPoints) + " (give a larger step or points)");
+      q.points = static_cast<int>(n);
+    }
     q.unit = UnitOf(q.key);
     p.Finish();
     f.parameters.push_back(q);
@@ -275,13 +296,10 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
   if (f.parameters.empty())
     r.Fail("parameter", "missing: give at least one [[parameter]] with key, lower and upper");
   double grid_points = 1;
-  for (Parameter& q : f.parameters) {  // grid samples (used by method grid and bench fit-grid)
-    if (q.points == 0) q.points = static_cast<int>(std::floor((q.upper - q.lower) / q.step + 1e-9)) + 1;
-    grid_points *= std::max(q.points, 1);
-  }
+  for (const Parameter& q : f.parameters) grid_points *= std::max(q.points, 1);
   if (f.method == Method::kGrid) {
     if (grid_points > f.max_evaluations)
-      r.Fail("method", "the grid has " + std::to_string(int64_t(grid_points)) + " points, more than max_evaluations (" +
+      r.Fail("method", "the grid has " + GridCount(grid_points) + " points, more than max_evaluations (" +
                            std::to_string(f.max_evaluations) + ")");
   }
 

@@ -32,20 +32,7 @@ using compare::Series;
 using compare::WriteFalseColour;
 using compare::WritePlot;
 
-namespace {
-
-struct Config {
-  std::string output, lightfield, flatfield, experiment, merging;
-  double extrapolate_to_deg = 0;
-  int zones = 9;
-  double smoothness = 0;
-  double ray_fraction = 1;
-  uint64_t seed = 1;
-  std::string partial_reflection = "unpolarized";
-  std::vector<std::string> fits;  // fit files (docs/fit.md) run with this calibration
-};
-
-Config ReadConfig(const std::string& path) {
+PipelineFile ReadPipelineFile(const std::string& path) {
   const toml::table t = ParseTomlFile(path);
   TomlReader r(t, path, "");
   const fs::path base = fs::path(path).parent_path();
@@ -54,7 +41,7 @@ Config ReadConfig(const std::string& path) {
     if (!fs::is_directory(p)) rd.Fail(key, "folder not found: " + p);
     return p;
   };
-  Config c;
+  PipelineFile c;
   c.output = r.String("output", "out/pipeline");
   TomlReader cal = r.Table("calibration");
   c.lightfield = rel(cal, "lightfield");
@@ -88,11 +75,7 @@ Config ReadConfig(const std::string& path) {
   return c;
 }
 
-/// The experiment folder's metadata (docs/sample-data-format.md).
-struct Experiment {
-  std::string scan_csv, dark;
-  double diameter_um = 0, temperature_K = 293.15, gain = 1;
-};
+namespace {
 
 /// The [camera] and [optics] tables of an experiment folder's metadata: the gain (photons per
 /// code value) is used; the other datasheet values are accepted, and the optics are
@@ -121,11 +104,13 @@ Image Prepared(const Image& raw, const compare::PrepareOptions& p) {
   return compare::PrepareExperiment(raw, p, dark.empty() ? nullptr : &dark, nullptr);
 }
 
-Experiment ReadExperiment(const std::string& folder) {
+}  // namespace
+
+ExperimentMetadata ReadExperimentMetadata(const std::string& folder) {
   const std::string path = (fs::path(folder) / "metadata.toml").string();
   const toml::table t = ParseTomlFile(path);
   TomlReader r(t, path, "");
-  Experiment e;
+  ExperimentMetadata e;
   e.scan_csv = (fs::path(folder) / r.String("scan")).string();
   if (r.Has("dark")) e.dark = (fs::path(folder) / r.String("dark")).string();
   r.String("object", "");
@@ -135,6 +120,23 @@ Experiment ReadExperiment(const std::string& folder) {
   r.Finish();
   return e;
 }
+
+MeshObjectMetadata ReadMeshObjectMetadata(const std::string& folder) {
+  const std::string mp = (fs::path(folder) / "metadata.toml").string();
+  const toml::table mt = ParseTomlFile(mp);
+  TomlReader mr(mt, mp, "");
+  MeshObjectMetadata m;
+  m.image = (fs::path(folder) / mr.String("image")).string();
+  m.defocus_um = mr.Number("defocus_um", 0);
+  if (mr.Has("dark")) m.dark = (fs::path(folder) / mr.String("dark")).string();
+  m.mesh = fs::absolute(fs::path(folder) / mr.String("mesh")).string();
+  m.rotation_deg = mr.Vec3("mesh_rotation_deg", {0, 0, 0});
+  m.gain = ReadCameraGain(mr);
+  mr.Finish();
+  return m;
+}
+
+namespace {
 
 /// Checksums of a folder's files (sorted), for step reuse.
 std::string FolderStamp(const std::string& folder) {
@@ -164,12 +166,16 @@ std::string Img(const std::string& png) { return EmbeddedPng(png); }
 
 PipelineSummary RunPipeline(const PipelineOptions& opt) {
   using clock = std::chrono::steady_clock;
-  const Config cfg = ReadConfig(opt.pipeline_file);
+  const PipelineFile cfg = ReadPipelineFile(opt.pipeline_file);
   const fs::path out = opt.output_dir.empty() ? fs::path(cfg.output) : fs::path(opt.output_dir);
   EnsureDirectory(out);
   PipelineSummary sum;
+  // index.html describes one complete run: removed now, written last, so that an interrupted
+  // or failed run leaves no report mixing this run's files with the previous one's.
+  sum.report = (out / "index.html").string();
+  RemoveStaleOutput(sum.report);
   auto say = [&](const std::string& m) {
-    if (opt.progress) std::cerr << "raymatch run: " << m << std::endl;
+    if (opt.steps) std::cerr << "raymatch run: " << m << std::endl;
   };
   auto timed = [&](const std::string& name, const std::function<void()>& fn) {
     const auto t0 = clock::now();
@@ -196,6 +202,9 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     co_report = rj.at("corrector").get<std::string>();
     sum.reused.push_back("calibrate");
   } else {
+    // A step's stamp goes before it rewrites its outputs and comes back after the last one, so an
+    // interrupted step is never taken for finished (and reused) by the next run.
+    RemoveStaleOutput(out / ".calibration.stamp");
     timed("calibrate", [&] {
       say("calibrating the light field (" + cfg.lightfield + ")");
       calibrate::LightFieldOptions lo;
@@ -223,7 +232,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
 
   // 2. Scene for the experiment: nominal drop, the experiment's image size and planes, the
   // exposure recovered from the background of the middle plane.
-  const Experiment ex = ReadExperiment(cfg.experiment);
+  const ExperimentMetadata ex = ReadExperimentMetadata(cfg.experiment);
   const compare::Stack exp = compare::ReadStack(ex.scan_csv);
   const compare::PrepareOptions prep = Preparation(ex.dark, ex.gain);
   const Image mid = Prepared(exp.images[exp.images.size() / 2], prep);
@@ -251,6 +260,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     say("simulation unchanged: reusing " + sim_index.string());
     sum.reused.push_back("simulate");
   } else {
+    RemoveStaleOutput(out / ".simulation.stamp");
     timed("simulate", [&] {
       say("simulating " + std::to_string(exp.defocus_um.size()) + " planes at " +
           std::to_string(sum.photons_per_pixel * frac) + " photons per pixel");
@@ -287,17 +297,12 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   if (!cfg.merging.empty()) {
     timed("mesh object", [&] {
       say("simulating the mesh object (" + cfg.merging + ")");
-      const std::string mp = (fs::path(cfg.merging) / "metadata.toml").string();
-      const toml::table mt = ParseTomlFile(mp);
-      TomlReader mr(mt, mp, "");
-      const std::string image = (fs::path(cfg.merging) / mr.String("image")).string();
-      const double dz = mr.Number("defocus_um", 0);
-      const std::string mdark = mr.Has("dark") ? (fs::path(cfg.merging) / mr.String("dark")).string() : "";
-      const std::string mesh = fs::absolute(fs::path(cfg.merging) / mr.String("mesh")).string();
-      const auto rot = mr.Vec3("mesh_rotation_deg", {0, 0, 0});
-      const double gain = ReadCameraGain(mr);
-      mr.Finish();
-      const Image e = Prepared(ReadImage(image), Preparation(mdark, gain));
+      const MeshObjectMetadata mm = ReadMeshObjectMetadata(cfg.merging);
+      const std::string& image = mm.image;
+      const std::string& mesh = mm.mesh;
+      const double dz = mm.defocus_um;
+      const auto& rot = mm.rotation_deg;
+      const Image e = Prepared(ReadImage(image), Preparation(mm.dark, mm.gain));
       std::ostringstream ms;
       ms.precision(10);
       ms << "name = \"mesh_object\"\ncalibration = \"calibration.toml\"\nseed = " << cfg.seed
@@ -432,7 +437,6 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   for (const auto& r : sum.reused) h << "<tr><td>" << r << "</td><td>reused (inputs unchanged)</td></tr>";
   h << "</table><p>Files: <code>calibration.toml</code>, <code>scene.toml</code>, <code>simulation/</code>, "
        "<code>compare/</code> (report.html, CSV, JSON), <code>figures/</code>.</p></body></html>\n";
-  sum.report = (out / "index.html").string();
   WriteTextFileAtomic(sum.report, h.str());
   return sum;
 }

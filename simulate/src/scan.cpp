@@ -134,6 +134,13 @@ ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
   EnsureDirectory(opt.output_dir);
   Simulator sim(scene);
   ScanSummary sum;
+  sum.index_json = (fs::path(opt.output_dir) / (scene.name + "_scan.json")).string();
+  sum.index_csv = (fs::path(opt.output_dir) / (scene.name + "_scan.csv")).string();
+  // The index describes one complete scan: a previous scan's index goes before the first plane
+  // is written and the new one comes after the last, so an interrupted or failed scan leaves
+  // no index listing planes it did not write (or planes of two different scans).
+  RemoveStaleOutput(sum.index_json);
+  RemoveStaleOutput(sum.index_csv);
   sum.effects = sim.Effects();
   if (opt.rays) {
     sum.rays_per_image = *opt.rays;
@@ -190,8 +197,6 @@ ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
                                 {"effects", sum.effects},
                                 {"seconds", sum.seconds},
                                 {"planes", planes}};
-  sum.index_json = (fs::path(opt.output_dir) / (scene.name + "_scan.json")).string();
-  sum.index_csv = (fs::path(opt.output_dir) / (scene.name + "_scan.csv")).string();
   WriteTextFileAtomic(sum.index_json, index.dump(2) + "\n");
   WriteTextFileAtomic(sum.index_csv, csv.str());
   return sum;

@@ -1,10 +1,16 @@
 #include "raymatch/core/array_io.h"
 
 #include <gtest/gtest.h>
+#include <hdf5.h>
+#include <sys/resource.h>
 
+#include <algorithm>
+#include <filesystem>
 #include <fstream>
 
+#include "raymatch/core/atomic_file.h"
 #include "raymatch/core/error.h"
+#include "raymatch/core/image_io.h"
 #include "temp_dir.h"
 
 namespace raymatch {
@@ -82,6 +88,76 @@ TEST(ArrayIo, NpyDeclaredShapeIsCheckedBeforeAllocating) {
     }
   }
   EXPECT_EQ(ReadNpy(dir.Write("two.npy", npy("(2,)"))).values, (std::vector<double>{0, 0}));
+}
+
+// docs/reliability.md: an HDF5 dataset may declare at most 2^28 values. HDF5 lets a file declare
+// a huge chunked dataset without storing any chunk (a few kB on disk); the reader must refuse it
+// from the declared extent, naming the file and dataset, before allocating the values (4e8
+// doubles would be 3.2 GB).
+TEST(ArrayIo, Hdf5DeclaredSizeIsCheckedBeforeAllocating) {
+  testing::TempDir dir;
+  const std::string path = dir / "huge.h5";
+  {
+    const hid_t f = H5Fcreate(path.c_str(), H5F_ACC_TRUNC, H5P_DEFAULT, H5P_DEFAULT);
+    ASSERT_GE(f, 0);
+    auto dataset = [&](const char* name, std::vector<hsize_t> dims) {
+      const hid_t sp = H5Screate_simple(int(dims.size()), dims.data(), nullptr);
+      const hid_t pl = H5Pcreate(H5P_DATASET_CREATE);
+      std::vector<hsize_t> chunk;
+      for (hsize_t d : dims) chunk.push_back(std::min<hsize_t>(d, 64));
+      H5Pset_chunk(pl, int(chunk.size()), chunk.data());
+      const hid_t d = H5Dcreate2(f, name, H5T_IEEE_F64LE, sp, H5P_DEFAULT, pl, H5P_DEFAULT);
+      EXPECT_GE(d, 0) << name;
+      H5Dclose(d);
+      H5Pclose(pl);
+      H5Sclose(sp);
+    };
+    dataset("over", {20000, 20000});                     // 4e8 values > 2^28
+    dataset("far_over", {1u << 20, 1u << 20, 1u << 20});  // 2^60 values
+    dataset("small", {4, 3});                            // unwritten chunks read as the fill value 0
+    H5Fclose(f);
+  }
+  ASSERT_LT(std::filesystem::file_size(path), 100000u);
+  rusage before{};
+  getrusage(RUSAGE_SELF, &before);
+  for (const char* name : {"over", "far_over"}) {
+    try {
+      ReadHdf5(path, name);
+      ADD_FAILURE() << name << " was read";
+    } catch (const Error& e) {
+      const std::string m = e.what();
+      EXPECT_NE(m.find("huge.h5:" + std::string(name) + ": error:"), std::string::npos) << m;
+      EXPECT_NE(m.find("more than the limit of 268435456 values"), std::string::npos) << m;
+    }
+  }
+  rusage after{};
+  getrusage(RUSAGE_SELF, &after);
+  EXPECT_LT(after.ru_maxrss - before.ru_maxrss, 100 * 1024) << "peak RSS grew by " << after.ru_maxrss - before.ru_maxrss << " kB";
+  const NdArray small = ReadHdf5(path, "small");
+  EXPECT_EQ(small.shape, (std::vector<size_t>{4, 3}));
+  EXPECT_EQ(small.values, std::vector<double>(12, 0.0));
+}
+
+// The registry of temporaries that a signal handler removes (core/atomic_file.h) holds only
+// writes in flight: every finished or failed write unregisters its temporary (a leak would fill
+// the fixed table and leave later temporaries unprotected).
+TEST(AtomicFile, TemporariesAreUnregisteredAfterCommitAndFailure) {
+  testing::TempDir dir;
+  const int before = RegisteredTemporaries();
+  WriteTextFileAtomic(dir / "a.txt", "a");
+  WriteFloatImage(dir / "a.tif", Image(4, 3, 1.f), "test");
+  NdArray a;
+  a.shape = {2};
+  a.values = {1, 2};
+  WriteHdf5(dir / "a.h5", "n", a);
+  WriteNpy(dir / "a.npy", a);
+  EXPECT_THROW(WriteTextFileAtomic(dir / "missing/a.txt", "a"), Error);
+  EXPECT_THROW(WriteFloatImage(dir / "missing/a.tif", Image(4, 3, 1.f), "test"), Error);
+  EXPECT_THROW(WriteHdf5(dir / "missing/a.h5", "n", a), Error);
+  EXPECT_THROW(CommitTemporary(TemporaryPathFor(dir / "b.txt"), dir / "b.txt"), Error);  // nothing to move
+  EXPECT_EQ(RegisteredTemporaries(), before);
+  for (const auto& e : std::filesystem::directory_iterator(dir.path()))
+    EXPECT_EQ(e.path().filename().string().find(".partial-"), std::string::npos) << e.path();
 }
 
 }  // namespace

@@ -1,6 +1,8 @@
 #pragma once
 // The main job: calibrate -> simulate the experiment's focus scan -> compare -> report.
 // The one library allowed to combine calibrate, simulate and compare (they depend on core only).
+#include <array>
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -11,7 +13,8 @@ struct PipelineOptions {
   std::string output_dir;        ///< overrides the file's `output` when set
   double ray_fraction = 0;       ///< overrides [simulation] ray_fraction when > 0
   int threads = 0;
-  bool progress = true;
+  bool progress = false;         ///< progress bars on stderr (`raymatch run`: on a TTY or --progress)
+  bool steps = true;             ///< one line per step on stderr (`raymatch run -q`: off)
   bool force = false;            ///< recompute every step
 };
 
@@ -28,6 +31,46 @@ struct PipelineSummary {
   std::vector<std::string> reused;  ///< steps skipped because their inputs were unchanged
   std::vector<std::pair<std::string, std::string>> fits;  ///< fit name, status
 };
+
+/// A pipeline file (docs/pipeline.md). Folders are resolved against the file's folder and must
+/// exist; fit files must exist.
+struct PipelineFile {
+  std::string output = "out/pipeline";  ///< relative to the working directory
+  std::string lightfield, flatfield;     ///< [calibration] lightfield, corrector
+  std::string experiment;                ///< [experiment] scan
+  std::string merging;                   ///< [experiment] mesh_object (empty: none)
+  double extrapolate_to_deg = 0;
+  int zones = 9;
+  double smoothness = 0;
+  double ray_fraction = 1;               ///< of the photon-matched ray count
+  uint64_t seed = 1;
+  std::string partial_reflection = "unpolarized";
+  std::vector<std::string> fits;         ///< fit files (docs/fit.md) run with this calibration
+};
+
+/// Strict reader of a pipeline file; throws Error "file:line:col: error: ..." (unknown keys,
+/// wrong types, missing folders).
+PipelineFile ReadPipelineFile(const std::string& path);
+
+/// An experiment folder's metadata.toml (docs/sample-data-format.md): the focus scan's CSV, the
+/// dark frame, the nominal size and the camera gain (paths joined to the folder, not checked).
+struct ExperimentMetadata {
+  std::string scan_csv, dark;
+  double diameter_um = 0;         ///< nominal diameter
+  double temperature_K = 293.15;
+  double gain = 1;                ///< photons per code value after dark subtraction
+};
+ExperimentMetadata ReadExperimentMetadata(const std::string& folder);
+
+/// A mesh-object folder's metadata.toml: one in-focus image of a non-spherical object and its
+/// mesh (paths joined to the folder, not checked).
+struct MeshObjectMetadata {
+  std::string image, dark, mesh;  ///< mesh: absolute
+  double defocus_um = 0;
+  std::array<double, 3> rotation_deg{0, 0, 0};
+  double gain = 1;
+};
+MeshObjectMetadata ReadMeshObjectMetadata(const std::string& folder);
 
 /// Runs the pipeline; throws raymatch::Error on bad input.
 PipelineSummary RunPipeline(const PipelineOptions& options);

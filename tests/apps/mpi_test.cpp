@@ -10,6 +10,7 @@
 #include <sstream>
 
 #include "raymatch/core/image_io.h"
+#include "shell.h"
 #include "temp_dir.h"
 
 namespace fs = std::filesystem;
@@ -17,21 +18,11 @@ namespace fs = std::filesystem;
 namespace raymatch {
 namespace {
 
-struct CliRun {
-  int code;
-  std::string err;
-};
+using CliRun = testing::ShellRun;
 
 // `prefix` is empty (one process) or an mpirun command line.
 CliRun RunCli(const std::string& prefix, const std::string& args, const testing::TempDir& dir) {
-  const std::string err = dir / "stderr.txt";
-  const std::string cmd = prefix + " " + RAYMATCH_BIN + " " + args + " >" + (dir / "stdout.txt") +
-                          " 2>" + err;
-  const int status = std::system(cmd.c_str());
-  std::ifstream in(err);
-  std::stringstream ss;
-  ss << in.rdbuf();
-  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, ss.str()};
+  return testing::RunShell(prefix + " " + RAYMATCH_BIN + " " + args, dir);
 }
 
 // Open MPI refuses root without these; --oversubscribe lets 2 ranks run on 1 core.
@@ -157,13 +148,9 @@ TEST(Mpi, AFailingRankStopsTheJobWithAMessageAndNoPartialOutputs) {
                           RAYMATCH_BIN + " simulate " + scene + " -o " + out.string() +
                           " -q --threads 1 : -n 1 -x TMPDIR=" + file + "/sub " + RAYMATCH_BIN +
                           " simulate " + scene + " -o " + out.string() + " -q --threads 1";
-  const int status = std::system((cmd + " >" + std::string(dir / "o.txt") + " 2>" +
-                                  std::string(dir / "e.txt")).c_str());
-  std::ifstream in(dir / "e.txt");
-  std::stringstream ss;
-  ss << in.rdbuf();
-  EXPECT_NE(WIFEXITED(status) ? WEXITSTATUS(status) : -1, 0) << ss.str();
-  EXPECT_NE(ss.str().find("rank 1 of 2"), std::string::npos) << ss.str();
+  const CliRun r = testing::RunShell(cmd, dir);
+  EXPECT_NE(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("rank 1 of 2"), std::string::npos) << r.err;
   // No image, sidecar or index (and no temporary) in the output folder.
   if (fs::exists(out))
     for (const auto& p : ListTree(out)) ADD_FAILURE() << "left behind: " << p;

@@ -9,6 +9,7 @@
 #include <nlohmann/json.hpp>
 
 #include "raymatch/core/image_io.h"
+#include "shell.h"
 #include "temp_dir.h"
 
 namespace fs = std::filesystem;
@@ -16,20 +17,10 @@ namespace fs = std::filesystem;
 namespace raymatch {
 namespace {
 
-struct CliRun {
-  int code;
-  std::string err;
-};
+using CliRun = testing::ShellRun;
 
 CliRun Raymatch(const std::string& args, const testing::TempDir& dir) {
-  const std::string err = dir / "stderr.txt";
-  const std::string cmd = std::string(RAYMATCH_BIN) + " " + args + " >" + (dir / "stdout.txt") +
-                          " 2>" + err;
-  const int status = std::system(cmd.c_str());
-  std::ifstream in(err);
-  std::stringstream ss;
-  ss << in.rdbuf();
-  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, ss.str()};
+  return testing::RunShell(std::string(RAYMATCH_BIN) + " " + args, dir);
 }
 
 const char* kScene = R"(name = "tiny"

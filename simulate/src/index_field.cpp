@@ -265,6 +265,7 @@ UniformCells::UniformCells(const IndexField& f, double tolerance) {
   }
   if (cx_ < 1 || cy_ < 1 || cz_ < 1) return;
   origin_ = f.origin_um, spacing_ = f.spacing_um;
+  inv_spacing_ = {1 / spacing_.x, 1 / spacing_.y, 1 / spacing_.z};
   dist_.assign(size_t(cx_) * cy_ * cz_, 0);
   auto node = [&](int k, int j, int i) {
     return rz_ ? f.values[size_t(k) * f.nx + i] : f.values[(size_t(k) * f.ny + j) * f.nx + i];
@@ -283,8 +284,33 @@ UniformCells::UniformCells(const IndexField& f, double tolerance) {
             }
         at(k, j, i) = hi - lo <= tolerance ? 255 : 0;
       }
+  // Blocks of kBlock^3 cells (kBlock^2 in r-z): uniform when all their cells are. A block at
+  // the grid's edge may reach past it, where the field holds its edge values: the same constant. The map of blocks is 1/64 of the grid's cell count, so looking it up
+  // at every step stays in the processor's cache (a per-cell map cost 20 % on a 96^3 grid).
+  {
+    const int bx = (cx_ + kBlock - 1) / kBlock, by = rz_ ? 1 : (cy_ + kBlock - 1) / kBlock,
+              bz = (cz_ + kBlock - 1) / kBlock;
+    const int sy = rz_ ? 1 : kBlock;
+    std::vector<uint8_t> blocks(size_t(bx) * by * bz, 0);
+    for (int K = 0; K < bz; ++K)
+      for (int J = 0; J < by; ++J)
+        for (int I = 0; I < bx; ++I) {
+          bool ok = true;
+          size_t cells = 0;
+          for (int k = K * kBlock; ok && k < std::min(cz_, (K + 1) * kBlock); ++k)
+            for (int j = J * sy; ok && j < std::min(cy_, (J + 1) * sy); ++j)
+              for (int i = I * kBlock; ok && i < std::min(cx_, (I + 1) * kBlock); ++i, ++cells)
+                ok = at(k, j, i) != 0;
+          blocks[(size_t(K) * by + J) * bx + I] = ok ? 255 : 0;
+          if (ok) uniform_cells_ += cells;
+        }
+    dist_ = std::move(blocks);
+    cx_ = bx, cy_ = by, cz_ = bz;
+    spacing_ = {spacing_.x * kBlock, spacing_.y * sy, spacing_.z * kBlock};
+    inv_spacing_ = {1 / spacing_.x, 1 / spacing_.y, 1 / spacing_.z};
+  }
   // An axisymmetric grid that starts on the axis continues through it (r >= 0 mirrors): the
-  // cell at r index -1 is cell 0. Other edges count as non-uniform (the field beyond them is
+  // block at r index -1 is block 0. Other edges count as non-uniform (the field beyond them is
   // extrapolated, not sampled).
   const bool mirror_r = rz_ && f.origin_um.x <= 0;
   auto neighbour = [&](int k, int j, int i) -> int {
@@ -317,23 +343,17 @@ UniformCells::UniformCells(const IndexField& f, double tolerance) {
       for (int i = cx_ - 1; i >= 0; --i) pass(k, j, i, -1);
 }
 
-size_t UniformCells::uniform_cells() const {
-  size_t n = 0;
-  for (uint8_t d : dist_) n += d > 0;
-  return n;
-}
-
 double UniformCells::FreeLength(const Vec3& p) const {
   if (dist_.empty()) return 0;
   // Cell coordinates along each used axis (r, z for axisymmetric grids).
-  const double ux = ((rz_ ? std::sqrt(p.x * p.x + p.y * p.y) : p.x) - origin_.x) / spacing_.x;
-  const double uy = rz_ ? 0.5 : (p.y - origin_.y) / spacing_.y;
-  const double uz = (p.z - origin_.z) / spacing_.z;
-  if (!(ux >= 0 && ux < cx_ && uy >= 0 && uy < cy_ && uz >= 0 && uz < cz_)) return 0;
+  const double ux = ((rz_ ? std::sqrt(p.x * p.x + p.y * p.y) : p.x) - origin_.x) * inv_spacing_.x;
+  const double uy = rz_ ? 0.5 : (p.y - origin_.y) * inv_spacing_.y;
+  const double uz = (p.z - origin_.z) * inv_spacing_.z;
+  if (!(ux >= 0 && ux < cx_ && uy >= 0 && uy < cy_ && uz >= 0 && uz < cz_)) return 0;  // blocks
   const int i = static_cast<int>(ux), j = static_cast<int>(uy), k = static_cast<int>(uz);
   const int d = dist_[(size_t(k) * cy_ + j) * cx_ + i];
   if (d == 0) return 0;
-  // Every cell within Chebyshev distance d - 1 of this one is uniform: a straight path may go
+  // Every block within Chebyshev distance d - 1 of this one is uniform: a straight path may go
   // as far as the nearest face of that block along any axis.
   auto room = [&](double u, int c) { return std::min(u - (c - (d - 1)), c + d - u); };
   double len = std::min(room(ux, i) * spacing_.x, room(uz, k) * spacing_.z);

@@ -169,13 +169,16 @@ TEST(Grin, UniformCellsNeverReachANonUniformCell) {
   f.values[(size_t(9) * f.ny + 8) * f.nx + 12] = 1.34;
   const UniformCells u(f, 1e-13);
   ASSERT_FALSE(u.empty());
-  EXPECT_EQ(u.uniform_cells(), size_t(20 * 16 * 18 - 8));
-  auto cell_uniform = [&](const Vec3& p) {  // evaluated directly from the node values
-    const int i = int(std::floor((p.x - f.origin_um.x) / f.spacing_um.x));
-    const int j = int(std::floor((p.y - f.origin_um.y) / f.spacing_um.y));
-    const int k = int(std::floor((p.z - f.origin_um.z) / f.spacing_um.z));
-    if (i < 0 || j < 0 || k < 0 || i >= f.nx - 1 || j >= f.ny - 1 || k >= f.nz - 1) return false;
-    return !(i >= 11 && i <= 12 && j >= 7 && j <= 8 && k >= 8 && k <= 9);
+  // Blocks of 4^3 cells (5 x 4 x 5, the last z block partial); the raised node touches cells
+  // 11-12, 7-8, 8-9, i.e. 2 x 2 x 1 blocks of 64 cells, all others are uniform.
+  EXPECT_EQ(u.uniform_cells(), size_t(20 * 16 * 18 - 4 * 64));
+  // What a straight step needs: the index is the uniform value and its gradient zero all along
+  // the path (inside the grid or beyond its edge, where the edge values hold).
+  auto flat = [&](const Vec3& p) {
+    double n;
+    Vec3 g;
+    f.Eval(p, &n, &g);
+    return n == 1.33 && g.x == 0 && g.y == 0 && g.z == 0;
   };
   RayRng rng(7, 0, 0);
   int positive = 0;
@@ -184,10 +187,9 @@ TEST(Grin, UniformCellsNeverReachANonUniformCell) {
     const double len = u.FreeLength(p);
     if (len <= 0) continue;
     ++positive;
-    ASSERT_TRUE(cell_uniform(p));
     const Vec3 d = Normalize(Vec3(rng.Uniform() - 0.5, rng.Uniform() - 0.5, rng.Uniform() - 0.5));
-    for (int k = 0; k <= 20; ++k)
-      ASSERT_TRUE(cell_uniform(p + d * (len * k / 20 * (1 - 1e-12)))) << trial;
+    for (int k = 0; k <= 40; ++k)
+      ASSERT_TRUE(flat(p + d * (len * k / 40 * (1 - 1e-12)))) << trial << " " << k;
   }
   EXPECT_GT(positive, 10000);
   // An axisymmetric grid that starts on the axis continues through it: a point near the axis

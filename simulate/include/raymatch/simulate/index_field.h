@@ -95,9 +95,9 @@ int AdaptiveStep(const IndexField& f, const Vec3& center, const GrinSettings& cf
 int AdaptiveStep(const IndexField& f, const Vec3& center, const GrinSettings& cfg, GrinState* s,
                  double* dt, double* used);
 
-/// Where a grid field is uniform, for straight steps across it: per grid cell, the Chebyshev
-/// distance in cells to the nearest cell whose corner values differ by more than a tolerance
-/// (or to the grid's edge). Empty for analytic fields.
+/// Where a grid field is uniform, for straight steps across it: per block of 4^3 grid cells, the
+/// Chebyshev distance in blocks to the nearest block holding a cell whose corner values differ
+/// by more than a tolerance (or to the grid's edge). Empty for analytic fields.
 class UniformCells {
  public:
   UniformCells() = default;
@@ -106,13 +106,15 @@ class UniformCells {
   /// Length of any straight path from local point p that stays in uniform cells (0: p is not
   /// in one).
   double FreeLength(const Vec3& p) const;
-  size_t uniform_cells() const;  ///< cells with distance >= 1
+  size_t uniform_cells() const { return uniform_cells_; }  ///< grid cells in uniform blocks
+  static constexpr int kBlock = 4;  ///< cells per block side (the map's resolution)
 
  private:
   bool rz_ = false;
   int cx_ = 0, cy_ = 0, cz_ = 0;  // cells per axis (rz: cx_ along r, cy_ = 1)
-  Vec3 origin_, spacing_;
+  Vec3 origin_, spacing_, inv_spacing_;
   std::vector<uint8_t> dist_;
+  size_t uniform_cells_ = 0;
 };
 
 }  // namespace raymatch::simulate

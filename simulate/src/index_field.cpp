@@ -73,56 +73,26 @@ void IndexField::Eval(const Vec3& p, double* n, Vec3* grad) const {
       return;
     }
     case IndexFieldType::kGrid3D: {
-      if (nx >= 2 && ny >= 2 && nz >= 2) {
-        // The same arithmetic as below with the 8 corners addressed from one base index (no
-        // per-corner clamping: Locate keeps every index at most n - 2).
-        int ix, iy, iz;
-        double fx, fy, fz;
-        bool inx, iny, inz;
-        Locate((p.x - origin_um.x) / spacing_um.x, nx, &ix, &fx, &inx);
-        Locate((p.y - origin_um.y) / spacing_um.y, ny, &iy, &fy, &iny);
-        Locate((p.z - origin_um.z) / spacing_um.z, nz, &iz, &fz, &inz);
-        const size_t sy = size_t(nx), sz = size_t(nx) * size_t(ny);
-        const double* b = values.data() + (size_t(iz) * sz + size_t(iy) * sy + size_t(ix));
-        auto lerp = [](double a, double c, double t) { return a + (c - a) * t; };
-        const double c00 = lerp(b[0], b[1], fx), c01 = lerp(b[sy], b[sy + 1], fx);
-        const double c10 = lerp(b[sz], b[sz + 1], fx), c11 = lerp(b[sz + sy], b[sz + sy + 1], fx);
-        const double d00 = b[1] - b[0], d01 = b[sy + 1] - b[sy];
-        const double d10 = b[sz + 1] - b[sz], d11 = b[sz + sy + 1] - b[sz + sy];
-        const double cy0 = lerp(c00, c01, fy), cy1 = lerp(c10, c11, fy);
-        *n = lerp(cy0, cy1, fz);
-        const double gx = lerp(lerp(d00, d01, fy), lerp(d10, d11, fy), fz);
-        const double gy = lerp(c01 - c00, c11 - c10, fz);
-        const double gz = cy1 - cy0;
-        *grad = Vec3(inx ? gx / spacing_um.x : 0, iny ? gy / spacing_um.y : 0,
-                     inz ? gz / spacing_um.z : 0);
-        return;
-      }
+      // The 8 corners addressed from one base index; an axis with a single sample has stride 0
+      // (its "next" corner is itself), and Locate keeps every other index at most n - 2.
       int ix, iy, iz;
       double fx, fy, fz;
       bool inx, iny, inz;
       Locate((p.x - origin_um.x) / spacing_um.x, nx, &ix, &fx, &inx);
       Locate((p.y - origin_um.y) / spacing_um.y, ny, &iy, &fy, &iny);
       Locate((p.z - origin_um.z) / spacing_um.z, nz, &iz, &fz, &inz);
-      auto v = [&](int c, int b, int a) {
-        return values[(size_t(std::min(c, nz - 1)) * ny + std::min(b, ny - 1)) * nx +
-                      std::min(a, nx - 1)];
-      };
-      double c[2][2][2];
-      for (int k = 0; k < 2; ++k)
-        for (int j = 0; j < 2; ++j)
-          for (int i = 0; i < 2; ++i) c[k][j][i] = v(iz + k, iy + j, ix + i);
-      auto lerp = [](double a, double b, double t) { return a + (b - a) * t; };
-      double cx[2][2], dx[2][2];
-      for (int k = 0; k < 2; ++k)
-        for (int j = 0; j < 2; ++j) {
-          cx[k][j] = lerp(c[k][j][0], c[k][j][1], fx);
-          dx[k][j] = c[k][j][1] - c[k][j][0];
-        }
-      const double cy0 = lerp(cx[0][0], cx[0][1], fy), cy1 = lerp(cx[1][0], cx[1][1], fy);
+      const size_t sx = nx > 1 ? 1 : 0, sy = ny > 1 ? size_t(nx) : 0,
+                   sz = nz > 1 ? size_t(nx) * size_t(ny) : 0;
+      const double* b = values.data() + (size_t(iz) * size_t(nx) * size_t(ny) + size_t(iy) * size_t(nx) + size_t(ix));
+      auto lerp = [](double a, double c, double t) { return a + (c - a) * t; };
+      const double c00 = lerp(b[0], b[sx], fx), c01 = lerp(b[sy], b[sy + sx], fx);
+      const double c10 = lerp(b[sz], b[sz + sx], fx), c11 = lerp(b[sz + sy], b[sz + sy + sx], fx);
+      const double d00 = b[sx] - b[0], d01 = b[sy + sx] - b[sy];
+      const double d10 = b[sz + sx] - b[sz], d11 = b[sz + sy + sx] - b[sz + sy];
+      const double cy0 = lerp(c00, c01, fy), cy1 = lerp(c10, c11, fy);
       *n = lerp(cy0, cy1, fz);
-      const double gx = lerp(lerp(dx[0][0], dx[0][1], fy), lerp(dx[1][0], dx[1][1], fy), fz);
-      const double gy = lerp(cx[0][1] - cx[0][0], cx[1][1] - cx[1][0], fz);
+      const double gx = lerp(lerp(d00, d01, fy), lerp(d10, d11, fy), fz);
+      const double gy = lerp(c01 - c00, c11 - c10, fz);
       const double gz = cy1 - cy0;
       *grad = Vec3(inx ? gx / spacing_um.x : 0, iny ? gy / spacing_um.y : 0,
                    inz ? gz / spacing_um.z : 0);

@@ -25,11 +25,13 @@ CliRun RunCli(const std::string& prefix, const std::string& args, const testing:
   return testing::RunShell(prefix + " " + RAYMATCH_BIN + " " + args, dir);
 }
 
-// Open MPI refuses root without these; --oversubscribe lets 2 ranks run on 1 core.
-std::string Mpirun(int n) {
-  return std::string(RAYMATCH_MPIEXEC) +
-         " --allow-run-as-root --oversubscribe --mca btl self,vader -n " + std::to_string(n);
-}
+// Open MPI refuses root without these; --oversubscribe lets 2 ranks run on 1 core. Under
+// LeakSanitizer (scripts/check-sanitizers.sh) the ranks do not check leaks: Open MPI 4.1 leaves
+// its components' allocations at MPI_Finalize (reported in libmpi and in MCA modules unloaded by
+// then, which a suppression cannot name); raymatch's own code is leak-checked by every other test.
+const char* kMpiFlags = " --allow-run-as-root --oversubscribe --mca btl self,vader -x LSAN_OPTIONS=detect_leaks=0";
+
+std::string Mpirun(int n) { return std::string(RAYMATCH_MPIEXEC) + kMpiFlags + " -n " + std::to_string(n); }
 
 nlohmann::json ReadJson(const fs::path& p) {
   std::ifstream in(p);
@@ -143,8 +145,7 @@ TEST(Mpi, AFailingRankStopsTheJobWithAMessageAndNoPartialOutputs) {
   // Rank 1 alone gets a temporary folder that cannot exist (under a regular file), so it fails
   // while rank 0 goes on; MPMD syntax gives each rank its own environment.
   const std::string file = dir.Write("not_a_folder", "x");
-  const std::string cmd = std::string(RAYMATCH_MPIEXEC) +
-                          " --allow-run-as-root --oversubscribe --mca btl self,vader -n 1 " +
+  const std::string cmd = std::string(RAYMATCH_MPIEXEC) + kMpiFlags + " -n 1 " +
                           RAYMATCH_BIN + " simulate " + scene + " -o " + out.string() +
                           " -q --threads 1 : -n 1 -x TMPDIR=" + file + "/sub " + RAYMATCH_BIN +
                           " simulate " + scene + " -o " + out.string() + " -q --threads 1";

@@ -7,7 +7,6 @@
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
-#include <iostream>
 #include <thread>
 
 #include "raymatch/core/cluster.h"
@@ -27,6 +26,11 @@ namespace {
 bool g_started = false;
 std::string g_scratch;       // this rank's scratch output folder (ranks > 0)
 int g_saved_stderr = -1;     // ranks > 0: the real stderr, for error messages
+
+void RemoveScratch() {
+  std::error_code ec;
+  if (!g_scratch.empty()) fs::remove_all(g_scratch, ec);
+}
 
 bool LaunchedByMpi() {
   for (const char* v : {"OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_RANK"})
@@ -80,10 +84,7 @@ MpiSession::MpiSession(int* argc, char*** argv) {
 }
 
 MpiSession::~MpiSession() {
-  if (!g_scratch.empty()) {
-    std::error_code ec;
-    fs::remove_all(g_scratch, ec);
-  }
+  RemoveScratch();
 #ifdef RAYMATCH_HAVE_MPI
   if (g_started) MPI_Finalize();
 #endif
@@ -132,10 +133,7 @@ void ReportError(const std::string& line, int code) {
   if (!c.is_root()) std::this_thread::sleep_for(std::chrono::seconds(3));
   print(line.rfind("raymatch: ", 0) == 0 ? "raymatch: " + RankPrefix() + line.substr(10)
                                          : RankPrefix() + line);
-  if (!g_scratch.empty()) {
-    std::error_code ec;
-    fs::remove_all(g_scratch, ec);
-  }
+  RemoveScratch();
   MPI_Abort(MPI_COMM_WORLD, code);
 #endif
   std::_Exit(code);

@@ -83,7 +83,8 @@ void IndexField::Eval(const Vec3& p, double* n, Vec3* grad) const {
       Locate((p.z - origin_um.z) / spacing_um.z, nz, &iz, &fz, &inz);
       const size_t sx = nx > 1 ? 1 : 0, sy = ny > 1 ? size_t(nx) : 0,
                    sz = nz > 1 ? size_t(nx) * size_t(ny) : 0;
-      const double* b = values.data() + (size_t(iz) * size_t(nx) * size_t(ny) + size_t(iy) * size_t(nx) + size_t(ix));
+      const double* b =
+          values.data() + ((size_t(iz) * size_t(ny) + size_t(iy)) * size_t(nx) + size_t(ix));
       auto lerp = [](double a, double c, double t) { return a + (c - a) * t; };
       const double c00 = lerp(b[0], b[sx], fx), c01 = lerp(b[sy], b[sy + sx], fx);
       const double c10 = lerp(b[sz], b[sz + sx], fx), c11 = lerp(b[sz + sy], b[sz + sy + sx], fx);
@@ -102,29 +103,38 @@ void IndexField::Eval(const Vec3& p, double* n, Vec3* grad) const {
 }
 
 double IndexField::MaxStepUm() const {
-  constexpr double kF = 0.5;
   switch (type) {
-    case IndexFieldType::kGridRZ: return kF * std::min(spacing_um.x, spacing_um.z);
+    case IndexFieldType::kGridRZ: return 0.5 * std::min(spacing_um.x, spacing_um.z);
     case IndexFieldType::kGrid3D:
-      return kF * std::min({spacing_um.x, spacing_um.y, spacing_um.z});
+      return 0.5 * std::min({spacing_um.x, spacing_um.y, spacing_um.z});
     default: return 0;
   }
 }
 
+namespace {
+
+// D = n grad n = grad(n^2) / 2 at world point r.
+Vec3 D(const IndexField& f, const Vec3& c, const Vec3& r) {
+  double n;
+  Vec3 g;
+  f.Eval(r - c, &n, &g);
+  return g * n;
+}
+
+// Sharma's stages from `d0` = D(s.r): the state after dt and (optional) the embedded estimate.
+GrinState SharmaStages(const IndexField& f, const Vec3& c, const GrinState& s, const Vec3& d0,
+                       double dt, double* err) {
+  const Vec3 A = d0 * dt;
+  const Vec3 B = D(f, c, s.r + s.t * (dt / 2) + A * (dt / 8)) * dt;
+  const Vec3 C = D(f, c, s.r + s.t * dt + B * (dt / 2)) * dt;
+  if (err) *err = Length(A - B * 2 + C) * (std::abs(dt) / 6);
+  return {s.r + (s.t + (A + B * 2) / 6) * dt, s.t + (A + B * 4 + C) / 6};
+}
+
+}  // namespace
+
 GrinState SharmaStep(const IndexField& f, const Vec3& c, const GrinState& s, double dt) {
-  auto D = [&](const Vec3& r) {  // D = n grad n = grad(n^2) / 2
-    double n;
-    Vec3 g;
-    f.Eval(r - c, &n, &g);
-    return g * n;
-  };
-  const Vec3 A = D(s.r) * dt;
-  const Vec3 B = D(s.r + s.t * (dt / 2) + A * (dt / 8)) * dt;
-  const Vec3 C = D(s.r + s.t * dt + B * (dt / 2)) * dt;
-  GrinState o;
-  o.r = s.r + (s.t + (A + B * 2) / 6) * dt;
-  o.t = s.t + (A + B * 4 + C) / 6;
-  return o;
+  return SharmaStages(f, c, s, D(f, c, s.r), dt, nullptr);
 }
 
 namespace {
@@ -175,17 +185,8 @@ GrinPoint MakeGrinPoint(const IndexField& f, const Vec3& c, const Vec3& r, const
 
 GrinPoint SharmaStep(const IndexField& f, const Vec3& c, const GrinPoint& s, double dt,
                      double* err) {
-  auto D = [&](const Vec3& r) {
-    double n;
-    Vec3 g;
-    f.Eval(r - c, &n, &g);
-    return g * n;
-  };
-  const Vec3 A = s.d * dt;
-  const Vec3 B = D(s.r + s.t * (dt / 2) + A * (dt / 8)) * dt;
-  const Vec3 C = D(s.r + s.t * dt + B * (dt / 2)) * dt;
-  if (err) *err = Length(A - B * 2 + C) * (std::abs(dt) / 6);
-  return MakeGrinPoint(f, c, s.r + (s.t + (A + B * 2) / 6) * dt, s.t + (A + B * 4 + C) / 6);
+  const GrinState next = SharmaStages(f, c, GrinState{s.r, s.t}, s.d, dt, err);
+  return MakeGrinPoint(f, c, next.r, next.t);
 }
 
 int AdaptiveStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, GrinPoint* s,
@@ -255,8 +256,9 @@ UniformCells::UniformCells(const IndexField& f, double tolerance) {
         at(k, j, i) = hi - lo <= tolerance ? 255 : 0;
       }
   // Blocks of kBlock^3 cells (kBlock^2 in r-z): uniform when all their cells are. A block at
-  // the grid's edge may reach past it, where the field holds its edge values: the same constant. The map of blocks is 1/64 of the grid's cell count, so looking it up
-  // at every step stays in the processor's cache (a per-cell map cost 20 % on a 96^3 grid).
+  // the grid's edge may reach past it, where the field holds its edge values: the same
+  // constant. The map of blocks is 1/64 of the grid's cell count, so looking it up at every
+  // step stays in the processor's cache (a per-cell map cost 20 % on a 96^3 grid).
   {
     const int bx = (cx_ + kBlock - 1) / kBlock, by = rz_ ? 1 : (cy_ + kBlock - 1) / kBlock,
               bz = (cz_ + kBlock - 1) / kBlock;

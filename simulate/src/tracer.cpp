@@ -13,10 +13,9 @@
 #include <cstdio>
 #include <mutex>
 #include <thread>
-
-#include "raymatch/core/cluster.h"
 #include <variant>
 
+#include "raymatch/core/cluster.h"
 #include "raymatch/core/error.h"
 #include "raymatch/core/rng.h"
 #include "raymatch/simulate/geometry.h"
@@ -34,7 +33,8 @@ const char* FateName(Fate f) {
 
 namespace {
 
-// All counters as one array (for the MPI sum) and back.
+// All counters as one array (for sums over threads and MPI ranks) and back: the one list of
+// the counters.
 template <typename C, typename F>
 void ForEachCounter(C& c, F&& f) {
   for (auto& v : c.fates) f(v);
@@ -59,17 +59,9 @@ TraceCounters UnpackCounters(const uint64_t* p) {
 }  // namespace
 
 void TraceCounters::Add(const TraceCounters& o) {
-  for (int i = 0; i < kNumFates; ++i) fates[i] += o.fates[i];
-  for (int i = 0; i < kNumPathClasses; ++i) path_class[i] += o.path_class[i];
-  interface_events += o.interface_events;
-  fresnel_evaluations += o.fresnel_evaluations;
-  corrector_tests += o.corrector_tests;
-  mesh_queries += o.mesh_queries;
-  shape_queries += o.shape_queries;
-  rays_hitting_objects += o.rays_hitting_objects;
-  grin_steps += o.grin_steps;
-  grin_segments += o.grin_segments;
-  grin_uniform_steps += o.grin_uniform_steps;
+  const std::vector<uint64_t> other = PackCounters(o);
+  const uint64_t* p = other.data();
+  ForEachCounter(*this, [&](uint64_t& v) { v += *p++; });
 }
 
 uint64_t TraceCounters::total_fates() const {
@@ -450,12 +442,7 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
       const double aim = std::max(0.05, 0.999 * h.t / L);
       used *= shrink == 0 ? aim : std::min(0.5, aim);
       next = used;
-      if (cfg.step_doubling) {
-        const GrinState g = SharmaStep(f, center, GrinState{s.r, s.t}, used);
-        s1 = MakeGrinPoint(f, center, g.r, g.t);
-      } else {
-        s1 = SharmaStep(f, center, s, used);
-      }
+      s1 = SharmaStep(f, center, s, used);
       if (central) ProjectOnInvariants(f, center, angular_momentum, &s1);
     }
   }

@@ -8,6 +8,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <deque>
 #include <iostream>
 #include <sstream>
 
@@ -60,6 +61,14 @@ class Runner {
   /// Expected images at `th` with the ray fraction and binning of schedule level `level`.
   std::vector<Image> Images(const std::vector<double>& th, size_t level, uint64_t seed,
                             const std::string& stage, double* error) {
+    // With fixed ray streams an image is a function of (theta, level, seed): the searches come
+    // back to points they have traced (Ceres evaluates the Jacobian where it accepted a step;
+    // the uncertainties start from where the polish ended), so recent images are kept.
+    for (const Cached& c : cache_)
+      if (c.level == level && c.seed == seed && c.theta == th) {
+        if (error) *error = c.error;
+        return c.images;
+      }
     const auto t0 = Clock::now();
     const double fraction = spec_.rays.fractions[level];
     Evaluation ev;
@@ -73,6 +82,8 @@ class Runner {
     ev.seconds = Since(t0);
     if (error) *error = ev.error;
     res_->evaluations.push_back(ev);
+    if (cache_.size() >= 2 * th.size() + 6) cache_.pop_front();  // a polish iteration's images
+    cache_.push_back({th, level, seed, ev.error, mu});
     if (stage != "fisher" && stage != "repeat" && stage != "slice" &&
         (best_error_ < 0 || fraction > best_fraction_ || (fraction == best_fraction_ && ev.error < best_error_))) {
       best_error_ = ev.error, best_fraction_ = fraction;
@@ -114,6 +125,14 @@ class Runner {
   bool tty_ = isatty(2) != 0;
   double last_progress_ = -1e9;
   uint64_t fresh_ = 0;
+  struct Cached {
+    std::vector<double> theta;
+    size_t level;
+    uint64_t seed;
+    double error;
+    std::vector<Image> images;
+  };
+  std::deque<Cached> cache_;
 };
 
 std::vector<double> Clip(std::vector<double> th, const FitSpec& spec) {
@@ -362,7 +381,12 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
   std::vector<bool> flat(P, false);
   bool ok = true;
   ceres::TerminationType term = ceres::CONVERGENCE;
-  for (size_t f : levels) {
+  // With several levels, Levenberg-Marquardt runs on the coarse ones and the final level is
+  // the Gauss-Newton polish alone: the coarse optimum is already in the final level's quadratic
+  // basin, where LM's damped steps and its Jacobian at every accepted point cost full-ray
+  // images that one or two undamped steps do not need (measured in docs/performance.md).
+  const std::vector<size_t> lm_levels(levels.begin(), levels.end() - (levels.size() > 1 ? 1 : 0));
+  for (size_t f : lm_levels) {
     ceres::Problem::Options po;
     po.cost_function_ownership = ceres::TAKE_OWNERSHIP;
     ceres::Problem problem(po);

@@ -135,6 +135,45 @@ double FitModel::ScaleAt(double fraction) const {
   return double(photon_matched_rays_) / double(RaysAt(fraction));
 }
 
+const Image* FitModel::BackgroundAt(const simulate::Simulator& sim, size_t i, uint64_t seed,
+                                    double dz, uint64_t n, const simulate::RunControl& rc,
+                                    uint64_t* rays_traced) {
+  const uint32_t plane = static_cast<uint32_t>(i);
+  NearRays& near = near_[{i, seed}];
+  auto it = background_.find({i, seed, dz});
+  if (it != background_.end() && it->second.rays > n) return nullptr;  // cannot take rays away
+  const auto t0 = std::chrono::steady_clock::now();
+  if (it == background_.end()) {
+    if (background_.size() >= 64) background_.erase(background_.begin());  // bounded memory
+    it = background_.emplace(std::make_tuple(i, seed, dz), Background{0, Image(0, 0)}).first;
+  }
+  Background& bg = it->second;
+  const uint64_t start = bg.rays;
+  auto add = [&](const simulate::PlaneResult& r) {
+    if (bg.image.size() == 0) bg.image = Image(r.counts.width, r.counts.height);
+    for (size_t p = 0; p < r.counts.size(); ++p) bg.image.pixels[p] += r.counts.pixels[p];
+  };
+  // Rays whose near/far split is known (another defocus found it): trace the far ones.
+  if (bg.rays < std::min(n, near.rays)) {
+    const uint64_t to = std::min(n, near.rays);
+    add(sim.TraceRangeExcept(dz, plane, bg.rays, to, near.list, rc));
+    bg.rays = to;
+  }
+  // New rays: split and trace the far ones in one sampling pass.
+  if (bg.rays < n) {
+    RAYMATCH_CHECK(bg.rays == near.rays);
+    add(sim.TraceFarRays(dz, plane, bg.rays, n, region_center_, region_radius_, &near.list, rc));
+    bg.rays = near.rays = n;
+  }
+  if (rays_traced && bg.rays > start) {
+    const auto lo = std::lower_bound(near.list.begin(), near.list.end(), start);
+    const auto hi = std::lower_bound(near.list.begin(), near.list.end(), bg.rays);
+    *rays_traced += (bg.rays - start) - uint64_t(hi - lo);
+  }
+  background_seconds_ += Seconds(t0);
+  return &bg.image;
+}
+
 std::vector<Image> FitModel::Expected(const std::vector<double>& theta, double fraction,
                                       uint64_t seed, uint64_t* rays_traced) {
   simulate::Scene scene = SceneAt(theta);
@@ -153,27 +192,15 @@ std::vector<Image> FitModel::Expected(const std::vector<double>& theta, double f
     const double dz = scene.defocus_um[i];
     const uint32_t plane = static_cast<uint32_t>(i);
     Image counts;
-    if (inside) {
-      auto& near = near_[{i, n, seed}];
-      if (!near) {
-        const auto t0 = std::chrono::steady_clock::now();
-        near = std::make_shared<std::vector<uint64_t>>();
-        sim.SplitRaysBySphere(plane, n, region_center_, region_radius_, near.get(), nullptr);
-        near_fraction_ = double(near->size()) / double(n);
-        background_seconds_ += Seconds(t0);
-      }
-      auto key = std::make_tuple(i, n, seed, dz);
-      auto bg = background_.find(key);
-      if (bg == background_.end()) {
-        const auto t0 = std::chrono::steady_clock::now();
-        if (background_.size() >= 64) background_.erase(background_.begin());  // bounded memory
-        bg = background_.emplace(key, sim.TracePlaneExcept(dz, plane, n, *near, rc).counts).first;
-        background_seconds_ += Seconds(t0);
-        if (rays_traced) *rays_traced += n - near->size();
-      }
-      counts = sim.TraceRays(dz, plane, *near, rc).counts;
-      for (size_t p = 0; p < counts.size(); ++p) counts.pixels[p] += bg->second.pixels[p];
-      if (rays_traced) *rays_traced += near->size();
+    const Image* bg = inside ? BackgroundAt(sim, i, seed, dz, n, rc, rays_traced) : nullptr;
+    if (bg) {
+      const std::vector<uint64_t>& near = near_.at({i, seed}).list;
+      const auto end = std::lower_bound(near.begin(), near.end(), n);
+      const std::span<const uint64_t> mine(near.data(), size_t(end - near.begin()));
+      counts = sim.TraceRays(dz, plane, mine, rc).counts;
+      for (size_t p = 0; p < counts.size(); ++p) counts.pixels[p] += bg->pixels[p];
+      if (rays_traced) *rays_traced += mine.size();
+      near_fraction_ = double(mine.size()) / double(n);
     } else {
       counts = sim.TracePlane(dz, plane, n, rc).counts;
       if (rays_traced) *rays_traced += n;

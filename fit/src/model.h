@@ -65,8 +65,24 @@ class FitModel {
   double near_fraction_ = 0;
   double background_seconds_ = 0;
   // Caches: rays near the region per (image, rays, seed); background per (..., defocus).
-  std::map<std::tuple<size_t, uint64_t, uint64_t>, std::shared_ptr<std::vector<uint64_t>>> near_;
-  std::map<std::tuple<size_t, uint64_t, uint64_t, double>, Image> background_;
+  // Rays that can meet an object, per (image, seed): the indices below `rays` (ascending).
+  // Coarse-to-fine levels use the first n rays of the same streams, so a finer level extends
+  // the list and the background instead of starting again.
+  struct NearRays {
+    uint64_t rays = 0;
+    std::vector<uint64_t> list;
+  };
+  // The image of the other rays below `rays`, per (image, seed, defocus).
+  struct Background {
+    uint64_t rays = 0;
+    Image image;
+  };
+  /// The background of image i at n rays; extends `near` as needed. Null when it cannot be
+  /// extended (fewer rays than already traced for this defocus): then trace everything.
+  const Image* BackgroundAt(const simulate::Simulator& sim, size_t i, uint64_t seed, double dz,
+                            uint64_t n, const simulate::RunControl& rc, uint64_t* rays_traced);
+  std::map<std::tuple<size_t, uint64_t>, NearRays> near_;
+  std::map<std::tuple<size_t, uint64_t, double>, Background> background_;
   mutable std::map<int, std::vector<Image>> binned_experiment_;
   mutable std::mutex binned_mutex_;
   const std::vector<Image>& Experiment(int bin) const;

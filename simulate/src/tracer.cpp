@@ -200,6 +200,10 @@ struct RaySelection {
   const uint64_t* list = nullptr;
   const uint64_t* skip = nullptr;
   size_t skip_count = 0;
+  uint64_t first = 0;         // without a list: the rays [first, first + n)
+  bool split = false;         // leave out (and report) rays whose line meets the sphere
+  Vec3 split_center;
+  double split_r2 = 0;
 };
 
 namespace {
@@ -579,17 +583,18 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
 template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
 void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
                 double defocus, uint32_t plane, uint64_t begin, uint64_t end,
-                const RaySelection& sel, Accum& acc) {
+                const RaySelection& sel, Accum& acc, std::vector<uint64_t>* near_out) {
   const Geometry& geo = im.geometry;
   const Optics& op = im.optics;
   const bool has_objects = !geo.empty();
   TraceCounters& c = acc.counters;
   // Rays to leave out (ascending): the first one at or after this range.
-  const uint64_t* skip = sel.skip ? std::lower_bound(sel.skip, sel.skip + sel.skip_count, begin) : nullptr;
+  const uint64_t* skip =
+      sel.skip ? std::lower_bound(sel.skip, sel.skip + sel.skip_count, sel.first + begin) : nullptr;
   const uint64_t* skip_end = sel.skip ? sel.skip + sel.skip_count : nullptr;
   for (uint64_t i = begin; i < end; ++i) {
     // A subset of the plane's rays keeps each ray's own stream (TraceRays, TracePlaneExcept).
-    const uint64_t ray = sel.list ? sel.list[i] : i;
+    const uint64_t ray = sel.list ? sel.list[i] : sel.first + i;
     if (skip != skip_end && *skip == ray) {
       ++skip;
       continue;
@@ -599,6 +604,14 @@ void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& t
     if (!src.Sample(rng, &p, &d)) {
       ++c.fates[int(Fate::kEscaped)];
       continue;
+    }
+    if (sel.split) {  // as SplitRaysBySphere: the line through p along unit d
+      const Vec3 w = sel.split_center - p;
+      const double t = Dot(w, d);
+      if (Dot(w, w) - t * t <= sel.split_r2) {
+        near_out->push_back(ray);
+        continue;
+      }
     }
     Vec3 o = p;
     if constexpr (!std::is_same_v<Source, PointSource>) o = p + d * ((im.source_z - p.z) / d.z);
@@ -830,14 +843,44 @@ PlaneResult Simulator::TracePlaneExcept(double defocus_um, uint32_t plane_index,
 }
 
 PlaneResult Simulator::TraceRays(double defocus_um, uint32_t plane_index,
-                                 const std::vector<uint64_t>& ray_indices,
+                                 std::span<const uint64_t> ray_indices,
                                  const RunControl& control) const {
-  return Trace(defocus_um, plane_index, ray_indices.size(), {ray_indices.data(), nullptr, 0},
-               control);
+  RaySelection sel;
+  sel.list = ray_indices.data();
+  return Trace(defocus_um, plane_index, ray_indices.size(), sel, control);
+}
+
+PlaneResult Simulator::TraceRangeExcept(double defocus_um, uint32_t plane_index, uint64_t first,
+                                        uint64_t last, std::span<const uint64_t> excluded,
+                                        const RunControl& control) const {
+  RAYMATCH_CHECK(first <= last && std::is_sorted(excluded.begin(), excluded.end()));
+  RaySelection sel;
+  sel.skip = excluded.data(), sel.skip_count = excluded.size(), sel.first = first;
+  return Trace(defocus_um, plane_index, last - first, sel, control);
+}
+
+PlaneResult Simulator::TraceFarRays(double defocus_um, uint32_t plane_index, uint64_t first,
+                                    uint64_t last, const Vec3& center_um, double radius_um,
+                                    std::vector<uint64_t>* near, const RunControl& control) const {
+  RAYMATCH_CHECK(first <= last && near != nullptr);
+  if (GetCluster().size > 1) {
+    // MPI ranks trace different chunks, but every rank needs the whole near list: split first
+    // (every rank samples the whole range), then trace the rest across the ranks.
+    std::vector<uint64_t> part;
+    SplitRaysBySphere(plane_index, first, last, center_um, radius_um, &part, nullptr);
+    PlaneResult r = TraceRangeExcept(defocus_um, plane_index, first, last, part, control);
+    near->insert(near->end(), part.begin(), part.end());
+    return r;
+  }
+  RaySelection sel;
+  sel.first = first, sel.split = true, sel.split_center = center_um;
+  sel.split_r2 = radius_um * radius_um;
+  return Trace(defocus_um, plane_index, last - first, sel, control, near);
 }
 
 PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t rays,
-                             const RaySelection& sel, const RunControl& control) const {
+                             const RaySelection& sel, const RunControl& control,
+                             std::vector<uint64_t>* near) const {
   const Impl& im = *impl_;
   int threads = control.threads > 0 ? control.threads : scene_.trace.threads;
   if (threads <= 0) threads = static_cast<int>(std::thread::hardware_concurrency());
@@ -864,22 +907,25 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
                     ranks > 1 ? control.label + " (" + std::to_string(ranks) + " ranks)" : control.label,
                     std::min(rays, my_chunks * kChunk));
 
+  // Split mode: each chunk's near rays in their own list, joined in chunk order below.
+  std::vector<std::vector<uint64_t>> near_by_chunk(sel.split ? chunks : 0);
   auto run_chunk = [&](uint64_t ci) {
     const uint64_t b = ci * kChunk, e = std::min(rays, b + kChunk);
     Accum& acc = accums.local();
+    std::vector<uint64_t>* near_out = sel.split ? &near_by_chunk[ci] : nullptr;
     const TraceSpec& ts = scene_.trace;
     // Choose the inner loop once per chunk from the scene's effects.
     std::visit(
         [&](const auto& src) {
           auto dispatch = [&]<PartialReflection P>() {
             if (corr && mesh)
-              TraceRange<P, true, true>(im, src, ts, defocus_um, plane_index, b, e, sel, acc);
+              TraceRange<P, true, true>(im, src, ts, defocus_um, plane_index, b, e, sel, acc, near_out);
             else if (corr)
-              TraceRange<P, true, false>(im, src, ts, defocus_um, plane_index, b, e, sel, acc);
+              TraceRange<P, true, false>(im, src, ts, defocus_um, plane_index, b, e, sel, acc, near_out);
             else if (mesh)
-              TraceRange<P, false, true>(im, src, ts, defocus_um, plane_index, b, e, sel, acc);
+              TraceRange<P, false, true>(im, src, ts, defocus_um, plane_index, b, e, sel, acc, near_out);
             else
-              TraceRange<P, false, false>(im, src, ts, defocus_um, plane_index, b, e, sel, acc);
+              TraceRange<P, false, false>(im, src, ts, defocus_um, plane_index, b, e, sel, acc, near_out);
           };
           switch (pr) {
             case PartialReflection::kOff:
@@ -910,8 +956,16 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
   PlaneResult res;
   res.defocus_um = defocus_um;
   res.rays = rays;
-  if (sel.skip)  // the listed rays below `rays` were left out
-    res.rays -= std::lower_bound(sel.skip, sel.skip + sel.skip_count, rays) - sel.skip;
+  if (sel.skip)  // the listed rays in [first, first + rays) were left out
+    res.rays -= std::lower_bound(sel.skip, sel.skip + sel.skip_count, sel.first + rays) -
+                std::lower_bound(sel.skip, sel.skip + sel.skip_count, sel.first);
+  if (sel.split) {
+    RAYMATCH_CHECK(near != nullptr && ranks == 1);
+    for (const auto& v : near_by_chunk) {
+      near->insert(near->end(), v.begin(), v.end());
+      res.rays -= v.size();
+    }
+  }
   res.threads = threads;
   res.ranks = static_cast<int>(ranks);
   std::vector<uint64_t> sum(npix, 0);
@@ -981,17 +1035,17 @@ uint64_t Simulator::RaysForPhotonTarget(double photons_per_pixel, double* hppr) 
   return static_cast<uint64_t>(std::ceil(photons_per_pixel / per_ray_per_pixel));
 }
 
-void Simulator::SplitRaysBySphere(uint32_t plane_index, uint64_t rays, const Vec3& center_um,
-                                  double radius_um, std::vector<uint64_t>* near,
-                                  std::vector<uint64_t>* far) const {
+void Simulator::SplitRaysBySphere(uint32_t plane_index, uint64_t first, uint64_t last,
+                                  const Vec3& center_um, double radius_um,
+                                  std::vector<uint64_t>* near, std::vector<uint64_t>* far) const {
   const Impl& im = *impl_;
   const double r2 = radius_um * radius_um;
   constexpr uint64_t kChunk = 65536;
-  const uint64_t chunks = (rays + kChunk - 1) / kChunk;
+  const uint64_t chunks = (last - first + kChunk - 1) / kChunk;
   // Per-chunk lists joined in chunk order: the result does not depend on the thread count.
   std::vector<std::vector<uint64_t>> near_c(chunks), far_c(chunks);
   tbb::parallel_for(uint64_t(0), chunks, [&](uint64_t ci) {
-    const uint64_t b = ci * kChunk, e = std::min(rays, b + kChunk);
+    const uint64_t b = first + ci * kChunk, e = std::min(last, b + kChunk);
     std::visit(
         [&](const auto& src) {
           for (uint64_t ray = b; ray < e; ++ray) {

@@ -49,6 +49,37 @@ TEST(RaySubset, NearPlusFarEqualsWholeImageBitForBit) {
   }
 }
 
+// The fit's coarse-to-fine levels extend a background instead of re-tracing it: far rays of
+// [0, m) plus far rays of [m, n), each found in the same pass that traces them, give the
+// near list and the far image of [0, n) exactly, for any thread count; a far range traced
+// against a known near list (another defocus) gives the same image.
+TEST(RaySubset, FarRaysByRangesAddUpToTheSplitOfTheWhole) {
+  const Scene s = DropScene();
+  const Simulator sim(s);
+  const uint64_t m = 70001, n = 400000;  // a range boundary inside a chunk
+  std::vector<uint64_t> near;
+  sim.SplitRaysBySphere(3, n, Vec3(2, -1, 1), 16, &near, nullptr);
+  const PlaneResult far = sim.TracePlaneExcept(-5, 3, n, near);
+  for (int threads : {1, 3}) {
+    RunControl rc;
+    rc.threads = threads;
+    std::vector<uint64_t> found;
+    const PlaneResult a = sim.TraceFarRays(-5, 3, 0, m, Vec3(2, -1, 1), 16, &found, rc);
+    const PlaneResult b = sim.TraceFarRays(-5, 3, m, n, Vec3(2, -1, 1), 16, &found, rc);
+    EXPECT_EQ(found, near) << "threads " << threads;
+    EXPECT_EQ(a.rays + b.rays, far.rays);
+    Image sum = a.counts;
+    for (size_t i = 0; i < sum.size(); ++i) sum.pixels[i] += b.counts.pixels[i];
+    EXPECT_EQ(sum.pixels, far.counts.pixels) << "threads " << threads;
+    const PlaneResult c = sim.TraceRangeExcept(-5, 3, m, n, near, rc);
+    EXPECT_EQ(c.counts.pixels, b.counts.pixels);
+    EXPECT_EQ(c.rays, b.rays);
+    std::vector<uint64_t> part;
+    sim.SplitRaysBySphere(3, m, n, Vec3(2, -1, 1), 16, &part, nullptr);
+    EXPECT_EQ(part, std::vector<uint64_t>(std::lower_bound(near.begin(), near.end(), m), near.end()));
+  }
+}
+
 TEST(RaySubset, SplitDoesNotDependOnThreadsAndIsAscending) {
   const Simulator sim(DropScene());
   std::vector<uint64_t> a, b;

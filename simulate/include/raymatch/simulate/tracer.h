@@ -12,6 +12,7 @@
 #include <atomic>
 #include <cstdint>
 #include <memory>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -89,7 +90,7 @@ class Simulator {
   /// images of disjoint lists add up to the image of their union (fits trace once the rays
   /// that cannot meet an object and re-trace only the others). Counters cover listed rays only.
   PlaneResult TraceRays(double defocus_um, uint32_t plane_index,
-                        const std::vector<uint64_t>& ray_indices,
+                        std::span<const uint64_t> ray_indices,
                         const RunControl& control = {}) const;
 
   /// Traces the rays [0, rays) of the plane except the listed ones (ascending indices): with
@@ -98,11 +99,30 @@ class Simulator {
                                const std::vector<uint64_t>& excluded,
                                const RunControl& control = {}) const;
 
+  /// The rays [first, last) of the plane except the listed ones (ascending; entries outside the
+  /// range are ignored). Images of consecutive ranges add up to the image of their union.
+  PlaneResult TraceRangeExcept(double defocus_um, uint32_t plane_index, uint64_t first,
+                               uint64_t last, std::span<const uint64_t> excluded,
+                               const RunControl& control = {}) const;
+
+  /// SplitRaysBySphere and TraceRangeExcept in one sampling pass: traces the rays [first, last)
+  /// whose straight line misses the sphere and appends the others' indices (ascending) to
+  /// `near`. With TraceRays on those indices the two images add up to the range's image.
+  PlaneResult TraceFarRays(double defocus_um, uint32_t plane_index, uint64_t first,
+                           uint64_t last, const Vec3& center_um, double radius_um,
+                           std::vector<uint64_t>* near, const RunControl& control = {}) const;
+
   /// Splits the rays [0, rays) of a plane by whether the straight line of each (as the source
   /// emits it, before any object) passes within `radius_um` of `center_um`. Either output may
   /// be null; indices come out ascending. Rays the source rejects go to `far`.
   void SplitRaysBySphere(uint32_t plane_index, uint64_t rays, const Vec3& center_um,
                          double radius_um, std::vector<uint64_t>* near,
+                         std::vector<uint64_t>* far) const {
+    SplitRaysBySphere(plane_index, 0, rays, center_um, radius_um, near, far);
+  }
+  /// The same for the rays [first, last); indices are appended.
+  void SplitRaysBySphere(uint32_t plane_index, uint64_t first, uint64_t last,
+                         const Vec3& center_um, double radius_um, std::vector<uint64_t>* near,
                          std::vector<uint64_t>* far) const;
 
   /// Rays per image that give `photons_per_pixel` mean hits in the flat field, from a fixed-seed
@@ -138,7 +158,8 @@ class Simulator {
 
  private:
   PlaneResult Trace(double defocus_um, uint32_t plane_index, uint64_t rays,
-                    const RaySelection& selection, const RunControl& control) const;
+                    const RaySelection& selection, const RunControl& control,
+                    std::vector<uint64_t>* near = nullptr) const;
 
   Scene scene_;
   std::unique_ptr<Impl> impl_;

@@ -425,28 +425,54 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
   // region ends on the staircase that fixed ray streams make at small steps. Undamped steps from
   // central differences at half the parameter steps cross the valley; a step is kept when it
   // lowers the deviance by more than 1 (half a log-likelihood unit), halving it up to 3 times.
+  // The polish moves by far less than the difference steps, so the Jacobian is kept (a chord
+  // method: one image per iteration instead of 2P + 2) while the point stays inside the
+  // neighbourhood of the stencil it came from (within 2h = step of each parameter, h = step/2).
+  // It ends when the predicted decrease of the deviance is below 1, i.e. the remaining step is
+  // inside the statistical uncertainty, confirmed with a Jacobian at that point (which the
+  // uncertainties then reuse).
   if (!levels.empty() && std::none_of(flat.begin(), flat.end(), [](bool b) { return b; })) {
     const size_t L = levels.back();
+    const int bin = run.model().BinAt(L);
+    const std::string stage = record ? "polish" : "repeat";
     x = Clip(x, spec);
-    for (int it = 0; it < 6 && run.Budget(); ++it) {
-      const Differences d = Differentiate(run, spec, x, L, seed, record ? "polish" : "repeat", true);
-      const double dev = d.residuals.squaredNorm();
-      Eigen::MatrixXd A = d.jacobian.transpose() * d.jacobian;
+    Eigen::MatrixXd J;
+    Eigen::VectorXd r;
+    std::vector<double> x_jacobian;
+    for (int it = 0; it < 12 && run.Budget(); ++it) {
+      bool fresh = J.size() == 0;
+      for (size_t i = 0; i < P && !fresh; ++i)
+        fresh = std::abs(x[i] - x_jacobian[i]) > spec.parameters[i].step;
+      if (fresh) {
+        const Differences d = Differentiate(run, spec, x, L, seed, stage, true);
+        J = d.jacobian, r = d.residuals, x_jacobian = x;
+      }
+      const double dev = r.squaredNorm();
+      Eigen::MatrixXd A = J.transpose() * J;
       A.diagonal() *= 1 + 1e-9;
-      const Eigen::VectorXd step = A.ldlt().solve(-d.jacobian.transpose() * d.residuals);
+      const Eigen::VectorXd step = A.ldlt().solve(-J.transpose() * r);
       if (!step.allFinite()) break;
+      const double predicted = step.dot(A * step);  // Gauss-Newton's decrease of the deviance
+      if (predicted < 1) {
+        if (fresh) break;
+        J.resize(0, 0);  // confirm with the Jacobian at this point before stopping
+        continue;
+      }
       bool accepted = false;
       for (double scale = 1; scale >= 0.125 && !accepted && run.Budget(); scale *= 0.5) {
         std::vector<double> y = x;
         for (size_t i = 0; i < P; ++i) y[i] += scale * step(i);
         y = Clip(y, spec);
         double e = 0;
-        const std::vector<Image> mu = run.Images(y, L, seed, record ? "polish" : "repeat", &e);
-        Eigen::VectorXd r(d.residuals.size());
-        run.model().DevianceResiduals(mu, run.model().BinAt(L), r.data());
-        if (r.squaredNorm() < dev - 1) x = y, accepted = true;
+        const std::vector<Image> mu = run.Images(y, L, seed, stage, &e);
+        Eigen::VectorXd ry(r.size());
+        run.model().DevianceResiduals(mu, bin, ry.data());
+        if (ry.squaredNorm() < dev - 1) x = y, r = ry, accepted = true;
       }
-      if (!accepted) break;
+      if (!accepted) {
+        if (fresh) break;
+        J.resize(0, 0);  // a stale Jacobian may have pointed the wrong way: renew it once
+      }
     }
   }
   if (!record) return Clip(x, spec);

@@ -87,7 +87,12 @@ void BindCalibrate(py::module_& m) {
         d["warnings"] = s.warnings;
         return d;
       },
-      py::arg("folder"), py::arg("map_size") = 64, py::arg("extent") = 0.0, py::arg("extrapolate_to_deg") = 0.0);
+      py::arg("folder"), py::arg("map_size") = 64, py::arg("extent") = 0.0, py::arg("extrapolate_to_deg") = 0.0,
+      "`raymatch calibrate lightfield FOLDER`: the light-field source from a pinhole image and cone "
+      "images (FOLDER/metadata.toml, docs/calibration.md). map_size: angular map cells per side; "
+      "extent: map half-width in direction cosines (0 = 1.15 NA); extrapolate_to_deg: continue the "
+      "radiance beyond the NA up to this half-angle (deg). Returns a dict: 'calibration' (write it "
+      "with .write(path)), 'report', 'cone' fit, pinhole position (um), 'warnings'.");
 
   m.def(
       "calibrate_corrector",
@@ -121,7 +126,12 @@ void BindCalibrate(py::module_& m) {
         return d;
       },
       py::arg("folder"), py::arg("zones") = 9, py::arg("smoothness") = 0.0, py::arg("distance_mm") = 0.0,
-      py::arg("base") = py::none());
+      py::arg("base") = py::none(),
+      "`raymatch calibrate corrector FOLDER`: angular-corrector zone transmissions from a "
+      "flat-field iris series. zones: central disc + rings; smoothness: second-difference penalty "
+      "weight (dimensionless); distance_mm: corrector plane from the focal plane in mm (0 = the "
+      "working distance); base: a calibration (path or Calibration) whose light field and optics "
+      "are kept. Returns a dict: 'calibration', 'transmissions', 'sigma', 'gain', 'weights', ...");
 }
 
 void BindFit(py::module_& m) {

@@ -137,11 +137,11 @@ py::tuple Simulate(const PyScene& ps, std::optional<uint64_t> rays, std::optiona
   }
   if (threads > 0) scene.trace.threads = threads;
   if (rays && *rays == 0) throw py::value_error("rays must be > 0 (omit it to use the scene's)");
+  simulate::ValidateScene(scene);  // messages name the file, '<string>' or '<dict>'
+  simulate::CheckPlanePositions(scene);
   const std::string source = scene.file;
   // The sidecar records the scene file's checksum; a scene from a string or dict has no file.
   if (!ps.from_file) scene.file.clear();
-  simulate::ValidateScene(scene);
-  simulate::CheckPlanePositions(scene);
 
   std::unique_ptr<simulate::Simulator> sim;
   uint64_t rays_per_image = 0;

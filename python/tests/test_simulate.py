@@ -107,7 +107,7 @@ def test_errors_carry_the_cli_message(exe, tmp_path):
         raymatch.Scene.from_dict(d)
     with pytest.raises(TypeError, match="object"):
         raymatch.Scene.from_dict({"camera": {"pixels": [object()]}})
-    with pytest.raises(raymatch.Error, match="listed twice"):
+    with pytest.raises(raymatch.Error, match=r"^<string>: error: focus position 1 um is listed twice"):
         raymatch.simulate(raymatch.Scene.from_toml(TINY_SCENE), defocus_um=[1, 1], rays=10)
     with pytest.raises(raymatch.Error):
         raymatch.Scene.from_file(tmp_path / "missing.toml")
@@ -141,3 +141,17 @@ def test_version_matches_cli(exe):
     out = run_cli(exe, "--version").stdout
     assert out.splitlines()[0] == "raymatch " + raymatch.__version__
     assert "Python module on" in out
+
+
+def test_example_script_runs(tmp_path):
+    """docs/examples/python_focus_scan.py end to end, at 10 photons per pixel."""
+    import os
+    import subprocess
+    import sys
+    from conftest import SOURCE_DIR
+    env = dict(os.environ, RAYMATCH_EXAMPLE_PHOTONS="10")
+    r = subprocess.run([sys.executable, SOURCE_DIR / "docs/examples/python_focus_scan.py", tmp_path],
+                       env=env, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "mse" in r.stdout and (tmp_path / "report" / "report.html").exists()
+    assert (tmp_path / "focus_scan.png").exists() or (tmp_path / "focus_scan.npz").exists()

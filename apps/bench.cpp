@@ -26,7 +26,7 @@ void RegisterBench(CLI::App& app, int* exit_code) {
   a->add_option("--experiment", o->experiment_csv, "Experimental stack (defocus_um,file)");
   a->add_option("--dark", o->dark_file, "Experiment dark frame");
   a->add_option("--gain", o->gain_e_per_dn, "Photons per code value")->capture_default_str();
-  a->add_option("--defocus-um", o->defocus_um, "Plane studied")->capture_default_str();
+  a->add_option("--defocus-um", o->defocus_um, "Focal-plane position of the plane studied, um")->capture_default_str();
   a->add_option("--max-divisor", o->max_divisor, "Smallest fraction 1/N")->capture_default_str();
   a->add_option("--reference-factor", o->reference_factor, "Reference rays / photon-matched rays")->capture_default_str();
   a->add_option("--threads", o->threads, "Worker threads");

@@ -61,8 +61,8 @@ void RegisterCalibrate(CLI::App& app, int* exit_code) {
   c->add_option("-o,--output", co->output, "Calibration file to write")->capture_default_str();
   c->add_option("--base", co->base, "Existing calibration file to extend (e.g. from lightfield)")->check(CLI::ExistingFile);
   c->add_option("--zones", co->o.zones, "Central disc + rings")->capture_default_str()->check(CLI::Range(2, 64));
-  c->add_option("--smoothness", co->o.smoothness, "Second-difference penalty weight")->capture_default_str()->check(CLI::NonNegativeNumber);
-  c->add_option("--distance-mm", co->o.distance_mm, "Corrector plane from the focal plane (default: WD)")->check(CLI::NonNegativeNumber);
+  c->add_option("--smoothness", co->o.smoothness, "Second-difference penalty weight on the zone transmissions (dimensionless)")->capture_default_str()->check(CLI::NonNegativeNumber);
+  c->add_option("--distance-mm", co->o.distance_mm, "Corrector plane distance from the focal plane, mm (default: the working distance)")->check(CLI::NonNegativeNumber);
   c->callback([co, exit_code] {
     *exit_code = RunGuarded([&] {
       CalibrationData base;
@@ -87,7 +87,7 @@ void RegisterCalibrate(CLI::App& app, int* exit_code) {
   zx->add_option("-o,--output", ze->output, "Zemax source file to write")->required();
   zx->add_option("--rays", ze->o.num_rays, "Number of rays")->capture_default_str();
   zx->add_option("--seed", ze->o.seed, "Random seed")->capture_default_str();
-  zx->add_option("--field-radius-um", ze->o.field_radius_um, "Field disc radius (default: the calibration's)");
+  zx->add_option("--field-radius-um", ze->o.field_radius_um, "Field disc radius at the object plane, um (default: the calibration's)");
   zx->add_option("--flux", ze->o.flux, "Total source flux (W)")->capture_default_str();
   zx->callback([ze, exit_code] {
     *exit_code = RunGuarded([&] {

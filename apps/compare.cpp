@@ -78,7 +78,7 @@ void RegisterCompare(CLI::App& app, int* exit_code) {
       ->required()->check(DataRangeCheck(false));
   AddMultiscaleOptions(sub, &o->ms, &o->cw);
   sub->add_option("--json", o->json, "Also write the JSON to this file");
-  sub->add_option("--fail-below", o->fail_below, "Exit 2 when MS-SSIM is below this value");
+  sub->add_option("--fail-below", o->fail_below, "Exit 2 when MS-SSIM (dimensionless, 1 = identical) is below this value");
   sub->callback([o, exit_code] { *exit_code = RunCompareGuarded([&] { return RunCompare(*o); }); });
 }
 

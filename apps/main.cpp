@@ -28,9 +28,24 @@ int main(int argc, char** argv) {
   CLI::App app{
       "raymatch: Monte Carlo ray-traced brightfield microscope images of transparent objects.\n"
       "Lengths are in micrometres (_um) unless a name says otherwise (_mm, _deg)."};
+  // One line per build choice (CMake options RAYMATCH_MPI, RAYMATCH_WITH_MRCAL, RAYMATCH_PYTHON).
+  constexpr bool kMrcal =
+#ifdef RAYMATCH_HAVE_MRCAL
+      true;
+#else
+      false;
+#endif
+  constexpr bool kPython =
+#ifdef RAYMATCH_HAVE_PYTHON
+      true;
+#else
+      false;
+#endif
   app.set_version_flag("--version", std::string("raymatch ") + raymatch::kVersion +
                                         "\ncompiled-in options: MPI " +
-                                        (raymatch::apps::MpiCompiledIn() ? "on" : "off"));
+                                        (raymatch::apps::MpiCompiledIn() ? "on" : "off") +
+                                        ", mrcal " + (kMrcal ? "on" : "off") +
+                                        ", Python module " + (kPython ? "on" : "off"));
   app.require_subcommand(1);
   int exit_code = 0;
   raymatch::apps::RegisterSimulate(app, &exit_code);

@@ -16,6 +16,7 @@ PACKAGES=(
   libopenmpi-dev openmpi-bin  # MPI across machines (optional in CMake: RAYMATCH_MPI)
   libgtest-dev libgmock-dev libbenchmark-dev
   python3 python3-numpy python3-scipy python3-skimage python3-tifffile  # test references
+  pybind11-dev python3-dev python3-pytest  # the Python module (RAYMATCH_PYTHON) and its tests
 )
 
 missing=()

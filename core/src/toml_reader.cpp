@@ -11,11 +11,15 @@ toml::table ParseTomlFile(const std::string& path) {
   if (!in) throw Error(FileLocation{path}, "cannot open file for reading");
   std::stringstream ss;
   ss << in.rdbuf();
+  return ParseTomlString(ss.str(), path);
+}
+
+toml::table ParseTomlString(const std::string& text, const std::string& source_name) {
   try {
-    return toml::parse(ss.str(), path);
+    return toml::parse(text, source_name);
   } catch (const toml::parse_error& e) {
     const auto& b = e.source().begin;
-    throw Error(FileLocation{path, static_cast<int>(b.line), static_cast<int>(b.column)},
+    throw Error(FileLocation{source_name, static_cast<int>(b.line), static_cast<int>(b.column)},
                 std::string("TOML syntax: ") + std::string(e.description()));
   }
 }

@@ -123,14 +123,18 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
   return j;
 }
 
-ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
-  const auto t0 = std::chrono::steady_clock::now();
+void CheckPlanePositions(const Scene& scene) {
   std::set<std::string> stems;
   for (double dz : scene.defocus_um)
     if (!stems.insert(PlaneStem(scene.name, dz)).second)
       throw Error(FileLocation{scene.file},
                   "focus position " + FormatDefocus(dz) +
                       " um is listed twice in defocus_um; each plane needs its own position");
+}
+
+ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
+  const auto t0 = std::chrono::steady_clock::now();
+  CheckPlanePositions(scene);
   EnsureDirectory(opt.output_dir);
   Simulator sim(scene);
   ScanSummary sum;

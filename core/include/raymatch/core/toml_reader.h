@@ -18,6 +18,10 @@ namespace raymatch {
 /// message when the file cannot be opened.
 toml::table ParseTomlFile(const std::string& path);
 
+/// Parses TOML text (e.g. a scene passed as a string from Python); `source_name` stands for the
+/// file in messages ("source_name:line:col: error: TOML syntax: ...").
+toml::table ParseTomlString(const std::string& text, const std::string& source_name);
+
 /// A view of one TOML table that records which keys were read. Call Finish() after reading to
 /// turn any unread key into an "unknown key" error listing the accepted keys.
 class TomlReader {

@@ -42,6 +42,10 @@ struct ScanSummary {
 /// finished stay (each is complete), nothing half-written remains.
 ScanSummary RunScan(const Scene& scene, const ScanOptions& options);
 
+/// Throws Error when a focus position is listed twice (two planes would share a file name);
+/// RunScan checks this before anything is written, the Python module before tracing.
+void CheckPlanePositions(const Scene& scene);
+
 /// The sidecar metadata for one traced plane (also embedded in the TIFF ImageDescription).
 nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_t plane_index);
 

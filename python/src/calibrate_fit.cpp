@@ -1,0 +1,213 @@
+// Python bindings of the calibrate and fit libraries (apps/calibrate.cpp, apps/fit.cpp).
+#include "common.h"
+#include "raymatch/calibrate/corrector.h"
+#include "raymatch/calibrate/lightfield.h"
+#include "raymatch/core/calibration_file.h"
+#include "raymatch/fit/fit.h"
+
+namespace raymatch::python {
+
+namespace {
+
+py::dict ConeToDict(const calibrate::ConeFit& c) {
+  py::dict d;
+  d["apex_x_um"] = c.apex_x_um;
+  d["apex_y_um"] = c.apex_y_um;
+  d["apex_z_um"] = c.apex_z_um;
+  d["tilt_x"] = c.tilt_x;
+  d["tilt_y"] = c.tilt_y;
+  d["half_angle_deg"] = c.half_angle_deg;
+  d["rms_center_residual_um"] = c.rms_center_residual_um;
+  d["rms_radius_residual_um"] = c.rms_radius_residual_um;
+  d["radius_um"] = c.radius_um;
+  d["center_x_um"] = c.center_x_um;
+  d["center_y_um"] = c.center_y_um;
+  d["cut_by_na"] = c.cut_by_na;
+  return d;
+}
+
+}  // namespace
+
+void BindCalibrate(py::module_& m) {
+  using CD = CalibrationData;
+  py::class_<CD>(m, "Calibration",
+                 "A calibration file's content (docs/calibration-format.md): light field, corrector, "
+                 "optics. Images are read-only NumPy views.")
+      .def(py::init<>())
+      .def_static("read", [](const py::object& p) { return ReadCalibrationFile(PathArg(p)); }, py::arg("path"),
+                  "Reads a calibration file strictly (with its sidecars).")
+      .def(
+          "write", [](const CD& d, const py::object& p) { WriteCalibrationFile(PathArg(p), d); }, py::arg("path"),
+          "Writes the TOML file and its sidecar TIFFs (atomically).")
+      .def_property_readonly("has_light_field", &CD::has_light_field)
+      .def_property_readonly("has_corrector", &CD::has_corrector)
+      .def_property_readonly("angular_map", [](py::object self) { return ViewArray(self.cast<const CD&>().angular_map, self); },
+                             "Angular radiance over direction cosines (u, v) in [-angular_extent, angular_extent]^2; "
+                             "columns u increasing, rows v decreasing")
+      .def_readonly("angular_extent", &CD::angular_extent)
+      .def_readonly("field_radius_um", &CD::field_radius_um)
+      .def_readonly("na_limit", &CD::na_limit)
+      .def_readonly("cone_half_angle_deg", &CD::cone_half_angle_deg)
+      .def_property_readonly("spatial_map", [](py::object self) { return ViewArray(self.cast<const CD&>().spatial_map, self); },
+                             "Relative irradiance at the object plane (empty = uniform)")
+      .def_property_readonly("field_size_um", [](const CD& d) { return py::make_tuple(d.field_size_um[0], d.field_size_um[1]); })
+      .def_readonly("light_field_note", &CD::light_field_note)
+      .def_readonly("ring_outer_mm", &CD::ring_outer_mm)
+      .def_readonly("transmissions", &CD::transmissions)
+      .def_readonly("transmission_sigma", &CD::transmission_sigma)
+      .def_readonly("corrector_distance_mm", &CD::corrector_distance_mm)
+      .def_readonly("objective_focal_mm", &CD::objective_focal_mm)
+      .def_readonly("working_distance_mm", &CD::working_distance_mm)
+      .def_readonly("na", &CD::na)
+      .def_readonly("tube_focal_mm", &CD::tube_focal_mm)
+      .def_readonly("pixel_pitch_um", &CD::pixel_pitch_um)
+      .def_readonly("wavelength_um", &CD::wavelength_um)
+      .def_property_readonly("provenance", [](const CD& d) { return ToPython(d.provenance); });
+
+  m.def(
+      "calibrate_lightfield",
+      [](const py::object& folder, int map_size, double extent, double extrapolate_to_deg) {
+        calibrate::LightFieldOptions o;
+        o.map_size = map_size;
+        o.extent = extent;
+        o.extrapolate_to_deg = extrapolate_to_deg;
+        const std::string f = PathArg(folder);
+        calibrate::LightFieldSummary s;
+        {
+          py::gil_scoped_release nogil;
+          s = calibrate::CalibrateLightField(calibrate::ReadLightFieldInput(f), o);
+        }
+        py::dict d;
+        d["calibration"] = std::move(s.data);
+        d["report"] = s.BriefReport();
+        d["pinhole_x_um"] = s.pinhole_x_um;
+        d["pinhole_y_um"] = s.pinhole_y_um;
+        d["pinhole_diameter_um"] = s.pinhole_diameter_um;
+        d["cone"] = ConeToDict(s.cone);
+        d["warnings"] = s.warnings;
+        return d;
+      },
+      py::arg("folder"), py::arg("map_size") = 64, py::arg("extent") = 0.0, py::arg("extrapolate_to_deg") = 0.0,
+      "`raymatch calibrate lightfield FOLDER`: the light-field source from a pinhole image and cone "
+      "images (FOLDER/metadata.toml, docs/calibration.md). map_size: angular map cells per side; "
+      "extent: map half-width in direction cosines (0 = 1.15 NA); extrapolate_to_deg: continue the "
+      "radiance beyond the NA up to this half-angle (deg). Returns a dict: 'calibration' (write it "
+      "with .write(path)), 'report', 'cone' fit, pinhole position (um), 'warnings'.");
+
+  m.def(
+      "calibrate_corrector",
+      [](const py::object& folder, int zones, double smoothness, double distance_mm, const py::object& base) {
+        calibrate::CorrectorOptions o;
+        o.zones = zones;
+        o.smoothness = smoothness;
+        o.distance_mm = distance_mm;
+        const std::string f = PathArg(folder);
+        std::optional<CalibrationData> b;
+        if (py::isinstance<CalibrationData>(base)) b = base.cast<CalibrationData>();
+        else if (!base.is_none()) b = ReadCalibrationFile(PathArg(base));
+        calibrate::CorrectorSummary s;
+        {
+          py::gil_scoped_release nogil;
+          s = calibrate::CalibrateCorrector(calibrate::ReadFlatFieldInput(f), o, b ? &*b : nullptr);
+        }
+        py::dict d;
+        d["report"] = s.BriefReport();
+        d["calibration"] = std::move(s.data);
+        d["transmissions"] = s.fit.transmissions;
+        d["sigma"] = s.fit.sigma;
+        d["gain"] = s.fit.gain;
+        d["gain_sigma"] = s.fit.gain_sigma;
+        d["reduced_chi2"] = s.fit.reduced_chi2;
+        d["undetermined"] = s.fit.undetermined;
+        d["message"] = s.fit.message;
+        d["signal"] = s.signal;
+        d["weights"] = ToMatrix(s.weights);
+        d["warnings"] = s.warnings;
+        return d;
+      },
+      py::arg("folder"), py::arg("zones") = 9, py::arg("smoothness") = 0.0, py::arg("distance_mm") = 0.0,
+      py::arg("base") = py::none(),
+      "`raymatch calibrate corrector FOLDER`: angular-corrector zone transmissions from a "
+      "flat-field iris series. zones: central disc + rings; smoothness: second-difference penalty "
+      "weight (dimensionless); distance_mm: corrector plane from the focal plane in mm (0 = the "
+      "working distance); base: a calibration (path or Calibration) whose light field and optics "
+      "are kept. Returns a dict: 'calibration', 'transmissions', 'sigma', 'gain', 'weights', ...");
+}
+
+void BindFit(py::module_& m) {
+  m.def(
+      "_fit",
+      [](const py::object& fit_file, const std::string& scene, const std::string& calibration, int threads,
+         bool progress, const std::string& output) {
+        const std::string path = PathArg(fit_file);
+        fit::FitResult r;
+        std::string report;
+        {
+          py::gil_scoped_release nogil;
+          const fit::FitSpec spec = fit::LoadFitSpec(path, scene, calibration);
+          fit::FitOptions fo;
+          fo.threads = threads;
+          fo.progress = progress;
+          r = fit::RunFit(spec, fo);
+          if (!output.empty()) report = fit::WriteFitOutputs(spec, r, output);
+        }
+        py::list params;
+        for (const auto& p : r.parameters) {
+          py::dict d;
+          d["key"] = p.key;
+          d["unit"] = p.unit;
+          d["start"] = p.start;
+          d["best"] = p.best;
+          d["lower"] = p.lower;
+          d["upper"] = p.upper;
+          d["sigma"] = p.sigma;
+          d["sigma_curvature"] = p.sigma_curvature;
+          d["sigma_repeat"] = p.sigma_repeat;
+          d["sigma_cramer_rao"] = p.sigma_cramer_rao;
+          d["sigma_expected"] = p.sigma_expected;
+          d["at_bound"] = p.at_bound;
+          d["slice_x"] = p.slice_x;
+          d["slice_error"] = p.slice_error;
+          params.append(d);
+        }
+        py::list evals;
+        for (const auto& e : r.evaluations) {
+          py::dict d;
+          d["theta"] = e.theta;
+          d["error"] = e.error;
+          d["ray_fraction"] = e.ray_fraction;
+          d["bin"] = e.bin;
+          d["rays"] = e.rays;
+          d["seed"] = e.seed;
+          d["seconds"] = e.seconds;
+          d["stage"] = e.stage;
+          evals.append(d);
+        }
+        py::list best, resid;
+        for (auto& img : r.best_images) best.append(ToArray(std::move(img)));
+        for (auto& img : r.residuals) resid.append(ToArray(std::move(img)));
+        py::dict seconds;
+        for (const auto& [k, v] : r.seconds) seconds[py::str(k)] = v;
+        py::dict d;
+        d["converged"] = r.converged;
+        d["status"] = r.status;
+        d["message"] = r.message;
+        d["parameters"] = params;
+        d["correlation"] = ToMatrix(r.correlation);
+        d["crb_correlation"] = ToMatrix(r.crb_correlation);
+        d["best_error"] = r.best_error;
+        d["evaluations"] = evals;
+        d["best_images"] = best;
+        d["residuals"] = resid;
+        d["grid_axes"] = r.grid_axes;
+        d["grid_errors"] = r.grid_errors;
+        d["seconds"] = seconds;
+        d["total_seconds"] = r.total_seconds;
+        d["report"] = report;
+        return d;
+      },
+      py::arg("fit_file"), py::arg("scene"), py::arg("calibration"), py::arg("threads"), py::arg("progress"),
+      py::arg("output"));
+}
+
+}  // namespace raymatch::python

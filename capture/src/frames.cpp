@@ -89,16 +89,21 @@ SignalLevel MeasureSignal(const Image& dn, double black_dn, double max_dn, doubl
   SignalLevel s;
   if (dn.empty()) return s;
   std::vector<float> v = dn.pixels;
-  size_t clipped = 0;
-  for (float x : v) clipped += x >= max_dn - 0.5;
-  auto quantile = [&](double q) {
-    const size_t k = std::min(v.size() - 1, size_t(q * double(v.size() - 1)));
-    std::nth_element(v.begin(), v.begin() + k, v.end());
-    return double(v[k]);
-  };
   const double to_fraction = e_per_dn / well_e;
-  s.median_fraction = (quantile(0.5) - black_dn) * to_fraction;
-  s.peak_fraction = (quantile(0.999) - black_dn) * to_fraction;
+  size_t clipped = 0;
+  float top = v[0];
+  for (float x : v) {
+    // Clipped: at the top code value, or at the full well (where a camera whose well maps below
+    // the top code value saturates); 0.5 % below the well allows for read noise.
+    clipped += x >= max_dn - 0.5 || (x - black_dn) * to_fraction >= 0.995;
+    top = std::max(top, x);
+  }
+  const size_t k = (v.size() - 1) / 2;
+  std::nth_element(v.begin(), v.begin() + k, v.end());
+  s.median_fraction = (double(v[k]) - black_dn) * to_fraction;
+  // The brightest pixel: a pinhole image covers only a few pixels, so any percentile would
+  // miss it; it is what saturates first.
+  s.peak_fraction = (double(top) - black_dn) * to_fraction;
   s.clipped_fraction = double(clipped) / double(v.size());
   return s;
 }

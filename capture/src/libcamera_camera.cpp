@@ -5,6 +5,7 @@
 #include <sys/mman.h>
 
 #include <chrono>
+#include <cstdlib>
 #include <condition_variable>
 #include <libcamera/libcamera.h>
 #include <libcamera/version.h>
@@ -25,6 +26,8 @@ namespace {
 // One manager per process (libcamera allows only one).
 lc::CameraManager& Manager() {
   static std::unique_ptr<lc::CameraManager> m = [] {
+    // libcamera logs INFO/WARN lines on stderr; keep errors only unless the user chose levels.
+    setenv("LIBCAMERA_LOG_LEVELS", "*:ERROR", 0);
     auto cm = std::make_unique<lc::CameraManager>();
     if (const int r = cm->start(); r != 0)
       throw Error("libcamera: the camera manager did not start (error " + std::to_string(r) + ")");

@@ -195,7 +195,7 @@ class Session {
       const double max_dn = double((int64_t(1) << f.bit_depth) - 1);
       const SignalLevel lv = MeasureSignal(set.image, black, max_dn, e_per_dn_, well_e_);
       const double level = peak ? lv.peak_fraction : lv.median_fraction;
-      const bool clipped = lv.clipped_fraction > (peak ? 1e-4 : 1e-3);
+      const bool clipped = peak ? lv.clipped_fraction > 0 : lv.clipped_fraction > 1e-3;
       const double suggest = SuggestExposure(s_.exposure_us, level, clipped, o_.target_signal, cam_.info());
       *ask_.out << std::fixed << std::setprecision(1) << "  " << what << " at " << s_.exposure_us
                 << " us: signal median " << 100 * lv.median_fraction << " %, peak " << 100 * lv.peak_fraction

@@ -122,6 +122,11 @@ class SimCamera : public Camera {
       if (stage_.objects) s.objects = objects_;
       s.defocus_um = {stage_.focus_um};  // the automatic field covers this focus
       if (stage_.pinhole) {
+        // Images through the pinhole are rendered without the corrector stage: calibrate
+        // corrector takes the cone images as the illumination's light per zone before the
+        // losses the flat fields show (docs/calibration.md; tools/generate_sample.cpp does the
+        // same). docs/capture.md says so.
+        s.optics.corrector.enabled = false;
         if (!(stage_.pinhole_diameter_um > 0))
           throw Error("sim camera: pinhole diameter " + std::to_string(stage_.pinhole_diameter_um) +
                       " um: expected > 0");

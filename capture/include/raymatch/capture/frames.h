@@ -40,8 +40,8 @@ void CheckOutputPath(const std::filesystem::path& path);
 /// Signal level of a frame relative to the well and its clipping.
 struct SignalLevel {
   double median_fraction = 0;   ///< median (dn - black) x e/dn over the well capacity
-  double peak_fraction = 0;     ///< 99.9th percentile, the same way
-  double clipped_fraction = 0;  ///< pixels at the top code value
+  double peak_fraction = 0;     ///< the brightest pixel, the same way
+  double clipped_fraction = 0;  ///< pixels at the top code value or at the full well
 };
 SignalLevel MeasureSignal(const Image& dn, double black_dn, double max_dn, double e_per_dn,
                           double well_e);

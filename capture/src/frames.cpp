@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <iostream>
+#include <sstream>
 
 #include "raymatch/core/atomic_file.h"
 #include "raymatch/core/error.h"
@@ -114,6 +115,20 @@ double SuggestExposure(double exposure_us, double level, bool clipped, double ta
   return std::round(e);
 }
 
+namespace {
+// "PATH: mean M DN, sd S DN, min .. max, N pixels at the top code value" for checks by eye.
+std::string Described(const fs::path& p, const FrameSet& set) {
+  const PixelStats st = ComputeStats(set.image);
+  const double top = double((int64_t(1) << set.frames.back().bit_depth) - 1);
+  size_t clipped = 0;
+  for (float v : set.image.pixels) clipped += v >= top - 0.5;
+  std::ostringstream os;
+  os << p.string() << ": mean " << st.mean << " DN, sd " << std::sqrt(st.variance) << " DN, min "
+     << st.min << ", max " << st.max << ", " << clipped << " pixels at " << top;
+  return os.str();
+}
+}  // namespace
+
 std::vector<std::string> CaptureFramesToFiles(Camera& cam, const FramesOptions& o, std::istream& in,
                                               std::ostream& out) {
   CheckOutputPath(o.output);
@@ -123,7 +138,7 @@ std::vector<std::string> CaptureFramesToFiles(Camera& cam, const FramesOptions& 
     if (o.mean || o.count == 1) {
       FrameSet set = CaptureSet(cam, o.settings, o.count, o.mean);
       WriteFrameSet(base, set, FrameSidecar(cam.info(), set, what));
-      written.push_back(base.string());
+      written.push_back(Described(base, set));
       return;
     }
     for (int i = 0; i < o.count; ++i) {
@@ -133,7 +148,7 @@ std::vector<std::string> CaptureFramesToFiles(Camera& cam, const FramesOptions& 
       FrameSet set = CaptureSet(cam, o.settings, 1, false);
       WriteFrameSet(p, set, FrameSidecar(cam.info(), set, what + " (frame " + std::to_string(i + 1) +
                                                               " of " + std::to_string(o.count) + ")"));
-      written.push_back(p.string());
+      written.push_back(Described(p, set));
     }
   };
   StageState stage;

@@ -61,7 +61,8 @@ struct FramesOptions {
   std::filesystem::path output;  ///< DIR/NAME.tif
 };
 
-/// Captures and writes; returns the paths written. `prompt_in`/`prompt_out` ask the user to
+/// Captures and writes; returns one line per file written: its path and statistics (mean,
+/// standard deviation, min, max in code values, pixels at the top code value). `prompt_in`/`prompt_out` ask the user to
 /// block the light before the dark frames (EOF on `prompt_in` is taken as "ready").
 std::vector<std::string> CaptureFramesToFiles(Camera& cam, const FramesOptions& o,
                                               std::istream& prompt_in, std::ostream& prompt_out);

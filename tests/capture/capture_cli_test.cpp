@@ -2,16 +2,22 @@
 // camera end to end: scripted sessions write folders that `raymatch calibrate` turns into the
 // calibration the scene was made with.
 #include <gtest/gtest.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <sstream>
+#include <chrono>
+#include <thread>
 
 #include <nlohmann/json.hpp>
 
 #include "raymatch/core/calibration_file.h"
 #include "raymatch/core/image_io.h"
+#include "raymatch/pipeline/pipeline.h"
 #include "shell.h"
 #include "temp_dir.h"
 
@@ -221,6 +227,88 @@ TEST(CaptureCli, SessionsToCalibration) {
     EXPECT_NEAR(cc.transmissions[k], kTransmissions[k], 3 * cc.transmission_sigma[k])
         << "zone " << k << " sigma " << cc.transmission_sigma[k] << "\n" << Stdout(dir);
   }
+}
+
+// A focus scan of a sphere plus its dark frame: the folder `raymatch run` reads (its own reader).
+TEST(CaptureCli, FocusScanFolderReadsAsAnExperiment) {
+  testing::TempDir dir;
+  std::string text = kSimScene;
+  text.insert(text.find("[objective]"), "[[object]]\ntype = \"sphere\"\nradius_um = 10\nmaterial = \"water\"\n");
+  const std::string scene = dir.Write("sim.toml", text);
+  const std::string folder = dir / "drop";
+  // datasheet + optics (10), focus list, diameter, temperature; per plane ready (first: keep).
+  const std::string a = std::string(10, '\n') + "-10, 0, 10\n20\n\n\n\n\n\n";
+  auto r = Raymatch("capture session focus-scan --camera sim:" + scene + " --exposure-us 5000 --answers " +
+                        dir.Write("a.txt", a) + " -o " + folder, dir);
+  ASSERT_EQ(r.code, 0) << r.err << Stdout(dir);
+  r = Raymatch("capture session dark --camera sim:" + scene + " -o " + folder + " < " + dir.Write("b.txt", "\n\n"), dir);
+  ASSERT_EQ(r.code, 0) << r.err << Stdout(dir);
+  const pipeline::ExperimentMetadata m = pipeline::ReadExperimentMetadata(folder);
+  EXPECT_EQ(m.diameter_um, 20);
+  EXPECT_EQ(m.gain, 0.25);
+  EXPECT_FALSE(m.dark.empty());
+  std::ifstream csv(folder + "/scan.csv");
+  std::string header, line;
+  std::getline(csv, header);
+  EXPECT_EQ(header, "defocus_um,file");
+  int planes = 0;
+  Image first;
+  while (std::getline(csv, line)) {
+    const Image img = ReadImage(folder + "/" + line.substr(line.find(',') + 1));
+    if (planes++ == 0) first = img;
+    else EXPECT_NE(img.pixels, first.pixels);  // the focus changes the image
+  }
+  EXPECT_EQ(planes, 3);
+}
+
+// Ctrl-C in the middle of a long capture: only complete frames, no temporaries. The child is
+// started with fork/exec (a shell's background job would ignore SIGINT).
+TEST(CaptureCli, InterruptLeavesCompleteFramesOnly) {
+  testing::TempDir dir;
+  const std::string scene = dir.Write("sim.toml", kSimScene);
+  const fs::path out = dir.path() / "out";
+  std::vector<std::string> argv = {RAYMATCH_BIN, "capture", "frames", "--camera", "sim:" + scene,
+                                   "--exposure-us", "4000", "-n", "400", "-o", (out / "f.tif").string()};
+  const pid_t pid = fork();
+  if (pid == 0) {
+    if (!std::freopen((dir.path() / "stdout.txt").c_str(), "w", stdout) ||
+        !std::freopen((dir.path() / "stderr.txt").c_str(), "w", stderr))
+      _exit(126);
+    std::vector<char*> args;
+    for (auto& a : argv) args.push_back(a.data());
+    args.push_back(nullptr);
+    execv(args[0], args.data());
+    _exit(127);
+  }
+  ASSERT_GT(pid, 0);
+  // Interrupt once two sidecars are on disk (the third frame is then being traced or written).
+  const auto t0 = std::chrono::steady_clock::now();
+  auto sidecars = [&] {
+    int n = 0;
+    std::error_code ec;
+    for (const auto& e : fs::directory_iterator(out, ec))
+      n += e.path().extension() == ".json";
+    return n;
+  };
+  while (sidecars() < 2 && std::chrono::steady_clock::now() - t0 < std::chrono::seconds(60))
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  kill(pid, SIGINT);
+  int status = 0;
+  waitpid(pid, &status, 0);
+  EXPECT_TRUE(WIFSIGNALED(status) && WTERMSIG(status) == SIGINT) << "status " << status;
+  int frames = 0;
+  for (const auto& e : fs::directory_iterator(out)) {
+    const std::string name = e.path().filename().string();
+    EXPECT_EQ(name.find(".partial-"), std::string::npos) << "temporary left: " << name;
+    if (e.path().extension() == ".tif") {
+      const Image img = ReadImage(e.path().string());  // complete: reads, full size
+      EXPECT_EQ(img.width, 64);
+      EXPECT_EQ(img.height, 64);
+      ++frames;
+    }
+  }
+  EXPECT_GE(frames, 2);
+  EXPECT_LT(frames, 400);
 }
 
 }  // namespace

@@ -94,8 +94,9 @@ class Camera {
 /// on `info` (ranges the camera does not report are not checked).
 void ValidateSettings(const CameraInfo& info, const CaptureSettings& s);
 
-/// Every camera found by the compiled-in backends (libcamera first, then V4L2 devices that
-/// libcamera does not already drive). Backend problems are appended to `notes` (not fatal).
+/// Every camera found by the compiled-in backends (libcamera first, then every V4L2 capture
+/// device: a UVC camera libcamera drives shows in both). Backend problems (a device that cannot
+/// be opened) are appended to `notes` (not fatal).
 std::vector<CameraInfo> ListCameras(std::vector<std::string>* notes);
 
 /// Opens a camera by id: "sim:SCENE.toml", "libcamera:ID", "v4l2:/dev/videoN" (or a bare

@@ -95,6 +95,7 @@ class LibcameraCamera : public Camera {
   }
   ~LibcameraCamera() override {
     if (started_) cam_->stop();
+    cam_->requestCompleted.disconnect(this);
     allocator_.reset();
     if (acquired_) cam_->release();
   }

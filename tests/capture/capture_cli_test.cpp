@@ -47,6 +47,7 @@ bool HasVideoDevices() {
 // Files below `dir` (recursive), excluding the shell's stdout/stderr captures.
 std::vector<std::string> FilesBelow(const fs::path& dir) {
   std::vector<std::string> out;
+  if (!fs::exists(dir)) return out;
   for (const auto& e : fs::recursive_directory_iterator(dir))
     if (e.is_regular_file() && e.path().filename() != "stdout.txt" && e.path().filename() != "stderr.txt")
       out.push_back(e.path().string());

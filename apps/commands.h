@@ -12,6 +12,7 @@ void RegisterCalibrate(CLI::App& app, int* exit_code);
 void RegisterRun(CLI::App& app, int* exit_code);          // apps/run.cpp
 void RegisterBench(CLI::App& app, int* exit_code);        // apps/bench.cpp ("accuracy")
 void RegisterFit(CLI::App& app, int* exit_code);          // apps/fit.cpp
+void RegisterCapture(CLI::App& app, int* exit_code);      // apps/capture.cpp
 
 /// Runs `fn`, printing raymatch::Error and other exceptions to stderr; returns `error_code` then.
 int RunGuarded(const std::function<int()>& fn, int error_code = 1);

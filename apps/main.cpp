@@ -6,6 +6,9 @@
 #include "raymatch/core/error.h"
 #include "raymatch/core/provenance.h"
 #include "raymatch/core/version.h"
+#ifdef RAYMATCH_HAVE_CAPTURE
+#include "raymatch/capture/camera.h"
+#endif
 
 namespace raymatch::apps {
 
@@ -41,11 +44,17 @@ int main(int argc, char** argv) {
 #else
       false;
 #endif
+  std::string backends = "none";
+#ifdef RAYMATCH_HAVE_CAPTURE
+  backends.clear();
+  for (const std::string& b : raymatch::capture::CompiledBackends()) backends += (backends.empty() ? "" : ", ") + b;
+#endif
   app.set_version_flag("--version", std::string("raymatch ") + raymatch::kVersion +
                                         "\ncompiled-in options: MPI " +
                                         (raymatch::apps::MpiCompiledIn() ? "on" : "off") +
                                         ", mrcal " + (kMrcal ? "on" : "off") +
-                                        ", Python module " + (kPython ? "on" : "off"));
+                                        ", Python module " + (kPython ? "on" : "off") +
+                                        "; capture backends: " + backends);
   app.require_subcommand(1);
   int exit_code = 0;
   raymatch::apps::RegisterSimulate(app, &exit_code);
@@ -58,6 +67,9 @@ int main(int argc, char** argv) {
 #endif
 #ifdef RAYMATCH_HAVE_FIT
   raymatch::apps::RegisterFit(app, &exit_code);
+#endif
+#ifdef RAYMATCH_HAVE_CAPTURE
+  raymatch::apps::RegisterCapture(app, &exit_code);
 #endif
 #ifdef RAYMATCH_HAVE_PIPELINE
   raymatch::apps::RegisterRun(app, &exit_code);

@@ -14,6 +14,7 @@ PACKAGES=(
   libceres-dev  # calibration fits
   libmrcal-dev  # light field from mrcal .cameramodel files (optional in CMake)
   libopenmpi-dev openmpi-bin  # MPI across machines (optional in CMake: RAYMATCH_MPI)
+  libcamera-dev  # capture from libcamera cameras (optional in CMake: RAYMATCH_WITH_LIBCAMERA)
   libgtest-dev libgmock-dev libbenchmark-dev
   python3 python3-numpy python3-scipy python3-skimage python3-tifffile  # test references
   pybind11-dev python3-dev python3-pytest  # the Python module (RAYMATCH_PYTHON) and its tests

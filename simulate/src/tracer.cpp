@@ -839,7 +839,9 @@ PlaneResult Simulator::TracePlaneExcept(double defocus_um, uint32_t plane_index,
                                         const std::vector<uint64_t>& excluded,
                                         const RunControl& control) const {
   RAYMATCH_CHECK(std::is_sorted(excluded.begin(), excluded.end()));
-  return Trace(defocus_um, plane_index, rays, {nullptr, excluded.data(), excluded.size()}, control);
+  RaySelection sel;
+  sel.skip = excluded.data(), sel.skip_count = excluded.size();
+  return Trace(defocus_um, plane_index, rays, sel, control);
 }
 
 PlaneResult Simulator::TraceRays(double defocus_um, uint32_t plane_index,

@@ -424,17 +424,22 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
   // determined valley (z, radius and index of a defocused sphere), and its shrinking trust
   // region ends on the staircase that fixed ray streams make at small steps. Undamped steps from
   // central differences at half the parameter steps cross the valley; a step is kept when it
-  // lowers the deviance by more than 1 (half a log-likelihood unit), halving it up to 3 times.
+  // lowers the deviance (by more than kPolishTolerance / 2), halving it up to 3 times.
   // The polish moves by far less than the difference steps, so the Jacobian is kept (a chord
   // method: one image per iteration instead of 2P + 2) while the point stays inside the
   // neighbourhood of the stencil it came from (within 2h = step of each parameter, h = step/2).
-  // It ends when the predicted decrease of the deviance is below 1, i.e. the remaining step is
-  // inside the statistical uncertainty, confirmed with a Jacobian at that point (which the
-  // uncertainties then reuse).
+  // It ends when the predicted decrease of the deviance is below kPolishTolerance, i.e. the
+  // remaining step is a fraction of the statistical uncertainty, confirmed with a Jacobian at
+  // that point (which the uncertainties then reuse).
   if (!levels.empty() && std::none_of(flat.begin(), flat.end(), [](bool b) { return b; })) {
     const size_t L = levels.back();
     const int bin = run.model().BinAt(L);
     const std::string stage = record ? "polish" : "repeat";
+    // A deviance change of 1 is one standard deviation along the least determined direction: a
+    // polish that stopped there would end up to 1 sigma short of the optimum, on the side it
+    // came from. With fixed ray streams the deviance differences between nearby points are
+    // deterministic, so much smaller steps still count.
+    constexpr double kPolishTolerance = 0.05;
     x = Clip(x, spec);
     Eigen::MatrixXd J;
     Eigen::VectorXd r;
@@ -453,7 +458,7 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
       const Eigen::VectorXd step = A.ldlt().solve(-J.transpose() * r);
       if (!step.allFinite()) break;
       const double predicted = step.dot(A * step);  // Gauss-Newton's decrease of the deviance
-      if (predicted < 1) {
+      if (predicted < kPolishTolerance) {
         if (fresh) break;
         J.resize(0, 0);  // confirm with the Jacobian at this point before stopping
         continue;
@@ -467,7 +472,7 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
         const std::vector<Image> mu = run.Images(y, L, seed, stage, &e);
         Eigen::VectorXd ry(r.size());
         run.model().DevianceResiduals(mu, bin, ry.data());
-        if (ry.squaredNorm() < dev - 1) x = y, r = ry, accepted = true;
+        if (ry.squaredNorm() < dev - 0.5 * kPolishTolerance) x = y, r = ry, accepted = true;
       }
       if (!accepted) {
         if (fresh) break;

@@ -152,7 +152,10 @@ std::pair<double, double> Range(const Image& img) {
   for (float v : img.pixels)
     if (std::isfinite(v)) lo = std::min(lo, double(v)), hi = std::max(hi, double(v));
   if (!(hi >= lo)) lo = 0, hi = 1;
-  if (hi == lo) hi = lo + 1;
+  if (hi == lo) {  // one value (e.g. a 1 x 1 matrix): a small range centred on it
+    const double d = std::max(std::abs(lo) * 0.05, 1e-9);
+    lo -= d, hi += d;
+  }
   return {lo, hi};
 }
 
@@ -339,8 +342,9 @@ void WriteImageGrid(const std::string& path, const ImageGrid& g) {
   const int iw = g.rows[0][0].width, ih = g.rows[0][0].height;
   const int tw = std::max(iw, ih) == iw ? g.tile_px : std::max(20, g.tile_px * iw / ih);
   const int th = std::max(20, tw * ih / std::max(1, iw));
-  const int gap = 8, left = 130, right = 200, top = 80, bottom = 16;
-  const int W = left + nc * tw + (nc - 1) * gap + right, H = top + nr * th + (nr - 1) * gap + bottom;
+  const int gap = 8, left = 130, right = 200, top = 96, bottom = 16;
+  const int W = std::max(640, left + nc * tw + (nc - 1) * gap + right);
+  const int H = top + nr * th + (nr - 1) * gap + bottom;
   Figure fig(path, W, H);
   plstream& pls = *fig;
   SetColourMap(pls, g.map);
@@ -359,12 +363,20 @@ void WriteImageGrid(const std::string& path, const ImageGrid& g) {
       if (c == 0 && r < int(g.row_labels.size())) pls.mtex("lv", 0.6, 0.5, 1.0, Esc(g.row_labels[r]).c_str());
       pls.schr(0, 1.0);
     }
-  // Colour bar beside the whole grid, title above it.
-  pls.vpor(double(left) / W, double(left + nc * tw + (nc - 1) * gap) / W, double(bottom) / H,
-           double(H - top) / H);
+  // Title centred on the figure (lines split at '\n'), colour bar beside the whole grid.
+  pls.vpor(0.02, 0.98, double(bottom) / H, double(H - top) / H);
   pls.wind(0, 1, 0, 1);
   pls.col0(kBlack);
-  pls.mtex("t", 3.2, 0.5, 0.5, Esc(g.title).c_str());
+  std::vector<std::string> lines;
+  for (size_t a = 0, b; a <= g.title.size(); a = b + 1) {
+    b = g.title.find('\n', a);
+    if (b == std::string::npos) b = g.title.size();
+    lines.push_back(g.title.substr(a, b - a));
+  }
+  for (size_t k = 0; k < lines.size(); ++k)
+    pls.mtex("t", 2.6 + 1.3 * double(lines.size() - 1 - k), 0.5, 0.5, Esc(lines[k]).c_str());
+  pls.vpor(double(left) / W, double(left + nc * tw + (nc - 1) * gap) / W, double(bottom) / H,
+           double(H - top) / H);
   ColourBar(pls, g.lo, g.hi, g.colour_label);
   fig.Finish();
 }

@@ -105,7 +105,7 @@ void Montage(const FocusScanResult& r, const std::string& path) {
   g.map = ColourMap::kGrey;
   std::ostringstream t;
   t.precision(5);
-  t << "Experiment (top) and simulation (bottom): one grey scale for all tiles, 0 to L = " << g.hi
+  t << "Experiment (top) and simulation (bottom)\none grey scale for all tiles: 0 to L = " << g.hi
     << " photons per pixel";
   g.title = t.str();
   g.colour_label = "photons per pixel";

@@ -87,7 +87,8 @@ struct ImageGrid {
   std::vector<std::string> column_labels; ///< one per column (above the top row)
   double lo = 0, hi = 1;
   ColourMap map = ColourMap::kGrey;
-  std::string title, colour_label;
+  std::string title;  ///< above the grid; '\n' starts a new line
+  std::string colour_label;
   int tile_px = 150;  ///< tile side in pixels (the longer image side)
 };
 

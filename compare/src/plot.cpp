@@ -8,9 +8,13 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
+#include <fstream>
+#include <iterator>
 #include <memory>
 #include <stdexcept>
-#include <system_error>
+
+#include "raymatch/core/atomic_file.h"
+#include "raymatch/core/error.h"
 
 namespace fs = std::filesystem;
 
@@ -50,16 +54,33 @@ bool HavePngCairo() {
   return have;
 }
 
-/// One PNG figure: a PLplot stream on the pngcairo device writing a temporary file that is
-/// renamed into place by Finish().
+/// True when `path` holds a whole PNG (signature first, IEND chunk last): the cairo device does
+/// not report a failed write (e.g. a full disk), so the file is checked instead.
+bool WholePng(const fs::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  static const std::string kSignature = "\x89PNG\r\n\x1a\n";
+  static const std::string kEnd = std::string("IEND\xae\x42\x60\x82", 8);
+  return bytes.size() > kSignature.size() + kEnd.size() && bytes.compare(0, 8, kSignature) == 0 &&
+         bytes.compare(bytes.size() - kEnd.size(), kEnd.size(), kEnd) == 0;
+}
+
+/// One PNG figure: a PLplot stream on the pngcairo device writing a registered temporary
+/// (core/atomic_file.h) that Finish() checks and renames into place.
 class Figure {
  public:
-  Figure(const std::string& path, int width, int height, int nx_sub = 1, int ny_sub = 1)
-      : path_(path), tmp_(path + ".tmp.png") {
+  Figure(const std::string& path, int width, int height, int nx_sub = 1, int ny_sub = 1) : path_(path) {
     if (!HavePngCairo())
-      throw std::runtime_error("PLplot has no pngcairo device: install plplot-driver-cairo (" +
-                               path + ")");
-    if (!path_.parent_path().empty()) fs::create_directories(path_.parent_path());
+      throw Error("PLplot has no pngcairo device: install plplot-driver-cairo (writing " + path + ")");
+    if (!path_.parent_path().empty()) EnsureDirectory(path_.parent_path());
+    tmp_ = TemporaryPathFor(path_);
+    // Create the file here: PLplot, when it cannot open its output, asks for another name on
+    // stdin and exits.
+    if (!std::ofstream(tmp_, std::ios::binary)) {
+      DiscardTemporary(tmp_);
+      const std::string hint = WriteFailureHint(path_);
+      throw Error("cannot write " + path + (hint.empty() ? "" : ": " + hint));
+    }
     pls_ = std::make_unique<plstream>();
     pls_->sdev("pngcairo");
     pls_->sfnam(tmp_.string().c_str());
@@ -78,15 +99,19 @@ class Figure {
   ~Figure() {
     if (pls_) {  // not finished: an exception unwinds; leave no partial file behind
       pls_.reset();
-      std::error_code ec;
-      fs::remove(tmp_, ec);
+      DiscardTemporary(tmp_);
     }
   }
   plstream& operator*() { return *pls_; }
   plstream* operator->() { return pls_.get(); }
   void Finish() {
     pls_.reset();  // plend1: the device writes the file
-    fs::rename(tmp_, path_);
+    if (!WholePng(tmp_)) {
+      DiscardTemporary(tmp_);
+      const std::string hint = WriteFailureHint(path_);
+      throw Error("could not write the figure " + path_.string() + (hint.empty() ? "" : ": " + hint));
+    }
+    CommitTemporary(tmp_, path_);
   }
 
  private:
@@ -337,7 +362,7 @@ void WriteMap(const std::string& path, const MapPlot& m) {
 }
 
 void WriteImageGrid(const std::string& path, const ImageGrid& g) {
-  if (g.rows.empty() || g.rows[0].empty()) throw std::runtime_error("WriteImageGrid: no images (" + path + ")");
+  if (g.rows.empty() || g.rows[0].empty()) throw Error("WriteImageGrid: no images (" + path + ")");
   const int nr = int(g.rows.size()), nc = int(g.rows[0].size());
   const int iw = g.rows[0][0].width, ih = g.rows[0][0].height;
   const int tw = std::max(iw, ih) == iw ? g.tile_px : std::max(20, g.tile_px * iw / ih);

@@ -79,5 +79,20 @@ TEST(Plot, MapAndGridAreWritten) {
   EXPECT_FALSE(fs::exists(dir / "empty.png"));
 }
 
+// A figure that cannot be written (its folder is a file) is an error naming it, never a prompt
+// on stdin (what PLplot does when it cannot open its output) and never a partial file.
+TEST(Plot, UnwritablePathIsAnErrorNamingIt) {
+  testing::TempDir dir;
+  dir.Write("file", "x");
+  const std::string bad = dir / "file/figure.png";
+  try {
+    WritePlot(bad, {Series{{0, 1}, {0, 1}}}, "t", "x", "y");
+    ADD_FAILURE() << "no error";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("file"), std::string::npos) << e.what();
+  }
+  EXPECT_EQ(FilesIn(dir.path()), 1u);
+}
+
 }  // namespace
 }  // namespace raymatch::compare

@@ -4,9 +4,11 @@
 // labelled axes and a colour bar; grids of images on one shared intensity scale.
 // docs/figures.md says why PLplot and how each report figure is made.
 //
-// Figures are written atomically (a temporary file renamed into place). PLplot keeps global
-// state per stream, so write figures from one thread at a time. Throws std::runtime_error when
-// PLplot's cairo PNG device is not available.
+// Figures are written atomically (a registered `*.partial-*` temporary, checked to be a whole
+// PNG, renamed into place: core/atomic_file.h). PLplot keeps global state per stream, so write
+// figures from one thread at a time. Throws raymatch::Error (a std::runtime_error) naming the
+// file when it cannot be written (with the reason: disk full, no permission) or when PLplot's
+// cairo PNG device is not available.
 #include <array>
 #include <string>
 #include <vector>

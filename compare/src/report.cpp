@@ -144,9 +144,9 @@ double PlaneFigures(const FocusScanResult& r, int i, const std::string& residual
   p.title = t.str();
   p.xlabel = "x (px from the image centre)";
   p.ylabel = "y (px from the image centre)";
-  p.colour_label = r.sim_scale > 0.98 && r.sim_scale < 1.02 ? "(sim − exp) / √(sim + exp)  (σ; clamped at ±4)"
-                                                             : "(sim − exp) / √(s·sim + exp)  (σ; clamped at ±4)";
-  p.max_side_px = 300;
+  p.colour_label = r.sim_scale > 0.98 && r.sim_scale < 1.02 ? "(sim − exp) / √(sim + exp)  (σ)"
+                                                             : "(sim − exp) / √(s·sim + exp)  (σ)";
+  p.max_side_px = 380;
   WriteMap(residual_png, p);
 
   // Radial profiles in 1-px rings about the image centre (pixel centres at +0.5).

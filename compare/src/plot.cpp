@@ -161,15 +161,19 @@ void ColourBar(plstream& pls, double lo, double hi, const std::string& label) {
 /// colours lo..hi of the current cmap1.
 void DrawImage(plstream& pls, const Image& img, double x0, double x1, double y0, double y1, double lo,
                double hi) {
+  // plimagefr places its nx x ny values on the corners of an (nx - 1) x (ny - 1) grid of cells
+  // spanning [x0, x1] x [y0, y1] and fills each cell with its lower-left value: one value more
+  // per axis (the last column and top row repeated) gives every pixel its own cell.
   const int nx = img.width, ny = img.height;
-  std::vector<PLFLT> data(size_t(nx) * ny);
-  std::vector<const PLFLT*> cols(nx);
-  for (int x = 0; x < nx; ++x) {
-    for (int iy = 0; iy < ny; ++iy)
-      data[size_t(x) * ny + iy] = std::clamp(double(img.at(x, ny - 1 - iy)), lo, hi);
-    cols[x] = &data[size_t(x) * ny];
+  std::vector<PLFLT> data(size_t(nx + 1) * (ny + 1));
+  std::vector<const PLFLT*> cols(nx + 1);
+  for (int x = 0; x <= nx; ++x) {
+    for (int iy = 0; iy <= ny; ++iy)
+      data[size_t(x) * (ny + 1) + iy] =
+          std::clamp(double(img.at(std::min(x, nx - 1), ny - 1 - std::min(iy, ny - 1))), lo, hi);
+    cols[x] = &data[size_t(x) * (ny + 1)];
   }
-  pls.imagefr(cols.data(), nx, ny, x0, x1, y0, y1, lo, hi, lo, hi, nullptr, nullptr);
+  pls.imagefr(cols.data(), nx + 1, ny + 1, x0, x1, y0, y1, lo, hi, lo, hi, nullptr, nullptr);
 }
 
 std::pair<double, double> Range(const Image& img) {
@@ -316,7 +320,7 @@ void WriteMap(const std::string& path, const MapPlot& m) {
   std::vector<double> xe = m.x_edges, ye = m.y_edges;
   const bool pixel_axes = m.x_left == 0 && m.x_right == 0 && m.y_top == 0 && m.y_bottom == 0;
   const double xl = pixel_axes ? 0 : m.x_left, xr = pixel_axes ? w : m.x_right;
-  const double yt = pixel_axes ? h : m.y_top, yb = pixel_axes ? 0 : m.y_bottom;
+  const double yt = pixel_axes ? 0 : m.y_top, yb = pixel_axes ? h : m.y_bottom;  // rows count down
   if (xe.size() != size_t(w) + 1) {
     xe.resize(w + 1);
     for (int i = 0; i <= w; ++i) xe[i] = xl + (xr - xl) * i / w;
@@ -417,7 +421,7 @@ void WriteFalseColour(const std::string& path, const Image& img, double lo, doub
   m.image = img;
   m.lo = lo, m.hi = hi > lo ? hi : lo + 1;
   m.map = ColourMap::kViridis;
-  m.xlabel = "column", m.ylabel = "row (from the bottom)";
+  m.xlabel = "column", m.ylabel = "row";
   m.max_side_px = std::clamp(std::max(img.width, img.height) * zoom, 160, 640);
   WriteMap(path, m);
 }
@@ -427,7 +431,7 @@ void WriteDivergingMap(const std::string& path, const Image& img, double limit, 
   m.image = img;
   m.lo = -(limit > 0 ? limit : 1), m.hi = limit > 0 ? limit : 1;
   m.map = ColourMap::kDiverging;
-  m.xlabel = "column", m.ylabel = "row (from the bottom)";
+  m.xlabel = "column", m.ylabel = "row";
   m.colour_label = "standard deviations";
   m.max_side_px = std::clamp(std::max(img.width, img.height) * zoom, 160, 640);
   WriteMap(path, m);

@@ -65,7 +65,7 @@ struct MapMarker {
 struct MapPlot {
   Image image;  ///< image.at(x, y); row y = 0 is drawn at the top unless `rows_up`
   /// Axis coordinates of the left, right, top and bottom image edges (e.g. um at the object);
-  /// all 0: pixel edges (0 .. width, 0 .. height).
+  /// all 0: pixel edges, columns 0 .. width to the right and rows 0 .. height downwards.
   double x_left = 0, x_right = 0, y_top = 0, y_bottom = 0;
   /// Optional non-uniform cell edges along x (width + 1 values) and y (height + 1 values, for
   /// row 0 first); override the four edges above when given.

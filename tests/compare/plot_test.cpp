@@ -79,6 +79,26 @@ TEST(Plot, MapAndGridAreWritten) {
   EXPECT_FALSE(fs::exists(dir / "empty.png"));
 }
 
+// Each image pixel gets its own cell of its own colour (PLplot's plimagefr puts values on cell
+// corners; drawn naively a 2 x 2 image would show one cell).
+TEST(Plot, EveryPixelIsDrawn) {
+  testing::TempDir dir;
+  Image img(2, 2);
+  img.pixels = {0.f, 1.f / 3, 2.f / 3, 1.f};
+  MapPlot m;
+  m.image = img;
+  m.map = ColourMap::kGrey;
+  m.lo = 0, m.hi = 1;
+  m.max_side_px = 300;
+  WriteMap(dir / "m.png", m);
+  const Image out = ReadImage(dir / "m.png");  // 8-bit grey: the mean of R, G and B
+  size_t dark_grey = 0, light_grey = 0;
+  for (float v : out.pixels) dark_grey += std::abs(v - 85) <= 2, light_grey += std::abs(v - 170) <= 2;
+  // Each cell is about 150 x 150 px; the colour bar has a few pixels of each grey.
+  EXPECT_GT(dark_grey, 15000u);
+  EXPECT_GT(light_grey, 15000u);
+}
+
 // A figure that cannot be written (its folder is a file) is an error naming it, never a prompt
 // on stdin (what PLplot does when it cannot open its output) and never a partial file.
 TEST(Plot, UnwritablePathIsAnErrorNamingIt) {

@@ -7,7 +7,8 @@ library and Debian's `chromium` is needed. A page fails when
   - a script throws (Runtime.exceptionThrown) or logs an error (console.error, Log errors such as
     a resource that failed to load), or
   - an <img> did not load or decode (not complete, or naturalWidth 0), or the page has none
-    where --min-images asks for some.
+    where --min-images asks for some, or
+  - a link to a local file (e.g. index.html -> compare/report.html) points to no file.
 Each page gets a full-page screenshot (PNG) in --screenshots.
 
 Usage: browser_check.py [--screenshots DIR] [--min-images N] PAGE...
@@ -26,6 +27,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import urllib.parse
 
 SKIP = 77
 
@@ -128,6 +130,7 @@ IMAGE_CHECK = """(async () => {
     broken: imgs.filter(i => !i.complete || i.naturalWidth === 0)
                 .map(i => (i.alt || '') + ' ' + (i.src || '').slice(0, 60)),
     sizes: imgs.map(i => [i.naturalWidth, i.naturalHeight]),
+    links: Array.from(document.links).map(a => a.href).filter(h => h.startsWith('file:')),
     title: document.title,
   });
 })()"""
@@ -152,6 +155,10 @@ def check_page(browser, path, shot_path, min_images, width=1280):
     info = json.loads(res["result"]["value"])
     for b in info["broken"]:
         problems.append(f"image did not load or decode: {b}")
+    for link in info["links"]:
+        target_path = urllib.parse.unquote(urllib.parse.urlparse(link).path)
+        if not os.path.exists(target_path):
+            problems.append(f"link to a missing file: {link}")
     if info["count"] < min_images:
         problems.append(f"{info['count']} images, expected at least {min_images}")
     # Full-page screenshot: size the viewport to the content.
@@ -215,17 +222,20 @@ def self_test(directory):
                                        "<script>undefinedFunction();</script>")
     (d / "bad_image.html").write_text("<!doctype html><title>bad</title><img alt='broken' src='data:image/png;base64,AAAA'>")
     (d / "missing_image.html").write_text("<!doctype html><title>bad</title><img alt='missing' src='no_such_file.png'>")
+    (d / "broken_link.html").write_text(f"<!doctype html><title>bad</title><img src='data:image/png;base64,{png}'>"
+                                        "<a href='no_such_report.html'>report</a>")
     shots = d / "screenshots"
     if run([str(d / "good.html")], str(shots), 1) == SKIP:
         return SKIP
     if run([str(d / "good.html")], str(shots), 1) != 0:
         print("self-test: a good page was reported as broken")
         return 1
-    for bad in ("bad_script.html", "bad_image.html", "missing_image.html"):
+    for bad in ("bad_script.html", "bad_image.html", "missing_image.html", "broken_link.html"):
         if run([str(d / bad)], str(shots), 1) != 1:
             print(f"self-test: {bad} was not caught")
             return 1
-    print("self-test: the checker catches a script error, an undecodable and a missing image")
+    print("self-test: the checker catches a script error, an undecodable and a missing image, "
+          "and a link to a missing file")
     return 0
 
 

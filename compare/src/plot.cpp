@@ -11,6 +11,7 @@
 #include <fstream>
 #include <iterator>
 #include <memory>
+#include <mutex>
 #include <stdexcept>
 
 #include "raymatch/core/atomic_file.h"
@@ -69,7 +70,8 @@ bool WholePng(const fs::path& path) {
 /// (core/atomic_file.h) that Finish() checks and renames into place.
 class Figure {
  public:
-  Figure(const std::string& path, int width, int height, int nx_sub = 1, int ny_sub = 1) : path_(path) {
+  Figure(const std::string& path, int width, int height, int nx_sub = 1, int ny_sub = 1)
+      : lock_(Mutex()), path_(path) {
     if (!HavePngCairo())
       throw Error("PLplot has no pngcairo device: install plplot-driver-cairo (writing " + path + ")");
     if (!path_.parent_path().empty()) EnsureDirectory(path_.parent_path());
@@ -115,6 +117,13 @@ class Figure {
   }
 
  private:
+  /// PLplot's state (current stream, colour maps, driver table) is global: one figure at a time
+  /// in the process (the Python module writes reports with the GIL released).
+  static std::mutex& Mutex() {
+    static std::mutex m;
+    return m;
+  }
+  std::unique_lock<std::mutex> lock_;
   fs::path path_, tmp_;
   std::unique_ptr<plstream> pls_;
 };

@@ -7,6 +7,8 @@
 
 #include <cmath>
 #include <filesystem>
+#include <thread>
+#include <vector>
 
 #include "raymatch/core/image_io.h"
 #include "temp_dir.h"
@@ -97,6 +99,21 @@ TEST(Plot, EveryPixelIsDrawn) {
   // Each cell is about 150 x 150 px; the colour bar has a few pixels of each grey.
   EXPECT_GT(dark_grey, 15000u);
   EXPECT_GT(light_grey, 15000u);
+}
+
+// PLplot's state is global: figures written from several threads at once all come out whole
+// and the same as when written alone.
+TEST(Plot, ConcurrentFiguresAreWhole) {
+  testing::TempDir dir;
+  Series s;
+  for (int i = 0; i < 50; ++i) s.x.push_back(i), s.y.push_back(i * i);
+  WritePlot(dir / "alone.png", {s}, "t", "x", "y");
+  const Image alone = ReadImage(dir / "alone.png");
+  std::vector<std::thread> threads;
+  for (int t = 0; t < 4; ++t)
+    threads.emplace_back([&, t] { WritePlot(dir / ("t" + std::to_string(t) + ".png"), {s}, "t", "x", "y"); });
+  for (std::thread& t : threads) t.join();
+  for (int t = 0; t < 4; ++t) EXPECT_EQ(DifferentPixels(alone, ReadImage(dir / ("t" + std::to_string(t) + ".png"))), 0u) << t;
 }
 
 // A figure that cannot be written (its folder is a file) is an error naming it, never a prompt

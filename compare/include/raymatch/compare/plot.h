@@ -5,8 +5,8 @@
 // docs/figures.md says why PLplot and how each report figure is made.
 //
 // Figures are written atomically (a registered `*.partial-*` temporary, checked to be a whole
-// PNG, renamed into place: core/atomic_file.h). PLplot keeps global state per stream, so write
-// figures from one thread at a time. Throws raymatch::Error (a std::runtime_error) naming the
+// PNG, renamed into place: core/atomic_file.h). PLplot's state is global, so the helpers draw one
+// figure at a time in the process (a mutex; safe to call from several threads). Throws raymatch::Error (a std::runtime_error) naming the
 // file when it cannot be written (with the reason: disk full, no permission) or when PLplot's
 // cairo PNG device is not available.
 #include <array>

@@ -65,7 +65,7 @@ void Heatmap(const FocusScanResult& r, const MeasureScan& m, const std::string& 
   std::reverse(p.y_edges.begin(), p.y_edges.end());
   p.map = HigherIsBetter(m.measure) ? ColourMap::kViridis : ColourMap::kViridisReversed;
   p.title = std::string(MeasureName(m.measure)) + ": " + (m.passes ? "passes" : "fails") +
-            " (best match per experimental plane)";
+            (m.primary ? " (counts towards the verdict)" : " (informational, not in the verdict)");
   p.xlabel = "simulation defocus (µm)";
   p.ylabel = "experiment defocus (µm)";
   p.colour_label = MeasureAxisLabel(m.measure);
@@ -243,7 +243,7 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
     const std::string png = (d / ("heatmap_" + name + ".png")).string();
     Heatmap(r, m, png);
     html += "<h3>" + name + " <span class='" + (m.passes ? "pass'>passes" : "fail'>fails") +
-            "</span></h3>" + EmbeddedPng(png, name + " heatmap") + "<table><tr><th>exp z \\ sim z</th>";
+            "</span>" + (m.primary ? "" : " <small>(informational, not in the verdict)</small>") + "</h3>" + EmbeddedPng(png, name + " heatmap") + "<table><tr><th>exp z \\ sim z</th>";
     for (double z : r.sim_defocus_um) html += "<th>" + Fmt(z) + "</th>";
     html += "</tr>";
     for (size_t i = 0; i < m.matrix.size(); ++i) {

@@ -61,8 +61,11 @@ class Browser:
                 "--disable-gpu", "--no-first-run", "--no-default-browser-check",
                 "--disable-extensions", "--hide-scrollbars", "--mute-audio",
                 "--allow-file-access-from-files", f"--user-data-dir={profile_dir}", "about:blank"]
+        # Chromium's own log goes to a file: an unread pipe could fill and stall the browser.
+        self.log_path = os.path.join(profile_dir, "chromium.log")
+        self.log = open(self.log_path, "wb")
         self.proc = subprocess.Popen(args, pass_fds=(3, 4), preexec_fn=child_fds,
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                                     stdout=self.log, stderr=self.log)
         os.close(child_in)
         os.close(child_out)
         self.wfd, self.rfd = to_browser_w, from_browser_r
@@ -79,7 +82,8 @@ class Browser:
             if ready:
                 chunk = os.read(self.rfd, 1 << 20)
                 if not chunk:
-                    err = self.proc.stderr.read().decode(errors="replace") if self.proc.poll() is not None else ""
+                    with open(self.log_path, "rb") as f:
+                        err = f.read().decode(errors="replace")
                     raise RuntimeError("chromium closed the DevTools pipe\n" + err[-2000:])
                 self.buf += chunk
         msg, self.buf = self.buf.split(b"\0", 1)
@@ -120,6 +124,7 @@ class Browser:
             self.proc.wait()
         os.close(self.wfd)
         os.close(self.rfd)
+        self.log.close()
 
 
 IMAGE_CHECK = """(async () => {

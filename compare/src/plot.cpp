@@ -376,28 +376,44 @@ void WriteMap(const std::string& path, const MapPlot& m) {
 
 void WriteImageGrid(const std::string& path, const ImageGrid& g) {
   if (g.rows.empty() || g.rows[0].empty()) throw Error("WriteImageGrid: no images (" + path + ")");
-  const int nr = int(g.rows.size()), nc = int(g.rows[0].size());
+  const int nr = int(g.rows.size());
+  int nc = 0;
+  for (const auto& row : g.rows) nc = std::max(nc, int(row.size()));
   const int iw = g.rows[0][0].width, ih = g.rows[0][0].height;
   const int tw = std::max(iw, ih) == iw ? g.tile_px : std::max(20, g.tile_px * iw / ih);
   const int th = std::max(20, tw * ih / std::max(1, iw));
-  const int gap = 8, left = 130, right = 200, top = 96, bottom = 16;
+  auto labelled = [&](int r) {
+    if (r >= int(g.tile_labels.size())) return false;
+    for (const std::string& l : g.tile_labels[r])
+      if (!l.empty()) return true;
+    return false;
+  };
+  // Rows are 8 px apart, 26 px where the lower row has labels above its tiles.
+  const int gap = 8, label_gap = 26, left = 150, right = 200, top = 96, bottom = 16;
+  std::vector<int> row_top(nr);
+  int y = top;
+  for (int r = 0; r < nr; ++r) {
+    if (r > 0) y += labelled(r) ? label_gap : gap;
+    row_top[r] = y;
+    y += th;
+  }
   const int W = std::max(640, left + nc * tw + (nc - 1) * gap + right);
-  const int H = top + nr * th + (nr - 1) * gap + bottom;
+  const int H = y + bottom;
   Figure fig(path, W, H);
   plstream& pls = *fig;
   SetColourMap(pls, g.map);
   pls.adv(0);
   for (int r = 0; r < nr; ++r)
-    for (int c = 0; c < nc && c < int(g.rows[r].size()); ++c) {
-      const double x0 = left + c * (tw + gap), y1 = H - top - r * (th + gap);
+    for (int c = 0; c < int(g.rows[r].size()); ++c) {
+      const double x0 = left + c * (tw + gap), y1 = H - row_top[r];
       pls.vpor(x0 / W, (x0 + tw) / W, (y1 - th) / H, y1 / H);
       pls.wind(0, iw, 0, ih);
       DrawImage(pls, g.rows[r][c], 0, iw, 0, ih, g.lo, g.hi);
       pls.col0(kBlack);
       pls.box("bc", 0, 0, "bc", 0, 0);
       pls.schr(0, tw < 140 ? 0.8 : 1.0);
-      if (r == 0 && c < int(g.column_labels.size()))
-        pls.mtex("t", 0.6, 0.5, 0.5, Esc(g.column_labels[c]).c_str());
+      if (r < int(g.tile_labels.size()) && c < int(g.tile_labels[r].size()) && !g.tile_labels[r][c].empty())
+        pls.mtex("t", 0.6, 0.5, 0.5, Esc(g.tile_labels[r][c]).c_str());
       if (c == 0 && r < int(g.row_labels.size())) pls.mtex("lv", 0.6, 0.5, 1.0, Esc(g.row_labels[r]).c_str());
       pls.schr(0, 1.0);
     }

@@ -88,28 +88,34 @@ int NearestSim(const FocusScanResult& r, int i) {
   return best;
 }
 
-/// Experiment (top row) and simulation at the nearest defocus (bottom row), one grey scale.
+/// Experiment (upper row) above the simulation at the nearest defocus (lower row), one grey
+/// scale; at most 9 planes to a pair of rows, so that many planes wrap into further pairs.
 void Montage(const FocusScanResult& r, const std::string& path) {
+  constexpr int kPerRow = 9;
   ImageGrid g;
-  g.rows.resize(2);
-  for (int i = 0; i < int(r.exp_images.size()); ++i) {
+  const int n = int(r.exp_images.size());
+  for (int i = 0; i < n; ++i) {
+    if (i % kPerRow == 0) {
+      g.rows.emplace_back(), g.rows.emplace_back();
+      g.tile_labels.emplace_back(), g.tile_labels.emplace_back();
+      g.row_labels.push_back("experiment"), g.row_labels.push_back("simulation");
+    }
     const int j = NearestSim(r, i);
-    g.rows[0].push_back(r.exp_images[i]);
-    g.rows[1].push_back(r.sim_images[j]);
-    std::string label = "z = " + Um(r.exp_defocus_um[i]);
+    g.rows[g.rows.size() - 2].push_back(r.exp_images[i]);
+    g.rows.back().push_back(r.sim_images[j]);
+    std::string label = Um(r.exp_defocus_um[i]);
     if (r.sim_defocus_um[j] != r.exp_defocus_um[i]) label += " (sim " + Um(r.sim_defocus_um[j]) + ")";
-    g.column_labels.push_back(label);
+    g.tile_labels[g.tile_labels.size() - 2].push_back(label);
   }
-  g.row_labels = {"experiment", "simulation"};
   g.lo = 0, g.hi = r.data_range > 0 ? r.data_range : 1;
   g.map = ColourMap::kGrey;
   std::ostringstream t;
   t.precision(5);
-  t << "Experiment (top) and simulation (bottom)\none grey scale for all tiles: 0 to L = " << g.hi
-    << " photons per pixel";
+  t << "Experiment (upper row) and simulation (lower row), labelled by defocus\none grey scale for "
+       "all tiles: 0 to L = " << g.hi << " photons per pixel";
   g.title = t.str();
   g.colour_label = "photons per pixel";
-  g.tile_px = r.exp_images.size() > 7 ? 120 : 150;
+  g.tile_px = 120;
   WriteImageGrid(path, g);
 }
 

@@ -69,9 +69,9 @@ TEST(Plot, MapAndGridAreWritten) {
   WriteMap(dir / "m.png", m);
   EXPECT_GT(ReadImage(dir / "m.png").width, 32 * 10);  // scaled to max_side_px, with margins
   ImageGrid g;
-  g.rows = {{img, img, img}, {img, img, img}};
-  g.column_labels = {"a", "b", "c"};
-  g.row_labels = {"top", "bottom"};
+  g.rows = {{img, img, img}, {img, img, img}, {img}};  // a short last row (a montage's wrap)
+  g.tile_labels = {{"a", "b", "c"}, {}, {"d"}};
+  g.row_labels = {"top", "middle", "bottom"};
   g.lo = -16, g.hi = 16;
   g.title = "line one\nline two";
   WriteImageGrid(dir / "g.png", g);

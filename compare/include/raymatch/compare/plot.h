@@ -86,7 +86,8 @@ void WriteMap(const std::string& path, const MapPlot& plot);
 struct ImageGrid {
   std::vector<std::vector<Image>> rows;   ///< rows[r][c]; all images the same size
   std::vector<std::string> row_labels;    ///< one per row (left of the row)
-  std::vector<std::string> column_labels; ///< one per column (above the top row)
+  /// tile_labels[r][c] is written above tile (r, c); missing or empty: none.
+  std::vector<std::vector<std::string>> tile_labels;
   double lo = 0, hi = 1;
   ColourMap map = ColourMap::kGrey;
   std::string title;  ///< above the grid; '\n' starts a new line

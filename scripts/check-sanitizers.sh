@@ -9,8 +9,9 @@
 #
 # Usage: scripts/check-sanitizers.sh            (RAYMATCH_JOBS=N: build jobs, default 1)
 #        scripts/check-sanitizers.sh --no-build (reuse build/sanitize)
-# Takes about 15 min to build and 10 min to run on 2 cores. No suppressions: a report from a
-# Debian library would need one here with its reason written next to it.
+# Takes about 15 min to build and 10 min to run on 2 cores. Suppressions only for Debian
+# libraries, each with its reason: scripts/lsan-suppressions.txt (fontconfig, cairo and libltdl
+# under PLplot's figure device).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -18,6 +19,7 @@ cd "$(dirname "$0")/.."
 # stack trace and (with -fno-sanitize-recover) aborts.
 export ASAN_OPTIONS="halt_on_error=1:detect_leaks=1:abort_on_error=0:strict_string_checks=1:detect_stack_use_after_return=1:check_initialization_order=1"
 export UBSAN_OPTIONS="halt_on_error=1:print_stacktrace=1"
+export LSAN_OPTIONS="suppressions=$PWD/scripts/lsan-suppressions.txt:print_suppressions=0"
 
 if [ "${1:-}" != "--no-build" ]; then
   cmake --preset sanitize >/dev/null

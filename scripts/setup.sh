@@ -18,6 +18,8 @@ PACKAGES=(
   libgtest-dev libgmock-dev libbenchmark-dev
   python3 python3-numpy python3-scipy python3-skimage python3-tifffile  # test references
   pybind11-dev python3-dev python3-pytest  # the Python module (RAYMATCH_PYTHON) and its tests
+  libplplot-dev plplot-driver-cairo fonts-dejavu-core  # report figures (docs/figures.md)
+  chromium  # report_browser test: reports opened in headless Chromium (skipped without it)
 )
 
 missing=()

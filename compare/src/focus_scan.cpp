@@ -366,8 +366,9 @@ FocusScanResult RunFocusScan(const Stack& exp, const Stack& sim, const FocusScan
   }
   int primary = 0, failed = 0;
   std::string failed_names;
-  for (const MeasureScan& ms : r.measures)
+  for (MeasureScan& ms : r.measures)
     if (std::count(o.primary.begin(), o.primary.end(), ms.measure)) {
+      ms.primary = true;
       ++primary;
       if (!ms.passes) ++failed, failed_names += std::string(failed_names.empty() ? "" : ", ") + MeasureName(ms.measure);
     }

@@ -3,13 +3,12 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
-#include <opencv2/imgproc.hpp>
 #include <sstream>
 
 #include "raymatch/compare/focus_scan.h"
+#include "raymatch/compare/plot.h"
 #include "raymatch/core/atomic_file.h"
 #include "raymatch/core/html.h"
-#include "bgr_png.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/provenance.h"
 
@@ -20,52 +19,169 @@ namespace raymatch::compare {
 namespace {
 
 
-/// Heatmap of a matrix (rows: experiment, columns: simulation), viridis, best cells outlined.
-void Heatmap(const MeasureScan& m, const std::string& path) {
-  const int ne = int(m.matrix.size()), ns = int(m.matrix[0].size()), cell = 28;
-  double lo = 1e300, hi = -1e300;
-  for (auto& row : m.matrix)
-    for (double v : row) lo = std::min(lo, v), hi = std::max(hi, v);
-  cv::Mat g(ne, ns, CV_8U);
-  for (int i = 0; i < ne; ++i)
-    for (int j = 0; j < ns; ++j) {
-      double t = hi > lo ? (m.matrix[i][j] - lo) / (hi - lo) : 1.0;
-      if (!HigherIsBetter(m.measure)) t = 1 - t;  // bright = good for every measure
-      g.at<uchar>(i, j) = cv::saturate_cast<uchar>(t * 255);
-    }
-  cv::Mat c, big;
-  cv::applyColorMap(g, c, cv::COLORMAP_VIRIDIS);
-  cv::resize(c, big, cv::Size(ns * cell, ne * cell), 0, 0, cv::INTER_NEAREST);
-  for (int i = 0; i < ne; ++i) {
-    cv::rectangle(big, cv::Rect(m.best[i] * cell + 2, i * cell + 2, cell - 4, cell - 4),
-                  cv::Scalar(255, 255, 255), 2);
-    cv::rectangle(big, cv::Rect(m.expected[i] * cell + 9, i * cell + 9, cell - 18, cell - 18),
-                  cv::Scalar(0, 0, 255), cv::FILLED);
+/// The colour bar's label: the measure's name, its unit and which way is better.
+std::string MeasureAxisLabel(Measure m) {
+  switch (m) {
+    case Measure::kMse: return "MSE (photons² per pixel; lower = better)";
+    case Measure::kSsim: return "SSIM (dimensionless; 1 = identical)";
+    case Measure::kMsSsim: return "MS-SSIM (dimensionless; 1 = identical)";
+    case Measure::kCwSsim: return "CW-SSIM (dimensionless; 1 = identical)";
+    case Measure::kPoissonChi2: return "Poisson χ² per pixel (dimensionless; 1 = shot noise)";
   }
-  WriteBgrPng(path, big);
+  return MeasureName(m);
 }
 
-/// Experiment (top row) and simulation at the nearest defocus (bottom row), same grey scale.
-void Montage(const FocusScanResult& r, const std::string& path) {
-  const int w = r.exp_images[0].width, h = r.exp_images[0].height, n = int(r.exp_images.size());
-  cv::Mat out(2 * h + 4, n * (w + 4), CV_8UC3, cv::Scalar(40, 40, 40));
-  const double L = r.data_range;
-  for (int i = 0; i < n; ++i) {
-    int best = 0;
-    for (size_t j = 1; j < r.sim_defocus_um.size(); ++j)
-      if (std::abs(r.sim_defocus_um[j] - r.exp_defocus_um[i]) <
-          std::abs(r.sim_defocus_um[best] - r.exp_defocus_um[i]))
-        best = int(j);
-    for (int row = 0; row < 2; ++row) {
-      const Image& img = row == 0 ? r.exp_images[i] : r.sim_images[best];
-      for (int y = 0; y < h; ++y)
-        for (int x = 0; x < w; ++x) {
-          const uchar v = cv::saturate_cast<uchar>(img.at(x, y) / L * 255);
-          out.at<cv::Vec3b>(row * (h + 4) + y, i * (w + 4) + x) = cv::Vec3b(v, v, v);
-        }
-    }
+/// Cell edges around sorted centres (half-way between neighbours; the ends extended by half a
+/// step). Listed in the order given.
+std::vector<double> Edges(const std::vector<double>& z) {
+  const size_t n = z.size();
+  std::vector<double> e(n + 1);
+  if (n == 1) return {z[0] - 2.5, z[0] + 2.5};
+  for (size_t i = 1; i < n; ++i) e[i] = 0.5 * (z[i - 1] + z[i]);
+  e[0] = z[0] - 0.5 * (z[1] - z[0]);
+  e[n] = z[n - 1] + 0.5 * (z[n - 1] - z[n - 2]);
+  return e;
+}
+
+std::string Um(double z) {
+  std::ostringstream os;
+  os.precision(4);
+  os << (z > 0 ? "+" : "") << z << " µm";
+  return os.str();
+}
+
+/// Heatmap of a matrix: x = simulation defocus, y = experiment defocus (both um, increasing to
+/// the right and upwards), the measure's values on a colour bar (viridis, reversed for
+/// distances so that bright is always the better match), each row's best match boxed and the
+/// cell of the same defocus dotted, the measure's verdict in the title.
+void Heatmap(const FocusScanResult& r, const MeasureScan& m, const std::string& path) {
+  const int ne = int(m.matrix.size()), ns = int(m.matrix[0].size());
+  MapPlot p;
+  p.image = Image(ns, ne);
+  for (int i = 0; i < ne; ++i)  // image row 0 (top) = the last experiment plane
+    for (int j = 0; j < ns; ++j) p.image.at(j, ne - 1 - i) = float(m.matrix[i][j]);
+  p.x_edges = Edges(r.sim_defocus_um);
+  p.y_edges = Edges(r.exp_defocus_um);
+  std::reverse(p.y_edges.begin(), p.y_edges.end());
+  p.map = HigherIsBetter(m.measure) ? ColourMap::kViridis : ColourMap::kViridisReversed;
+  p.title = std::string(MeasureName(m.measure)) + ": " + (m.passes ? "passes" : "fails") +
+            (m.primary ? " (counts towards the verdict)" : " (informational, not in the verdict)");
+  p.xlabel = "simulation defocus (µm)";
+  p.ylabel = "experiment defocus (µm)";
+  p.colour_label = MeasureAxisLabel(m.measure);
+  for (int i = 0; i < ne; ++i) {
+    p.markers.push_back({r.sim_defocus_um[m.expected[i]], r.exp_defocus_um[i], false});
+    p.markers.push_back({r.sim_defocus_um[m.best[i]], r.exp_defocus_um[i], true});
   }
-  WriteBgrPng(path, out);
+  p.marker_legend = "white box: best match in the row; red dot: same defocus";
+  p.max_side_px = std::clamp(40 * std::max(ne, ns), 280, 520);
+  WriteMap(path, p);
+}
+
+/// The simulation plane nearest in defocus to experiment plane i.
+int NearestSim(const FocusScanResult& r, int i) {
+  int best = 0;
+  for (size_t j = 1; j < r.sim_defocus_um.size(); ++j)
+    if (std::abs(r.sim_defocus_um[j] - r.exp_defocus_um[i]) <
+        std::abs(r.sim_defocus_um[best] - r.exp_defocus_um[i]))
+      best = int(j);
+  return best;
+}
+
+/// Experiment (upper row) above the simulation at the nearest defocus (lower row), one grey
+/// scale; at most 9 planes to a pair of rows, so that many planes wrap into further pairs.
+void Montage(const FocusScanResult& r, const std::string& path) {
+  constexpr int kPerRow = 9;
+  ImageGrid g;
+  const int n = int(r.exp_images.size());
+  for (int i = 0; i < n; ++i) {
+    if (i % kPerRow == 0) {
+      g.rows.emplace_back(), g.rows.emplace_back();
+      g.tile_labels.emplace_back(), g.tile_labels.emplace_back();
+      g.row_labels.push_back("experiment"), g.row_labels.push_back("simulation");
+    }
+    const int j = NearestSim(r, i);
+    g.rows[g.rows.size() - 2].push_back(r.exp_images[i]);
+    g.rows.back().push_back(r.sim_images[j]);
+    std::string label = Um(r.exp_defocus_um[i]);
+    if (r.sim_defocus_um[j] != r.exp_defocus_um[i]) label += " (sim " + Um(r.sim_defocus_um[j]) + ")";
+    g.tile_labels[g.tile_labels.size() - 2].push_back(label);
+  }
+  g.lo = 0, g.hi = r.data_range > 0 ? r.data_range : 1;
+  g.map = ColourMap::kGrey;
+  std::ostringstream t;
+  t.precision(5);
+  t << "Experiment (upper row) and simulation (lower row), labelled by defocus\none grey scale for "
+       "all tiles: 0 to L = " << g.hi << " photons per pixel";
+  g.title = t.str();
+  g.colour_label = "photons per pixel";
+  g.tile_px = 120;
+  WriteImageGrid(path, g);
+}
+
+/// Per experimental plane: the residual map (sim - exp) / sqrt(sim + exp) and the radial
+/// profiles (azimuthal means about the image centre) with one pixel's shot-noise band.
+/// Returns the mean square residual.
+double PlaneFigures(const FocusScanResult& r, int i, const std::string& residual_png,
+                    const std::string& profile_png) {
+  const Image& e = r.exp_images[i];
+  const Image& s = r.sim_images[NearestSim(r, i)];
+  const int w = e.width, h = e.height;
+  MapPlot p;
+  p.image = Image(w, h);
+  double ms = 0;
+  for (int y = 0; y < h; ++y)
+    for (int x = 0; x < w; ++x) {
+      // Shot-noise variance: exp for the experiment, sim_scale x sim for the simulation scaled
+      // by sim_scale (sim + exp when photon-matched, sim_scale = 1).
+      const double a = s.at(x, y), b = e.at(x, y), d = r.sim_scale * a + b;
+      const double v = d > 0 ? (a - b) / std::sqrt(d) : 0.0;
+      p.image.at(x, y) = float(v);
+      ms += v * v;
+    }
+  ms /= std::max(1, w * h);
+  p.x_left = -0.5 * w, p.x_right = 0.5 * w, p.y_top = 0.5 * h, p.y_bottom = -0.5 * h;
+  p.lo = -4, p.hi = 4;
+  p.map = ColourMap::kDiverging;
+  std::ostringstream t;
+  t.precision(3);
+  t << "z = " << Um(r.exp_defocus_um[i]) << ": residual, mean square " << ms;
+  if (!(r.sim_scale > 0.98 && r.sim_scale < 1.02)) t << "; s = " << r.sim_scale;
+  p.title = t.str();
+  p.xlabel = "x (px from the image centre)";
+  p.ylabel = "y (px from the image centre)";
+  p.colour_label = r.sim_scale > 0.98 && r.sim_scale < 1.02 ? "(sim − exp) / √(sim + exp)  (σ)"
+                                                             : "(sim − exp) / √(s·sim + exp)  (σ)";
+  p.max_side_px = 380;
+  WriteMap(residual_png, p);
+
+  // Radial profiles in 1-px rings about the image centre (pixel centres at +0.5).
+  const int nr = std::max(1, std::min(w, h) / 2);
+  std::vector<double> se(nr, 0), ss(nr, 0), n(nr, 0);
+  for (int y = 0; y < h; ++y)
+    for (int x = 0; x < w; ++x) {
+      const int k = int(std::hypot(x + 0.5 - 0.5 * w, y + 0.5 - 0.5 * h));
+      if (k < nr) se[k] += e.at(x, y), ss[k] += s.at(x, y), n[k] += 1;
+    }
+  Series ex, sim;
+  ex.label = "experiment ± 1σ shot noise of one pixel (√N)";
+  sim.label = "simulation ± 1σ shot noise of one pixel";
+  for (int k = 0; k < nr; ++k) {
+    if (n[k] == 0) continue;
+    const double me = se[k] / n[k], msim = ss[k] / n[k];
+    // The simulation was scaled by sim_scale: its variance is sim_scale times its value.
+    const double sde = std::sqrt(std::max(0.0, me)), sds = std::sqrt(std::max(0.0, r.sim_scale * msim));
+    for (Series* q : {&ex, &sim}) q->x.push_back(k + 0.5);
+    ex.y.push_back(me), ex.band_lo.push_back(me - sde), ex.band_hi.push_back(me + sde);
+    sim.y.push_back(msim), sim.band_lo.push_back(msim - sds), sim.band_hi.push_back(msim + sds);
+  }
+  PlotPanel panel;
+  panel.series = {ex, sim};
+  panel.title = "z = " + Um(r.exp_defocus_um[i]) + ": radial profile (azimuthal mean)";
+  panel.xlabel = "radius from the image centre (px)";
+  panel.ylabel = "photons per pixel";
+  WritePlot(profile_png, {panel}, 560, 380);
+  return ms;
 }
 
 std::string Fmt(double v) {
@@ -99,7 +215,7 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
       "</title><style>body{font-family:sans-serif;margin:2em;max-width:1100px}"
       "table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 6px;"
       "font-size:12px;text-align:right}.pass{color:#070}.fail{color:#b00}"
-      "img{image-rendering:pixelated;max-width:100%}</style></head><body>"
+      "img{max-width:100%}table.planes td{border:none;vertical-align:top}</style></head><body>"
       "<h1>" + title + "</h1>";
   const char* verdict = r.verdict == Verdict::kPass ? "pass" : r.verdict == Verdict::kWarning ? "warning" : "fail";
   html += "<p><b>Verdict: <span class='" + std::string(r.verdict == Verdict::kPass ? "pass" : "fail") +
@@ -110,11 +226,14 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
           std::to_string(r.cw_ssim.orientations) + " orientations, K " + Fmt(r.cw_ssim.k) +
           "; " + r.RegistrationSummary() + "; simulation scaled by " + Fmt(r.sim_scale) + ".</p>";
   Montage(r, (d / "montage.png").string());
-  html += "<h2>Experiment (top) and simulation (bottom)</h2><p>Defocus (um): ";
-  for (double z : r.exp_defocus_um) html += Fmt(z) + " ";
-  html += "</p>" + EmbeddedPng((d / "montage.png").string());
-  html += "<h2>Cross-similarity (rows: experiment z, columns: simulation z)</h2>"
-          "<p>Bright = better match; white box = best match; red dot = same defocus.</p>";
+  html += "<h2>Experiment (top) and simulation (bottom)</h2><p>Each tile is labelled by its "
+          "defocus; one grey scale for all tiles, 0 to L = " + Fmt(r.data_range) +
+          " photons per pixel (the simulation scaled by " + Fmt(r.sim_scale) + ").</p>" +
+          EmbeddedPng((d / "montage.png").string(), "experiment above simulation per defocus");
+  html += "<h2>Cross-similarity</h2><p>Rows: experiment defocus, columns: simulation defocus. "
+          "Bright = better match for every measure (the colour bar gives the measure's values); "
+          "white box = best match in the row; red dot = the simulation plane of the same "
+          "defocus.</p>";
   for (const MeasureScan& m : r.measures) {
     const std::string name = MeasureName(m.measure);
     std::ostringstream csv;
@@ -128,9 +247,9 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
     }
     WriteTextFileAtomic(d / (name + "_matrix.csv"), csv.str());
     const std::string png = (d / ("heatmap_" + name + ".png")).string();
-    Heatmap(m, png);
+    Heatmap(r, m, png);
     html += "<h3>" + name + " <span class='" + (m.passes ? "pass'>passes" : "fail'>fails") +
-            "</span></h3>" + EmbeddedPng(png) + "<table><tr><th>exp z \\ sim z</th>";
+            "</span>" + (m.primary ? "" : " <small>(informational, not in the verdict)</small>") + "</h3>" + EmbeddedPng(png, name + " heatmap") + "<table><tr><th>exp z \\ sim z</th>";
     for (double z : r.sim_defocus_um) html += "<th>" + Fmt(z) + "</th>";
     html += "</tr>";
     for (size_t i = 0; i < m.matrix.size(); ++i) {
@@ -142,6 +261,22 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
     }
     html += "</table>";
   }
+  html += "<h2>Per plane: residuals and radial profiles</h2><p>Left: (sim &minus; exp) / "
+          "&radic;(s&middot;sim + exp) per pixel, in shot-noise standard deviations (blue: "
+          "simulation too dark, red: too bright; clamped at &plusmn;4), where s = " + Fmt(r.sim_scale) +
+          " is the factor the simulation was scaled by (s = 1 when photon-matched: (sim &minus; "
+          "exp) / &radic;(sim + exp)). Right: azimuthal means about the image "
+          "centre with one pixel's &plusmn;1&sigma; shot-noise band. Each experimental plane is "
+          "paired with the simulation plane nearest in defocus.</p><table class='planes'>";
+  for (int i = 0; i < int(r.exp_images.size()); ++i) {
+    const std::string res = (d / ("plane_" + std::to_string(i) + "_residual.png")).string();
+    const std::string prof = (d / ("plane_" + std::to_string(i) + "_profile.png")).string();
+    PlaneFigures(r, i, res, prof);
+    html += "<tr><td>" + EmbeddedPng(res, "residual at " + Fmt(r.exp_defocus_um[i]) + " um") +
+            "</td><td>" + EmbeddedPng(prof, "radial profile at " + Fmt(r.exp_defocus_um[i]) + " um") +
+            "</td></tr>";
+  }
+  html += "</table>";
   html += "<p style='color:#777'>raymatch compare-scan, " + UtcTimestamp() + ": " + CommandLine() +
           "</p></body></html>\n";
   const std::string report = (d / "report.html").string();

@@ -19,7 +19,6 @@ namespace fs = std::filesystem;
 
 namespace raymatch::pipeline {
 using compare::Series;
-using compare::WriteFalseColour;
 using compare::WritePlot;
 
 namespace {
@@ -115,18 +114,33 @@ AccuracyResult RunAccuracyStudy(const AccuracyOptions& o) {
                             {"defocus_um", o.defocus_um}, {"photon_matched_rays", full},
                             {"measures", res.measures}, {"rows", rows}};
   WriteTextFileAtomic(fs::path(o.output_dir) / "accuracy.json", j.dump(2) + "\n");
-  std::vector<Series> series(exp_img.empty() ? 1 : 2);
+  // Accuracy against time: MS-SSIM and the Poisson chi^2 per pixel (both measures), against the
+  // reference and, when given, the experiment, over the tracing time of each ray fraction.
+  compare::PlotPanel ms, chi;
+  ms.title = "MS-SSIM against tracing time (one point per ray fraction 1, 1/2, 1/4, ...)";
+  ms.ylabel = "MS-SSIM (dimensionless; 1 = identical)";
+  chi.title = "Poisson χ² per pixel against tracing time";
+  chi.ylabel = "χ² per pixel (dimensionless)";
+  for (compare::PlotPanel* p : {&ms, &chi}) {
+    p->xlabel = "tracing time (s)";
+    p->log_x = true;
+    p->series.resize(exp_img.empty() ? 1 : 2);
+    for (compare::Series& s : p->series) s.points = s.joined = true;
+    std::ostringstream ref;
+    ref << "vs the reference (" << o.reference_factor << " x the photon-matched rays)";
+    p->series[0].label = ref.str();
+    if (p->series.size() > 1) p->series[1].label = "vs the experiment";
+  }
   for (const AccuracyRow& r : res.rows) {
-    series[0].x.push_back(std::log2(r.fraction));
-    series[0].y.push_back(r.vs_reference[2]);
-    if (series.size() > 1) {
-      series[1].x.push_back(std::log2(r.fraction));
-      series[1].y.push_back(r.vs_experiment[2]);
+    const double t = std::max(r.seconds, 1e-6);
+    for (compare::PlotPanel* p : {&ms, &chi}) {
+      const size_t k = p == &ms ? 2 : 4;
+      p->series[0].x.push_back(t), p->series[0].y.push_back(r.vs_reference[k]);
+      if (p->series.size() > 1) p->series[1].x.push_back(t), p->series[1].y.push_back(r.vs_experiment[k]);
     }
   }
   res.plot = (fs::path(o.output_dir) / "accuracy.png").string();
-  WritePlot(res.plot, series, "MS-SSIM (blue: vs reference, red: vs experiment)",
-            "log2(ray fraction)", "MS-SSIM");
+  WritePlot(res.plot, {ms, chi}, 760, 400);
   return res;
 }
 

@@ -29,7 +29,6 @@ namespace fs = std::filesystem;
 
 namespace raymatch::pipeline {
 using compare::Series;
-using compare::WriteFalseColour;
 using compare::WritePlot;
 
 PipelineFile ReadPipelineFile(const std::string& path) {
@@ -160,7 +159,7 @@ bool Reusable(const fs::path& stamp, const std::string& inputs, const std::vecto
   return true;
 }
 
-std::string Img(const std::string& png) { return EmbeddedPng(png); }
+std::string Img(const std::string& png, const std::string& alt = "") { return EmbeddedPng(png, alt); }
 
 }  // namespace
 
@@ -325,7 +324,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
       hh << "<h2>Non-spherical object (mesh), in focus</h2><p>" << image << " vs a simulation of "
          << mesh << ":";
       for (const auto& m : mr2.measures) hh << " " << compare::MeasureName(m.measure) << " = " << m.matrix[0][0] << ";";
-      hh << "</p>" << Img((out / "mesh_object/compare/montage.png").string());
+      hh << "</p>" << Img((out / "mesh_object/compare/montage.png").string(), "mesh object montage");
       merging_html = hh.str();
     });
   }
@@ -361,47 +360,91 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   // 5. Report.
   const fs::path fig = out / "figures";
   EnsureDirectory(fig);
-  WriteFalseColour((fig / "angular_map.png").string(), cal.angular_map, 4);
+  {
+    // Angular map over direction cosines (u right, v up), relative to its maximum.
+    compare::MapPlot p;
+    p.image = cal.angular_map;
+    double mx = 0;
+    for (float v : p.image.pixels) mx = std::max(mx, double(v));
+    if (mx > 0)
+      for (float& v : p.image.pixels) v = float(v / mx);
+    p.lo = 0, p.hi = 1;
+    p.x_left = -cal.angular_extent, p.x_right = cal.angular_extent;
+    p.y_top = cal.angular_extent, p.y_bottom = -cal.angular_extent;
+    p.title = "light field: angular radiance";
+    p.xlabel = "direction cosine u (x, right)";
+    p.ylabel = "direction cosine v (y, up)";
+    p.colour_label = "radiance (relative to the maximum)";
+    p.max_side_px = 360;
+    compare::WriteMap((fig / "angular_map.png").string(), p);
+  }
   std::string spatial_html;
   if (!cal.spatial_map.empty()) {
-    WriteFalseColour((fig / "spatial_map.png").string(), cal.spatial_map, 8);
-    std::ostringstream os;
-    os << "<p>Spatial map (relative irradiance at the object plane, 0 to its maximum; x right, y up) over "
-       << cal.field_size_um[0] << " x " << cal.field_size_um[1] << " um, from the flat field:</p>"
-       << Img((fig / "spatial_map.png").string());
-    spatial_html = os.str();
+    compare::MapPlot p;
+    p.image = cal.spatial_map;
+    double mx = 0;
+    for (float v : p.image.pixels) mx = std::max(mx, double(v));
+    p.lo = 0, p.hi = mx > 0 ? mx : 1;
+    p.x_left = -0.5 * cal.field_size_um[0], p.x_right = 0.5 * cal.field_size_um[0];
+    p.y_top = 0.5 * cal.field_size_um[1], p.y_bottom = -0.5 * cal.field_size_um[1];
+    p.title = "light field: spatial map at the object plane (from the flat field)";
+    p.xlabel = "x (µm)";
+    p.ylabel = "y (µm)";
+    p.colour_label = "relative irradiance";
+    p.max_side_px = 360;
+    compare::WriteMap((fig / "spatial_map.png").string(), p);
+    spatial_html = "<p>Spatial map: relative irradiance at the object plane from the flat field.</p>" +
+                   Img((fig / "spatial_map.png").string(), "spatial map");
   }
   {
+    // Azimuthal mean in rings of one map pixel, with the standard error of each ring's mean.
     const Image& m = cal.angular_map;
     const int n = m.width;
-    std::vector<double> sum_r(n / 2, 0), cnt(n / 2, 0);
+    std::vector<double> sum_r(n / 2, 0), sum2(n / 2, 0), cnt(n / 2, 0);
     for (int y = 0; y < n; ++y)
       for (int x = 0; x < n; ++x) {
         const double u = (2 * (x + 0.5) / n - 1), vv = (1 - 2 * (y + 0.5) / n);
         const int k = int(std::hypot(u, vv) * n / 2);
-        if (k < n / 2) sum_r[k] += m.at(x, y), cnt[k] += 1;
+        if (k < n / 2) sum_r[k] += m.at(x, y), sum2[k] += double(m.at(x, y)) * m.at(x, y), cnt[k] += 1;
       }
-    Series s;
-    for (int k = 0; k < n / 2; ++k)
-      if (cnt[k] > 0) {
-        s.x.push_back(std::asin(std::min(1.0, (k + 0.5) / (n / 2) * cal.angular_extent)) * 180 / M_PI);
-        s.y.push_back(sum_r[k] / cnt[k]);
-      }
-    const double mx = *std::max_element(s.y.begin(), s.y.end());
-    for (double& y : s.y) y /= mx;
-    WritePlot((fig / "radial_profile.png").string(), {s}, "light field: radial profile (azimuthal mean)",
-              "angle (deg)", "radiance (rel.)");
-  }
-  {
     Series s;
     s.points = true;
+    s.label = "azimuthal mean ± 1 standard error";
+    double mx = 0;
+    for (int k = 0; k < n / 2; ++k)
+      if (cnt[k] > 0) mx = std::max(mx, sum_r[k] / cnt[k]);
+    for (int k = 0; k < n / 2; ++k)
+      if (cnt[k] > 0) {
+        const double mean = sum_r[k] / cnt[k];
+        const double var = cnt[k] > 1 ? std::max(0.0, (sum2[k] - cnt[k] * mean * mean) / (cnt[k] - 1)) : 0.0;
+        s.x.push_back(std::asin(std::min(1.0, (k + 0.5) / (n / 2) * cal.angular_extent)) * 180 / M_PI);
+        s.y.push_back(mx > 0 ? mean / mx : mean);
+        s.yerr.push_back((mx > 0 ? 1 / mx : 1) * std::sqrt(var / cnt[k]));
+      }
+    compare::PlotPanel p;
+    p.series = {s};
+    p.title = "light field: radial profile (cone edge " + std::to_string(cal.cone_half_angle_deg).substr(0, 5) + "°)";
+    p.xlabel = "angle to the optical axis (degrees)";
+    p.ylabel = "radiance (relative to the maximum)";
+    WritePlot((fig / "radial_profile.png").string(), {p}, 560, 380);
+  }
+  {
+    // Zone transmissions against the zone's radius on the corrector (mid-ring), +-1 sigma.
+    Series s;
+    s.points = true;
+    s.label = "transmission ± 1σ (fit)";
+    const bool radii = cal.ring_outer_mm.size() == cal.transmissions.size();
     for (size_t j = 0; j < cal.transmissions.size(); ++j) {
-      s.x.push_back(double(j));
+      s.x.push_back(radii ? 0.5 * ((j ? cal.ring_outer_mm[j - 1] : 0.0) + cal.ring_outer_mm[j]) : double(j));
       s.y.push_back(cal.transmissions[j]);
-      s.yerr.push_back(cal.transmission_sigma[j]);
+      s.yerr.push_back(j < cal.transmission_sigma.size() ? cal.transmission_sigma[j] : 0.0);
     }
-    WritePlot((fig / "transmissions.png").string(), {s}, "corrector zone transmissions (+- 1 sigma)",
-              "zone (0 = central disc)", "T");
+    compare::PlotPanel p;
+    p.series = {s};
+    p.title = "corrector: zone transmissions";
+    p.xlabel = radii ? "zone mid-radius on the corrector (mm)" : "zone (0 = central disc)";
+    p.ylabel = "transmission T (fraction)";
+    WritePlot((fig / "transmissions.png").string(), {p}, 560, 380);
   }
   std::ostringstream h;
   h.precision(4);
@@ -413,14 +456,19 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     << "</code></p><h2>Verdict: <span class='" << (fr.verdict == compare::Verdict::kPass ? "pass'>pass" : "fail'>" + std::string(fr.verdict == compare::Verdict::kWarning ? "warning" : "fail"))
     << "</span></h2><p>" << fr.message << "</p>"
     << "<h2>Measured light field</h2><pre>" << lf_report << "</pre>"
-    << Img((fig / "angular_map.png").string()) << " " << Img((fig / "radial_profile.png").string())
-    << "<p>Angular map over direction cosines (u right, v up), +-" << cal.angular_extent << ".</p>"
+    << Img((fig / "angular_map.png").string(), "angular map") << " "
+    << Img((fig / "radial_profile.png").string(), "light-field radial profile")
+    << "<p>Angular map over direction cosines (u right, v up), +-" << cal.angular_extent
+    << "; radial profile: azimuthal means in rings of one map pixel, error bars one standard error "
+       "of each ring's mean.</p>"
     << spatial_html
-    << "<h2>Corrector</h2><pre>" << co_report << "</pre>" << Img((fig / "transmissions.png").string())
+    << "<h2>Corrector</h2><pre>" << co_report << "</pre>" << Img((fig / "transmissions.png").string(), "corrector transmissions")
+    << "<p>Error bars: one standard deviation from the fit's covariance.</p>"
     << "<h2>Experiment (top) and simulation (bottom)</h2><p>Exposure recovered from the "
        "background: " << sum.photons_per_pixel << " photons per pixel; simulated with ray fraction "
     << frac << ". " << fr.RegistrationSummary() << ".</p>"
-    << Img((out / "compare/montage.png").string())
+    << Img((out / "compare/montage.png").string(), "montage")
+    << "<p>Residual maps and radial profiles per plane: <a href='compare/report.html'>compare/report.html</a>.</p>"
     << "<h2>Focus-scan test</h2><table><tr><th>measure</th><th>verdict</th><th>best simulated z per experimental z (um)</th></tr>";
   for (size_t i = 0; i < fr.measures.size(); ++i) {
     h << "<tr><td>" << sum.measures[i] << "</td><td class='" << (fr.measures[i].passes ? "pass'>pass" : "fail'>fail") << "</td><td>";
@@ -431,7 +479,8 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   h << merging_html << fit_html;
   for (const auto& m : fr.measures)
     h << "<h3>" << compare::MeasureName(m.measure) << "</h3>"
-      << Img((out / ("compare/heatmap_" + std::string(compare::MeasureName(m.measure)) + ".png")).string());
+      << Img((out / ("compare/heatmap_" + std::string(compare::MeasureName(m.measure)) + ".png")).string(),
+             std::string(compare::MeasureName(m.measure)) + " heatmap");
   h << "<h2>Timing</h2><table>";
   for (const auto& [name, s] : sum.step_seconds) h << "<tr><td>" << name << "</td><td>" << s << " s</td></tr>";
   for (const auto& r : sum.reused) h << "<tr><td>" << r << "</td><td>reused (inputs unchanged)</td></tr>";

@@ -141,8 +141,13 @@ TEST(FocusScan, ReportFilesAreWritten) {
   std::ifstream in(report);
   std::stringstream ss;
   ss << in.rdbuf();
-  EXPECT_NE(ss.str().find("data:image/png;base64,"), std::string::npos);
-  for (const char* f : {"compare_scan.json", "best_match.csv", "mse_matrix.csv", "heatmap_ms_ssim.png", "montage.png"})
+  // Every figure embedded: the montage, one heatmap per measure, a residual map and a radial
+  // profile per experimental plane.
+  size_t embedded = 0;
+  for (size_t at = 0; (at = ss.str().find("data:image/png;base64,", at)) != std::string::npos; ++at) ++embedded;
+  EXPECT_EQ(embedded, 1 + r.measures.size() + 2 * zs.size());
+  for (const char* f : {"compare_scan.json", "best_match.csv", "mse_matrix.csv", "heatmap_ms_ssim.png", "montage.png",
+                        "plane_0_residual.png", "plane_2_profile.png"})
     EXPECT_TRUE(std::filesystem::exists(dir / ("out/" + std::string(f)))) << f;
 }
 

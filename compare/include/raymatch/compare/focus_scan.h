@@ -62,6 +62,7 @@ struct MeasureScan {
   std::vector<int> best;                    ///< best simulation plane per experiment plane
   std::vector<int> expected;                ///< simulation plane nearest in defocus
   bool passes = false;
+  bool primary = false;                     ///< one of FocusScanOptions::primary (in the verdict)
 };
 
 enum class Verdict { kPass = 0, kWarning = 1, kFail = 2 };

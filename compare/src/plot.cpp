@@ -235,7 +235,7 @@ void Panel(plstream& pls, const PlotPanel& panel) {
   // Room above the data for the legend.
   const double top = any_label ? 0.08 * double(p.series.size()) * (y1 - y0) : 0;
   pls.adv(0);
-  pls.vpor(0.12, 0.96, 0.14, 0.88);
+  pls.vpor(0.14, 0.96, 0.14, 0.88);
   pls.wind(x0 - xp, x1 + xp, y0 - yp, y1 + yp + top);
   const std::string xo = std::string(p.log_x ? "l" : "") + "g", yo = std::string(p.log_y ? "l" : "") + "g";
   pls.col0(kGrid);
@@ -271,9 +271,15 @@ void Panel(plstream& pls, const PlotPanel& panel) {
   }
   pls.col0(kBlack);
   pls.width(1);
+  // Up to 7 digits before PLplot switches to a common x10^n factor, so that ticks of a narrow
+  // range far from zero (a deviance of 23745 +- 20) do not round to the same label.
+  pls.sxax(7, 0);
+  pls.syax(7, 0);
   const std::string xb = std::string("bcnst") + (p.log_x ? "l" : ""), yb = std::string("bcnstv") + (p.log_y ? "l" : "");
   pls.box(xb.c_str(), 0, 0, yb.c_str(), 0, 0);
-  pls.lab(Esc(p.xlabel).c_str(), Esc(p.ylabel).c_str(), Esc(p.title).c_str());
+  // The y title clear of tick labels of up to 7 characters (PLplot's own sits at 5 characters).
+  pls.lab(Esc(p.xlabel).c_str(), "", Esc(p.title).c_str());
+  pls.mtex("l", 6.5, 0.5, 0.5, Esc(p.ylabel).c_str());
   if (!any_label) return;
   std::vector<PLINT> opt, text_colours, line_colours, line_styles, symbol_colours, symbol_numbers;
   std::vector<PLFLT> line_widths, symbol_scales;

@@ -152,7 +152,15 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
     compare::Series dot;
     dot.points = true;
     dot.x = {p.best};
-    dot.y = {*std::min_element(p.slice_error.begin(), p.slice_error.end())};
+    // On the curve at the best value (the slice is centred on it; between two samples, linear).
+    double at_best = p.slice_error.front();
+    for (size_t k = 1; k < p.slice_x.size(); ++k)
+      if (p.slice_x[k - 1] <= p.best && p.best <= p.slice_x[k]) {
+        const double w = p.slice_x[k] > p.slice_x[k - 1] ? (p.best - p.slice_x[k - 1]) / (p.slice_x[k] - p.slice_x[k - 1]) : 0;
+        at_best = p.slice_error[k - 1] + w * (p.slice_error[k] - p.slice_error[k - 1]);
+      }
+    if (p.best > p.slice_x.back()) at_best = p.slice_error.back();
+    dot.y = {at_best};
     compare::WritePlot((dir / png).string(), {s, dot}, "error along " + p.key + " through the optimum",
                        p.key + (p.unit.empty() ? "" : " (" + p.unit + ")"), ErrorFunctionName(spec.error));
     plots += EmbeddedPng((dir / png).string()) + "\n";

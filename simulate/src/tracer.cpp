@@ -195,6 +195,15 @@ struct Optics {
 
 }  // namespace
 
+/// Whether the straight line through p along unit d passes within sqrt(r2) of c: the one test
+/// that splits a plane's rays into those that can meet the fit's region and the others
+/// (SplitRaysBySphere and TraceFarRays must agree ray for ray).
+static inline bool LinePassesWithin(const Vec3& p, const Vec3& d, const Vec3& c, double r2) {
+  const Vec3 w = c - p;
+  const double t = Dot(w, d);
+  return Dot(w, w) - t * t <= r2;
+}
+
 // Which of a plane's rays to trace: all of [0, n), a list of indices, or all but a sorted list.
 struct RaySelection {
   const uint64_t* list = nullptr;
@@ -605,13 +614,9 @@ void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& t
       ++c.fates[int(Fate::kEscaped)];
       continue;
     }
-    if (sel.split) {  // as SplitRaysBySphere: the line through p along unit d
-      const Vec3 w = sel.split_center - p;
-      const double t = Dot(w, d);
-      if (Dot(w, w) - t * t <= sel.split_r2) {
-        near_out->push_back(ray);
-        continue;
-      }
+    if (sel.split && LinePassesWithin(p, d, sel.split_center, sel.split_r2)) {
+      near_out->push_back(ray);  // as SplitRaysBySphere
+      continue;
     }
     Vec3 o = p;
     if constexpr (!std::is_same_v<Source, PointSource>) o = p + d * ((im.source_z - p.z) / d.z);
@@ -838,10 +843,7 @@ PlaneResult Simulator::TracePlane(double defocus_um, uint32_t plane_index, uint6
 PlaneResult Simulator::TracePlaneExcept(double defocus_um, uint32_t plane_index, uint64_t rays,
                                         const std::vector<uint64_t>& excluded,
                                         const RunControl& control) const {
-  RAYMATCH_CHECK(std::is_sorted(excluded.begin(), excluded.end()));
-  RaySelection sel;
-  sel.skip = excluded.data(), sel.skip_count = excluded.size();
-  return Trace(defocus_um, plane_index, rays, sel, control);
+  return TraceRangeExcept(defocus_um, plane_index, 0, rays, excluded, control);
 }
 
 PlaneResult Simulator::TraceRays(double defocus_um, uint32_t plane_index,
@@ -1055,14 +1057,7 @@ void Simulator::SplitRaysBySphere(uint32_t plane_index, uint64_t first, uint64_t
             Vec3 p, d;
             // A ray the source rejects ends at once (escaped) in either list.
             const bool ok = src.Sample(rng, &p, &d);
-            bool is_near = false;
-            if (ok) {
-              // Distance from the centre to the straight line through p along unit d.
-              const Vec3 w = center_um - p;
-              const double t = Dot(w, d);
-              is_near = Dot(w, w) - t * t <= r2;
-            }
-            (is_near ? near_c[ci] : far_c[ci]).push_back(ray);
+            (ok && LinePassesWithin(p, d, center_um, r2) ? near_c[ci] : far_c[ci]).push_back(ray);
           }
         },
         im.source);

@@ -1,6 +1,7 @@
 // Rays per second per core for the reference scene: a 46 um water drop under a 27 deg
 // cone, imaged by a 20x/0.42 objective onto a 300x200 sensor region (10 um pixels), single
-// thread, with and without partial reflection. Results: docs/performance.md.
+// thread, with and without partial reflection, on the SIMD packet path (the default) and on the
+// scalar path (RunControl::simd = false) in the same run. Results: docs/performance.md.
 //   build/release/bench/bench_tracer --benchmark_min_time=2
 #include <benchmark/benchmark.h>
 
@@ -31,10 +32,11 @@ Scene DropScene(PartialReflection pr, bool with_drop) {
   return s;
 }
 
-void Run(benchmark::State& state, PartialReflection pr, bool drop) {
+void Run(benchmark::State& state, PartialReflection pr, bool drop, bool simd = true) {
   const Simulator sim(DropScene(pr, drop));
   RunControl one;
   one.threads = 1;
+  one.simd = simd;
   const uint64_t rays = 2000000;
   uint32_t plane = 0;
   double hits = 0;
@@ -51,11 +53,25 @@ void BM_Drop46_Cone27_PartialOff(benchmark::State& s) { Run(s, PartialReflection
 void BM_Drop46_Cone27_Unpolarized(benchmark::State& s) { Run(s, PartialReflection::kUnpolarized, true); }
 void BM_Drop46_Cone27_Polarized(benchmark::State& s) { Run(s, PartialReflection::kPolarized, true); }
 void BM_FlatField_Cone27(benchmark::State& s) { Run(s, PartialReflection::kOff, false); }
+void BM_Drop46_Cone27_PartialOff_Scalar(benchmark::State& s) {
+  Run(s, PartialReflection::kOff, true, false);
+}
+void BM_Drop46_Cone27_Unpolarized_Scalar(benchmark::State& s) {
+  Run(s, PartialReflection::kUnpolarized, true, false);
+}
+void BM_Drop46_Cone27_Polarized_Scalar(benchmark::State& s) {
+  Run(s, PartialReflection::kPolarized, true, false);
+}
+void BM_FlatField_Cone27_Scalar(benchmark::State& s) { Run(s, PartialReflection::kOff, false, false); }
 
 BENCHMARK(BM_Drop46_Cone27_PartialOff)->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK(BM_Drop46_Cone27_PartialOff_Scalar)->Unit(benchmark::kMillisecond)->UseRealTime();
 BENCHMARK(BM_Drop46_Cone27_Unpolarized)->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK(BM_Drop46_Cone27_Unpolarized_Scalar)->Unit(benchmark::kMillisecond)->UseRealTime();
 BENCHMARK(BM_Drop46_Cone27_Polarized)->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK(BM_Drop46_Cone27_Polarized_Scalar)->Unit(benchmark::kMillisecond)->UseRealTime();
 BENCHMARK(BM_FlatField_Cone27)->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK(BM_FlatField_Cone27_Scalar)->Unit(benchmark::kMillisecond)->UseRealTime();
 
 }  // namespace
 }  // namespace raymatch::simulate

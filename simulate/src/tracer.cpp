@@ -12,6 +12,7 @@
 #include <condition_variable>
 #include <cstdio>
 #include <mutex>
+#include <optional>
 #include <thread>
 #include <variant>
 
@@ -21,6 +22,7 @@
 #include "raymatch/simulate/geometry.h"
 #include "raymatch/simulate/interfaces.h"
 #include "raymatch/simulate/sampling.h"
+#include "packet.h"
 
 namespace raymatch::simulate {
 
@@ -145,11 +147,19 @@ struct LightFieldSource {
   double extent;
   bool Sample(RayRng& rng, Vec3* p, Vec3* d) const {
     *p = field.Sample(rng);
+    // Two statements: the order in which a call's arguments are evaluated is unspecified, and
+    // the words must be drawn in the same order by every compiler (and by the packet path).
+    const double u0 = rng.Uniform();
+    const double u1 = rng.Uniform();
+    return Direction(u0, u1, d);
+  }
+  /// The direction for the uniforms (u0, u1); false for a map cell beyond the unit circle.
+  bool Direction(double u0, double u1, Vec3* d) const {
     double x, y;
-    angular.Sample(rng.Uniform(), rng.Uniform(), &x, &y);
+    angular.Sample(u0, u1, &x, &y);
     const double u = (2 * x - 1) * extent, v = (1 - 2 * y) * extent;
     const double w2 = 1 - u * u - v * v;
-    if (w2 <= 0) return false;  // map cell beyond the unit circle: no physical direction
+    if (w2 <= 0) return false;  // no physical direction
     *d = Vec3(u, v, std::sqrt(w2));
     return true;
   }
@@ -219,8 +229,9 @@ namespace {
 
 // Per-thread accumulation: integer counts, so sums do not depend on the partition.
 struct Accum {
-  std::vector<uint32_t> image;
+  std::vector<uint32_t> image;  // npix counts and one spare element (not part of the image)
   TraceCounters counters;
+  std::unique_ptr<packet::Rays> rays;  // the packet path's batch (made on first use)
 };
 
 }  // namespace
@@ -589,14 +600,102 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
   return done;
 }
 
+/// One ray of the plane, from its own stream: the scalar path, and the packet path's fallback.
 template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
-void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
-                double defocus, uint32_t plane, uint64_t begin, uint64_t end,
-                const RaySelection& sel, Accum& acc, std::vector<uint64_t>* near_out) {
+void TraceRay(const Simulator::Impl& im, const Source& src, const TraceSpec& trace, double defocus,
+              uint32_t plane, uint64_t ray, const RaySelection& sel, Accum& acc,
+              std::vector<uint64_t>* near_out) {
   const Geometry& geo = im.geometry;
   const Optics& op = im.optics;
   const bool has_objects = !geo.empty();
   TraceCounters& c = acc.counters;
+  RayRng rng(trace.seed, plane, ray);
+  Vec3 p, d;
+  if (!src.Sample(rng, &p, &d)) {
+    ++c.fates[int(Fate::kEscaped)];
+    return;
+  }
+  if (sel.split && LinePassesWithin(p, d, sel.split_center, sel.split_r2)) {
+    near_out->push_back(ray);  // as SplitRaysBySphere
+    return;
+  }
+  Vec3 o = p;
+  if constexpr (!std::is_same_v<Source, PointSource>) o = p + d * ((im.source_z - p.z) / d.z);
+  Vec3 pol;
+  if constexpr (kPR == PartialReflection::kPolarized) pol = RandomPerpendicular(d, rng.Uniform());
+
+  Fate fate = Fate::kDetected;
+  bool done = false;
+  if (has_objects) done = TraceObjects<kPR, kMesh>(im, trace, rng, o, d, pol, c, &fate);
+  if (!done && d.z <= 0) {
+    fate = Fate::kEscaped;
+    done = true;
+  }
+  if (!done) {
+    // Paraxial optics on exact slopes (tangent law): x' = x + s dz, s' = s - x / f.
+    double z = o.z, x = o.x, y = o.y, sx = d.x / d.z, sy = d.y / d.z;
+    auto go = [&](double zp) {
+      x += sx * (zp - z);
+      y += sy * (zp - z);
+      z = zp;
+    };
+    if constexpr (kCorrector) {
+      ++c.corrector_tests;
+      go(op.corrector_z + defocus);
+      const double r2 = x * x + y * y;
+      size_t ring = 0;
+      while (ring < op.ring_outer2.size() && r2 > op.ring_outer2[ring]) ++ring;
+      if (ring == op.ring_outer2.size()) {
+        fate = Fate::kOutsideNa;
+        done = true;
+      } else if (rng.Uniform() >= op.ring_t[ring]) {
+        fate = Fate::kAbsorbedCorrector;
+        done = true;
+      }
+    }
+    for (int l = 0; l < op.num_lenses && !done; ++l) {
+      if (l == op.stop_after) {
+        go(op.stop_z + defocus);
+        if (x * x + y * y > op.stop_r2) {
+          fate = Fate::kOutsideNa;
+          done = true;
+          break;
+        }
+      }
+      const Lens& L = op.lenses[l];
+      go(L.z + defocus);
+      if (L.rim > 0 && x * x + y * y > L.rim * L.rim) {
+        fate = Fate::kOutsideNa;
+        done = true;
+        break;
+      }
+      sx -= x / L.f;
+      sy -= y / L.f;
+    }
+    if (!done) {
+      go(op.sensor_z + defocus);
+      double u = op.sign * x - op.off_x, v = op.sign * y - op.off_y;
+      if (op.psf_sigma_sensor > 0) {  // Box-Muller: two independent normal offsets
+        const double r = op.psf_sigma_sensor * std::sqrt(-2 * std::log(1 - rng.Uniform()));
+        const double phi = 2 * M_PI * rng.Uniform();
+        u += r * std::cos(phi);
+        v += r * std::sin(phi);
+      }
+      const double col = std::floor(u / op.pitch + 0.5 * op.nx);
+      const double row = std::floor(0.5 * op.ny - v / op.pitch);
+      if (col >= 0 && col < op.nx && row >= 0 && row < op.ny) {
+        ++acc.image[static_cast<size_t>(row) * op.nx + static_cast<size_t>(col)];
+      } else {
+        fate = Fate::kMissedSensor;
+      }
+    }
+  }
+  ++c.fates[int(fate)];
+}
+
+/// Calls f(ray) for the rays [begin, end) of the selection, in ascending order of i.
+template <class F>
+void ForEachSelectedRay(const RaySelection& sel, uint64_t begin, uint64_t end, F&& f) {
   // Rays to leave out (ascending): the first one at or after this range.
   const uint64_t* skip =
       sel.skip ? std::lower_bound(sel.skip, sel.skip + sel.skip_count, sel.first + begin) : nullptr;
@@ -608,89 +707,162 @@ void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& t
       ++skip;
       continue;
     }
-    RayRng rng(trace.seed, plane, ray);
-    Vec3 p, d;
-    if (!src.Sample(rng, &p, &d)) {
-      ++c.fates[int(Fate::kEscaped)];
-      continue;
-    }
-    if (sel.split && LinePassesWithin(p, d, sel.split_center, sel.split_r2)) {
-      near_out->push_back(ray);  // as SplitRaysBySphere
-      continue;
-    }
-    Vec3 o = p;
-    if constexpr (!std::is_same_v<Source, PointSource>) o = p + d * ((im.source_z - p.z) / d.z);
-    Vec3 pol;
-    if constexpr (kPR == PartialReflection::kPolarized) pol = RandomPerpendicular(d, rng.Uniform());
-
-    Fate fate = Fate::kDetected;
-    bool done = false;
-    if (has_objects) done = TraceObjects<kPR, kMesh>(im, trace, rng, o, d, pol, c, &fate);
-    if (!done && d.z <= 0) {
-      fate = Fate::kEscaped;
-      done = true;
-    }
-    if (!done) {
-      // Paraxial optics on exact slopes (tangent law): x' = x + s dz, s' = s - x / f.
-      double z = o.z, x = o.x, y = o.y, sx = d.x / d.z, sy = d.y / d.z;
-      auto go = [&](double zp) {
-        x += sx * (zp - z);
-        y += sy * (zp - z);
-        z = zp;
-      };
-      if constexpr (kCorrector) {
-        ++c.corrector_tests;
-        go(op.corrector_z + defocus);
-        const double r2 = x * x + y * y;
-        size_t ring = 0;
-        while (ring < op.ring_outer2.size() && r2 > op.ring_outer2[ring]) ++ring;
-        if (ring == op.ring_outer2.size()) {
-          fate = Fate::kOutsideNa;
-          done = true;
-        } else if (rng.Uniform() >= op.ring_t[ring]) {
-          fate = Fate::kAbsorbedCorrector;
-          done = true;
-        }
-      }
-      for (int l = 0; l < op.num_lenses && !done; ++l) {
-        if (l == op.stop_after) {
-          go(op.stop_z + defocus);
-          if (x * x + y * y > op.stop_r2) {
-            fate = Fate::kOutsideNa;
-            done = true;
-            break;
-          }
-        }
-        const Lens& L = op.lenses[l];
-        go(L.z + defocus);
-        if (L.rim > 0 && x * x + y * y > L.rim * L.rim) {
-          fate = Fate::kOutsideNa;
-          done = true;
-          break;
-        }
-        sx -= x / L.f;
-        sy -= y / L.f;
-      }
-      if (!done) {
-        go(op.sensor_z + defocus);
-        double u = op.sign * x - op.off_x, v = op.sign * y - op.off_y;
-        if (op.psf_sigma_sensor > 0) {  // Box-Muller: two independent normal offsets
-          const double r = op.psf_sigma_sensor * std::sqrt(-2 * std::log(1 - rng.Uniform()));
-          const double phi = 2 * M_PI * rng.Uniform();
-          u += r * std::cos(phi);
-          v += r * std::sin(phi);
-        }
-        const double col = std::floor(u / op.pitch + 0.5 * op.nx);
-        const double row = std::floor(0.5 * op.ny - v / op.pitch);
-        if (col >= 0 && col < op.nx && row >= 0 && row < op.ny) {
-          ++acc.image[static_cast<size_t>(row) * op.nx + static_cast<size_t>(col)];
-        } else {
-          fate = Fate::kMissedSensor;
-        }
-      }
-    }
-    ++c.fates[int(fate)];
+    f(ray);
   }
+}
+
+template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
+                double defocus, uint32_t plane, uint64_t begin, uint64_t end,
+                const RaySelection& sel, Accum& acc, std::vector<uint64_t>* near_out) {
+  ForEachSelectedRay(sel, begin, end, [&](uint64_t ray) {
+    TraceRay<kPR, kCorrector, kMesh>(im, src, trace, defocus, plane, ray, sel, acc, near_out);
+  });
+}
+
+// ---------------------------------------------------------------- SIMD packets
+// The packet path (packet.h) traces the rays that meet no object, which are most of an image's,
+// several at a time; it hands every other ray to TraceRay. Images are the same bit for bit.
+
+template <class Source>
+constexpr bool kPacketSource = std::is_same_v<Source, ConeSource> ||
+                               std::is_same_v<Source, CollimatedSource> ||
+                               std::is_same_v<Source, LightFieldSource>;
+
+struct PacketPlan {
+  packet::SourceParams source;
+  packet::OpticsParams optics;
+};
+
+/// The packet stages' parameters for this plane, or nothing where the scene needs the scalar
+/// path throughout (point and ray-list sources, a spatial map, a camera PSF, many objects).
+std::optional<PacketPlan> MakePacketPlan(const Simulator::Impl& im, double defocus,
+                                         const RaySelection& sel) {
+  PacketPlan plan;
+  packet::SourceParams& ps = plan.source;
+  auto set_field = [&](const Field& f) {
+    ps.disc_field = f.shape == FieldShape::kDisc;
+    ps.radius = f.radius, ps.half_w = f.half_w, ps.half_h = f.half_h;
+    ps.center[0] = f.center.x, ps.center[1] = f.center.y, ps.center[2] = f.center.z;
+    return ps.disc_field || f.map.empty();
+  };
+  bool ok = false;
+  if (const auto* cone = std::get_if<ConeSource>(&im.source)) {
+    ok = set_field(cone->field);
+    ps.direction = packet::SourceParams::kCone, ps.sin_max = cone->sin_max;
+  } else if (const auto* col = std::get_if<CollimatedSource>(&im.source)) {
+    ok = set_field(col->field);
+    ps.direction = packet::SourceParams::kCollimated;
+    ps.dir[0] = col->dir.x, ps.dir[1] = col->dir.y, ps.dir[2] = col->dir.z;
+  } else if (const auto* lf = std::get_if<LightFieldSource>(&im.source)) {
+    ok = set_field(lf->field);
+    ps.direction = packet::SourceParams::kTabulated;
+  }
+  const Optics& op = im.optics;
+  const int objects = static_cast<int>(im.index.size());
+  if (!ok || op.psf_sigma_sensor > 0 || objects > packet::kMaxBounds ||
+      op.ring_outer2.size() > size_t(packet::kMaxRings))
+    return std::nullopt;
+  packet::OpticsParams& po = plan.optics;
+  po.source_z = im.source_z;
+  po.num_bounds = objects;
+  for (int k = 0; k < objects; ++k) {
+    // A line farther than this from every bounding sphere cannot meet an object; the margin
+    // (1e-6 of the radius + 1 nm) is far above the rounding of either test.
+    const Vec3& c = im.geometry.bound_center(k);
+    const double r = im.geometry.bound_radius(k) * (1 + 1e-6) + 1e-3;
+    po.bound_c[k][0] = c.x, po.bound_c[k][1] = c.y, po.bound_c[k][2] = c.z;
+    po.bound_r2[k] = r * r;
+  }
+  po.split = sel.split;
+  po.split_c[0] = sel.split_center.x, po.split_c[1] = sel.split_center.y;
+  po.split_c[2] = sel.split_center.z, po.split_r2 = sel.split_r2;
+  po.corrector = !op.ring_outer2.empty();
+  po.corrector_z = op.corrector_z + defocus;
+  po.rings = static_cast<int>(op.ring_outer2.size());
+  for (int k = 0; k < po.rings; ++k) po.ring_outer2[k] = op.ring_outer2[k], po.ring_t[k] = op.ring_t[k];
+  po.num_lenses = op.num_lenses, po.stop_after = op.stop_after;
+  for (int l = 0; l < op.num_lenses; ++l) {
+    po.lens_z[l] = op.lenses[l].z + defocus;
+    po.lens_f[l] = op.lenses[l].f;
+    po.lens_rim[l] = op.lenses[l].rim;
+  }
+  po.stop_z = op.stop_z + defocus, po.stop_r2 = op.stop_r2;
+  po.sensor_z = op.sensor_z + defocus;
+  po.sign = op.sign, po.off_x = op.off_x, po.off_y = op.off_y, po.pitch = op.pitch;
+  po.nx = op.nx, po.ny = op.ny;
+  return plan;
+}
+
+/// TraceRange in batches of packet::kBatch rays: the same rays, counts and counters.
+template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+void TraceRangePackets(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
+                       double defocus, uint32_t plane, uint64_t begin, uint64_t end,
+                       const RaySelection& sel, Accum& acc, std::vector<uint64_t>* near_out,
+                       const PacketPlan& plan) {
+  if (!acc.rays) acc.rays = std::make_unique<packet::Rays>();  // value-initialised
+  packet::Rays& r = *acc.rays;
+  std::array<uint64_t, packet::kBatch> rays{};
+  size_t n = 0;
+  TraceCounters& c = acc.counters;
+  const uint64_t queries = im.geometry.empty() ? 0 : 1;  // the one query that found nothing
+  auto flush = [&] {
+    packet::PhiloxWords(trace.seed, plane, rays.data(), n, &r);
+    packet::SampleSource(plan.source, n, &r);
+    for (size_t i = 0; i < n; ++i) {
+      if (r.out[i] < 0) continue;
+      if constexpr (std::is_same_v<Source, LightFieldSource>) {
+        Vec3 d;
+        if (!src.Direction(r.u[i], r.v[i], &d)) {
+          r.out[i] = packet::kEscaped;
+          continue;
+        }
+        r.dx[i] = d.x, r.dy[i] = d.y, r.dz[i] = d.z;
+      }
+      if constexpr (kCorrector) {
+        // The corrector's draw follows the source's (and the polarisation's) words.
+        const int64_t k = r.cursor[i] + (kPR == PartialReflection::kPolarized ? 1 : 0);
+        if (k < packet::kWords)
+          r.u[i] = r.words[k][i] * 0x1p-32;
+        else
+          r.out[i] = packet::kScalar;
+      }
+    }
+    packet::Background(plan.optics, n, &r);
+    // Outcomes without branches on them (they are unpredictable): a miss counts in the image's
+    // spare last element, and every outcome in codes[] (index -out; 0 = detected).
+    uint64_t codes[8] = {};
+    const double spare = static_cast<double>(acc.image.size() - 1);
+    for (size_t i = 0; i < n; ++i) {
+      const double o = r.out[i];
+      if (o == packet::kScalar || o == packet::kNear) [[unlikely]] {
+        if (o == packet::kNear)
+          near_out->push_back(rays[i]);
+        else
+          TraceRay<kPR, kCorrector, kMesh>(im, src, trace, defocus, plane, rays[i], sel, acc, near_out);
+        continue;
+      }
+      const bool detected = o >= 0;
+      ++acc.image[static_cast<size_t>(detected ? o : spare)];
+      ++codes[detected ? 0 : static_cast<size_t>(-o)];
+    }
+    static_assert(-packet::kAbsorbed < 8);
+    const uint64_t optics = codes[0] + codes[size_t(-packet::kOutsideNa)] +
+                            codes[size_t(-packet::kMissedSensor)] + codes[size_t(-packet::kAbsorbed)];
+    c.fates[int(Fate::kDetected)] += codes[0];
+    c.fates[int(Fate::kEscaped)] += codes[size_t(-packet::kEscaped)];
+    c.fates[int(Fate::kOutsideNa)] += codes[size_t(-packet::kOutsideNa)];
+    c.fates[int(Fate::kMissedSensor)] += codes[size_t(-packet::kMissedSensor)];
+    c.fates[int(Fate::kAbsorbedCorrector)] += codes[size_t(-packet::kAbsorbed)];
+    c.shape_queries += queries * optics;  // rays that met nothing: one query each
+    if constexpr (kCorrector) c.corrector_tests += optics;
+    n = 0;
+  };
+  ForEachSelectedRay(sel, begin, end, [&](uint64_t ray) {
+    rays[n++] = ray;
+    if (n == packet::kBatch) flush();
+  });
+  if (n > 0) flush();
 }
 
 class Progress {
@@ -892,7 +1064,7 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
   const size_t npix = size_t(scene_.camera.nx) * scene_.camera.ny;
   tbb::enumerable_thread_specific<Accum> accums([npix] {
     Accum a;
-    a.image.assign(npix, 0);
+    a.image.assign(npix + 1, 0);  // + a spare element for the packet path's misses
     return a;
   });
   const auto t0 = std::chrono::steady_clock::now();
@@ -911,6 +1083,8 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
                     ranks > 1 ? control.label + " (" + std::to_string(ranks) + " ranks)" : control.label,
                     std::min(rays, my_chunks * kChunk));
 
+  const std::optional<PacketPlan> plan =
+      control.simd ? MakePacketPlan(im, defocus_um, sel) : std::nullopt;
   // Split mode: each chunk's near rays in their own list, joined in chunk order below.
   std::vector<std::vector<uint64_t>> near_by_chunk(sel.split ? chunks : 0);
   auto run_chunk = [&](uint64_t ci) {
@@ -921,15 +1095,26 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
     // Choose the inner loop once per chunk from the scene's effects.
     std::visit(
         [&](const auto& src) {
+          using Source = std::decay_t<decltype(src)>;
+          auto range = [&]<PartialReflection P, bool C, bool M>() {
+            if constexpr (kPacketSource<Source>) {
+              if (plan) {
+                TraceRangePackets<P, C, M>(im, src, ts, defocus_um, plane_index, b, e, sel, acc,
+                                           near_out, *plan);
+                return;
+              }
+            }
+            TraceRange<P, C, M>(im, src, ts, defocus_um, plane_index, b, e, sel, acc, near_out);
+          };
           auto dispatch = [&]<PartialReflection P>() {
             if (corr && mesh)
-              TraceRange<P, true, true>(im, src, ts, defocus_um, plane_index, b, e, sel, acc, near_out);
+              range.template operator()<P, true, true>();
             else if (corr)
-              TraceRange<P, true, false>(im, src, ts, defocus_um, plane_index, b, e, sel, acc, near_out);
+              range.template operator()<P, true, false>();
             else if (mesh)
-              TraceRange<P, false, true>(im, src, ts, defocus_um, plane_index, b, e, sel, acc, near_out);
+              range.template operator()<P, false, true>();
             else
-              TraceRange<P, false, false>(im, src, ts, defocus_um, plane_index, b, e, sel, acc, near_out);
+              range.template operator()<P, false, false>();
           };
           switch (pr) {
             case PartialReflection::kOff:

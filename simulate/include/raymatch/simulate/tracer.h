@@ -73,6 +73,9 @@ struct RunControl {
   int threads = 0;          ///< 0: scene's value, then all cores
   bool progress = false;    ///< progress bar on stderr
   std::string label;        ///< shown in the progress bar
+  /// Trace the rays that meet no object in SIMD packets (the same image bit for bit); false:
+  /// one ray at a time, for comparisons.
+  bool simd = true;
 };
 
 class Simulator {

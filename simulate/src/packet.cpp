@@ -1,0 +1,315 @@
+// SIMD packet stages of the tracer (packet.h). Google Highway compiles this file once per
+// instruction set (SSSE3/SSE4, AVX2, AVX-512, ...) and picks the best the CPU has at run time,
+// so one binary runs everywhere and uses all the vector width there is.
+//
+// Bit-identity with the scalar tracer rests on three rules: the same operations in the same
+// order (each line below names the scalar line it mirrors), IEEE double arithmetic with
+// correctly rounded division and square root in both paths, and no contraction of a * b + c
+// into a fused multiply-add (CMake builds this file with -ffp-contract=off; Highway's MulAdd is
+// never used). test_packet checks it image for image on every instruction set this CPU has.
+#undef HWY_TARGET_INCLUDE
+#define HWY_TARGET_INCLUDE "packet.cpp"
+#include <hwy/foreach_target.h>  // IWYU pragma: keep
+#include <hwy/highway.h>
+
+#include "packet.h"
+
+HWY_BEFORE_NAMESPACE();
+namespace raymatch::simulate::packet {
+namespace HWY_NAMESPACE {
+namespace hn = hwy::HWY_NAMESPACE;
+
+using DF = hn::ScalableTag<double>;
+using DU = hn::RebindToUnsigned<DF>;  // u64 lanes, as many as the doubles
+using DI = hn::RebindToSigned<DF>;
+using DU32 = hn::Rebind<uint32_t, DF>;  // u32 storage of the words, same lane count
+
+// The 64-bit product of two u64 lanes holding 32-bit values.
+HWY_INLINE hn::Vec<DU> Mul32(hn::Vec<DU> a, hn::Vec<DU> b) {
+#if HWY_TARGET == HWY_SCALAR
+  return hn::Mul(a, b);  // one lane: plain 64-bit multiplication
+#else
+  const hn::Repartition<uint32_t, DU> d32;  // the same bits as twice as many u32 lanes
+  return hn::MulEven(hn::BitCast(d32, a), hn::BitCast(d32, b));
+#endif
+}
+
+// Philox4x32-10 (Salmon et al., SC'11; Random123's philox4x32 with its constants), four
+// counters in u64 lanes that hold 32-bit values.
+void PhiloxWordsImpl(uint64_t seed, uint32_t stream, const uint64_t* rays, size_t n, Rays* r) {
+  const DU du;
+  const DU32 dw;
+  constexpr uint32_t kM0 = 0xD2511F53u, kM1 = 0xCD9E8D57u;
+  constexpr uint32_t kW0 = 0x9E3779B9u, kW1 = 0xBB67AE85u;
+  uint32_t k0[10], k1[10];
+  k0[0] = static_cast<uint32_t>(seed), k1[0] = static_cast<uint32_t>(seed >> 32);
+  for (int i = 1; i < 10; ++i) k0[i] = k0[i - 1] + kW0, k1[i] = k1[i - 1] + kW1;
+  const auto lo_mask = hn::Set(du, 0xFFFFFFFFull);
+  const auto m0 = hn::Set(du, kM0), m1 = hn::Set(du, kM1);
+  const size_t N = hn::Lanes(du);
+  for (size_t i = 0; i < n; i += N) {
+    const auto index = hn::LoadU(du, rays + i);
+    for (int block = 0; block < kWords / 4; ++block) {
+      auto c0 = hn::And(index, lo_mask), c1 = hn::ShiftRight<32>(index);
+      auto c2 = hn::Set(du, stream), c3 = hn::Set(du, uint64_t(block));
+      for (int round = 0; round < 10; ++round) {
+        const auto p0 = Mul32(c0, m0), p1 = Mul32(c2, m1);
+        const auto n0 = hn::Xor(hn::Xor(hn::ShiftRight<32>(p1), c1), hn::Set(du, k0[round]));
+        const auto n2 = hn::Xor(hn::Xor(hn::ShiftRight<32>(p0), c3), hn::Set(du, k1[round]));
+        c1 = hn::And(p1, lo_mask);
+        c3 = hn::And(p0, lo_mask);
+        c0 = n0, c2 = n2;
+      }
+      uint32_t* w = r->words[4 * block];
+      hn::StoreU(hn::TruncateTo(dw, c0), dw, w + i);
+      hn::StoreU(hn::TruncateTo(dw, c1), dw, w + kBatch + i);
+      hn::StoreU(hn::TruncateTo(dw, c2), dw, w + 2 * kBatch + i);
+      hn::StoreU(hn::TruncateTo(dw, c3), dw, w + 3 * kBatch + i);
+    }
+  }
+}
+
+// RayRng::Uniform: the word times 2^-32 (exact). The word goes to double through int32 (native
+// on every x86 target): double(w) = double(int32(w ^ 2^31)) + 2^31, both steps exact.
+HWY_INLINE hn::Vec<DF> Uniform(const Rays* r, int word, size_t i) {
+  const DF df;
+  const hn::Rebind<int32_t, DF> di32;
+  const auto w = hn::LoadU(DU32(), r->words[word] + i);
+  const auto flipped = hn::BitCast(di32, hn::Xor(w, hn::Set(DU32(), 0x80000000u)));
+  const auto value = hn::Add(hn::PromoteTo(df, flipped), hn::Set(df, 2147483648.0));
+  return hn::Mul(value, hn::Set(df, 0x1p-32));
+}
+
+// The pair of words at j as SampleUnitDisc forms it: (2u - 1, 2u' - 1), and whether it lies in
+// the unit disc (a * a + b * b < 1; the loop there rejects >= 1).
+HWY_INLINE hn::Mask<DF> DiscPair(const Rays* r, int j, size_t i, hn::Vec<DF>& a, hn::Vec<DF>& b) {
+  const DF df;
+  const auto one = hn::Set(df, 1.0), two = hn::Set(df, 2.0);
+  a = hn::Sub(hn::Mul(two, Uniform(r, j, i)), one);      // a = 2 * rng.Uniform() - 1
+  b = hn::Sub(hn::Mul(two, Uniform(r, j + 1, i)), one);  // b = 2 * rng.Uniform() - 1
+  return hn::Lt(hn::Add(hn::Mul(a, a), hn::Mul(b, b)), one);
+}
+
+// SampleUnitDisc from each lane's cursor on (even: every draw before it came in pairs). A lane
+// whose words run out gets cursor -1.
+HWY_INLINE void UnitDisc(const Rays* r, size_t i, hn::Vec<DI>& cursor, hn::Vec<DF>& a_out,
+                         hn::Vec<DF>& b_out) {
+  const DF df;
+  const DI di;
+  auto done = hn::RebindMask(df, hn::Lt(cursor, hn::Zero(di)));  // out of words already
+  for (int j = 0; j + 1 < kWords; j += 2) {
+    const auto active = hn::AndNot(done, hn::RebindMask(df, hn::Eq(cursor, hn::Set(di, j))));
+    if (hn::AllFalse(df, active)) continue;
+    hn::Vec<DF> a, b;
+    const auto take = hn::And(active, DiscPair(r, j, i, a, b));
+    a_out = hn::IfThenElse(take, a, a_out);
+    b_out = hn::IfThenElse(take, b, b_out);
+    done = hn::Or(done, take);
+    cursor = hn::IfThenElse(hn::RebindMask(di, active), hn::Add(cursor, hn::Set(di, 2)), cursor);
+  }
+  cursor = hn::IfThenElse(hn::RebindMask(di, done), cursor, hn::Set(di, -1));
+}
+
+// Two discs drawn one after the other from word 0 (a disc field, then a cone's direction) in
+// one pass over the pairs: the first inside pair is the field's, the next one the direction's.
+HWY_INLINE void TwoDiscs(const Rays* r, size_t i, hn::Vec<DI>& cursor, hn::Vec<DF>& fa,
+                         hn::Vec<DF>& fb, hn::Vec<DF>& da, hn::Vec<DF>& db) {
+  const DF df;
+  const DI di;
+  auto field_done = hn::Lt(hn::Zero(df), hn::Zero(df)), dir_done = field_done;  // all false
+  auto end = hn::Set(di, -1);
+  for (int j = 0; j + 1 < kWords; j += 2) {
+    hn::Vec<DF> a, b;
+    const auto inside = DiscPair(r, j, i, a, b);
+    const auto take_dir = hn::AndNot(dir_done, hn::And(field_done, inside));
+    const auto take_field = hn::AndNot(field_done, inside);
+    fa = hn::IfThenElse(take_field, a, fa);
+    fb = hn::IfThenElse(take_field, b, fb);
+    da = hn::IfThenElse(take_dir, a, da);
+    db = hn::IfThenElse(take_dir, b, db);
+    end = hn::IfThenElse(hn::RebindMask(di, take_dir), hn::Set(di, j + 2), end);
+    field_done = hn::Or(field_done, take_field);
+    dir_done = hn::Or(dir_done, take_dir);
+    if (hn::AllTrue(df, dir_done)) break;
+  }
+  cursor = end;
+}
+
+void SampleSourceImpl(const SourceParams& s, size_t n, Rays* r) {
+  const DF df;
+  const DI di;
+  const size_t N = hn::Lanes(df);
+  const auto one = hn::Set(df, 1.0), two = hn::Set(df, 2.0);
+  for (size_t i = 0; i < n; i += N) {
+    auto cursor = hn::Zero(di);
+    hn::Vec<DF> px, py;
+    auto da = hn::Zero(df), db = hn::Zero(df);  // the cone's disc, when drawn with the field's
+    const bool two_discs = s.disc_field && s.direction == SourceParams::kCone;
+    if (s.disc_field) {  // Field::Sample, disc: center + (x radius, y radius, 0)
+      auto a = hn::Zero(df), b = hn::Zero(df);
+      if (two_discs)
+        TwoDiscs(r, i, cursor, a, b, da, db);
+      else
+        UnitDisc(r, i, cursor, a, b);
+      px = hn::Add(hn::Set(df, s.center[0]), hn::Mul(a, hn::Set(df, s.radius)));
+      py = hn::Add(hn::Set(df, s.center[1]), hn::Mul(b, hn::Set(df, s.radius)));
+    } else {  // rectangle: center + ((2 u0 - 1) half_w, (2 u1 - 1) half_h, 0)
+      px = hn::Add(hn::Set(df, s.center[0]),
+                   hn::Mul(hn::Sub(hn::Mul(two, Uniform(r, 0, i)), one), hn::Set(df, s.half_w)));
+      py = hn::Add(hn::Set(df, s.center[1]),
+                   hn::Mul(hn::Sub(hn::Mul(two, Uniform(r, 1, i)), one), hn::Set(df, s.half_h)));
+      cursor = hn::Set(di, 2);
+    }
+    hn::StoreU(px, df, r->px + i);
+    hn::StoreU(py, df, r->py + i);
+    hn::StoreU(hn::Set(df, s.center[2] + 0.0), df, r->pz + i);
+    switch (s.direction) {
+      case SourceParams::kCone: {  // ConeSource::Sample
+        if (!two_discs) UnitDisc(r, i, cursor, da, db);
+        const auto u = hn::Mul(da, hn::Set(df, s.sin_max)), v = hn::Mul(db, hn::Set(df, s.sin_max));
+        hn::StoreU(u, df, r->dx + i);
+        hn::StoreU(v, df, r->dy + i);
+        // sqrt(1 - u * u - v * v)
+        hn::StoreU(hn::Sqrt(hn::Sub(hn::Sub(one, hn::Mul(u, u)), hn::Mul(v, v))), df, r->dz + i);
+        break;
+      }
+      case SourceParams::kCollimated:
+        hn::StoreU(hn::Set(df, s.dir[0]), df, r->dx + i);
+        hn::StoreU(hn::Set(df, s.dir[1]), df, r->dy + i);
+        hn::StoreU(hn::Set(df, s.dir[2]), df, r->dz + i);
+        break;
+      case SourceParams::kTabulated: {  // the caller maps (u, v) through the angular table
+        // Lanes out of words keep cursor -1; the others need two more words.
+        const auto ok = hn::AndNot(hn::Lt(cursor, hn::Zero(di)), hn::Lt(cursor, hn::Set(di, kWords - 1)));
+        auto u = hn::Zero(df), v = hn::Zero(df);
+        for (int j = 0; j + 1 < kWords; j += 2) {  // the cursor is even here
+          const auto at = hn::RebindMask(df, hn::Eq(cursor, hn::Set(di, j)));
+          u = hn::IfThenElse(at, Uniform(r, j, i), u);
+          v = hn::IfThenElse(at, Uniform(r, j + 1, i), v);
+        }
+        hn::StoreU(u, df, r->u + i);
+        hn::StoreU(v, df, r->v + i);
+        cursor = hn::IfThenElse(ok, hn::Add(cursor, hn::Set(di, 2)), hn::Set(di, -1));
+        break;
+      }
+    }
+    hn::StoreU(cursor, di, r->cursor + i);
+    hn::StoreU(hn::IfThenElseZero(hn::RebindMask(df, hn::Lt(cursor, hn::Zero(di))),
+                                  hn::Set(df, kScalar)),
+               df, r->out + i);
+  }
+}
+
+void BackgroundImpl(const OpticsParams& o, size_t n, Rays* r) {
+  const DF df;
+  const size_t N = hn::Lanes(df);
+  const auto zero = hn::Zero(df);
+  for (size_t i = 0; i < n; i += N) {
+    const auto px = hn::LoadU(df, r->px + i), py = hn::LoadU(df, r->py + i),
+               pz = hn::LoadU(df, r->pz + i);
+    const auto dx = hn::LoadU(df, r->dx + i), dy = hn::LoadU(df, r->dy + i),
+               dz = hn::LoadU(df, r->dz + i);
+    auto out = hn::LoadU(df, r->out + i);
+    auto settled = hn::Lt(out, zero);  // lanes whose outcome is known
+    // Distance test of the line (p, d) to a centre c: Dot(w, w) - t * t, w = c - p, t = Dot(w, d)
+    // (LinePassesWithin).
+    auto line_dist2 = [&](const double* c) {
+      const auto wx = hn::Sub(hn::Set(df, c[0]), px), wy = hn::Sub(hn::Set(df, c[1]), py),
+                 wz = hn::Sub(hn::Set(df, c[2]), pz);
+      const auto t = hn::Add(hn::Add(hn::Mul(wx, dx), hn::Mul(wy, dy)), hn::Mul(wz, dz));
+      const auto ww = hn::Add(hn::Add(hn::Mul(wx, wx), hn::Mul(wy, wy)), hn::Mul(wz, wz));
+      return hn::Sub(ww, hn::Mul(t, t));
+    };
+    auto mark = [&](hn::Mask<DF> m, double code) {
+      const auto now = hn::AndNot(settled, m);
+      out = hn::IfThenElse(now, hn::Set(df, code), out);
+      settled = hn::Or(settled, now);
+    };
+    if (o.split) mark(hn::Le(line_dist2(o.split_c), hn::Set(df, o.split_r2)), kNear);
+    for (int k = 0; k < o.num_bounds; ++k)
+      mark(hn::Le(line_dist2(o.bound_c[k]), hn::Set(df, o.bound_r2[k])), kScalar);
+    mark(hn::Le(dz, zero), kScalar);  // the scalar path calls these escaped; let it
+    if (hn::AllTrue(df, settled)) {
+      hn::StoreU(out, df, r->out + i);
+      continue;
+    }
+    // o = p + d * ((source_z - p.z) / d.z)
+    const auto s = hn::Div(hn::Sub(hn::Set(df, o.source_z), pz), dz);
+    auto x = hn::Add(px, hn::Mul(dx, s)), y = hn::Add(py, hn::Mul(dy, s));
+    auto z = hn::Add(pz, hn::Mul(dz, s));
+    auto sx = hn::Div(dx, dz), sy = hn::Div(dy, dz);
+    auto go = [&](double zp) {  // x += sx * (zp - z); y += sy * (zp - z); z = zp
+      const auto dzp = hn::Sub(hn::Set(df, zp), z);
+      x = hn::Add(x, hn::Mul(sx, dzp));
+      y = hn::Add(y, hn::Mul(sy, dzp));
+      z = hn::Set(df, zp);
+    };
+    auto r2 = [&] { return hn::Add(hn::Mul(x, x), hn::Mul(y, y)); };
+    if (o.corrector) {
+      go(o.corrector_z);
+      const auto rr = r2();
+      // while (ring < n && r2 > ring_outer2[ring]) ++ring; then the zone's transmission
+      auto beyond = hn::Eq(zero, zero);  // still beyond every zone so far
+      auto t = hn::Set(df, o.ring_t[0]);
+      for (int k = 0; k < o.rings; ++k) {
+        beyond = hn::And(beyond, hn::Gt(rr, hn::Set(df, o.ring_outer2[k])));
+        if (k + 1 < o.rings) t = hn::IfThenElse(beyond, hn::Set(df, o.ring_t[k + 1]), t);
+      }
+      mark(beyond, kOutsideNa);
+      mark(hn::Ge(hn::LoadU(df, r->u + i), t), kAbsorbed);  // rng.Uniform() >= ring_t[ring]
+    }
+    for (int l = 0; l < o.num_lenses; ++l) {
+      if (l == o.stop_after) {
+        go(o.stop_z);
+        mark(hn::Gt(r2(), hn::Set(df, o.stop_r2)), kOutsideNa);
+      }
+      go(o.lens_z[l]);
+      if (o.lens_rim[l] > 0)
+        mark(hn::Gt(r2(), hn::Set(df, o.lens_rim[l] * o.lens_rim[l])), kOutsideNa);
+      sx = hn::Sub(sx, hn::Div(x, hn::Set(df, o.lens_f[l])));  // sx -= x / L.f
+      sy = hn::Sub(sy, hn::Div(y, hn::Set(df, o.lens_f[l])));
+    }
+    go(o.sensor_z);
+    // u = sign x - off_x, v = sign y - off_y; col = floor(u / pitch + 0.5 nx),
+    // row = floor(0.5 ny - v / pitch)
+    const auto u = hn::Sub(hn::Mul(hn::Set(df, o.sign), x), hn::Set(df, o.off_x));
+    const auto v = hn::Sub(hn::Mul(hn::Set(df, o.sign), y), hn::Set(df, o.off_y));
+    const auto pitch = hn::Set(df, o.pitch);
+    const auto col = hn::Floor(hn::Add(hn::Div(u, pitch), hn::Set(df, 0.5 * o.nx)));
+    const auto row = hn::Floor(hn::Sub(hn::Set(df, 0.5 * o.ny), hn::Div(v, pitch)));
+    const auto inside = hn::And(hn::And(hn::Ge(col, zero), hn::Lt(col, hn::Set(df, o.nx))),
+                                hn::And(hn::Ge(row, zero), hn::Lt(row, hn::Set(df, o.ny))));
+    mark(hn::Not(inside), kMissedSensor);
+    out = hn::IfThenElse(settled, out, hn::Add(hn::Mul(row, hn::Set(df, o.nx)), col));
+    hn::StoreU(out, df, r->out + i);
+  }
+}
+
+}  // namespace HWY_NAMESPACE
+}  // namespace raymatch::simulate::packet
+HWY_AFTER_NAMESPACE();
+
+#if HWY_ONCE
+namespace raymatch::simulate::packet {
+
+HWY_EXPORT(PhiloxWordsImpl);
+HWY_EXPORT(SampleSourceImpl);
+HWY_EXPORT(BackgroundImpl);
+
+void PhiloxWords(uint64_t seed, uint32_t stream, const uint64_t* rays, size_t n, Rays* r) {
+  HWY_DYNAMIC_DISPATCH(PhiloxWordsImpl)(seed, stream, rays, n, r);
+}
+void SampleSource(const SourceParams& s, size_t n, Rays* r) {
+  HWY_DYNAMIC_DISPATCH(SampleSourceImpl)(s, n, r);
+}
+void Background(const OpticsParams& o, size_t n, Rays* r) {
+  HWY_DYNAMIC_DISPATCH(BackgroundImpl)(o, n, r);
+}
+const char* TargetName() {
+  // The target HWY_DYNAMIC_DISPATCH uses: the best one both compiled and supported.
+  const int64_t chosen = hwy::SupportedTargets() & HWY_TARGETS;
+  return hwy::TargetName(chosen & -chosen);  // lowest bit = best target
+}
+
+}  // namespace raymatch::simulate::packet
+#endif

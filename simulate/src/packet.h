@@ -1,0 +1,81 @@
+#pragma once
+// SIMD packet stages of the tracer (packet.cpp, Google Highway with run-time dispatch).
+//
+// A batch of up to kBatch rays is traced stage by stage in structure-of-arrays form: the first
+// kWords words of every ray's Philox stream, the source sample, and for rays whose straight line
+// passes no object, the whole way through the corrector and the ideal lenses to a pixel. Every
+// operation is the one the scalar tracer performs, in the same order, in IEEE double precision
+// without fused multiply-adds (the file is built with -ffp-contract=off), so a ray traced here
+// lands in the same pixel with the same fate as on the scalar path, bit for bit. Rays that meet
+// an object, or need more random words than the batch holds, are handed back to the scalar path,
+// which re-traces them from their own stream.
+#include <cstddef>
+#include <cstdint>
+
+namespace raymatch::simulate::packet {
+
+inline constexpr size_t kBatch = 256;  ///< rays per batch: a multiple of every vector length
+inline constexpr int kWords = 12;      ///< random words per ray made up front (3 Philox blocks)
+inline constexpr int kMaxBounds = 8;   ///< objects the near test takes; more: scalar path
+inline constexpr int kMaxRings = 16;   ///< corrector zones the packet stage takes
+
+// What became of each lane (Rays::out): a pixel index (>= 0) or one of these.
+inline constexpr double kScalar = -1;        ///< trace on the scalar path from the ray's stream
+inline constexpr double kNear = -2;          ///< split mode: the line meets the split sphere
+inline constexpr double kEscaped = -3;       ///< the source rejected the ray
+inline constexpr double kOutsideNa = -4;     ///< corrector rim, aperture stop or lens rim
+inline constexpr double kMissedSensor = -5;  ///< passed the optics, fell beside the sensor
+inline constexpr double kAbsorbed = -6;      ///< removed by a corrector zone's transmission draw
+
+/// A source the packet stage samples: a field (disc or rectangle without a map) and a direction
+/// (cone, collimated, or drawn by the caller from two uniforms: the tabulated light field).
+struct SourceParams {
+  enum Direction { kCone, kCollimated, kTabulated };
+  bool disc_field = true;
+  double radius = 0, half_w = 0, half_h = 0;
+  double center[3] = {0, 0, 0};
+  Direction direction = kCone;
+  double sin_max = 0;
+  double dir[3] = {0, 0, 1};
+};
+
+/// Everything after the source, with the defocus already added to every plane's z.
+struct OpticsParams {
+  double source_z = 0;
+  int num_bounds = 0;  ///< object bounding spheres (centre, squared radius with a margin)
+  double bound_c[kMaxBounds][3] = {};
+  double bound_r2[kMaxBounds] = {};
+  bool split = false;  ///< TraceFarRays: report rays whose line passes within the sphere
+  double split_c[3] = {0, 0, 0};
+  double split_r2 = 0;
+  bool corrector = false;
+  double corrector_z = 0;
+  int rings = 0;
+  double ring_outer2[kMaxRings] = {}, ring_t[kMaxRings] = {};
+  int num_lenses = 0, stop_after = 0;
+  double lens_z[3] = {}, lens_f[3] = {}, lens_rim[3] = {};
+  double stop_z = 0, stop_r2 = 0, sensor_z = 0;
+  double sign = 1, off_x = 0, off_y = 0, pitch = 1, nx = 0, ny = 0;
+};
+
+/// One batch, structure of arrays (about 60 KiB; one per worker thread).
+struct Rays {
+  uint32_t words[kWords][kBatch];
+  int64_t cursor[kBatch];  ///< next unused word of the ray's stream; -1: the words ran out
+  double px[kBatch], py[kBatch], pz[kBatch];  ///< source sample on its plane
+  double dx[kBatch], dy[kBatch], dz[kBatch];  ///< unit direction
+  double u[kBatch], v[kBatch];  ///< tabulated direction's uniforms; u: then the corrector draw
+  double out[kBatch];           ///< pixel index or one of the codes above
+};
+
+/// Rays::words for the rays' streams (RayRng(seed, stream, rays[i]): words 0 .. kWords-1).
+void PhiloxWords(uint64_t seed, uint32_t stream, const uint64_t* rays, size_t n, Rays* r);
+/// Source samples from the words: p, d (not for kTabulated), cursor; u, v for kTabulated.
+void SampleSource(const SourceParams& s, size_t n, Rays* r);
+/// Rays::out from p, d (and u: the corrector's uniform); lanes whose out is already negative
+/// on entry keep it (the caller marks rejected or out-of-words rays).
+void Background(const OpticsParams& o, size_t n, Rays* r);
+/// The instruction set chosen at run time, e.g. "AVX3" (Highway's target name).
+const char* TargetName();
+
+}  // namespace raymatch::simulate::packet

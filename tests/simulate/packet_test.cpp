@@ -1,0 +1,187 @@
+// The SIMD packet path (simulate/src/packet.h) against the scalar path: the same random words
+// as RayRng, and the same images, counters and near lists bit for bit, for every source, effect
+// and selection mode it takes, on every instruction set this CPU has (Highway's run-time
+// dispatch is pointed at each in turn).
+#include <gtest/gtest.h>
+
+#include <hwy/targets.h>
+
+#include <cstring>
+#include <set>
+
+#include "packet.h"
+#include "raymatch/core/rng.h"
+#include "raymatch/simulate/tracer.h"
+#include "test_scenes.h"
+
+namespace raymatch::testing {
+namespace {
+
+using simulate::Fate;
+using simulate::PlaneResult;
+using simulate::RunControl;
+using simulate::Simulator;
+using simulate::SourceType;
+namespace packet = simulate::packet;
+
+/// Runs f once for every instruction set that is both compiled and supported here, with the
+/// dispatch pointed at it; restores the real set afterwards.
+template <class F>
+void ForEachTarget(F&& f) {
+  std::set<std::string> seen;
+  for (int64_t target : hwy::SupportedAndGeneratedTargets()) {
+    hwy::SetSupportedTargetsForTest(target);
+    const std::string name = packet::TargetName();
+    if (seen.insert(name).second) {
+      SCOPED_TRACE("SIMD target " + name);
+      f();
+    }
+  }
+  hwy::SetSupportedTargetsForTest(0);  // 0: back to what the CPU supports
+  EXPECT_GE(seen.size(), 1u);
+  std::string names;
+  for (const std::string& n : seen) names += " " + n;
+  ::testing::Test::RecordProperty("simd_targets", names);
+}
+
+TEST(Packet, PhiloxWordsAreRayRngsWords) {
+  const uint64_t seeds[] = {0, 12345, 0xFEDCBA9876543210ull};
+  ForEachTarget([&] {
+    for (uint64_t seed : seeds) {
+      std::vector<uint64_t> rays(packet::kBatch);
+      for (size_t i = 0; i < rays.size(); ++i)
+        rays[i] = i * 0x9E3779B97F4A7Cull + (i % 3 == 0 ? (uint64_t(1) << 33) : 0) + i;
+      auto r = std::make_unique<packet::Rays>();
+      packet::PhiloxWords(seed, 7, rays.data(), rays.size(), r.get());
+      int mismatches = 0;
+      for (size_t i = 0; i < rays.size(); ++i) {
+        RayRng rng(seed, 7, rays[i]);
+        for (int w = 0; w < packet::kWords; ++w) mismatches += rng.NextU32() != r->words[w][i];
+      }
+      EXPECT_EQ(mismatches, 0) << "seed " << seed;
+    }
+  });
+}
+
+void ExpectSameResult(const PlaneResult& a, const PlaneResult& b) {
+  ASSERT_EQ(a.counts.pixels.size(), b.counts.pixels.size());
+  EXPECT_EQ(std::memcmp(a.counts.pixels.data(), b.counts.pixels.data(),
+                        a.counts.pixels.size() * sizeof(float)),
+            0)
+      << "images differ";
+  EXPECT_EQ(a.rays, b.rays);
+  for (int f = 0; f < simulate::kNumFates; ++f)
+    EXPECT_EQ(a.counters.fates[f], b.counters.fates[f]) << simulate::FateName(Fate(f));
+  EXPECT_EQ(a.counters.interface_events, b.counters.interface_events);
+  EXPECT_EQ(a.counters.fresnel_evaluations, b.counters.fresnel_evaluations);
+  EXPECT_EQ(a.counters.corrector_tests, b.counters.corrector_tests);
+  EXPECT_EQ(a.counters.shape_queries, b.counters.shape_queries);
+  EXPECT_EQ(a.counters.mesh_queries, b.counters.mesh_queries);
+  EXPECT_EQ(a.counters.rays_hitting_objects, b.counters.rays_hitting_objects);
+  EXPECT_EQ(a.counters.path_class, b.counters.path_class);
+}
+
+/// The scalar image (one thread) against the packet image for 1 and 3 threads, every target.
+void ExpectPacketsMatchScalar(const Scene& scene, double defocus, uint64_t rays) {
+  const Simulator sim(scene);
+  RunControl scalar;
+  scalar.simd = false;
+  scalar.threads = 1;
+  const PlaneResult ref = sim.TracePlane(defocus, 3, rays, scalar);
+  ASSERT_GT(ref.counters.fates[int(Fate::kDetected)], rays / 20) << "scene images too little";
+  ForEachTarget([&] {
+    for (int threads : {1, 3}) {
+      SCOPED_TRACE("threads " + std::to_string(threads));
+      RunControl simd;
+      simd.threads = threads;
+      ExpectSameResult(ref, sim.TracePlane(defocus, 3, rays, simd));
+    }
+  });
+}
+
+Scene DropScene(PartialReflection pr) {
+  Scene s = MicroscopeScene();
+  s.source.half_angle_deg = 27;
+  s.objects = {SphereObject(20, 1.3378, {3, -2, 1})};
+  s.trace.partial_reflection = pr;
+  return s;
+}
+
+void AddCorrector(Scene* s) {
+  s->optics.corrector.enabled = true;
+  s->optics.corrector.transmissions = {1.0, 0.97, 0.9, 0.8, 0.6};
+}
+
+TEST(Packet, ConeDropUnpolarisedMatchesScalar) {
+  ExpectPacketsMatchScalar(DropScene(PartialReflection::kUnpolarized), 0, 400000);
+}
+
+TEST(Packet, PolarisedFresnelCorrectorAndTwoLensObjectiveMatchScalar) {
+  Scene s = DropScene(PartialReflection::kPolarized);
+  AddCorrector(&s);
+  s.optics.model = simulate::ObjectiveModel::kTwoLens;
+  s.optics.working_distance_mm = 20;  // the sample calibration's objective
+  s.optics.back_focal_mm = 0;
+  ExpectPacketsMatchScalar(s, -7.5, 400000);
+}
+
+TEST(Packet, LightFieldSourceWithCorrectorMatchesScalar) {
+  Scene s = DropScene(PartialReflection::kUnpolarized);
+  s.source.type = SourceType::kLightField;
+  s.source.angular_extent = 0.5;
+  // A radiance map that reaches beyond the unit circle's cut (rejected rays) and is uneven.
+  s.source.angular_map = Image(24, 24);
+  for (int y = 0; y < 24; ++y)
+    for (int x = 0; x < 24; ++x) s.source.angular_map.at(x, y) = float(1 + (x * 7 + y * 3) % 5);
+  AddCorrector(&s);
+  ExpectPacketsMatchScalar(s, 4, 400000);
+}
+
+TEST(Packet, CollimatedRectangleFieldBoxAndSphereFlippedOffsetCameraMatchScalar) {
+  Scene s = MicroscopeScene();
+  s.source.type = SourceType::kCollimated;
+  s.source.tilt_deg = 12;
+  s.source.azimuth_deg = 30;
+  s.source.field_shape = simulate::FieldShape::kRect;
+  s.source.field_size_um = {80, 60};
+  s.source.field_center_um = {4, -3, 0};
+  s.objects = {SphereObject(10, 1.5, {-12, 0, 0}), BoxObject({6, 8, 5}, 1.4, {14, 5, 2})};
+  s.trace.partial_reflection = PartialReflection::kUnpolarized;
+  s.camera.flip = true;
+  s.camera.offset_um = {30, -40};
+  ExpectPacketsMatchScalar(s, 2, 300000);
+}
+
+TEST(Packet, FlatFieldMatchesScalar) {
+  Scene s = MicroscopeScene();
+  s.source.half_angle_deg = 20;
+  AddCorrector(&s);
+  ExpectPacketsMatchScalar(s, 0, 300000);
+}
+
+TEST(Packet, SelectionsMatchScalar) {
+  // TraceRangeExcept and TraceFarRays (the fit's split) on both paths: images and near lists.
+  const Simulator sim(DropScene(PartialReflection::kUnpolarized));
+  RunControl scalar, simd;
+  scalar.simd = false;
+  std::vector<uint64_t> excluded;
+  for (uint64_t i = 1000; i < 150000; i += 7) excluded.push_back(i);
+  ForEachTarget([&] {
+    ExpectSameResult(sim.TraceRangeExcept(0, 1, 500, 200000, excluded, scalar),
+                     sim.TraceRangeExcept(0, 1, 500, 200000, excluded, simd));
+    std::vector<uint64_t> near_scalar, near_simd;
+    ExpectSameResult(sim.TraceFarRays(0, 1, 300, 250000, {2, 1, 0}, 26, &near_scalar, scalar),
+                     sim.TraceFarRays(0, 1, 300, 250000, {2, 1, 0}, 26, &near_simd, simd));
+    EXPECT_EQ(near_scalar, near_simd);
+    EXPECT_GT(near_simd.size(), 1000u);
+  });
+}
+
+TEST(Packet, CameraPsfStaysOnTheScalarPathWithTheSameImage) {
+  Scene s = DropScene(PartialReflection::kUnpolarized);
+  s.camera.psf_sigma_um = 0.8;
+  ExpectPacketsMatchScalar(s, 0, 100000);
+}
+
+}  // namespace
+}  // namespace raymatch::testing

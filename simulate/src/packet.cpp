@@ -200,10 +200,36 @@ void SampleSourceImpl(const SourceParams& s, size_t n, Rays* r) {
   }
 }
 
+// Stores the lanes' outcomes and adds the lanes below n to the batch's summary (Rays).
+HWY_INLINE void Summarise(const OpticsParams& o, hn::Vec<DF> out, size_t i, size_t n, Rays* r) {
+  const DF df;
+  const DI di;
+  hn::StoreU(out, df, r->out + i);
+  const auto valid = hn::FirstN(df, n - i);  // the last vector may reach past the batch
+  const auto detected = hn::Ge(out, hn::Zero(df));
+  // Pixel indices are integers below 2^31: exact in double and in int64.
+  const auto spare = hn::Add(hn::Set(df, o.nx * o.ny),
+                             hn::ConvertTo(df, hn::And(hn::Iota(di, 0), hn::Set(di, kSpareSlots - 1))));
+  hn::StoreU(hn::ConvertTo(di, hn::IfThenElse(detected, out, spare)), di, r->slot + i);
+  r->counts[0] += hn::CountTrue(df, hn::And(valid, detected));
+  for (double code : {kEscaped, kOutsideNa, kMissedSensor, kAbsorbed})
+    r->counts[static_cast<size_t>(-code)] +=
+        hn::CountTrue(df, hn::And(valid, hn::Eq(out, hn::Set(df, code))));
+  const auto rare = hn::And(valid, hn::Or(hn::Eq(out, hn::Set(df, kScalar)), hn::Eq(out, hn::Set(df, kNear))));
+  if (!hn::AllFalse(df, rare)) {
+    uint8_t bits[8] = {};
+    hn::StoreMaskBits(df, rare, bits);
+    for (size_t k = 0; k < hn::Lanes(df); ++k)
+      if ((bits[k / 8] >> (k % 8)) & 1) r->rare[r->num_rare++] = static_cast<int64_t>(i + k);
+  }
+}
+
 void BackgroundImpl(const OpticsParams& o, size_t n, Rays* r) {
   const DF df;
   const size_t N = hn::Lanes(df);
   const auto zero = hn::Zero(df);
+  r->num_rare = 0;
+  for (uint64_t& c : r->counts) c = 0;
   for (size_t i = 0; i < n; i += N) {
     const auto px = hn::LoadU(df, r->px + i), py = hn::LoadU(df, r->py + i),
                pz = hn::LoadU(df, r->pz + i);
@@ -230,7 +256,7 @@ void BackgroundImpl(const OpticsParams& o, size_t n, Rays* r) {
       mark(hn::Le(line_dist2(o.bound_c[k]), hn::Set(df, o.bound_r2[k])), kScalar);
     mark(hn::Le(dz, zero), kScalar);  // the scalar path calls these escaped; let it
     if (hn::AllTrue(df, settled)) {
-      hn::StoreU(out, df, r->out + i);
+      Summarise(o, out, i, n, r);
       continue;
     }
     // o = p + d * ((source_z - p.z) / d.z)
@@ -281,7 +307,7 @@ void BackgroundImpl(const OpticsParams& o, size_t n, Rays* r) {
                                 hn::And(hn::Ge(row, zero), hn::Lt(row, hn::Set(df, o.ny))));
     mark(hn::Not(inside), kMissedSensor);
     out = hn::IfThenElse(settled, out, hn::Add(hn::Mul(row, hn::Set(df, o.nx)), col));
-    hn::StoreU(out, df, r->out + i);
+    Summarise(o, out, i, n, r);
   }
 }
 

@@ -58,6 +58,9 @@ struct OpticsParams {
   double sign = 1, off_x = 0, off_y = 0, pitch = 1, nx = 0, ny = 0;
 };
 
+/// Image elements the packet path needs beyond the nx * ny pixels (Rays::slot).
+inline constexpr size_t kSpareSlots = 8;
+
 /// One batch, structure of arrays (about 60 KiB; one per worker thread).
 struct Rays {
   uint32_t words[kWords][kBatch];
@@ -66,14 +69,22 @@ struct Rays {
   double dx[kBatch], dy[kBatch], dz[kBatch];  ///< unit direction
   double u[kBatch], v[kBatch];  ///< tabulated direction's uniforms; u: then the corrector draw
   double out[kBatch];           ///< pixel index or one of the codes above
+  // Background's summary of out[0, n): the image element each lane adds one to (its pixel, or
+  // for every other outcome a spare element past the image, npix + lane % 8, so that the adds
+  // never wait on each other), the lanes for the scalar path or the near list (kScalar, kNear)
+  // in lane order, and how many lanes got each other code (counts[-code]; [0]: detected).
+  int64_t slot[kBatch];
+  int64_t rare[kBatch];
+  size_t num_rare = 0;
+  uint64_t counts[8] = {};
 };
 
 /// Rays::words for the rays' streams (RayRng(seed, stream, rays[i]): words 0 .. kWords-1).
 void PhiloxWords(uint64_t seed, uint32_t stream, const uint64_t* rays, size_t n, Rays* r);
 /// Source samples from the words: p, d (not for kTabulated), cursor; u, v for kTabulated.
 void SampleSource(const SourceParams& s, size_t n, Rays* r);
-/// Rays::out from p, d (and u: the corrector's uniform); lanes whose out is already negative
-/// on entry keep it (the caller marks rejected or out-of-words rays).
+/// Rays::out and its summary from p, d (and u: the corrector's uniform); lanes whose out is
+/// already negative on entry keep it (the caller marks rejected or out-of-words rays).
 void Background(const OpticsParams& o, size_t n, Rays* r);
 /// The instruction set chosen at run time, e.g. "AVX3" (Highway's target name).
 const char* TargetName();

@@ -229,7 +229,7 @@ namespace {
 
 // Per-thread accumulation: integer counts, so sums do not depend on the partition.
 struct Accum {
-  std::vector<uint32_t> image;  // npix counts and one spare element (not part of the image)
+  std::vector<uint32_t> image;  // the nx * ny pixels, then spare elements (not part of it)
   TraceCounters counters;
   std::unique_ptr<packet::Rays> rays;  // the packet path's batch (made on first use)
 };
@@ -600,14 +600,16 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
   return done;
 }
 
+template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, double defocus,
+                     uint64_t ray, const Vec3& p, Vec3 d, RayRng& rng, const RaySelection& sel,
+                     Accum& acc, std::vector<uint64_t>* near_out);
+
 /// One ray of the plane, from its own stream: the scalar path, and the packet path's fallback.
 template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
 void TraceRay(const Simulator::Impl& im, const Source& src, const TraceSpec& trace, double defocus,
               uint32_t plane, uint64_t ray, const RaySelection& sel, Accum& acc,
               std::vector<uint64_t>* near_out) {
-  const Geometry& geo = im.geometry;
-  const Optics& op = im.optics;
-  const bool has_objects = !geo.empty();
   TraceCounters& c = acc.counters;
   RayRng rng(trace.seed, plane, ray);
   Vec3 p, d;
@@ -615,6 +617,19 @@ void TraceRay(const Simulator::Impl& im, const Source& src, const TraceSpec& tra
     ++c.fates[int(Fate::kEscaped)];
     return;
   }
+  TraceSampledRay<kPR, kCorrector, kMesh, Source>(im, trace, defocus, ray, p, d, rng, sel, acc,
+                                                  near_out);
+}
+
+/// TraceRay after the source: the ray leaves p along d; rng stands after the source's words.
+template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, double defocus,
+                     uint64_t ray, const Vec3& p, Vec3 d, RayRng& rng, const RaySelection& sel,
+                     Accum& acc, std::vector<uint64_t>* near_out) {
+  const Geometry& geo = im.geometry;
+  const Optics& op = im.optics;
+  const bool has_objects = !geo.empty();
+  TraceCounters& c = acc.counters;
   if (sel.split && LinePassesWithin(p, d, sel.split_center, sel.split_r2)) {
     near_out->push_back(ray);  // as SplitRaysBySphere
     return;
@@ -829,33 +844,32 @@ void TraceRangePackets(const Simulator::Impl& im, const Source& src, const Trace
       }
     }
     packet::Background(plan.optics, n, &r);
-    // Outcomes without branches on them (they are unpredictable): a miss counts in the image's
-    // spare last element, and every outcome in codes[] (index -out; 0 = detected).
-    uint64_t codes[8] = {};
-    const double spare = static_cast<double>(acc.image.size() - 1);
-    for (size_t i = 0; i < n; ++i) {
-      const double o = r.out[i];
-      if (o == packet::kScalar || o == packet::kNear) [[unlikely]] {
-        if (o == packet::kNear)
-          near_out->push_back(rays[i]);
-        else
-          TraceRay<kPR, kCorrector, kMesh>(im, src, trace, defocus, plane, rays[i], sel, acc, near_out);
-        continue;
-      }
-      const bool detected = o >= 0;
-      ++acc.image[static_cast<size_t>(detected ? o : spare)];
-      ++codes[detected ? 0 : static_cast<size_t>(-o)];
-    }
-    static_assert(-packet::kAbsorbed < 8);
-    const uint64_t optics = codes[0] + codes[size_t(-packet::kOutsideNa)] +
-                            codes[size_t(-packet::kMissedSensor)] + codes[size_t(-packet::kAbsorbed)];
-    c.fates[int(Fate::kDetected)] += codes[0];
-    c.fates[int(Fate::kEscaped)] += codes[size_t(-packet::kEscaped)];
-    c.fates[int(Fate::kOutsideNa)] += codes[size_t(-packet::kOutsideNa)];
-    c.fates[int(Fate::kMissedSensor)] += codes[size_t(-packet::kMissedSensor)];
-    c.fates[int(Fate::kAbsorbedCorrector)] += codes[size_t(-packet::kAbsorbed)];
+    for (size_t i = 0; i < n; ++i) ++acc.image[static_cast<size_t>(r.slot[i])];
+    const uint64_t outside = r.counts[size_t(-packet::kOutsideNa)];
+    const uint64_t missed = r.counts[size_t(-packet::kMissedSensor)];
+    const uint64_t absorbed = r.counts[size_t(-packet::kAbsorbed)];
+    const uint64_t optics = r.counts[0] + outside + missed + absorbed;
+    c.fates[int(Fate::kDetected)] += r.counts[0];
+    c.fates[int(Fate::kEscaped)] += r.counts[size_t(-packet::kEscaped)];
+    c.fates[int(Fate::kOutsideNa)] += outside;
+    c.fates[int(Fate::kMissedSensor)] += missed;
+    c.fates[int(Fate::kAbsorbedCorrector)] += absorbed;
     c.shape_queries += queries * optics;  // rays that met nothing: one query each
     if constexpr (kCorrector) c.corrector_tests += optics;
+    for (size_t k = 0; k < r.num_rare; ++k) {  // in ray order: the near list stays ascending
+      const size_t i = static_cast<size_t>(r.rare[k]);
+      if (r.out[i] == packet::kNear) {
+        near_out->push_back(rays[i]);
+      } else if (r.cursor[i] < 0) {  // the batch's words ran out: all again from the stream
+        TraceRay<kPR, kCorrector, kMesh>(im, src, trace, defocus, plane, rays[i], sel, acc, near_out);
+      } else {  // near an object: on from the packet's source sample and the stream's cursor
+        RayRng rng(trace.seed, plane, rays[i]);
+        rng.SkipTo(static_cast<uint64_t>(r.cursor[i]));
+        TraceSampledRay<kPR, kCorrector, kMesh, Source>(
+            im, trace, defocus, rays[i], Vec3(r.px[i], r.py[i], r.pz[i]),
+            Vec3(r.dx[i], r.dy[i], r.dz[i]), rng, sel, acc, near_out);
+      }
+    }
     n = 0;
   };
   ForEachSelectedRay(sel, begin, end, [&](uint64_t ray) {
@@ -1064,7 +1078,7 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
   const size_t npix = size_t(scene_.camera.nx) * scene_.camera.ny;
   tbb::enumerable_thread_specific<Accum> accums([npix] {
     Accum a;
-    a.image.assign(npix + 1, 0);  // + a spare element for the packet path's misses
+    a.image.assign(npix + packet::kSpareSlots, 0);  // + the packet path's spare elements
     return a;
   });
   const auto t0 = std::chrono::steady_clock::now();

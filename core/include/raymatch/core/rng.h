@@ -17,6 +17,15 @@ class RayRng {
     key_ = {{static_cast<uint32_t>(seed), static_cast<uint32_t>(seed >> 32)}};
     ctr_ = {{static_cast<uint32_t>(index), static_cast<uint32_t>(index >> 32), stream, 0u}};
   }
+  /// The stream as if `words` words had been drawn (a fresh generator only).
+  void SkipTo(uint64_t words) {
+    ctr_.v[3] = static_cast<uint32_t>(words / 4);
+    used_ = 4;
+    if (words % 4 != 0) {
+      NextU32();
+      used_ = static_cast<int>(words % 4);
+    }
+  }
   /// Uniform in [0, 1) with 32 random bits (resolution 2^-32).
   double Uniform() { return NextU32() * 0x1p-32; }
   uint32_t NextU32() {

@@ -34,65 +34,93 @@ HWY_INLINE hn::Vec<DU> Mul32(hn::Vec<DU> a, hn::Vec<DU> b) {
 #endif
 }
 
-// Philox4x32-10 (Salmon et al., SC'11; Random123's philox4x32 with its constants), four
-// counters in u64 lanes that hold 32-bit values.
-void PhiloxWordsImpl(uint64_t seed, uint32_t stream, const uint64_t* rays, size_t n, Rays* r) {
+// Philox4x32-10 (Salmon et al., SC'11; Random123's philox4x32 with its constants) for the rays
+// i .. i + lanes: block `block` of each ray's stream, i.e. its words 4 block .. 4 block + 3. The
+// four counters sit in u64 lanes that hold 32-bit values.
+HWY_INLINE void PhiloxBlock(uint64_t seed, uint32_t stream, const uint64_t* rays, size_t i,
+                            int block, Rays* r) {
   const DU du;
   const DU32 dw;
   constexpr uint32_t kM0 = 0xD2511F53u, kM1 = 0xCD9E8D57u;
   constexpr uint32_t kW0 = 0x9E3779B9u, kW1 = 0xBB67AE85u;
-  uint32_t k0[10], k1[10];
-  k0[0] = static_cast<uint32_t>(seed), k1[0] = static_cast<uint32_t>(seed >> 32);
-  for (int i = 1; i < 10; ++i) k0[i] = k0[i - 1] + kW0, k1[i] = k1[i - 1] + kW1;
   const auto lo_mask = hn::Set(du, 0xFFFFFFFFull);
   const auto m0 = hn::Set(du, kM0), m1 = hn::Set(du, kM1);
-  const size_t N = hn::Lanes(du);
-  for (size_t i = 0; i < n; i += N) {
-    const auto index = hn::LoadU(du, rays + i);
-    for (int block = 0; block < kWords / 4; ++block) {
-      auto c0 = hn::And(index, lo_mask), c1 = hn::ShiftRight<32>(index);
-      auto c2 = hn::Set(du, stream), c3 = hn::Set(du, uint64_t(block));
-      for (int round = 0; round < 10; ++round) {
-        const auto p0 = Mul32(c0, m0), p1 = Mul32(c2, m1);
-        const auto n0 = hn::Xor(hn::Xor(hn::ShiftRight<32>(p1), c1), hn::Set(du, k0[round]));
-        const auto n2 = hn::Xor(hn::Xor(hn::ShiftRight<32>(p0), c3), hn::Set(du, k1[round]));
-        c1 = hn::And(p1, lo_mask);
-        c3 = hn::And(p0, lo_mask);
-        c0 = n0, c2 = n2;
-      }
-      uint32_t* w = r->words[4 * block];
-      hn::StoreU(hn::TruncateTo(dw, c0), dw, w + i);
-      hn::StoreU(hn::TruncateTo(dw, c1), dw, w + kBatch + i);
-      hn::StoreU(hn::TruncateTo(dw, c2), dw, w + 2 * kBatch + i);
-      hn::StoreU(hn::TruncateTo(dw, c3), dw, w + 3 * kBatch + i);
-    }
+  const auto index = hn::LoadU(du, rays + i);
+  auto c0 = hn::And(index, lo_mask), c1 = hn::ShiftRight<32>(index);
+  auto c2 = hn::Set(du, stream), c3 = hn::Set(du, uint64_t(block));
+  uint32_t k0 = static_cast<uint32_t>(seed), k1 = static_cast<uint32_t>(seed >> 32);
+  for (int round = 0; round < 10; ++round) {
+    const auto p0 = Mul32(c0, m0), p1 = Mul32(c2, m1);
+    const auto n0 = hn::Xor(hn::Xor(hn::ShiftRight<32>(p1), c1), hn::Set(du, k0));
+    const auto n2 = hn::Xor(hn::Xor(hn::ShiftRight<32>(p0), c3), hn::Set(du, k1));
+    c1 = hn::And(p1, lo_mask);
+    c3 = hn::And(p0, lo_mask);
+    c0 = n0, c2 = n2;
+    k0 += kW0, k1 += kW1;  // the key schedule (32-bit wrap-around)
   }
+  uint32_t* w = r->words[4 * block];
+  hn::StoreU(hn::TruncateTo(dw, c0), dw, w + i);
+  hn::StoreU(hn::TruncateTo(dw, c1), dw, w + kBatch + i);
+  hn::StoreU(hn::TruncateTo(dw, c2), dw, w + 2 * kBatch + i);
+  hn::StoreU(hn::TruncateTo(dw, c3), dw, w + 3 * kBatch + i);
 }
+
+void PhiloxWordsImpl(uint64_t seed, uint32_t stream, const uint64_t* rays, size_t n, Rays* r) {
+  for (size_t i = 0; i < n; i += hn::Lanes(DU()))
+    for (int block = 0; block < kWords / 4; ++block) PhiloxBlock(seed, stream, rays, i, block, r);
+}
+
+// One vector of rays' words: the blocks made so far, and the rest made when a stage reaches
+// them (most rays need only the first two of the three blocks).
+struct Words {
+  Rays* r;
+  size_t i;
+  uint64_t seed;
+  uint32_t stream;
+  const uint64_t* rays;
+  int blocks = 0;
+  void Need(int word) {
+    for (; blocks * 4 <= word && blocks < kWords / 4; ++blocks)
+      PhiloxBlock(seed, stream, rays, i, blocks, r);
+  }
+};
 
 // RayRng::Uniform: the word times 2^-32 (exact). The word goes to double through int32 (native
 // on every x86 target): double(w) = double(int32(w ^ 2^31)) + 2^31, both steps exact.
-HWY_INLINE hn::Vec<DF> Uniform(const Rays* r, int word, size_t i) {
+HWY_INLINE hn::Vec<DF> Uniform(Words& words, int word) {
   const DF df;
   const hn::Rebind<int32_t, DF> di32;
-  const auto w = hn::LoadU(DU32(), r->words[word] + i);
+  words.Need(word);
+  const auto w = hn::LoadU(DU32(), words.r->words[word] + words.i);
   const auto flipped = hn::BitCast(di32, hn::Xor(w, hn::Set(DU32(), 0x80000000u)));
   const auto value = hn::Add(hn::PromoteTo(df, flipped), hn::Set(df, 2147483648.0));
   return hn::Mul(value, hn::Set(df, 0x1p-32));
 }
 
+// 2 rng.Uniform() - 1 for the word: every step of it is exact (a 32-bit integer scaled by
+// powers of two, then 1 subtracted from a multiple of 2^-31 in [0, 2)), so it equals
+// int32(word ^ 2^31) * 2^-31, which is what is computed here.
+HWY_INLINE hn::Vec<DF> Symmetric(Words& words, int word) {
+  const DF df;
+  const hn::Rebind<int32_t, DF> di32;
+  words.Need(word);
+  const auto w = hn::LoadU(DU32(), words.r->words[word] + words.i);
+  const auto flipped = hn::BitCast(di32, hn::Xor(w, hn::Set(DU32(), 0x80000000u)));
+  return hn::Mul(hn::PromoteTo(df, flipped), hn::Set(df, 0x1p-31));
+}
+
 // The pair of words at j as SampleUnitDisc forms it: (2u - 1, 2u' - 1), and whether it lies in
 // the unit disc (a * a + b * b < 1; the loop there rejects >= 1).
-HWY_INLINE hn::Mask<DF> DiscPair(const Rays* r, int j, size_t i, hn::Vec<DF>& a, hn::Vec<DF>& b) {
+HWY_INLINE hn::Mask<DF> DiscPair(Words& w, int j, hn::Vec<DF>& a, hn::Vec<DF>& b) {
   const DF df;
-  const auto one = hn::Set(df, 1.0), two = hn::Set(df, 2.0);
-  a = hn::Sub(hn::Mul(two, Uniform(r, j, i)), one);      // a = 2 * rng.Uniform() - 1
-  b = hn::Sub(hn::Mul(two, Uniform(r, j + 1, i)), one);  // b = 2 * rng.Uniform() - 1
-  return hn::Lt(hn::Add(hn::Mul(a, a), hn::Mul(b, b)), one);
+  a = Symmetric(w, j);      // a = 2 * rng.Uniform() - 1
+  b = Symmetric(w, j + 1);  // b = 2 * rng.Uniform() - 1
+  return hn::Lt(hn::Add(hn::Mul(a, a), hn::Mul(b, b)), hn::Set(df, 1.0));
 }
 
 // SampleUnitDisc from each lane's cursor on (even: every draw before it came in pairs). A lane
 // whose words run out gets cursor -1.
-HWY_INLINE void UnitDisc(const Rays* r, size_t i, hn::Vec<DI>& cursor, hn::Vec<DF>& a_out,
+HWY_INLINE void UnitDisc(Words& w, hn::Vec<DI>& cursor, hn::Vec<DF>& a_out,
                          hn::Vec<DF>& b_out) {
   const DF df;
   const DI di;
@@ -101,7 +129,7 @@ HWY_INLINE void UnitDisc(const Rays* r, size_t i, hn::Vec<DI>& cursor, hn::Vec<D
     const auto active = hn::AndNot(done, hn::RebindMask(df, hn::Eq(cursor, hn::Set(di, j))));
     if (hn::AllFalse(df, active)) continue;
     hn::Vec<DF> a, b;
-    const auto take = hn::And(active, DiscPair(r, j, i, a, b));
+    const auto take = hn::And(active, DiscPair(w, j, a, b));
     a_out = hn::IfThenElse(take, a, a_out);
     b_out = hn::IfThenElse(take, b, b_out);
     done = hn::Or(done, take);
@@ -112,7 +140,7 @@ HWY_INLINE void UnitDisc(const Rays* r, size_t i, hn::Vec<DI>& cursor, hn::Vec<D
 
 // Two discs drawn one after the other from word 0 (a disc field, then a cone's direction) in
 // one pass over the pairs: the first inside pair is the field's, the next one the direction's.
-HWY_INLINE void TwoDiscs(const Rays* r, size_t i, hn::Vec<DI>& cursor, hn::Vec<DF>& fa,
+HWY_INLINE void TwoDiscs(Words& w, hn::Vec<DI>& cursor, hn::Vec<DF>& fa,
                          hn::Vec<DF>& fb, hn::Vec<DF>& da, hn::Vec<DF>& db) {
   const DF df;
   const DI di;
@@ -120,7 +148,7 @@ HWY_INLINE void TwoDiscs(const Rays* r, size_t i, hn::Vec<DI>& cursor, hn::Vec<D
   auto end = hn::Set(di, -1);
   for (int j = 0; j + 1 < kWords; j += 2) {
     hn::Vec<DF> a, b;
-    const auto inside = DiscPair(r, j, i, a, b);
+    const auto inside = DiscPair(w, j, a, b);
     const auto take_dir = hn::AndNot(dir_done, hn::And(field_done, inside));
     const auto take_field = hn::AndNot(field_done, inside);
     fa = hn::IfThenElse(take_field, a, fa);
@@ -135,12 +163,18 @@ HWY_INLINE void TwoDiscs(const Rays* r, size_t i, hn::Vec<DI>& cursor, hn::Vec<D
   cursor = end;
 }
 
-void SampleSourceImpl(const SourceParams& s, size_t n, Rays* r) {
+void SampleSourceImpl(const SourceParams& s, uint64_t seed, uint32_t stream, const uint64_t* rays,
+                      size_t n, int extra_words, Rays* r) {
   const DF df;
   const DI di;
   const size_t N = hn::Lanes(df);
-  const auto one = hn::Set(df, 1.0), two = hn::Set(df, 2.0);
+  const auto one = hn::Set(df, 1.0);
+  // The first two blocks for the whole batch up front (independent vectors keep the multiplier
+  // busy); the third only for vectors that reach it.
+  for (size_t i = 0; i < n; i += N)
+    for (int block = 0; block < 2; ++block) PhiloxBlock(seed, stream, rays, i, block, r);
   for (size_t i = 0; i < n; i += N) {
+    Words w{r, i, seed, stream, rays, 2};
     auto cursor = hn::Zero(di);
     hn::Vec<DF> px, py;
     auto da = hn::Zero(df), db = hn::Zero(df);  // the cone's disc, when drawn with the field's
@@ -148,16 +182,14 @@ void SampleSourceImpl(const SourceParams& s, size_t n, Rays* r) {
     if (s.disc_field) {  // Field::Sample, disc: center + (x radius, y radius, 0)
       auto a = hn::Zero(df), b = hn::Zero(df);
       if (two_discs)
-        TwoDiscs(r, i, cursor, a, b, da, db);
+        TwoDiscs(w, cursor, a, b, da, db);
       else
-        UnitDisc(r, i, cursor, a, b);
+        UnitDisc(w, cursor, a, b);
       px = hn::Add(hn::Set(df, s.center[0]), hn::Mul(a, hn::Set(df, s.radius)));
       py = hn::Add(hn::Set(df, s.center[1]), hn::Mul(b, hn::Set(df, s.radius)));
     } else {  // rectangle: center + ((2 u0 - 1) half_w, (2 u1 - 1) half_h, 0)
-      px = hn::Add(hn::Set(df, s.center[0]),
-                   hn::Mul(hn::Sub(hn::Mul(two, Uniform(r, 0, i)), one), hn::Set(df, s.half_w)));
-      py = hn::Add(hn::Set(df, s.center[1]),
-                   hn::Mul(hn::Sub(hn::Mul(two, Uniform(r, 1, i)), one), hn::Set(df, s.half_h)));
+      px = hn::Add(hn::Set(df, s.center[0]), hn::Mul(Symmetric(w, 0), hn::Set(df, s.half_w)));
+      py = hn::Add(hn::Set(df, s.center[1]), hn::Mul(Symmetric(w, 1), hn::Set(df, s.half_h)));
       cursor = hn::Set(di, 2);
     }
     hn::StoreU(px, df, r->px + i);
@@ -165,7 +197,7 @@ void SampleSourceImpl(const SourceParams& s, size_t n, Rays* r) {
     hn::StoreU(hn::Set(df, s.center[2] + 0.0), df, r->pz + i);
     switch (s.direction) {
       case SourceParams::kCone: {  // ConeSource::Sample
-        if (!two_discs) UnitDisc(r, i, cursor, da, db);
+        if (!two_discs) UnitDisc(w, cursor, da, db);
         const auto u = hn::Mul(da, hn::Set(df, s.sin_max)), v = hn::Mul(db, hn::Set(df, s.sin_max));
         hn::StoreU(u, df, r->dx + i);
         hn::StoreU(v, df, r->dy + i);
@@ -184,8 +216,8 @@ void SampleSourceImpl(const SourceParams& s, size_t n, Rays* r) {
         auto u = hn::Zero(df), v = hn::Zero(df);
         for (int j = 0; j + 1 < kWords; j += 2) {  // the cursor is even here
           const auto at = hn::RebindMask(df, hn::Eq(cursor, hn::Set(di, j)));
-          u = hn::IfThenElse(at, Uniform(r, j, i), u);
-          v = hn::IfThenElse(at, Uniform(r, j + 1, i), v);
+          u = hn::IfThenElse(at, Uniform(w, j), u);
+          v = hn::IfThenElse(at, Uniform(w, j + 1), v);
         }
         hn::StoreU(u, df, r->u + i);
         hn::StoreU(v, df, r->v + i);
@@ -193,6 +225,8 @@ void SampleSourceImpl(const SourceParams& s, size_t n, Rays* r) {
         break;
       }
     }
+    // The words the caller reads after the source (polarisation, corrector) must exist too.
+    if (extra_words > 0) w.Need(static_cast<int>(hn::GetLane(hn::MaxOfLanes(di, cursor))) + extra_words - 1);
     hn::StoreU(cursor, di, r->cursor + i);
     hn::StoreU(hn::IfThenElseZero(hn::RebindMask(df, hn::Lt(cursor, hn::Zero(di))),
                                   hn::Set(df, kScalar)),
@@ -259,11 +293,12 @@ void BackgroundImpl(const OpticsParams& o, size_t n, Rays* r) {
       Summarise(o, out, i, n, r);
       continue;
     }
-    // o = p + d * ((source_z - p.z) / d.z)
-    const auto s = hn::Div(hn::Sub(hn::Set(df, o.source_z), pz), dz);
+    // o = p + d * ((source_z - p.z) * (1 / d.z)); the slopes sx = d.x * (1 / d.z), sy likewise
+    const auto inv_dz = hn::Div(hn::Set(df, 1.0), dz);
+    const auto s = hn::Mul(hn::Sub(hn::Set(df, o.source_z), pz), inv_dz);
     auto x = hn::Add(px, hn::Mul(dx, s)), y = hn::Add(py, hn::Mul(dy, s));
     auto z = hn::Add(pz, hn::Mul(dz, s));
-    auto sx = hn::Div(dx, dz), sy = hn::Div(dy, dz);
+    auto sx = hn::Mul(dx, inv_dz), sy = hn::Mul(dy, inv_dz);
     auto go = [&](double zp) {  // x += sx * (zp - z); y += sy * (zp - z); z = zp
       const auto dzp = hn::Sub(hn::Set(df, zp), z);
       x = hn::Add(x, hn::Mul(sx, dzp));
@@ -292,17 +327,17 @@ void BackgroundImpl(const OpticsParams& o, size_t n, Rays* r) {
       go(o.lens_z[l]);
       if (o.lens_rim[l] > 0)
         mark(hn::Gt(r2(), hn::Set(df, o.lens_rim[l] * o.lens_rim[l])), kOutsideNa);
-      sx = hn::Sub(sx, hn::Div(x, hn::Set(df, o.lens_f[l])));  // sx -= x / L.f
-      sy = hn::Sub(sy, hn::Div(y, hn::Set(df, o.lens_f[l])));
+      sx = hn::Sub(sx, hn::Mul(x, hn::Set(df, o.lens_power[l])));  // sx -= x * L.power
+      sy = hn::Sub(sy, hn::Mul(y, hn::Set(df, o.lens_power[l])));
     }
     go(o.sensor_z);
-    // u = sign x - off_x, v = sign y - off_y; col = floor(u / pitch + 0.5 nx),
-    // row = floor(0.5 ny - v / pitch)
+    // u = sign x - off_x, v = sign y - off_y; col = floor(u inv_pitch + 0.5 nx),
+    // row = floor(0.5 ny - v inv_pitch)
     const auto u = hn::Sub(hn::Mul(hn::Set(df, o.sign), x), hn::Set(df, o.off_x));
     const auto v = hn::Sub(hn::Mul(hn::Set(df, o.sign), y), hn::Set(df, o.off_y));
-    const auto pitch = hn::Set(df, o.pitch);
-    const auto col = hn::Floor(hn::Add(hn::Div(u, pitch), hn::Set(df, 0.5 * o.nx)));
-    const auto row = hn::Floor(hn::Sub(hn::Set(df, 0.5 * o.ny), hn::Div(v, pitch)));
+    const auto inv_pitch = hn::Set(df, o.inv_pitch);
+    const auto col = hn::Floor(hn::Add(hn::Mul(u, inv_pitch), hn::Set(df, 0.5 * o.nx)));
+    const auto row = hn::Floor(hn::Sub(hn::Set(df, 0.5 * o.ny), hn::Mul(v, inv_pitch)));
     const auto inside = hn::And(hn::And(hn::Ge(col, zero), hn::Lt(col, hn::Set(df, o.nx))),
                                 hn::And(hn::Ge(row, zero), hn::Lt(row, hn::Set(df, o.ny))));
     mark(hn::Not(inside), kMissedSensor);
@@ -325,8 +360,9 @@ HWY_EXPORT(BackgroundImpl);
 void PhiloxWords(uint64_t seed, uint32_t stream, const uint64_t* rays, size_t n, Rays* r) {
   HWY_DYNAMIC_DISPATCH(PhiloxWordsImpl)(seed, stream, rays, n, r);
 }
-void SampleSource(const SourceParams& s, size_t n, Rays* r) {
-  HWY_DYNAMIC_DISPATCH(SampleSourceImpl)(s, n, r);
+void SampleSource(const SourceParams& s, uint64_t seed, uint32_t stream, const uint64_t* rays,
+                  size_t n, int extra_words, Rays* r) {
+  HWY_DYNAMIC_DISPATCH(SampleSourceImpl)(s, seed, stream, rays, n, extra_words, r);
 }
 void Background(const OpticsParams& o, size_t n, Rays* r) {
   HWY_DYNAMIC_DISPATCH(BackgroundImpl)(o, n, r);

@@ -53,9 +53,9 @@ struct OpticsParams {
   int rings = 0;
   double ring_outer2[kMaxRings] = {}, ring_t[kMaxRings] = {};
   int num_lenses = 0, stop_after = 0;
-  double lens_z[3] = {}, lens_f[3] = {}, lens_rim[3] = {};
+  double lens_z[3] = {}, lens_power[3] = {}, lens_rim[3] = {};  ///< power = 1 / f
   double stop_z = 0, stop_r2 = 0, sensor_z = 0;
-  double sign = 1, off_x = 0, off_y = 0, pitch = 1, nx = 0, ny = 0;
+  double sign = 1, off_x = 0, off_y = 0, inv_pitch = 1, nx = 0, ny = 0;
 };
 
 /// Image elements the packet path needs beyond the nx * ny pixels (Rays::slot).
@@ -81,8 +81,11 @@ struct Rays {
 
 /// Rays::words for the rays' streams (RayRng(seed, stream, rays[i]): words 0 .. kWords-1).
 void PhiloxWords(uint64_t seed, uint32_t stream, const uint64_t* rays, size_t n, Rays* r);
-/// Source samples from the words: p, d (not for kTabulated), cursor; u, v for kTabulated.
-void SampleSource(const SourceParams& s, size_t n, Rays* r);
+/// Source samples from the rays' streams: p, d (not for kTabulated), cursor; u, v for
+/// kTabulated. Makes the words it reads (a Philox block at a time, as needed), and those up to
+/// cursor + extra_words - 1 that the caller reads next.
+void SampleSource(const SourceParams& s, uint64_t seed, uint32_t stream, const uint64_t* rays,
+                  size_t n, int extra_words, Rays* r);
 /// Rays::out and its summary from p, d (and u: the corrector's uniform); lanes whose out is
 /// already negative on entry keep it (the caller marks rejected or out-of-words rays).
 void Background(const OpticsParams& o, size_t n, Rays* r);

@@ -186,6 +186,7 @@ using SourceVariant = std::variant<CollimatedSource, ConeSource, PointSource, Li
 
 struct Lens {
   double z, f, rim;  // plane (um, at defocus 0), focal length (um), rim radius (0 = none)
+  double power;      // 1 / f: a slope changes by -x / f, done as a product (divisions are slow)
 };
 
 struct Optics {
@@ -198,7 +199,7 @@ struct Optics {
   int stop_after = 0;  // the stop plane follows lens index stop_after-1
   double stop_z = 0, stop_r2 = 0;
   double sensor_z = 0;
-  double pitch = 0, off_x = 0, off_y = 0, sign = -1;
+  double pitch = 0, inv_pitch = 0, off_x = 0, off_y = 0, sign = -1;
   double psf_sigma_sensor = 0;  // Gaussian PSF at the sensor (um), 0 = none
   int nx = 0, ny = 0;
 };
@@ -291,7 +292,7 @@ Optics MakeOptics(const Scene& s) {
   const double tan_na = std::tan(std::asin(AcceptanceSin(s)));
   double z;
   if (sp.model == ObjectiveModel::kSingle) {
-    o.lenses[0] = {f, f, 0};
+    o.lenses[0] = {f, f, 0, 1 / f};
     o.num_lenses = 1;
     o.stop_z = 2 * f;
     z = f;
@@ -300,8 +301,8 @@ Optics MakeOptics(const Scene& s) {
     const double wd = sp.working_distance_mm * 1e3, bfd = sp.back_focal_mm * 1e3;
     const double d = f - bfd * wd / f;
     const double f1 = d / (1 - bfd / f), f2 = d / (1 - wd / f);
-    o.lenses[0] = {wd, f1, 0};
-    o.lenses[1] = {wd + d, f2, 0};
+    o.lenses[0] = {wd, f1, 0, 1 / f1};
+    o.lenses[1] = {wd + d, f2, 0, 1 / f2};
     o.num_lenses = 2;
     o.stop_z = wd + d + bfd;
     z = wd;
@@ -313,7 +314,7 @@ Optics MakeOptics(const Scene& s) {
   const double stop_r = f * tan_na;
   o.stop_r2 = stop_r * stop_r;
   const double tube_z = o.stop_z + sp.tube_distance_mm * 1e3;
-  o.lenses[o.num_lenses++] = {tube_z, sp.tube_focal_mm * 1e3, 0};
+  o.lenses[o.num_lenses++] = {tube_z, sp.tube_focal_mm * 1e3, 0, 1 / (sp.tube_focal_mm * 1e3)};
   o.sensor_z = tube_z + sp.tube_focal_mm * 1e3 + s.camera.sensor_shift_mm * 1e3;
   if (sp.corrector.enabled) {
     const double cz = sp.corrector.distance_mm > 0 ? sp.corrector.distance_mm * 1e3 : z;
@@ -328,6 +329,7 @@ Optics MakeOptics(const Scene& s) {
     }
   }
   o.pitch = s.camera.pixel_pitch_um;
+  o.inv_pitch = 1 / o.pitch;  // products, not divisions, in the inner loop
   o.off_x = s.camera.offset_um[0];
   o.off_y = s.camera.offset_um[1];
   o.sign = s.camera.flip ? -1.0 : 1.0;
@@ -635,7 +637,8 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, double d
     return;
   }
   Vec3 o = p;
-  if constexpr (!std::is_same_v<Source, PointSource>) o = p + d * ((im.source_z - p.z) / d.z);
+  // (1 / d.z, a product: the packet path reuses the reciprocal for the slopes below)
+  if constexpr (!std::is_same_v<Source, PointSource>) o = p + d * ((im.source_z - p.z) * (1 / d.z));
   Vec3 pol;
   if constexpr (kPR == PartialReflection::kPolarized) pol = RandomPerpendicular(d, rng.Uniform());
 
@@ -648,7 +651,8 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, double d
   }
   if (!done) {
     // Paraxial optics on exact slopes (tangent law): x' = x + s dz, s' = s - x / f.
-    double z = o.z, x = o.x, y = o.y, sx = d.x / d.z, sy = d.y / d.z;
+    const double inv_dz = 1 / d.z;
+    double z = o.z, x = o.x, y = o.y, sx = d.x * inv_dz, sy = d.y * inv_dz;
     auto go = [&](double zp) {
       x += sx * (zp - z);
       y += sy * (zp - z);
@@ -684,8 +688,8 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, double d
         done = true;
         break;
       }
-      sx -= x / L.f;
-      sy -= y / L.f;
+      sx -= x * L.power;
+      sy -= y * L.power;
     }
     if (!done) {
       go(op.sensor_z + defocus);
@@ -696,8 +700,8 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, double d
         u += r * std::cos(phi);
         v += r * std::sin(phi);
       }
-      const double col = std::floor(u / op.pitch + 0.5 * op.nx);
-      const double row = std::floor(0.5 * op.ny - v / op.pitch);
+      const double col = std::floor(u * op.inv_pitch + 0.5 * op.nx);
+      const double row = std::floor(0.5 * op.ny - v * op.inv_pitch);
       if (col >= 0 && col < op.nx && row >= 0 && row < op.ny) {
         ++acc.image[static_cast<size_t>(row) * op.nx + static_cast<size_t>(col)];
       } else {
@@ -799,12 +803,12 @@ std::optional<PacketPlan> MakePacketPlan(const Simulator::Impl& im, double defoc
   po.num_lenses = op.num_lenses, po.stop_after = op.stop_after;
   for (int l = 0; l < op.num_lenses; ++l) {
     po.lens_z[l] = op.lenses[l].z + defocus;
-    po.lens_f[l] = op.lenses[l].f;
+    po.lens_power[l] = op.lenses[l].power;
     po.lens_rim[l] = op.lenses[l].rim;
   }
   po.stop_z = op.stop_z + defocus, po.stop_r2 = op.stop_r2;
   po.sensor_z = op.sensor_z + defocus;
-  po.sign = op.sign, po.off_x = op.off_x, po.off_y = op.off_y, po.pitch = op.pitch;
+  po.sign = op.sign, po.off_x = op.off_x, po.off_y = op.off_y, po.inv_pitch = op.inv_pitch;
   po.nx = op.nx, po.ny = op.ny;
   return plan;
 }
@@ -822,8 +826,10 @@ void TraceRangePackets(const Simulator::Impl& im, const Source& src, const Trace
   TraceCounters& c = acc.counters;
   const uint64_t queries = im.geometry.empty() ? 0 : 1;  // the one query that found nothing
   auto flush = [&] {
-    packet::PhiloxWords(trace.seed, plane, rays.data(), n, &r);
-    packet::SampleSource(plan.source, n, &r);
+    // Words drawn after the source by a ray that meets nothing: polarisation, corrector.
+    constexpr int kExtraWords =
+        (kPR == PartialReflection::kPolarized ? 1 : 0) + (kCorrector ? 1 : 0);
+    packet::SampleSource(plan.source, trace.seed, plane, rays.data(), n, kExtraWords, &r);
     for (size_t i = 0; i < n; ++i) {
       if (r.out[i] < 0) continue;
       if constexpr (std::is_same_v<Source, LightFieldSource>) {

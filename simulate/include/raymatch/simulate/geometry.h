@@ -98,8 +98,10 @@ inline bool IntersectSphere(const Vec3& o, const Vec3& d, const Vec3& c, double 
   const double b = -Dot(f, d);
   const Vec3 perp = f + d * b;  // f minus its projection on d
   const double disc = r2 - Dot(perp, perp);
-  if (disc < 0) return false;
   const double c0 = Dot(f, f) - r2;
+  // Outside the sphere and moving away (t0 t1 = c0 > 0, t0 + t1 = 2 b < 0): both roots are
+  // negative, as the lines below would find; a ray that has just left a sphere asks this.
+  if (disc < 0 || (c0 > 0 && b < 0)) return false;
   const double q = b + std::copysign(std::sqrt(disc), b);
   double t0 = q != 0 ? c0 / q : 0, t1 = q;
   if (t0 > t1) std::swap(t0, t1);

@@ -6,6 +6,7 @@
 #include "raymatch/core/error.h"
 #include "raymatch/core/provenance.h"
 #include "raymatch/core/version.h"
+#include "raymatch/simulate/tracer.h"
 #ifdef RAYMATCH_HAVE_CAPTURE
 #include "raymatch/capture/camera.h"
 #endif
@@ -54,7 +55,9 @@ int main(int argc, char** argv) {
                                         (raymatch::apps::MpiCompiledIn() ? "on" : "off") +
                                         ", mrcal " + (kMrcal ? "on" : "off") +
                                         ", Python module " + (kPython ? "on" : "off") +
-                                        "; capture backends: " + backends);
+                                        "; capture backends: " + backends +
+                                        "\nSIMD tracing: " + raymatch::simulate::SimdTarget() +
+                                        " (Google Highway, chosen at run time)");
   app.require_subcommand(1);
   int exit_code = 0;
   raymatch::apps::RegisterSimulate(app, &exit_code);

@@ -88,6 +88,7 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
       {"seconds", r.seconds},
       {"threads", r.threads},
       {"mpi_ranks", r.ranks},
+      {"simd", r.simd ? std::string(SimdTarget()) + " packets (Google Highway)" : "off (one ray at a time)"},
       {"rays_per_second", r.seconds > 0 ? r.rays / r.seconds : 0.0},
       {"effects", sim.Effects()},
       {"partial_reflection", PrName(s.trace.partial_reflection)},

@@ -26,6 +26,8 @@
 
 namespace raymatch::simulate {
 
+const char* SimdTarget() { return packet::TargetName(); }
+
 const char* FateName(Fate f) {
   static const char* names[] = {"detected",           "outside_na",      "missed_sensor",
                                 "absorbed_corrector", "interaction_cap", "escaped",
@@ -1177,6 +1179,7 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
   }
   res.threads = threads;
   res.ranks = static_cast<int>(ranks);
+  res.simd = plan.has_value();
   std::vector<uint64_t> sum(npix, 0);
   for (const Accum& a : accums) {
     for (size_t i = 0; i < npix; ++i) sum[i] += a.image[i];

@@ -66,7 +66,12 @@ struct PlaneResult {
   double seconds = 0;
   int threads = 0;       ///< worker threads per process
   int ranks = 1;         ///< MPI ranks that traced the image together (core/cluster.h)
+  bool simd = false;     ///< rays that met nothing went through the SIMD packet path
 };
+
+/// The SIMD instruction set the packet path uses on this CPU (chosen at run time), e.g. "AVX3"
+/// (AVX-512), "AVX2", "SSE4" (Google Highway's target names).
+const char* SimdTarget();
 
 /// Controls that do not change the physics.
 struct RunControl {

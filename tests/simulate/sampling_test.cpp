@@ -57,3 +57,23 @@ TEST(UnitDisc, UniformOverArea) {
 
 }  // namespace
 }  // namespace raymatch::simulate
+
+TEST(Distribution1D, BinsAtExactCdfValuesAndAcrossEmptyBins) {
+  // Weights 1, 0, 2, 1 (n = 4): cdf 0, 1/4, 1/4, 3/4, 1, all exact in binary. A u equal to a cdf
+  // value belongs to the bin that starts there (std::upper_bound's rule); the empty bin is never
+  // chosen.
+  const float f[] = {1, 0, 2, 1};
+  const raymatch::simulate::Distribution1D d(f, 4);
+  const struct {
+    double u;
+    int bin;
+    double x;
+  } cases[] = {{0.0, 0, 0.0},      {0.1, 0, 0.4 / 4},  {0.25, 2, 2.0 / 4},
+               {0.5, 2, 2.5 / 4},  {0.75, 3, 3.0 / 4}, {0.875, 3, 3.5 / 4}};
+  for (const auto& c : cases) {
+    int bin = -1;
+    const double x = d.Sample(c.u, &bin);
+    EXPECT_EQ(bin, c.bin) << "u = " << c.u;
+    EXPECT_NEAR(x, c.x, 1e-15) << "u = " << c.u;
+  }
+}

@@ -21,6 +21,9 @@ class Distribution1D {
 
  private:
   std::vector<double> func_, cdf_;
+  // Guide table: guide_[k] is the largest i with cdf_[i] <= k / guide_.size() (a power of two,
+  // so k / size and u * size are exact); a search starts there and steps forward.
+  std::vector<int> guide_;
   double integral_ = 0;
 };
 

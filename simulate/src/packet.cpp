@@ -246,7 +246,7 @@ HWY_INLINE void Summarise(const OpticsParams& o, hn::Vec<DF> out, size_t i, size
                              hn::ConvertTo(df, hn::And(hn::Iota(di, 0), hn::Set(di, kSpareSlots - 1))));
   hn::StoreU(hn::ConvertTo(di, hn::IfThenElse(detected, out, spare)), di, r->slot + i);
   r->counts[0] += hn::CountTrue(df, hn::And(valid, detected));
-  for (double code : {kEscaped, kOutsideNa, kMissedSensor, kAbsorbed})
+  for (double code : {kEscaped, kOutsideNa, kMissedSensor, kAbsorbed, kInteractionCap, kLostInside})
     r->counts[static_cast<size_t>(-code)] +=
         hn::CountTrue(df, hn::And(valid, hn::Eq(out, hn::Set(df, code))));
   const auto rare = hn::And(valid, hn::Or(hn::Eq(out, hn::Set(df, kScalar)), hn::Eq(out, hn::Set(df, kNear))));
@@ -258,7 +258,7 @@ HWY_INLINE void Summarise(const OpticsParams& o, hn::Vec<DF> out, size_t i, size
   }
 }
 
-void BackgroundImpl(const OpticsParams& o, size_t n, Rays* r) {
+void BackgroundImpl(const OpticsParams& o, size_t n, bool from_objects, Rays* r) {
   const DF df;
   const size_t N = hn::Lanes(df);
   const auto zero = hn::Zero(df);
@@ -285,19 +285,25 @@ void BackgroundImpl(const OpticsParams& o, size_t n, Rays* r) {
       out = hn::IfThenElse(now, hn::Set(df, code), out);
       settled = hn::Or(settled, now);
     };
-    if (o.split) mark(hn::Le(line_dist2(o.split_c), hn::Set(df, o.split_r2)), kNear);
-    for (int k = 0; k < o.num_bounds; ++k)
-      mark(hn::Le(line_dist2(o.bound_c[k]), hn::Set(df, o.bound_r2[k])), kScalar);
-    mark(hn::Le(dz, zero), kScalar);  // the scalar path calls these escaped; let it
+    if (!from_objects) {
+      if (o.split) mark(hn::Le(line_dist2(o.split_c), hn::Set(df, o.split_r2)), kNear);
+      for (int k = 0; k < o.num_bounds; ++k)
+        mark(hn::Le(line_dist2(o.bound_c[k]), hn::Set(df, o.bound_r2[k])), kScalar);
+      mark(hn::Le(dz, zero), kScalar);  // the scalar path calls these escaped; let it
+    }
     if (hn::AllTrue(df, settled)) {
       Summarise(o, out, i, n, r);
       continue;
     }
-    // o = p + d * ((source_z - p.z) * (1 / d.z)); the slopes sx = d.x * (1 / d.z), sy likewise
+    // o = p + d * ((source_z - p.z) * (1 / d.z)); the slopes sx = d.x * (1 / d.z), sy likewise.
+    // After the objects, p is already where the ray left them.
     const auto inv_dz = hn::Div(hn::Set(df, 1.0), dz);
-    const auto s = hn::Mul(hn::Sub(hn::Set(df, o.source_z), pz), inv_dz);
-    auto x = hn::Add(px, hn::Mul(dx, s)), y = hn::Add(py, hn::Mul(dy, s));
-    auto z = hn::Add(pz, hn::Mul(dz, s));
+    auto x = px, y = py, z = pz;
+    if (!from_objects) {
+      const auto s = hn::Mul(hn::Sub(hn::Set(df, o.source_z), pz), inv_dz);
+      x = hn::Add(px, hn::Mul(dx, s)), y = hn::Add(py, hn::Mul(dy, s));
+      z = hn::Add(pz, hn::Mul(dz, s));
+    }
     auto sx = hn::Mul(dx, inv_dz), sy = hn::Mul(dy, inv_dz);
     auto go = [&](double zp) {  // x += sx * (zp - z); y += sy * (zp - z); z = zp
       const auto dzp = hn::Sub(hn::Set(df, zp), z);
@@ -346,6 +352,172 @@ void BackgroundImpl(const OpticsParams& o, size_t n, Rays* r) {
   }
 }
 
+// TraceObjects for one homogeneous sphere, several rays at a time (packet.h, Sphere). Each line
+// mirrors the scalar one it is named after: IntersectSphere, Normalize, Refract, Fresnel,
+// Reflect and the object stack (here a depth: the stack can only hold this sphere).
+void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
+  const DF df;
+  const DI di;
+  const size_t N = hn::Lanes(df);
+  const auto zero = hn::Zero(df), one = hn::Set(df, 1.0);
+  const auto cx = hn::Set(df, sp.center[0]), cy = hn::Set(df, sp.center[1]),
+             cz = hn::Set(df, sp.center[2]), r2 = hn::Set(df, sp.radius2);
+  auto dot = [](auto ax, auto ay, auto az, auto bx, auto by, auto bz) {
+    return hn::Add(hn::Add(hn::Mul(ax, bx), hn::Mul(ay, by)), hn::Mul(az, bz));
+  };
+  for (size_t i = 0; i < n; i += N) {
+    const auto px = hn::LoadU(df, r->px + i), py = hn::LoadU(df, r->py + i),
+               pz = hn::LoadU(df, r->pz + i);
+    auto dx = hn::LoadU(df, r->dx + i), dy = hn::LoadU(df, r->dy + i), dz = hn::LoadU(df, r->dz + i);
+    // o = p + d * ((source_z - p.z) * (1 / d.z))
+    const auto s = hn::Mul(hn::Sub(hn::Set(df, sp.source_z), pz), hn::Div(one, dz));
+    auto ox = hn::Add(px, hn::Mul(dx, s)), oy = hn::Add(py, hn::Mul(dy, s)),
+         oz = hn::Add(pz, hn::Mul(dz, s));
+    auto cursor = hn::LoadU(di, r->cursor + i);
+    auto out = hn::Zero(df);
+    auto active = hn::FirstN(df, n - i);
+    auto depth = hn::Zero(di), events = hn::Zero(di), internal = hn::Zero(di);
+    auto queries = hn::Zero(di), interface = hn::Zero(di), fresnel = hn::Zero(di);
+    auto path_class = hn::Set(di, -1);
+    auto classified = hn::Lt(zero, zero);  // all false
+    auto finish = [&](hn::Mask<DF> m, double code) {  // lanes that end here with this outcome
+      out = hn::IfThenElse(m, hn::Set(df, code), out);
+      active = hn::AndNot(m, active);
+    };
+    auto as_i = [&](hn::Mask<DF> m) { return hn::RebindMask(di, m); };
+    auto count = [&](hn::Vec<DI>& v, hn::Mask<DF> m) { v = hn::IfThenElse(as_i(m), hn::Add(v, hn::Set(di, 1)), v); };
+    while (!hn::AllFalse(df, active)) {
+      count(queries, active);  // ++c.shape_queries
+      // IntersectSphere(o, d, c, r2)
+      const auto fx = hn::Sub(ox, cx), fy = hn::Sub(oy, cy), fz = hn::Sub(oz, cz);
+      const auto b = hn::Neg(dot(fx, fy, fz, dx, dy, dz));
+      const auto qx = hn::Add(fx, hn::Mul(dx, b)), qy = hn::Add(fy, hn::Mul(dy, b)),
+                 qz = hn::Add(fz, hn::Mul(dz, b));
+      const auto disc = hn::Sub(r2, dot(qx, qy, qz, qx, qy, qz));
+      const auto c0 = hn::Sub(dot(fx, fy, fz, fx, fy, fz), r2);
+      const auto away = hn::Or(hn::Lt(disc, zero), hn::And(hn::Gt(c0, zero), hn::Lt(b, zero)));
+      const auto root = hn::Sqrt(hn::IfThenElseZero(hn::Not(away), disc));
+      const auto q = hn::Add(b, hn::CopySign(root, b));
+      auto t0 = hn::IfThenElse(hn::Ne(q, zero), hn::Div(c0, q), zero), t1 = q;
+      const auto swap = hn::Gt(t0, t1);
+      const auto lo = hn::IfThenElse(swap, t1, t0), hi = hn::IfThenElse(swap, t0, t1);
+      t0 = lo, t1 = hi;
+      const auto t = hn::IfThenElse(hn::Gt(t0, zero), t0, t1);
+      const auto hit = hn::AndNot(away, hn::Or(hn::Gt(t0, zero), hn::Gt(t1, zero)));
+      active = hn::And(active, hit);  // the others left the sphere for good
+      if (hn::AllFalse(df, active)) break;
+      // hp = o + d * t; normal = Normalize(hp - c)
+      const auto hx = hn::Add(ox, hn::Mul(dx, t)), hy = hn::Add(oy, hn::Mul(dy, t)),
+                 hz = hn::Add(oz, hn::Mul(dz, t));
+      const auto vx = hn::Sub(hx, cx), vy = hn::Sub(hy, cy), vz = hn::Sub(hz, cz);
+      const auto len = hn::Sqrt(dot(vx, vy, vz, vx, vy, vz));
+      const auto nx = hn::Div(vx, len), ny = hn::Div(vy, len), nz = hn::Div(vz, len);
+      // if (++events > max_interactions) the ray ends
+      count(events, active);
+      finish(hn::And(active, hn::RebindMask(df, hn::Gt(events, hn::Set(di, sp.max_interactions)))),
+             kInteractionCap);
+      if (hn::AllFalse(df, active)) break;
+      count(interface, active);
+      const auto entering = hn::Lt(dot(dx, dy, dz, nx, ny, nz), zero);
+      const auto inside = hn::RebindMask(df, hn::Gt(depth, hn::Zero(di)));
+      const auto n_obj = hn::Set(df, sp.index), n_med = hn::Set(df, sp.medium);
+      const auto n1 = hn::IfThenElse(entering, hn::IfThenElse(inside, n_obj, n_med), n_obj);
+      const auto n2 = hn::IfThenElse(entering, n_obj, n_med);
+      const auto fx2 = hn::IfThenElse(entering, nx, hn::Neg(nx)),
+                 fy2 = hn::IfThenElse(entering, ny, hn::Neg(ny)),
+                 fz2 = hn::IfThenElse(entering, nz, hn::Neg(nz));  // nf: faces the incoming ray
+      const auto cos_i = hn::Neg(dot(dx, dy, dz, fx2, fy2, fz2));
+      // Refract(d, nf, n1 / n2): sin2_t = eta^2 max(0, 1 - cos_i^2); TIR when >= 1
+      const auto eta = hn::Div(n1, n2);
+      const auto c2 = hn::Sub(one, hn::Mul(cos_i, cos_i));
+      const auto sin2_t = hn::Mul(hn::Mul(eta, eta), hn::IfThenElse(hn::Lt(zero, c2), c2, zero));
+      const auto tir = hn::Ge(sin2_t, one);
+      const auto ct = hn::Sqrt(hn::IfThenElse(tir, zero, hn::Sub(one, sin2_t)));
+      const auto k = hn::Sub(hn::Mul(eta, cos_i), ct);  // t = d eta + nf (eta cos_i - ct)
+      const auto tx = hn::Add(hn::Mul(dx, eta), hn::Mul(fx2, k)),
+                 ty = hn::Add(hn::Mul(dy, eta), hn::Mul(fy2, k)),
+                 tz = hn::Add(hn::Mul(dz, eta), hn::Mul(fz2, k));
+      auto reflect = tir;
+      if (sp.fresnel) {
+        const auto draw = hn::AndNot(tir, active);
+        count(fresnel, draw);
+        // rng.Uniform() from the lane's next word; a lane out of words goes to the scalar path
+        const auto out_of_words = hn::And(draw, hn::RebindMask(df, hn::Gt(cursor, hn::Set(di, kWords - 1))));
+        finish(out_of_words, kScalar);
+        const auto drawing = hn::AndNot(out_of_words, draw);
+        auto u = zero;
+        for (int j = 0; j < kWords; ++j) {
+          const auto at = hn::And(drawing, hn::RebindMask(df, hn::Eq(cursor, hn::Set(di, j))));
+          if (hn::AllFalse(df, at)) continue;
+          const auto w = hn::PromoteTo(hn::RebindToUnsigned<DI>(), hn::LoadU(DU32(), r->words[j] + i));
+          u = hn::IfThenElse(at, hn::Mul(hn::ConvertTo(df, hn::BitCast(di, w)), hn::Set(df, 0x1p-32)), u);
+        }
+        count(cursor, drawing);
+        // Fresnel(n1, n2, cos_i, cos_t).R() = (rs^2 + rp^2) / 2
+        const auto a1 = hn::Mul(n1, cos_i), a2 = hn::Mul(n2, ct);
+        const auto rs = hn::Div(hn::Sub(a1, a2), hn::Add(a1, a2));
+        const auto b1 = hn::Mul(n2, cos_i), b2 = hn::Mul(n1, ct);
+        const auto rp = hn::Div(hn::Sub(b1, b2), hn::Add(b1, b2));
+        const auto R = hn::Mul(hn::Set(df, 0.5), hn::Add(hn::Mul(rs, rs), hn::Mul(rp, rp)));
+        reflect = hn::Or(reflect, hn::And(drawing, hn::Lt(u, R)));
+      }
+      // Reflected: d = Normalize(Reflect(d, nf)), o = hp + nf eps; transmitted: d = Normalize(t),
+      // o = hp - nf eps.
+      const auto two_dn = hn::Mul(hn::Set(df, 2.0), dot(dx, dy, dz, fx2, fy2, fz2));
+      const auto rx = hn::Sub(dx, hn::Mul(fx2, two_dn)), ry = hn::Sub(dy, hn::Mul(fy2, two_dn)),
+                 rz = hn::Sub(dz, hn::Mul(fz2, two_dn));
+      const auto ex = hn::IfThenElse(reflect, rx, tx), ey = hn::IfThenElse(reflect, ry, ty),
+                 ez = hn::IfThenElse(reflect, rz, tz);
+      const auto elen = hn::Sqrt(dot(ex, ey, ez, ex, ey, ez));
+      const auto eps = hn::Set(df, sp.epsilon);
+      const auto ax = hn::Mul(fx2, eps), ay = hn::Mul(fy2, eps), az = hn::Mul(fz2, eps);
+      const auto new_ox = hn::IfThenElse(reflect, hn::Add(hx, ax), hn::Sub(hx, ax));
+      const auto new_oy = hn::IfThenElse(reflect, hn::Add(hy, ay), hn::Sub(hy, ay));
+      const auto new_oz = hn::IfThenElse(reflect, hn::Add(hz, az), hn::Sub(hz, az));
+      // The object stack: entering pushes (a 17th level is lost inside), leaving pops.
+      const auto transmit = hn::AndNot(reflect, active);
+      const auto push = hn::And(transmit, entering);
+      finish(hn::And(push, hn::RebindMask(df, hn::Eq(depth, hn::Set(di, 16)))), kLostInside);
+      const auto pushing = hn::And(push, active);
+      const auto popping = hn::And(hn::AndNot(entering, transmit), inside);
+      depth = hn::IfThenElse(as_i(pushing), hn::Add(depth, hn::Set(di, 1)), depth);
+      depth = hn::IfThenElse(as_i(popping), hn::Sub(depth, hn::Set(di, 1)), depth);
+      // Path classes of the first departure (TraceObjects): reflected at the first entry -> 0;
+      // internal reflections counted until the ray first leaves -> 1 + their number (max 7).
+      const auto open = hn::AndNot(classified, active);
+      const auto first_reflection = hn::And(hn::And(open, reflect),
+                                            hn::And(entering, hn::RebindMask(df, hn::Eq(events, hn::Set(di, 1)))));
+      path_class = hn::IfThenElse(as_i(first_reflection), hn::Zero(di), path_class);
+      count(internal, hn::AndNot(first_reflection, hn::AndNot(entering, hn::And(open, reflect))));
+      const auto leaves = hn::AndNot(entering, hn::AndNot(reflect, open));
+      path_class = hn::IfThenElse(as_i(leaves), hn::Min(hn::Add(internal, hn::Set(di, 1)), hn::Set(di, kPathClasses - 1)), path_class);
+      classified = hn::Or(classified, hn::Or(first_reflection, leaves));
+      // The ray moves on (lanes still in the loop only).
+      dx = hn::IfThenElse(active, hn::Div(ex, elen), dx);
+      dy = hn::IfThenElse(active, hn::Div(ey, elen), dy);
+      dz = hn::IfThenElse(active, hn::Div(ez, elen), dz);
+      ox = hn::IfThenElse(active, new_ox, ox);
+      oy = hn::IfThenElse(active, new_oy, oy);
+      oz = hn::IfThenElse(active, new_oz, oz);
+    }
+    // Left the sphere: still inside by the stack -> lost; travelling away from the objective
+    // (d.z <= 0) -> escaped; the rest go on to the optics from where they left.
+    const auto ended = hn::Lt(out, zero);
+    out = hn::IfThenElse(hn::AndNot(ended, hn::RebindMask(df, hn::Gt(depth, hn::Zero(di)))),
+                         hn::Set(df, kLostInside), out);
+    out = hn::IfThenElse(hn::And(hn::Eq(out, zero), hn::Le(dz, zero)), hn::Set(df, kEscaped), out);
+    hn::StoreU(out, df, r->out + i);
+    hn::StoreU(ox, df, r->px + i), hn::StoreU(oy, df, r->py + i), hn::StoreU(oz, df, r->pz + i);
+    hn::StoreU(dx, df, r->dx + i), hn::StoreU(dy, df, r->dy + i), hn::StoreU(dz, df, r->dz + i);
+    hn::StoreU(cursor, di, r->cursor + i);
+    hn::StoreU(queries, di, r->queries + i);
+    hn::StoreU(interface, di, r->interface_events + i);
+    hn::StoreU(fresnel, di, r->fresnel + i);
+    hn::StoreU(path_class, di, r->path_class + i);
+    hn::StoreU(events, di, r->events + i);
+  }
+}
+
 }  // namespace HWY_NAMESPACE
 }  // namespace raymatch::simulate::packet
 HWY_AFTER_NAMESPACE();
@@ -356,6 +528,7 @@ namespace raymatch::simulate::packet {
 HWY_EXPORT(PhiloxWordsImpl);
 HWY_EXPORT(SampleSourceImpl);
 HWY_EXPORT(BackgroundImpl);
+HWY_EXPORT(SphereImpl);
 
 void PhiloxWords(uint64_t seed, uint32_t stream, const uint64_t* rays, size_t n, Rays* r) {
   HWY_DYNAMIC_DISPATCH(PhiloxWordsImpl)(seed, stream, rays, n, r);
@@ -365,8 +538,12 @@ void SampleSource(const SourceParams& s, uint64_t seed, uint32_t stream, const u
   HWY_DYNAMIC_DISPATCH(SampleSourceImpl)(s, seed, stream, rays, n, extra_words, r);
 }
 void Background(const OpticsParams& o, size_t n, Rays* r) {
-  HWY_DYNAMIC_DISPATCH(BackgroundImpl)(o, n, r);
+  HWY_DYNAMIC_DISPATCH(BackgroundImpl)(o, n, false, r);
 }
+void Onward(const OpticsParams& o, size_t n, Rays* r) {
+  HWY_DYNAMIC_DISPATCH(BackgroundImpl)(o, n, true, r);
+}
+void Sphere(const SphereParams& s, size_t n, Rays* r) { HWY_DYNAMIC_DISPATCH(SphereImpl)(s, n, r); }
 const char* TargetName() {
   // The target HWY_DYNAMIC_DISPATCH uses: the best one both compiled and supported.
   const int64_t chosen = hwy::SupportedTargets() & HWY_TARGETS;

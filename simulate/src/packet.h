@@ -26,6 +26,9 @@ inline constexpr double kEscaped = -3;       ///< the source rejected the ray
 inline constexpr double kOutsideNa = -4;     ///< corrector rim, aperture stop or lens rim
 inline constexpr double kMissedSensor = -5;  ///< passed the optics, fell beside the sensor
 inline constexpr double kAbsorbed = -6;      ///< removed by a corrector zone's transmission draw
+inline constexpr double kInteractionCap = -7;  ///< more interface events than max_interactions
+inline constexpr double kLostInside = -8;      ///< the stack says inside after the last surface
+inline constexpr int kPathClasses = 8;         ///< TraceCounters::path_class
 
 /// A source the packet stage samples: a field (disc or rectangle without a map) and a direction
 /// (cone, collimated, or drawn by the caller from two uniforms: the tabulated light field).
@@ -76,7 +79,19 @@ struct Rays {
   int64_t slot[kBatch];
   int64_t rare[kBatch];
   size_t num_rare = 0;
-  uint64_t counts[8] = {};
+  uint64_t counts[16] = {};
+  // The sphere stage's work per lane (TraceCounters' meanings), and the rays' indices.
+  int64_t queries[kBatch], interface_events[kBatch], fresnel[kBatch], path_class[kBatch];
+  int64_t events[kBatch];  ///< > 0: the ray met the sphere
+  uint64_t ids[kBatch];
+};
+
+/// One homogeneous sphere in a medium: the scene the sphere stage traces.
+struct SphereParams {
+  double center[3] = {0, 0, 0};
+  double radius2 = 0, index = 1, medium = 1, epsilon = 0, source_z = 0;
+  int max_interactions = 100;
+  bool fresnel = false;  ///< unpolarised partial reflection (else refraction and TIR only)
 };
 
 /// Rays::words for the rays' streams (RayRng(seed, stream, rays[i]): words 0 .. kWords-1).
@@ -89,6 +104,12 @@ void SampleSource(const SourceParams& s, uint64_t seed, uint32_t stream, const u
 /// Rays::out and its summary from p, d (and u: the corrector's uniform); lanes whose out is
 /// already negative on entry keep it (the caller marks rejected or out-of-words rays).
 void Background(const OpticsParams& o, size_t n, Rays* r);
+/// Rays from their source samples (p, d, cursor) through one homogeneous sphere until they
+/// leave it: Rays::out 0 (p, d: where and how it left; cursor after its draws) or kEscaped,
+/// kInteractionCap, kLostInside, kScalar (out of words); the per-lane work counters.
+void Sphere(const SphereParams& s, size_t n, Rays* r);
+/// Background for rays that left the objects at p along d (no source plane, no near tests).
+void Onward(const OpticsParams& o, size_t n, Rays* r);
 /// The instruction set chosen at run time, e.g. "AVX3" (Highway's target name).
 const char* TargetName();
 

@@ -235,6 +235,8 @@ struct Accum {
   std::vector<uint32_t> image;  // the nx * ny pixels, then spare elements (not part of it)
   TraceCounters counters;
   std::unique_ptr<packet::Rays> rays;  // the packet path's batch (made on first use)
+  std::unique_ptr<packet::Rays> near;  // rays queued for the sphere stage
+  size_t near_count = 0;
 };
 
 }  // namespace
@@ -753,11 +755,14 @@ constexpr bool kPacketSource = std::is_same_v<Source, ConeSource> ||
 struct PacketPlan {
   packet::SourceParams source;
   packet::OpticsParams optics;
+  /// Rays that meet the scene's one homogeneous sphere go through the sphere stage too.
+  std::optional<packet::SphereParams> sphere;
 };
 
 /// The packet stages' parameters for this plane, or nothing where the scene needs the scalar
 /// path throughout (point and ray-list sources, a spatial map, a camera PSF, many objects).
-std::optional<PacketPlan> MakePacketPlan(const Simulator::Impl& im, double defocus,
+std::optional<PacketPlan> MakePacketPlan(const Simulator::Impl& im, const Scene& scene,
+                                         PartialReflection pr, double defocus,
                                          const RaySelection& sel) {
   PacketPlan plan;
   packet::SourceParams& ps = plan.source;
@@ -812,7 +817,71 @@ std::optional<PacketPlan> MakePacketPlan(const Simulator::Impl& im, double defoc
   po.sensor_z = op.sensor_z + defocus;
   po.sign = op.sign, po.off_x = op.off_x, po.off_y = op.off_y, po.inv_pitch = op.inv_pitch;
   po.nx = op.nx, po.ny = op.ny;
+  // The sphere stage: one homogeneous sphere, refraction, TIR and the unpolarised Fresnel
+  // branch (the polarised branch and everything else stay on the scalar path).
+  if (scene.objects.size() == 1 && scene.objects[0].shape == ShapeType::kSphere &&
+      !scene.objects[0].index_field && !im.geometry.has_meshes() &&
+      pr != PartialReflection::kPolarized) {
+    const ObjectSpec& o = scene.objects[0];
+    packet::SphereParams sp;
+    sp.center[0] = o.center_um.x, sp.center[1] = o.center_um.y, sp.center[2] = o.center_um.z;
+    sp.radius2 = o.radius_um * o.radius_um;  // as Geometry's SphereShape
+    sp.index = im.index[0], sp.medium = im.medium, sp.epsilon = im.geometry.epsilon(0);
+    sp.source_z = im.source_z;
+    sp.max_interactions = scene.trace.max_interactions;
+    sp.fresnel = pr == PartialReflection::kUnpolarized;
+    plan.sphere = sp;
+  }
   return plan;
+}
+
+/// The queued rays that meet the sphere, through the sphere stage and on through the optics;
+/// those that run out of random words are traced again on the scalar path.
+template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+void TraceSphereQueue(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
+                      double defocus, uint32_t plane, const RaySelection& sel, Accum& acc,
+                      std::vector<uint64_t>* near_out, const PacketPlan& plan) {
+  packet::Rays& q = *acc.near;
+  const size_t m = acc.near_count;
+  acc.near_count = 0;
+  // All their words (the batch made the third Philox block only where the source needed it).
+  packet::PhiloxWords(trace.seed, plane, q.ids, m, &q);
+  packet::Sphere(*plan.sphere, m, &q);
+  if constexpr (kCorrector) {
+    for (size_t i = 0; i < m; ++i) {
+      if (q.out[i] != 0) continue;
+      const int64_t k = q.cursor[i];  // the corrector's draw follows the sphere's
+      if (k < packet::kWords)
+        q.u[i] = q.words[k][i] * 0x1p-32;
+      else
+        q.out[i] = packet::kScalar;
+    }
+  }
+  packet::Onward(plan.optics, m, &q);
+  TraceCounters& c = acc.counters;
+  for (size_t i = 0; i < m; ++i) {
+    ++acc.image[static_cast<size_t>(q.slot[i])];
+    if (q.out[i] == packet::kScalar) continue;  // counted when traced again below
+    c.shape_queries += static_cast<uint64_t>(q.queries[i]);
+    c.interface_events += static_cast<uint64_t>(q.interface_events[i]);
+    c.fresnel_evaluations += static_cast<uint64_t>(q.fresnel[i]);
+    c.rays_hitting_objects += q.events[i] > 0;
+    if (q.path_class[i] >= 0) ++c.path_class[static_cast<size_t>(q.path_class[i])];
+  }
+  const uint64_t outside = q.counts[size_t(-packet::kOutsideNa)];
+  const uint64_t missed = q.counts[size_t(-packet::kMissedSensor)];
+  const uint64_t absorbed = q.counts[size_t(-packet::kAbsorbed)];
+  c.fates[int(Fate::kDetected)] += q.counts[0];
+  c.fates[int(Fate::kEscaped)] += q.counts[size_t(-packet::kEscaped)];
+  c.fates[int(Fate::kOutsideNa)] += outside;
+  c.fates[int(Fate::kMissedSensor)] += missed;
+  c.fates[int(Fate::kAbsorbedCorrector)] += absorbed;
+  c.fates[int(Fate::kInteractionCap)] += q.counts[size_t(-packet::kInteractionCap)];
+  c.fates[int(Fate::kLostInside)] += q.counts[size_t(-packet::kLostInside)];
+  if constexpr (kCorrector) c.corrector_tests += q.counts[0] + outside + missed + absorbed;
+  for (size_t k = 0; k < q.num_rare; ++k)
+    TraceRay<kPR, kCorrector, kMesh>(im, src, trace, defocus, plane,
+                                     q.ids[static_cast<size_t>(q.rare[k])], sel, acc, near_out);
 }
 
 /// TraceRange in batches of packet::kBatch rays: the same rays, counts and counters.
@@ -822,8 +891,9 @@ void TraceRangePackets(const Simulator::Impl& im, const Source& src, const Trace
                        const RaySelection& sel, Accum& acc, std::vector<uint64_t>* near_out,
                        const PacketPlan& plan) {
   if (!acc.rays) acc.rays = std::make_unique<packet::Rays>();  // value-initialised
+  if (plan.sphere && !acc.near) acc.near = std::make_unique<packet::Rays>();
   packet::Rays& r = *acc.rays;
-  std::array<uint64_t, packet::kBatch> rays{};
+  uint64_t* rays = r.ids;
   size_t n = 0;
   TraceCounters& c = acc.counters;
   const uint64_t queries = im.geometry.empty() ? 0 : 1;  // the one query that found nothing
@@ -831,7 +901,7 @@ void TraceRangePackets(const Simulator::Impl& im, const Source& src, const Trace
     // Words drawn after the source by a ray that meets nothing: polarisation, corrector.
     constexpr int kExtraWords =
         (kPR == PartialReflection::kPolarized ? 1 : 0) + (kCorrector ? 1 : 0);
-    packet::SampleSource(plan.source, trace.seed, plane, rays.data(), n, kExtraWords, &r);
+    packet::SampleSource(plan.source, trace.seed, plane, rays, n, kExtraWords, &r);
     for (size_t i = 0; i < n; ++i) {
       if (r.out[i] < 0) continue;
       if constexpr (std::is_same_v<Source, LightFieldSource>) {
@@ -870,6 +940,15 @@ void TraceRangePackets(const Simulator::Impl& im, const Source& src, const Trace
         near_out->push_back(rays[i]);
       } else if (r.cursor[i] < 0) {  // the batch's words ran out: all again from the stream
         TraceRay<kPR, kCorrector, kMesh>(im, src, trace, defocus, plane, rays[i], sel, acc, near_out);
+      } else if (plan.sphere) {  // near the sphere: queue it for the sphere stage
+        packet::Rays& q = *acc.near;
+        const size_t m = acc.near_count++;
+        q.ids[m] = rays[i], q.cursor[m] = r.cursor[i];
+        q.px[m] = r.px[i], q.py[m] = r.py[i], q.pz[m] = r.pz[i];
+        q.dx[m] = r.dx[i], q.dy[m] = r.dy[i], q.dz[m] = r.dz[i];
+        if (acc.near_count == packet::kBatch)
+          TraceSphereQueue<kPR, kCorrector, kMesh>(im, src, trace, defocus, plane, sel, acc,
+                                                   near_out, plan);
       } else {  // near an object: on from the packet's source sample and the stream's cursor
         RayRng rng(trace.seed, plane, rays[i]);
         rng.SkipTo(static_cast<uint64_t>(r.cursor[i]));
@@ -885,6 +964,9 @@ void TraceRangePackets(const Simulator::Impl& im, const Source& src, const Trace
     if (n == packet::kBatch) flush();
   });
   if (n > 0) flush();
+  if (acc.near_count > 0)
+    TraceSphereQueue<kPR, kCorrector, kMesh>(im, src, trace, defocus, plane, sel, acc, near_out,
+                                             plan);
 }
 
 class Progress {
@@ -1106,7 +1188,7 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
                     std::min(rays, my_chunks * kChunk));
 
   const std::optional<PacketPlan> plan =
-      control.simd ? MakePacketPlan(im, defocus_um, sel) : std::nullopt;
+      control.simd ? MakePacketPlan(im, scene_, pr, defocus_um, sel) : std::nullopt;
   // Split mode: each chunk's near rays in their own list, joined in chunk order below.
   std::vector<std::vector<uint64_t>> near_by_chunk(sel.split ? chunks : 0);
   auto run_chunk = [&](uint64_t ci) {

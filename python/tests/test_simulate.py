@@ -120,7 +120,7 @@ def test_gil_released_while_tracing():
 
     def work():
         t0 = time.perf_counter()
-        raymatch.simulate(scene, rays=4_000_000, defocus_um=[0], threads=1)
+        raymatch.simulate(scene, rays=20_000_000, defocus_um=[0], threads=1)
         done["seconds"] = time.perf_counter() - t0
 
     t = threading.Thread(target=work)

@@ -6,7 +6,9 @@
 // order (each line below names the scalar line it mirrors), IEEE double arithmetic with
 // correctly rounded division and square root in both paths, and no contraction of a * b + c
 // into a fused multiply-add (CMake builds this file with -ffp-contract=off; Highway's MulAdd is
-// never used). test_packet checks it image for image on every instruction set this CPU has.
+// never used). test_simulate's Packet.* tests compare images, counters and near lists with the
+// scalar path's on every instruction set this CPU has (they cannot see a difference of one
+// rounding, which moves a ray across a pixel edge almost never: the build flag guards that).
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "packet.cpp"
 #include <hwy/foreach_target.h>  // IWYU pragma: keep

@@ -6,9 +6,10 @@
 // passes no object, the whole way through the corrector and the ideal lenses to a pixel. Every
 // operation is the one the scalar tracer performs, in the same order, in IEEE double precision
 // without fused multiply-adds (the file is built with -ffp-contract=off), so a ray traced here
-// lands in the same pixel with the same fate as on the scalar path, bit for bit. Rays that meet
-// an object, or need more random words than the batch holds, are handed back to the scalar path,
-// which re-traces them from their own stream.
+// lands in the same pixel with the same fate as on the scalar path, bit for bit. Where the scene
+// is one homogeneous sphere, the rays that meet it go through a sphere stage too (Sphere). Other
+// rays that meet an object go on from their packet source sample on the scalar path; rays that
+// need more random words than the batch holds are traced again from their own stream.
 #include <cstddef>
 #include <cstdint>
 

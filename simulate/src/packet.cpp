@@ -87,28 +87,30 @@ struct Words {
   }
 };
 
-// RayRng::Uniform: the word times 2^-32 (exact). The word goes to double through int32 (native
-// on every x86 target): double(w) = double(int32(w ^ 2^31)) + 2^31, both steps exact.
-HWY_INLINE hn::Vec<DF> Uniform(Words& words, int word) {
-  const DF df;
+// The 32-bit words at p minus 2^31, as doubles (exact): the word goes to double through int32,
+// which every x86 target converts natively: double(w) = double(int32(w ^ 2^31)) + 2^31.
+HWY_INLINE hn::Vec<DF> Centred(const uint32_t* p) {
   const hn::Rebind<int32_t, DF> di32;
+  const auto w = hn::LoadU(DU32(), p);
+  return hn::PromoteTo(DF(), hn::BitCast(di32, hn::Xor(w, hn::Set(DU32(), 0x80000000u))));
+}
+
+// RayRng::Uniform: the word times 2^-32 (exact).
+HWY_INLINE hn::Vec<DF> Uniform(const uint32_t* p) {
+  const DF df;
+  return hn::Mul(hn::Add(Centred(p), hn::Set(df, 2147483648.0)), hn::Set(df, 0x1p-32));
+}
+HWY_INLINE hn::Vec<DF> Uniform(Words& words, int word) {
   words.Need(word);
-  const auto w = hn::LoadU(DU32(), words.r->words[word] + words.i);
-  const auto flipped = hn::BitCast(di32, hn::Xor(w, hn::Set(DU32(), 0x80000000u)));
-  const auto value = hn::Add(hn::PromoteTo(df, flipped), hn::Set(df, 2147483648.0));
-  return hn::Mul(value, hn::Set(df, 0x1p-32));
+  return Uniform(words.r->words[word] + words.i);
 }
 
 // 2 rng.Uniform() - 1 for the word: every step of it is exact (a 32-bit integer scaled by
 // powers of two, then 1 subtracted from a multiple of 2^-31 in [0, 2)), so it equals
-// int32(word ^ 2^31) * 2^-31, which is what is computed here.
+// (word - 2^31) * 2^-31, which is what is computed here.
 HWY_INLINE hn::Vec<DF> Symmetric(Words& words, int word) {
-  const DF df;
-  const hn::Rebind<int32_t, DF> di32;
   words.Need(word);
-  const auto w = hn::LoadU(DU32(), words.r->words[word] + words.i);
-  const auto flipped = hn::BitCast(di32, hn::Xor(w, hn::Set(DU32(), 0x80000000u)));
-  return hn::Mul(hn::PromoteTo(df, flipped), hn::Set(df, 0x1p-31));
+  return hn::Mul(Centred(words.r->words[word] + words.i), hn::Set(DF(), 0x1p-31));
 }
 
 // The pair of words at j as SampleUnitDisc forms it: (2u - 1, 2u' - 1), and whether it lies in
@@ -451,8 +453,7 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
         for (int j = 0; j < kWords; ++j) {
           const auto at = hn::And(drawing, hn::RebindMask(df, hn::Eq(cursor, hn::Set(di, j))));
           if (hn::AllFalse(df, at)) continue;
-          const auto w = hn::PromoteTo(hn::RebindToUnsigned<DI>(), hn::LoadU(DU32(), r->words[j] + i));
-          u = hn::IfThenElse(at, hn::Mul(hn::ConvertTo(df, hn::BitCast(di, w)), hn::Set(df, 0x1p-32)), u);
+          u = hn::IfThenElse(at, Uniform(r->words[j] + i), u);
         }
         count(cursor, drawing);
         // Fresnel(n1, n2, cos_i, cos_t).R() = (rs^2 + rp^2) / 2

@@ -238,6 +238,84 @@ void SampleSourceImpl(const SourceParams& s, uint64_t seed, uint32_t stream, con
   }
 }
 
+// Distribution1D::Sample for each lane's u, over the cdf at cdf + cdf_offset (n + 1 values) and
+// the guide table at guide + guide_offset (g entries); returns x, and the bin in *bin.
+HWY_INLINE hn::Vec<DF> Sample1D(const double* cdf, hn::Vec<DI> cdf_offset, const int64_t* guide,
+                                hn::Vec<DI> guide_offset, int n, int64_t g, hn::Vec<DF> u,
+                                hn::Vec<DI>* bin) {
+  const DF df;
+  const DI di;
+  const auto zero = hn::Zero(df);
+  const auto one_i = hn::Set(di, 1), n_i = hn::Set(di, n);
+  // k = u > 0 ? min(size_t(u g), g - 1) : 0   (u g is exact: g is a power of two)
+  auto k = hn::ConvertTo(di, hn::Mul(u, hn::Set(df, double(g))));
+  k = hn::IfThenElse(hn::Gt(k, hn::Set(di, g - 1)), hn::Set(di, g - 1), k);
+  k = hn::IfThenElseZero(hn::RebindMask(di, hn::Gt(u, zero)), k);
+  auto i = hn::GatherIndex(di, guide, hn::Add(guide_offset, k));
+  // while (i + 1 <= n && cdf[i + 1] <= u) ++i
+  for (;;) {
+    const auto room = hn::Lt(i, n_i);
+    const auto next = hn::GatherIndex(df, cdf, hn::Add(cdf_offset, hn::IfThenElse(room, hn::Add(i, one_i), i)));
+    const auto step = hn::And(room, hn::RebindMask(di, hn::Le(next, u)));
+    if (hn::AllFalse(di, step)) break;
+    i = hn::IfThenElse(step, hn::Add(i, one_i), i);
+  }
+  // i = clamp(i, 0, n - 1); while (i > 0 && cdf[i + 1] - cdf[i] <= 0) --i
+  i = hn::IfThenElse(hn::Lt(i, hn::Zero(di)), hn::Zero(di), i);
+  i = hn::IfThenElse(hn::Gt(i, hn::Set(di, n - 1)), hn::Set(di, n - 1), i);
+  hn::Vec<DF> lo, hi;
+  for (;;) {
+    lo = hn::GatherIndex(df, cdf, hn::Add(cdf_offset, i));
+    hi = hn::GatherIndex(df, cdf, hn::Add(cdf_offset, hn::Add(i, one_i)));
+    const auto back = hn::And(hn::Gt(i, hn::Zero(di)), hn::RebindMask(di, hn::Le(hn::Sub(hi, lo), zero)));
+    if (hn::AllFalse(di, back)) break;
+    i = hn::IfThenElse(back, hn::Sub(i, one_i), i);
+  }
+  // du = width > 0 ? (u - cdf[i]) / width : 0.5; x = min((i + clamp(du, 0, 1)) / n, 1 - 2^-53)
+  const auto width = hn::Sub(hi, lo);
+  const auto du = hn::IfThenElse(hn::Gt(width, zero), hn::Div(hn::Sub(u, lo), width), hn::Set(df, 0.5));
+  const auto one = hn::Set(df, 1.0);
+  const auto clamped = hn::IfThenElse(hn::Lt(du, zero), zero, hn::IfThenElse(hn::Lt(one, du), one, du));
+  const auto x = hn::Div(hn::Add(hn::ConvertTo(df, i), clamped), hn::Set(df, double(n)));
+  const auto below_one = hn::Set(df, 0x1.fffffffffffffp-1);  // std::nextafter(1.0, 0.0)
+  *bin = i;
+  return hn::IfThenElse(hn::Lt(below_one, x), below_one, x);
+}
+
+void TabulatedImpl(const Table2D& t, size_t n, Rays* r) {
+  const DF df;
+  const DI di;
+  const size_t N = hn::Lanes(df);
+  const auto zero = hn::Zero(df), one = hn::Set(df, 1.0), two = hn::Set(df, 2.0);
+  const auto extent = hn::Set(df, t.extent);
+  for (size_t i = 0; i < n; i += N) {
+    auto out = hn::LoadU(df, r->out + i);
+    const auto open = hn::Eq(out, zero);
+    if (hn::AllFalse(df, open)) continue;
+    // Distribution2D::Sample(u0, u1): y from the marginal with u1, then x in that row with u0
+    hn::Vec<DI> row, col;
+    const auto y = Sample1D(t.marginal_cdf.data(), hn::Zero(di), t.marginal_guide.data(),
+                            hn::Zero(di), t.height, t.marginal_guide_size, hn::LoadU(df, r->v + i), &row);
+    // The row's offsets, multiplied in double (exact for these sizes; not every target
+    // multiplies 64-bit integers).
+    const auto row_d = hn::ConvertTo(df, row);
+    const auto cdf_at = hn::ConvertTo(di, hn::Mul(row_d, hn::Set(df, double(t.width + 1))));
+    const auto guide_at = hn::ConvertTo(di, hn::Mul(row_d, hn::Set(df, double(t.row_guide_size))));
+    const auto x = Sample1D(t.row_cdf.data(), cdf_at, t.row_guide.data(), guide_at, t.width,
+                            t.row_guide_size, hn::LoadU(df, r->u + i), &col);
+    // u = (2 x - 1) extent, v = (1 - 2 y) extent, w2 = 1 - u u - v v; beyond the circle: escaped
+    const auto u = hn::Mul(hn::Sub(hn::Mul(two, x), one), extent);
+    const auto v = hn::Mul(hn::Sub(one, hn::Mul(two, y)), extent);
+    const auto w2 = hn::Sub(hn::Sub(one, hn::Mul(u, u)), hn::Mul(v, v));
+    const auto beyond = hn::And(open, hn::Le(w2, zero));
+    out = hn::IfThenElse(beyond, hn::Set(df, kEscaped), out);
+    hn::StoreU(out, df, r->out + i);
+    hn::StoreU(u, df, r->dx + i);
+    hn::StoreU(v, df, r->dy + i);
+    hn::StoreU(hn::Sqrt(hn::IfThenElse(beyond, one, w2)), df, r->dz + i);
+  }
+}
+
 // Stores the lanes' outcomes and adds the lanes below n to the batch's summary (Rays).
 HWY_INLINE void Summarise(const OpticsParams& o, hn::Vec<DF> out, size_t i, size_t n, Rays* r) {
   const DF df;
@@ -532,6 +610,7 @@ HWY_EXPORT(PhiloxWordsImpl);
 HWY_EXPORT(SampleSourceImpl);
 HWY_EXPORT(BackgroundImpl);
 HWY_EXPORT(SphereImpl);
+HWY_EXPORT(TabulatedImpl);
 
 void PhiloxWords(uint64_t seed, uint32_t stream, const uint64_t* rays, size_t n, Rays* r) {
   HWY_DYNAMIC_DISPATCH(PhiloxWordsImpl)(seed, stream, rays, n, r);
@@ -547,6 +626,7 @@ void Onward(const OpticsParams& o, size_t n, Rays* r) {
   HWY_DYNAMIC_DISPATCH(BackgroundImpl)(o, n, true, r);
 }
 void Sphere(const SphereParams& s, size_t n, Rays* r) { HWY_DYNAMIC_DISPATCH(SphereImpl)(s, n, r); }
+void Tabulated(const Table2D& t, size_t n, Rays* r) { HWY_DYNAMIC_DISPATCH(TabulatedImpl)(t, n, r); }
 const char* TargetName() {
   // The target HWY_DYNAMIC_DISPATCH uses: the best one both compiled and supported.
   const int64_t chosen = hwy::SupportedTargets() & HWY_TARGETS;

@@ -12,6 +12,7 @@
 // need more random words than the batch holds are traced again from their own stream.
 #include <cstddef>
 #include <cstdint>
+#include <vector>
 
 namespace raymatch::simulate::packet {
 
@@ -31,6 +32,17 @@ inline constexpr double kInteractionCap = -7;  ///< more interface events than m
 inline constexpr double kLostInside = -8;      ///< the stack says inside after the last surface
 inline constexpr int kPathClasses = 8;         ///< TraceCounters::path_class
 
+/// The light field's angular table (a Distribution2D, sampling.h) laid out for the packet
+/// stage: the marginal over rows and every row's conditional, each a cdf (n + 1 values) and a
+/// guide table, the rows' back to back. Built once per Simulator.
+struct Table2D {
+  int width = 0, height = 0;
+  int64_t row_guide_size = 0, marginal_guide_size = 0;
+  std::vector<double> marginal_cdf, row_cdf;       // height + 1; height x (width + 1)
+  std::vector<int64_t> marginal_guide, row_guide;  // marginal_guide_size; height x row_guide_size
+  double extent = 0;                               // direction cosines span [-extent, extent]
+};
+
 /// A source the packet stage samples: a field (disc or rectangle without a map) and a direction
 /// (cone, collimated, or drawn by the caller from two uniforms: the tabulated light field).
 struct SourceParams {
@@ -39,6 +51,7 @@ struct SourceParams {
   double radius = 0, half_w = 0, half_h = 0;
   double center[3] = {0, 0, 0};
   Direction direction = kCone;
+  const Table2D* table = nullptr;  ///< kTabulated: the angular table
   double sin_max = 0;
   double dir[3] = {0, 0, 1};
 };
@@ -102,6 +115,9 @@ void PhiloxWords(uint64_t seed, uint32_t stream, const uint64_t* rays, size_t n,
 /// cursor + extra_words - 1 that the caller reads next.
 void SampleSource(const SourceParams& s, uint64_t seed, uint32_t stream, const uint64_t* rays,
                   size_t n, int extra_words, Rays* r);
+/// LightFieldSource::Direction for the lanes with out 0: d from the uniforms (u, v) through the
+/// table (Distribution2D::Sample), or out = kEscaped for a direction beyond the unit circle.
+void Tabulated(const Table2D& t, size_t n, Rays* r);
 /// Rays::out and its summary from p, d (and u: the corrector's uniform); lanes whose out is
 /// already negative on entry keep it (the caller marks rejected or out-of-words rays).
 void Background(const OpticsParams& o, size_t n, Rays* r);

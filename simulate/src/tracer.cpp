@@ -251,6 +251,7 @@ struct Simulator::Impl {
   std::vector<Vec3> center;
   std::vector<double> size;  // characteristic size (for first GRIN steps)
   bool has_grin = false;
+  packet::Table2D angular_table;  // the light field's table for the packet path
   double field_radius_um = 0;  // resolved source field radius (automatic or given)
   double medium;
   double source_z;
@@ -747,6 +748,24 @@ void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& t
 // The packet path (packet.h) traces the rays that meet no object, which are most of an image's,
 // several at a time; it hands every other ray to TraceRay. Images are the same bit for bit.
 
+/// The light field's angular table, flattened for packet::Tabulated.
+packet::Table2D PacketTable(const LightFieldSource& lf) {
+  packet::Table2D t;
+  const Distribution2D& d = lf.angular;
+  t.height = d.height();
+  t.width = t.height > 0 ? d.row(0).size() : 0;
+  t.extent = lf.extent;
+  t.marginal_cdf = d.marginal().cdf();
+  t.marginal_guide.assign(d.marginal().guide().begin(), d.marginal().guide().end());
+  t.marginal_guide_size = static_cast<int64_t>(t.marginal_guide.size());
+  t.row_guide_size = t.height > 0 ? static_cast<int64_t>(d.row(0).guide().size()) : 0;
+  for (int y = 0; y < t.height; ++y) {
+    t.row_cdf.insert(t.row_cdf.end(), d.row(y).cdf().begin(), d.row(y).cdf().end());
+    t.row_guide.insert(t.row_guide.end(), d.row(y).guide().begin(), d.row(y).guide().end());
+  }
+  return t;
+}
+
 template <class Source>
 constexpr bool kPacketSource = std::is_same_v<Source, ConeSource> ||
                                std::is_same_v<Source, CollimatedSource> ||
@@ -781,8 +800,9 @@ std::optional<PacketPlan> MakePacketPlan(const Simulator::Impl& im, const Scene&
     ps.direction = packet::SourceParams::kCollimated;
     ps.dir[0] = col->dir.x, ps.dir[1] = col->dir.y, ps.dir[2] = col->dir.z;
   } else if (const auto* lf = std::get_if<LightFieldSource>(&im.source)) {
-    ok = set_field(lf->field);
+    ok = set_field(lf->field) && im.angular_table.height > 0;
     ps.direction = packet::SourceParams::kTabulated;
+    ps.table = &im.angular_table;
   }
   const Optics& op = im.optics;
   const int objects = static_cast<int>(im.index.size());
@@ -902,16 +922,9 @@ void TraceRangePackets(const Simulator::Impl& im, const Source& src, const Trace
     constexpr int kExtraWords =
         (kPR == PartialReflection::kPolarized ? 1 : 0) + (kCorrector ? 1 : 0);
     packet::SampleSource(plan.source, trace.seed, plane, rays, n, kExtraWords, &r);
+    if constexpr (std::is_same_v<Source, LightFieldSource>) packet::Tabulated(*plan.source.table, n, &r);
     for (size_t i = 0; i < n; ++i) {
       if (r.out[i] < 0) continue;
-      if constexpr (std::is_same_v<Source, LightFieldSource>) {
-        Vec3 d;
-        if (!src.Direction(r.u[i], r.v[i], &d)) {
-          r.out[i] = packet::kEscaped;
-          continue;
-        }
-        r.dx[i] = d.x, r.dy[i] = d.y, r.dz[i] = d.z;
-      }
       if constexpr (kCorrector) {
         // The corrector's draw follows the source's (and the polarisation's) words.
         const int64_t k = r.cursor[i] + (kPR == PartialReflection::kPolarized ? 1 : 0);
@@ -1063,10 +1076,13 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
     case SourceType::kPoint:
       im.source = PointSource{ss.position_um, std::cos(ss.half_angle_deg * kDeg)};
       break;
-    case SourceType::kLightField:
-      im.source = LightFieldSource{MakeField(scene, auto_r), Distribution2D(ss.angular_map),
-                                   ss.angular_extent};
+    case SourceType::kLightField: {
+      LightFieldSource lf{MakeField(scene, auto_r), Distribution2D(ss.angular_map),
+                          ss.angular_extent};
+      im.angular_table = PacketTable(lf);
+      im.source = std::move(lf);
       break;
+    }
     case SourceType::kRayList: {
       std::vector<float> w;
       for (const auto& r : ss.rays) w.push_back(float(r[4]));

@@ -153,10 +153,14 @@ TEST(Packet, LightFieldSourceWithCorrectorMatchesScalar) {
   Scene s = DropScene(PartialReflection::kUnpolarized);
   s.source.type = SourceType::kLightField;
   s.source.angular_extent = 0.5;
-  // A radiance map that reaches beyond the unit circle's cut (rejected rays) and is uneven.
+  // An uneven radiance map that reaches beyond the unit circle's cut (rejected rays), with
+  // empty cells outside a disc and an empty row, as a measured map cut at the NA has.
   s.source.angular_map = Image(24, 24);
   for (int y = 0; y < 24; ++y)
-    for (int x = 0; x < 24; ++x) s.source.angular_map.at(x, y) = float(1 + (x * 7 + y * 3) % 5);
+    for (int x = 0; x < 24; ++x) {
+      const bool inside = (x - 11.5) * (x - 11.5) + (y - 11.5) * (y - 11.5) < 13.5 * 13.5;
+      s.source.angular_map.at(x, y) = inside && y != 5 ? float(1 + (x * 7 + y * 3) % 5) : 0.f;
+    }
   AddCorrector(&s);
   ExpectPacketsMatchScalar(s, 4, 400000);
 }

@@ -18,6 +18,10 @@ class Distribution1D {
   double integral() const { return integral_; }
   int size() const { return static_cast<int>(func_.size()); }
   double Density(int bin) const { return integral_ > 0 ? func_[bin] / integral_ : 0; }
+  /// The normalised cdf (size() + 1 values) and the guide table (a power-of-two size; entry k is
+  /// the largest i with cdf()[i] <= k / guide().size()), for the tracer's SIMD packets.
+  const std::vector<double>& cdf() const { return cdf_; }
+  const std::vector<int>& guide() const { return guide_; }
 
  private:
   std::vector<double> func_, cdf_;
@@ -36,6 +40,9 @@ class Distribution2D {
   /// (u0, u1) uniform -> (x, y) in [0,1)^2 with density proportional to the image.
   void Sample(double u0, double u1, double* x, double* y) const;
   bool empty() const { return rows_.empty(); }
+  const Distribution1D& marginal() const { return marginal_; }  ///< over rows
+  const Distribution1D& row(int y) const { return rows_[y]; }   ///< in x, given row y
+  int height() const { return static_cast<int>(rows_.size()); }
 
  private:
   std::vector<Distribution1D> rows_;  // conditional in x for each row

@@ -220,6 +220,7 @@ void SampleSourceImpl(const SourceParams& s, uint64_t seed, uint32_t stream, con
         auto u = hn::Zero(df), v = hn::Zero(df);
         for (int j = 0; j + 1 < kWords; j += 2) {  // the cursor is even here
           const auto at = hn::RebindMask(df, hn::Eq(cursor, hn::Set(di, j)));
+          if (hn::AllFalse(df, at)) continue;  // (and the third block stays unmade if unused)
           u = hn::IfThenElse(at, Uniform(w, j), u);
           v = hn::IfThenElse(at, Uniform(w, j + 1), v);
         }

@@ -823,7 +823,7 @@ std::optional<PacketPlan> MakePacketPlan(const Simulator::Impl& im, const Scene&
   po.split = sel.split;
   po.split_c[0] = sel.split_center.x, po.split_c[1] = sel.split_center.y;
   po.split_c[2] = sel.split_center.z, po.split_r2 = sel.split_r2;
-  po.corrector = !op.ring_outer2.empty();
+  po.corrector = scene.optics.corrector.enabled;  // as kCorrector (no zones: all outside)
   po.corrector_z = op.corrector_z + defocus;
   po.rings = static_cast<int>(op.ring_outer2.size());
   for (int k = 0; k < po.rings; ++k) po.ring_outer2[k] = op.ring_outer2[k], po.ring_t[k] = op.ring_t[k];
@@ -928,10 +928,12 @@ void TraceRangePackets(const Simulator::Impl& im, const Source& src, const Trace
       if constexpr (kCorrector) {
         // The corrector's draw follows the source's (and the polarisation's) words.
         const int64_t k = r.cursor[i] + (kPR == PartialReflection::kPolarized ? 1 : 0);
-        if (k < packet::kWords)
+        if (k < packet::kWords) {
           r.u[i] = r.words[k][i] * 0x1p-32;
-        else
+        } else {  // all again on the scalar path, in ray order (the split test included)
           r.out[i] = packet::kScalar;
+          r.cursor[i] = -1;
+        }
       }
     }
     packet::Background(plan.optics, n, &r);
@@ -946,6 +948,7 @@ void TraceRangePackets(const Simulator::Impl& im, const Source& src, const Trace
     c.fates[int(Fate::kMissedSensor)] += missed;
     c.fates[int(Fate::kAbsorbedCorrector)] += absorbed;
     c.shape_queries += queries * optics;  // rays that met nothing: one query each
+    if constexpr (kMesh) c.mesh_queries += optics;
     if constexpr (kCorrector) c.corrector_tests += optics;
     for (size_t k = 0; k < r.num_rare; ++k) {  // in ray order: the near list stays ascending
       const size_t i = static_cast<size_t>(r.rare[k]);

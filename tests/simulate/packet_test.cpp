@@ -11,6 +11,7 @@
 
 #include "packet.h"
 #include "raymatch/core/rng.h"
+#include "raymatch/simulate/shapes.h"
 #include "raymatch/simulate/tracer.h"
 #include "test_scenes.h"
 
@@ -189,7 +190,11 @@ TEST(Packet, FlatFieldMatchesScalar) {
 
 TEST(Packet, SelectionsMatchScalar) {
   // TraceRangeExcept and TraceFarRays (the fit's split) on both paths: images and near lists.
-  const Simulator sim(DropScene(PartialReflection::kUnpolarized));
+  // With a corrector: a ray whose corrector draw lies past the batch's words is traced again on
+  // the scalar path, and must still be split (in ray order) like the others.
+  Scene scene = DropScene(PartialReflection::kUnpolarized);
+  AddCorrector(&scene);
+  const Simulator sim(scene);
   RunControl scalar, simd;
   scalar.simd = false;
   std::vector<uint64_t> excluded;
@@ -203,6 +208,36 @@ TEST(Packet, SelectionsMatchScalar) {
     EXPECT_EQ(near_scalar, near_simd);
     EXPECT_GT(near_simd.size(), 1000u);
   });
+}
+
+TEST(Packet, MeshSceneMatchesScalar) {
+  // A mesh (an octahedron, Embree) next to nothing else: rays that meet nothing still count one
+  // shape query and one mesh query each, as on the scalar path.
+  Scene s = DropScene(PartialReflection::kUnpolarized);
+  auto mesh = std::make_shared<simulate::TriangleMesh>();
+  const double a = 15;
+  mesh->vertices = {{a, 0, 0}, {-a, 0, 0}, {0, a, 0}, {0, -a, 0}, {0, 0, a}, {0, 0, -a}};
+  mesh->triangles = {{0, 2, 4}, {2, 1, 4}, {1, 3, 4}, {3, 0, 4},
+                     {2, 0, 5}, {1, 2, 5}, {3, 1, 5}, {0, 3, 5}};
+  ObjectSpec o;
+  o.shape = simulate::ShapeType::kMesh;
+  o.mesh = mesh;
+  o.index = 1.45;
+  o.center_um = {2, -3, 0};
+  s.objects = {o};
+  const PlaneResult r = ExpectPacketsMatchScalar(s, 0, 200000);
+  EXPECT_GT(r.counters.mesh_queries, 200000u);
+}
+
+TEST(Packet, CorrectorWithoutZonesBlocksEverythingOnBothPaths) {
+  Scene s = DropScene(PartialReflection::kUnpolarized);
+  s.optics.corrector.enabled = true;  // no zones: no ray passes (a scene built in code only)
+  const Simulator sim(s);
+  RunControl scalar;
+  scalar.simd = false;
+  const PlaneResult a = sim.TracePlane(0, 1, 50000, scalar), b = sim.TracePlane(0, 1, 50000);
+  ExpectSameResult(a, b);
+  EXPECT_EQ(b.counters.fates[int(Fate::kDetected)], 0u);
 }
 
 TEST(Packet, CameraPsfStaysOnTheScalarPathWithTheSameImage) {

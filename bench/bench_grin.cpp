@@ -4,8 +4,9 @@
 //   pole for 200 collimated rays at heights up to 0.9 R (R = 23 um), and wall time per ray.
 // * DropImageTolerance/<k>: a 46 um drop with a spherical pressure-wave shell in an n(r, z)
 //   grid; relative L1 difference of its image against a 10^-9 um reference (same rays).
-// * Grid3DDropImage: the same drop from a 3D grid (96^3): rays per second, so the time of a
-//   photon-matched image can be extrapolated.
+// * Grid3DDropImage/<variant>/<k>: the same drop from a 3D grid (96^3): rays per second (so
+//   the time of a photon-matched image can be extrapolated) and the relative L1 difference of
+//   its image against a 10^-9 um step-doubling reference (same rays).
 #include <benchmark/benchmark.h>
 
 #include <cmath>
@@ -28,11 +29,13 @@ Scene Optics() {
 }
 
 /// Integrator variants compared in the same run (issue 13): 0 = the former step doubling
-/// without uniform-cell steps, 1 = the embedded controller alone, 2 = embedded + uniform cells
-/// (the default).
+/// without uniform-cell steps, 1 = the embedded controller alone, 2 = embedded + uniform cells,
+/// 3 = embedded + uniform cells + cell steps on 3D grids (the default; the same as 2 for
+/// analytic fields and r-z grids).
 void SetVariant(GrinSettings* g, int64_t variant) {
   g->step_doubling = variant == 0;
   if (variant < 2) g->uniform_tolerance = -1;
+  g->cell_steps = variant >= 3;
 }
 
 void BM_LuneburgTolerance(benchmark::State& state) {
@@ -160,20 +163,37 @@ BENCHMARK(BM_DropImageTolerance)
 void BM_Grid3DDropImage(benchmark::State& state) {
   RunControl one;
   one.threads = 1;
-  Scene scene = DropScene(true, 1e-5);
+  const uint64_t rays = 50000;
+  // Reference: the former integrator at 1e-9 um, without uniform-cell steps (same rays).
+  static const PlaneResult ref = [&] {
+    Scene r = DropScene(true, 1e-9);
+    SetVariant(&r.trace.grin, 0);
+    return Simulator(r).TracePlane(0, 0, rays, one);
+  }();
+  Scene scene = DropScene(true, std::pow(10.0, -double(state.range(1))));
   SetVariant(&scene.trace.grin, state.range(0));
   const Simulator sim(scene);
-  const uint64_t rays = 50000;
-  double steps = 0, straight = 0;
+  double steps = 0, straight = 0, diff = 0, total = 0;
   for (auto _ : state) {
     const PlaneResult r = sim.TracePlane(0, 0, rays, one);
     steps = r.counters.grin_steps, straight = r.counters.grin_uniform_steps;
+    diff = total = 0;
+    for (size_t i = 0; i < r.counts.size(); ++i) {
+      diff += std::abs(r.counts.pixels[i] - ref.counts.pixels[i]);
+      total += ref.counts.pixels[i];
+    }
   }
   state.SetItemsProcessed(state.iterations() * rays);
   state.counters["steps_per_ray"] = steps / rays;
   state.counters["uniform_steps_per_ray"] = straight / rays;
+  state.counters["rel_L1_vs_ref"] = diff / total;
 }
-BENCHMARK(BM_Grid3DDropImage)->DenseRange(0, 2, 1)->ArgName("variant")->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK(BM_Grid3DDropImage)
+    ->ArgsProduct({{0, 1, 2, 3}, {5}})
+    ->Args({3, 7})
+    ->ArgNames({"variant", "tol_exp"})
+    ->Unit(benchmark::kMillisecond)
+    ->UseRealTime();
 
 }  // namespace
 }  // namespace raymatch::simulate

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 namespace raymatch::simulate {
 
@@ -73,30 +74,8 @@ void IndexField::Eval(const Vec3& p, double* n, Vec3* grad) const {
       return;
     }
     case IndexFieldType::kGrid3D: {
-      // The 8 corners addressed from one base index; an axis with a single sample has stride 0
-      // (its "next" corner is itself), and Locate keeps every other index at most n - 2.
-      int ix, iy, iz;
-      double fx, fy, fz;
-      bool inx, iny, inz;
-      Locate((p.x - origin_um.x) / spacing_um.x, nx, &ix, &fx, &inx);
-      Locate((p.y - origin_um.y) / spacing_um.y, ny, &iy, &fy, &iny);
-      Locate((p.z - origin_um.z) / spacing_um.z, nz, &iz, &fz, &inz);
-      const size_t sx = nx > 1 ? 1 : 0, sy = ny > 1 ? size_t(nx) : 0,
-                   sz = nz > 1 ? size_t(nx) * size_t(ny) : 0;
-      const double* b =
-          values.data() + ((size_t(iz) * size_t(ny) + size_t(iy)) * size_t(nx) + size_t(ix));
-      auto lerp = [](double a, double c, double t) { return a + (c - a) * t; };
-      const double c00 = lerp(b[0], b[sx], fx), c01 = lerp(b[sy], b[sy + sx], fx);
-      const double c10 = lerp(b[sz], b[sz + sx], fx), c11 = lerp(b[sz + sy], b[sz + sy + sx], fx);
-      const double d00 = b[sx] - b[0], d01 = b[sy + sx] - b[sy];
-      const double d10 = b[sz + sx] - b[sz], d11 = b[sz + sy + sx] - b[sz + sy];
-      const double cy0 = lerp(c00, c01, fy), cy1 = lerp(c10, c11, fy);
-      *n = lerp(cy0, cy1, fz);
-      const double gx = lerp(lerp(d00, d01, fy), lerp(d10, d11, fy), fz);
-      const double gy = lerp(c01 - c00, c11 - c10, fz);
-      const double gz = cy1 - cy0;
-      *grad = Vec3(inx ? gx / spacing_um.x : 0, iny ? gy / spacing_um.y : 0,
-                   inz ? gz / spacing_um.z : 0);
+      // One implementation for single evaluations and the cell-by-cell integrator.
+      EvalInCell(Cell(p), p, n, grad);
       return;
     }
   }
@@ -111,6 +90,99 @@ double IndexField::MaxStepUm() const {
   }
 }
 
+GridCell IndexField::Cell(const Vec3& p) const {
+  return CellWith(p, {1 / spacing_um.x, 1 / spacing_um.y, 1 / spacing_um.z});
+}
+
+GridCell IndexField::CellWith(const Vec3& p, const Vec3& inv_spacing) const {
+  GridCell g;
+  g.at = p;
+  const int count[3] = {nx, ny, nz};
+  const double o[3] = {origin_um.x, origin_um.y, origin_um.z};
+  const double h[3] = {spacing_um.x, spacing_um.y, spacing_um.z};
+  const double q[3] = {p.x, p.y, p.z};
+  const size_t full[3] = {1, size_t(nx), size_t(nx) * size_t(ny)};
+  size_t base = 0, stride[3];
+  double node[3];
+  const double inv[3] = {inv_spacing.x, inv_spacing.y, inv_spacing.z};
+  constexpr double kInf = std::numeric_limits<double>::infinity();
+  for (int a = 0; a < 3; ++a) {
+    const double u = (q[a] - o[a]) * inv[a];
+    int i = 0;
+    stride[a] = 0;  // the field is constant along this axis here (its terms vanish)
+    if (count[a] < 2) {
+      g.lo[a] = -kInf, g.hi[a] = kInf;
+    } else if (!(u >= 0)) {  // before the first sample (or not a number)
+      g.lo[a] = -kInf, g.hi[a] = 0;
+    } else if (u >= count[a] - 1) {  // beyond the last sample
+      i = count[a] - 1;
+      g.lo[a] = 0, g.hi[a] = kInf;
+    } else {
+      i = static_cast<int>(u);
+      stride[a] = full[a];
+      g.lo[a] = 0, g.hi[a] = 1;
+    }
+    node[a] = o[a] + i * h[a];
+    base += size_t(i) * full[a];
+  }
+  g.node = {node[0], node[1], node[2]};
+  g.inv_spacing = inv_spacing;
+  const double* b = values.data() + base;
+  const size_t sx = stride[0], sy = stride[1], sz = stride[2];
+  const double v000 = b[0], v100 = b[sx], v010 = b[sy], v110 = b[sy + sx], v001 = b[sz],
+               v101 = b[sz + sx], v011 = b[sz + sy], v111 = b[sz + sy + sx];
+  // Differences along x on the four x edges; grouped so that an axis of stride 0 gives exact
+  // zeros for every coefficient that involves it.
+  const double dx00 = v100 - v000, dx10 = v110 - v010, dx01 = v101 - v001, dx11 = v111 - v011;
+  g.c[0] = v000;
+  g.c[1] = dx00;
+  g.c[2] = v010 - v000;
+  g.c[3] = v001 - v000;
+  g.c[4] = dx10 - dx00;
+  g.c[5] = dx01 - dx00;
+  g.c[6] = (v011 - v001) - (v010 - v000);
+  g.c[7] = (dx11 - dx01) - (dx10 - dx00);
+  return g;
+}
+
+namespace {
+
+// The smallest dt >= 0 with acc dt^2 / 2 + speed dt = dist (dist >= 0, speed >= 0 along the
+// way to the face), without cancellation; +inf when the path turns back first.
+double FaceStep(double dist, double speed, double acc) {
+  const double disc = speed * speed + 2 * acc * dist;
+  if (disc < 0) return std::numeric_limits<double>::infinity();
+  return 2 * dist / (speed + std::sqrt(disc));  // inf when speed = acc = 0
+}
+
+Vec3 CellCoordinates(const GridCell& g, const Vec3& p) {
+  return {(p.x - g.node.x) * g.inv_spacing.x, (p.y - g.node.y) * g.inv_spacing.y,
+          (p.z - g.node.z) * g.inv_spacing.z};
+}
+
+}  // namespace
+
+CellExit PredictCellExit(const GridCell& g, const Vec3& p, const Vec3& t, const Vec3& d) {
+  // In cell units: u(dt) = u0 + vel dt + acc dt^2 / 2 along each axis. Written without branches
+  // on which axis wins (the winner is close to random from step to step).
+  constexpr double kInf = std::numeric_limits<double>::infinity();
+  const Vec3 u = CellCoordinates(g, p), vel = Mul(t, g.inv_spacing), acc = Mul(d, g.inv_spacing);
+  double step[3], side[3];
+  for (int a = 0; a < 3; ++a) {
+    // The face ahead (along the acceleration when the ray runs parallel to the faces).
+    const bool up = vel[a] > 0 || (vel[a] == 0 && acc[a] > 0);
+    const double face = up ? g.hi[a] : g.lo[a];
+    side[a] = up ? 1.0 : -1.0;
+    const double dist = std::max(side[a] * (face - u[a]), 0.0) + kCellOvershoot;
+    step[a] = std::isinf(face) ? kInf : FaceStep(dist, side[a] * vel[a], side[a] * acc[a]);
+  }
+  const int a01 = step[1] < step[0] ? 1 : 0;
+  const int a = step[2] < step[a01] ? 2 : a01;
+  CellExit e;
+  if (step[a] < kInf) e = {step[a], a, int(side[a])};
+  return e;
+}
+
 namespace {
 
 // D = n grad n = grad(n^2) / 2 at world point r.
@@ -121,14 +193,42 @@ Vec3 D(const IndexField& f, const Vec3& c, const Vec3& r) {
   return g * n;
 }
 
-// Sharma's stages from `d0` = D(s.r): the state after dt and (optional) the embedded estimate.
-GrinState SharmaStages(const IndexField& f, const Vec3& c, const GrinState& s, const Vec3& d0,
-                       double dt, double* err) {
-  const Vec3 A = d0 * dt;
-  const Vec3 B = D(f, c, s.r + s.t * (dt / 2) + A * (dt / 8)) * dt;
-  const Vec3 C = D(f, c, s.r + s.t * dt + B * (dt / 2)) * dt;
+// The last of Sharma's stages, from the first two (A = D(s.r) dt, B = D at the midpoint x dt),
+// with `d_at(r)` = D at world point r: the state after dt and (optional) the embedded estimate.
+// `d_end` (optional) receives the last stage's D, taken at r + T dt + B dt / 2 (the step's end
+// to O(dt^2)).
+template <class DAt>
+GrinState SharmaFinish(DAt&& d_at, const GrinState& s, const Vec3& A, const Vec3& B, double dt,
+                       double* err, Vec3* d_end = nullptr) {
+  const Vec3 d_c = d_at(s.r + s.t * dt + B * (dt / 2));
+  if (d_end) *d_end = d_c;
+  const Vec3 C = d_c * dt;
   if (err) *err = Length(A - B * 2 + C) * (std::abs(dt) / 6);
   return {s.r + (s.t + (A + B * 2) / 6) * dt, s.t + (A + B * 4 + C) / 6};
+}
+
+// Sharma's stages from `d0` = D(s.r).
+GrinState SharmaStages(const IndexField& f, const Vec3& c, const GrinState& s, const Vec3& d0,
+                       double dt, double* err) {
+  auto d_at = [&](const Vec3& r) { return D(f, c, r); };
+  const Vec3 A = d0 * dt;
+  const Vec3 B = d_at(s.r + s.t * (dt / 2) + A * (dt / 8)) * dt;
+  return SharmaFinish(d_at, s, A, B, dt, err);
+}
+
+// The embedded estimate is of third order (error ~ dt^4): the factor for the next step is the
+// fourth root of tolerance / err (x 0.9, within [0.2, 4]; below tolerance / 400 it is 4 without
+// roots, as 0.9 * 400^(1/4) > 4). A step that was `limited` below the proposal *dt (by a cell
+// face) and had error to spare (the factor would be >= 1) leaves the proposal standing.
+double Proposal(double err, double tolerance, double h, bool limited, double dt) {
+  if (limited && err * 1.6 <= tolerance) return std::max(dt, h);
+  return h * (err * 400 <= tolerance
+                  ? 4.0
+                  : std::clamp(0.9 * std::sqrt(std::sqrt(tolerance / err)), 0.2, 4.0));
+}
+
+double Shrink(double err, double tolerance) {
+  return std::clamp(0.9 * std::sqrt(std::sqrt(tolerance / err)), 0.1, 0.5);
 }
 
 }  // namespace
@@ -170,6 +270,15 @@ double StepCap(const IndexField& f, const GrinSettings& cfg) {
   return cfg.max_step_um > 0 ? cfg.max_step_um : f.MaxStepUm();
 }
 
+// Cell steps end on faces; their cap (a cell's diagonal) only bounds a ray that turns inside one.
+double CellStepCap(const IndexField& f, const GrinSettings& cfg) {
+  if (cfg.max_step_um > 0) return cfg.max_step_um;
+  auto axis = [](int count, double h) { return count > 1 ? h * h : 0.0; };
+  const double diagonal = std::sqrt(axis(f.nx, f.spacing_um.x) + axis(f.ny, f.spacing_um.y) +
+                                    axis(f.nz, f.spacing_um.z));
+  return diagonal > 0 ? diagonal : std::numeric_limits<double>::infinity();  // one cell only
+}
+
 }  // namespace
 
 GrinPoint MakeGrinPoint(const IndexField& f, const Vec3& c, const Vec3& r, const Vec3& t) {
@@ -205,13 +314,94 @@ int AdaptiveStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, Gr
     if (err <= cfg.tolerance_um || tries > 60) {
       *s = next;
       *used = *dt;
-      // The estimate is of third order (error ~ dt^4): the fourth root of the ratio.
-      const double grow = err > 0 ? 0.9 * std::sqrt(std::sqrt(cfg.tolerance_um / err)) : 4.0;
-      *dt *= std::clamp(grow, 0.2, 4.0);
+      *dt = Proposal(err, cfg.tolerance_um, *dt, false, *dt);
       return 3 * (tries + 1);
     }
-    *dt *= std::clamp(0.9 * std::sqrt(std::sqrt(cfg.tolerance_um / err)), 0.1, 0.5);
+    *dt *= Shrink(err, cfg.tolerance_um);
   }
+}
+
+int CellStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, GridCell* cell,
+             GrinPoint* s, double* dt, double* used) {
+  // A step that ends on a face lands kCellOvershoot past it; one that crosses a face by more than
+  // kStraddle (the prediction missed it) is taken again, aimed at that face.
+  constexpr double kStraddle = 1e-6;
+  const Vec3 p = s->r - c;
+  if (!(cell->at.x == p.x && cell->at.y == p.y && cell->at.z == p.z)) *cell = f.Cell(p);
+  const GridCell& g = *cell;
+  const Vec3 inv = g.inv_spacing;
+  const Vec3 u0 = Mul(p - g.node, inv), vel = Mul(s->t, inv);
+  const double cap = CellStepCap(f, cfg) / s->n;  // ds = n dt
+  CellExit exit = PredictCellExit(g, p, s->t, s->d);
+  double h = std::min({*dt, cap, exit.dt});
+  bool aim = h == exit.dt;
+  // All stages from the start cell's polynomial: the field the step sees is smooth.
+  auto d_at = [&](const Vec3& r) {
+    double n;
+    Vec3 grad;
+    IndexField::EvalInCell(g, r - c, &n, &grad);
+    return grad * n;
+  };
+  GrinState next;
+  double err = 0;
+  int tries = 0;
+  for (;; ++tries) {
+    const Vec3 A = s->d * h;
+    const Vec3 B = d_at(s->r + s->t * (h / 2) + A * (h / 8)) * h;
+    Vec3 d_end;
+    next = SharmaFinish(d_at, GrinState{s->r, s->t}, A, B, h, &err, &d_end);
+    if (tries > 60) break;
+    if (err > cfg.tolerance_um) {
+      h *= Shrink(err, cfg.tolerance_um);
+      aim = false;
+      continue;
+    }
+    const Vec3 u1 = Mul(next.r - c - g.node, inv);
+    if (aim) {
+      // The prediction (from D at the start only) misses the face by O(dD/dt dt^3): move the end
+      // along the path onto it, kCellOvershoot past, with the end's T and D (second order in
+      // the correction, which is ~1e-4 of the step; its error is third order in that).
+      const int a = exit.axis;
+      const double target = (exit.side > 0 ? g.hi[a] : g.lo[a]) + exit.side * kCellOvershoot;
+      const double rvel = 1 / (next.t[a] * inv[a]), gap = target - u1[a];
+      double snap = gap * rvel;
+      snap = (gap - d_end[a] * inv[a] * snap * snap / 2) * rvel;
+      if (std::abs(snap) < 0.01 * h) {
+        next.r = next.r + next.t * snap + d_end * (snap * snap / 2);
+        next.t = next.t + d_end * snap;
+        h += snap;
+        break;  // inside the cell up to the face: nothing else was crossed on the way
+      }
+    }
+    // A face the step crossed by more than kStraddle (the prediction missed it, or the snap was
+    // too long): the step is taken again, aimed at the first such face.
+    double first = 1;
+    CellExit missed;
+    for (int a = 0; a < 3; ++a) {
+      const double side = u1[a] > g.hi[a] + kStraddle ? 1.0 : u1[a] < g.lo[a] - kStraddle ? -1.0 : 0.0;
+      if (side == 0) continue;
+      const double face = side > 0 ? g.hi[a] : g.lo[a];
+      const double along = (face - u0[a]) / (u1[a] - u0[a]);  // chord fraction at the face
+      if (along < first) first = along, missed = {h * along, a, int(side)};
+    }
+    if (missed.axis < 0) break;
+    exit = missed;
+    h = std::max(exit.dt, 1e-3 * h);
+    aim = true;
+  }
+  *used = h;
+  *dt = std::min(Proposal(err, cfg.tolerance_um, h, aim, *dt), cap);
+  // The end point in its own cell, which the next step starts from (the gradient jumps at the
+  // face: the next step's first stage is the next cell's).
+  const Vec3 q = next.r - c;
+  *cell = f.CellWith(q, inv);
+  Vec3 grad;
+  s->r = next.r;
+  IndexField::EvalInCell(*cell, q, &s->n, &grad);
+  s->d = grad * s->n;
+  const double tl = Length(next.t);
+  s->t = tl > 0 ? next.t * (s->n / tl) : next.t;
+  return 3 * (tries + 1);
 }
 
 int AdaptiveStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, GrinState* s,

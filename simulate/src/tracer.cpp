@@ -409,10 +409,21 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
     local.tolerance_um = cfg.tolerance_um * std::clamp(alpha * alpha / 1e-4, 1e-6, 1.0);
   }
   double dt = 0.05 * im.size[obj] / Length(s.t);
+  // 3D grids: steps from face to face (the cell of s.r is kept between steps).
+  const bool cell_steps = cfg.cell_steps && !cfg.step_doubling && f.type == IndexFieldType::kGrid3D;
+  GridCell cell;
+  // Paths shorter than the clearance cannot reach a surface (spheres only; 0 otherwise). `clear`
+  // is a lower bound of the clearance at s.r: the distance to a surface changes by at most the
+  // length of a chord, so the bound follows the steps and the clearance itself is computed only
+  // where a path reaches the bound (the same surface queries as computing it at every step).
+  double clear = 0;
+  auto clearance = [&](double path) {
+    if (path >= clear) clear = geo.SurfaceClearance(s.r);
+    return clear;
+  };
+  auto moved = [&](double chord) { clear -= chord * (1 + 1e-12) + 1e-12; };
   ++c.grin_segments;
   for (int step = 0; step < cfg.max_steps; ++step) {
-    // Paths shorter than the clearance cannot reach a surface (spheres only; 0 otherwise).
-    const double clearance = geo.SurfaceClearance(s.r);
     if (uniform) {
       // Straight across uniform cells when that beats the next curved step.
       const double free = uniform->FreeLength(s.r - center);
@@ -421,7 +432,7 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
         Hit h;
         ++c.grin_uniform_steps;
         bool crosses = false;
-        if (free >= clearance) {
+        if (free >= clearance(free)) {
           ++c.shape_queries;
           if constexpr (kMesh) ++c.mesh_queries;
           crosses = geo.Intersect<kMesh>(s.r, dir, &h) && h.t <= free;
@@ -433,19 +444,24 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
           return GrinOutcome::kHit;
         }
         s = MakeGrinPoint(f, center, s.r + dir * free, s.t);
+        moved(free);
         continue;
       }
     }
     GrinPoint s1 = s;
     double used = 0, next = dt;
-    AdaptiveStep(f, center, local, &s1, &next, &used);
+    if (cell_steps) {
+      CellStep(f, center, local, &cell, &s1, &next, &used);
+    } else {
+      AdaptiveStep(f, center, local, &s1, &next, &used);
+    }
     ++c.grin_steps;
     for (int shrink = 0;; ++shrink) {
       const Vec3 chord = s1.r - s.r;
       const double L = Length(chord);
       Hit h;
       bool crosses = false;
-      if (L >= clearance) {
+      if (L >= clearance(L)) {
         ++c.shape_queries;
         if constexpr (kMesh) ++c.mesh_queries;
         crosses = L > 0 && geo.Intersect<kMesh>(s.r, chord / L, &h) && h.t <= L;
@@ -454,6 +470,11 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
         if (central) ProjectOnInvariants(f, center, angular_momentum, &s1);
         s = s1;
         dt = next;
+        if (central) {
+          clear = 0;  // the projection moved the point off the chord
+        } else {
+          moved(L);
+        }
         break;
       }
       if (L <= surface_tol || shrink > 60) {
@@ -1121,6 +1142,10 @@ std::vector<std::string> Simulator::Effects() const {
       e.push_back("partial_reflection:polarized");
   }
   if (impl_->has_grin) e.push_back("gradient_index:sharma_embedded");
+  const bool grid3d = std::any_of(impl_->field.begin(), impl_->field.end(), [](const IndexField* f) {
+    return f && f->type == IndexFieldType::kGrid3D;
+  });
+  if (grid3d && scene_.trace.grin.cell_steps) e.push_back("gradient_index:cell_steps");
   if (impl_->geometry.has_meshes()) e.push_back("mesh_bvh:embree");
   if (scene_.optics.corrector.enabled) e.push_back("angular_corrector");
   e.push_back(scene_.optics.model == ObjectiveModel::kSingle ? "objective:single_ideal_lens"

@@ -90,6 +90,22 @@ double IndexField::MaxStepUm() const {
   }
 }
 
+namespace {
+
+// Extent and stride of a cell along one axis of `count` samples from its index k (-1: before the
+// first sample, count - 1: beyond the last). Beyond the samples (or along an axis with one) the
+// field is constant along the axis: stride 0, so that its terms vanish, and the cell reaches to
+// infinity there.
+void SetAxis(int count, int k, size_t full, double* lo, double* hi, size_t* stride) {
+  constexpr double kInf = std::numeric_limits<double>::infinity();
+  const bool interior = count >= 2 && k >= 0 && k <= count - 2;
+  *stride = interior ? full : 0;
+  *lo = count < 2 || k < 0 ? -kInf : 0;
+  *hi = count < 2 || k >= count - 1 ? kInf : (k < 0 ? 0 : 1);
+}
+
+}  // namespace
+
 GridCell IndexField::Cell(const Vec3& p) const {
   return CellWith(p, {1 / spacing_um.x, 1 / spacing_um.y, 1 / spacing_um.z});
 }
@@ -97,59 +113,85 @@ GridCell IndexField::Cell(const Vec3& p) const {
 GridCell IndexField::CellWith(const Vec3& p, const Vec3& inv_spacing) const {
   GridCell g;
   g.at = p;
+  g.inv_spacing = inv_spacing;
+  const int count[3] = {nx, ny, nz};
+  const double o[3] = {origin_um.x, origin_um.y, origin_um.z};
+  for (int a = 0; a < 3; ++a) {
+    const double u = (p[a] - o[a]) * inv_spacing[a];
+    // -1 before the first sample (or not a number), count - 1 beyond the last.
+    g.k[a] = !(u >= 0) ? -1 : u >= count[a] - 1 ? count[a] - 1 : static_cast<int>(u);
+  }
+  Fill(&g);
+  return g;
+}
+
+void IndexField::NextCell(const GridCell& g, int a, int side, GridCell* next) const {
+  // The same cell but for axis a: one node further, and the same strides but for that axis.
   const int count[3] = {nx, ny, nz};
   const double o[3] = {origin_um.x, origin_um.y, origin_um.z};
   const double h[3] = {spacing_um.x, spacing_um.y, spacing_um.z};
-  const double q[3] = {p.x, p.y, p.z};
   const size_t full[3] = {1, size_t(nx), size_t(nx) * size_t(ny)};
-  size_t base = 0, stride[3];
-  double node[3];
-  const double inv[3] = {inv_spacing.x, inv_spacing.y, inv_spacing.z};
-  constexpr double kInf = std::numeric_limits<double>::infinity();
-  for (int a = 0; a < 3; ++a) {
-    const double u = (q[a] - o[a]) * inv[a];
-    int i = 0;
-    stride[a] = 0;  // the field is constant along this axis here (its terms vanish)
-    if (count[a] < 2) {
-      g.lo[a] = -kInf, g.hi[a] = kInf;
-    } else if (!(u >= 0)) {  // before the first sample (or not a number)
-      g.lo[a] = -kInf, g.hi[a] = 0;
-    } else if (u >= count[a] - 1) {  // beyond the last sample
-      i = count[a] - 1;
-      g.lo[a] = 0, g.hi[a] = kInf;
-    } else {
-      i = static_cast<int>(u);
-      stride[a] = full[a];
-      g.lo[a] = 0, g.hi[a] = 1;
-    }
-    node[a] = o[a] + i * h[a];
-    base += size_t(i) * full[a];
+  next->inv_spacing = g.inv_spacing;
+  for (int b = 0; b < 3; ++b) {
+    next->k[b] = g.k[b], next->lo[b] = g.lo[b], next->hi[b] = g.hi[b];
+    next->stride[b] = g.stride[b];
   }
-  g.node = {node[0], node[1], node[2]};
-  g.inv_spacing = inv_spacing;
-  const double* b = values.data() + base;
-  const size_t sx = stride[0], sy = stride[1], sz = stride[2];
+  Vec3 node = g.node;
+  const int n = count[a], k = std::clamp(g.k[a] + side, -1, n - 1);
+  const int i_old = std::clamp(g.k[a], 0, n - 1), i = std::clamp(k, 0, n - 1);
+  next->k[a] = k;
+  SetAxis(n, k, full[a], &next->lo[a], &next->hi[a], &next->stride[a]);
+  (a == 0 ? node.x : a == 1 ? node.y : node.z) = o[a] + i * h[a];
+  next->node = node;
+  next->base = i >= i_old ? g.base + size_t(i - i_old) * full[a] : g.base - size_t(i_old - i) * full[a];
+  Corners(next);
+}
+
+void IndexField::Fill(GridCell* g) const {
+  const int count[3] = {nx, ny, nz};
+  const double o[3] = {origin_um.x, origin_um.y, origin_um.z};
+  const double h[3] = {spacing_um.x, spacing_um.y, spacing_um.z};
+  const size_t full[3] = {1, size_t(nx), size_t(nx) * size_t(ny)};
+  double node[3];
+  g->base = 0;
+  for (int a = 0; a < 3; ++a) {
+    const int i = std::clamp(g->k[a], 0, std::max(count[a] - 1, 0));
+    SetAxis(count[a], g->k[a], full[a], &g->lo[a], &g->hi[a], &g->stride[a]);
+    node[a] = o[a] + i * h[a];
+    g->base += size_t(i) * full[a];
+  }
+  g->node = {node[0], node[1], node[2]};
+  Corners(g);
+}
+
+void IndexField::Corners(GridCell* g) const {
+  const double* b = values.data() + g->base;
+  const size_t sx = g->stride[0], sy = g->stride[1], sz = g->stride[2];
   const double v000 = b[0], v100 = b[sx], v010 = b[sy], v110 = b[sy + sx], v001 = b[sz],
                v101 = b[sz + sx], v011 = b[sz + sy], v111 = b[sz + sy + sx];
   // Differences along x on the four x edges; grouped so that an axis of stride 0 gives exact
   // zeros for every coefficient that involves it.
   const double dx00 = v100 - v000, dx10 = v110 - v010, dx01 = v101 - v001, dx11 = v111 - v011;
-  g.c[0] = v000;
-  g.c[1] = dx00;
-  g.c[2] = v010 - v000;
-  g.c[3] = v001 - v000;
-  g.c[4] = dx10 - dx00;
-  g.c[5] = dx01 - dx00;
-  g.c[6] = (v011 - v001) - (v010 - v000);
-  g.c[7] = (dx11 - dx01) - (dx10 - dx00);
-  return g;
+  g->c[0] = v000;
+  g->c[1] = dx00;
+  g->c[2] = v010 - v000;
+  g->c[3] = v001 - v000;
+  g->c[4] = dx10 - dx00;
+  g->c[5] = dx01 - dx00;
+  g->c[6] = (v011 - v001) - (v010 - v000);
+  g->c[7] = (dx11 - dx01) - (dx10 - dx00);
 }
 
 namespace {
 
 // The smallest dt >= 0 with acc dt^2 / 2 + speed dt = dist (dist >= 0, speed >= 0 along the
-// way to the face), without cancellation; +inf when the path turns back first.
+// way to the face), without cancellation; +inf when the path turns back first. Where the
+// curvature term is small (|acc dist| < 0.1 speed^2) the root's series to second order
+// replaces the square root: dist/speed (1 - e/2 + e^2/2), e = acc dist / speed^2, relative
+// error < e^3 (the caller lands the step on the face exactly afterwards).
 double FaceStep(double dist, double speed, double acc) {
+  const double r = 1 / speed, e = acc * dist * r * r;
+  if (std::abs(e) < 0.1) return dist * r * (1 - e * 0.5 + e * e * 0.5);
   const double disc = speed * speed + 2 * acc * dist;
   if (disc < 0) return std::numeric_limits<double>::infinity();
   return 2 * dist / (speed + std::sqrt(disc));  // inf when speed = acc = 0
@@ -163,23 +205,35 @@ Vec3 CellCoordinates(const GridCell& g, const Vec3& p) {
 }  // namespace
 
 CellExit PredictCellExit(const GridCell& g, const Vec3& p, const Vec3& t, const Vec3& d) {
-  // In cell units: u(dt) = u0 + vel dt + acc dt^2 / 2 along each axis. Written without branches
-  // on which axis wins (the winner is close to random from step to step).
+  // In cell units: u(dt) = u0 + vel dt + acc dt^2 / 2 along each axis. The straight path picks
+  // the face (without branches on which axis wins: the winner is close to random from step to
+  // step), the curved one gives the step to it. Where the two orders of the faces differ (a
+  // near-tie at an edge), the other face is crossed by a hair, which CellStep checks.
   constexpr double kInf = std::numeric_limits<double>::infinity();
   const Vec3 u = CellCoordinates(g, p), vel = Mul(t, g.inv_spacing), acc = Mul(d, g.inv_spacing);
-  double step[3], side[3];
+  double straight[3], dist[3], side[3];
   for (int a = 0; a < 3; ++a) {
     // The face ahead (along the acceleration when the ray runs parallel to the faces).
     const bool up = vel[a] > 0 || (vel[a] == 0 && acc[a] > 0);
     const double face = up ? g.hi[a] : g.lo[a];
     side[a] = up ? 1.0 : -1.0;
-    const double dist = std::max(side[a] * (face - u[a]), 0.0) + kCellOvershoot;
-    step[a] = std::isinf(face) ? kInf : FaceStep(dist, side[a] * vel[a], side[a] * acc[a]);
+    dist[a] = std::max(side[a] * (face - u[a]), 0.0) + kCellOvershoot;
+    straight[a] = dist[a] / std::abs(vel[a]);  // +inf for a face at infinity or vel = 0
   }
-  const int a01 = step[1] < step[0] ? 1 : 0;
-  const int a = step[2] < step[a01] ? 2 : a01;
+  const int a01 = straight[1] < straight[0] ? 1 : 0;
+  const int a = straight[2] < straight[a01] ? 2 : a01;
   CellExit e;
-  if (step[a] < kInf) e = {step[a], a, int(side[a])};
+  if (straight[a] < kInf) {
+    e = {FaceStep(dist[a], side[a] * vel[a], side[a] * acc[a]), a, int(side[a])};
+  } else {
+    // Parallel to every face it could reach: only the acceleration takes it there.
+    for (int b = 0; b < 3; ++b) {
+      const double face = side[b] > 0 ? g.hi[b] : g.lo[b];
+      const double step = std::isinf(face) ? kInf : FaceStep(dist[b], 0.0, side[b] * acc[b]);
+      if (step < e.dt) e = {step, b, int(side[b])};
+    }
+  }
+  if (!(e.dt < kInf)) e = CellExit();
   return e;
 }
 
@@ -197,14 +251,22 @@ Vec3 D(const IndexField& f, const Vec3& c, const Vec3& r) {
 // with `d_at(r)` = D at world point r: the state after dt and (optional) the embedded estimate.
 // `d_end` (optional) receives the last stage's D, taken at r + T dt + B dt / 2 (the step's end
 // to O(dt^2)).
-template <class DAt>
+// kSixth: multiply by 1/6 instead of dividing by 6 (the cell path, which owes no bit-identity
+// to earlier builds; a division costs what a dozen multiplications do).
+template <bool kSixth = false, class DAt>
 GrinState SharmaFinish(DAt&& d_at, const GrinState& s, const Vec3& A, const Vec3& B, double dt,
                        double* err, Vec3* d_end = nullptr) {
   const Vec3 d_c = d_at(s.r + s.t * dt + B * (dt / 2));
   if (d_end) *d_end = d_c;
   const Vec3 C = d_c * dt;
-  if (err) *err = Length(A - B * 2 + C) * (std::abs(dt) / 6);
-  return {s.r + (s.t + (A + B * 2) / 6) * dt, s.t + (A + B * 4 + C) / 6};
+  if constexpr (kSixth) {
+    constexpr double k = 1.0 / 6;
+    if (err) *err = Length(A - B * 2 + C) * (std::abs(dt) * k);
+    return {s.r + (s.t + (A + B * 2) * k) * dt, s.t + (A + B * 4 + C) * k};
+  } else {
+    if (err) *err = Length(A - B * 2 + C) * (std::abs(dt) / 6);
+    return {s.r + (s.t + (A + B * 2) / 6) * dt, s.t + (A + B * 4 + C) / 6};
+  }
 }
 
 // Sharma's stages from `d0` = D(s.r).
@@ -271,12 +333,13 @@ double StepCap(const IndexField& f, const GrinSettings& cfg) {
 }
 
 // Cell steps end on faces; their cap (a cell's diagonal) only bounds a ray that turns inside one.
-double CellStepCap(const IndexField& f, const GrinSettings& cfg) {
-  if (cfg.max_step_um > 0) return cfg.max_step_um;
+// Squared (um^2), so that the step compares (n dt)^2 with it and takes no root or division.
+double CellStepCap2(const IndexField& f, const GrinSettings& cfg) {
+  if (cfg.max_step_um > 0) return cfg.max_step_um * cfg.max_step_um;
   auto axis = [](int count, double h) { return count > 1 ? h * h : 0.0; };
-  const double diagonal = std::sqrt(axis(f.nx, f.spacing_um.x) + axis(f.ny, f.spacing_um.y) +
-                                    axis(f.nz, f.spacing_um.z));
-  return diagonal > 0 ? diagonal : std::numeric_limits<double>::infinity();  // one cell only
+  const double diagonal2 =
+      axis(f.nx, f.spacing_um.x) + axis(f.ny, f.spacing_um.y) + axis(f.nz, f.spacing_um.z);
+  return diagonal2 > 0 ? diagonal2 : std::numeric_limits<double>::infinity();  // one cell only
 }
 
 }  // namespace
@@ -321,20 +384,28 @@ int AdaptiveStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, Gr
   }
 }
 
-int CellStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, GridCell* cell,
+int CellStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, GridCellPair* cells,
              GrinPoint* s, double* dt, double* used) {
   // A step that ends on a face lands kCellOvershoot past it; one that crosses a face by more than
   // kStraddle (the prediction missed it) is taken again, aimed at that face.
   constexpr double kStraddle = 1e-6;
   const Vec3 p = s->r - c;
+  GridCell* cell = &cells->cell[cells->current];
+  GridCell* spare = &cells->cell[1 - cells->current];
   if (!(cell->at.x == p.x && cell->at.y == p.y && cell->at.z == p.z)) *cell = f.Cell(p);
   const GridCell& g = *cell;
   const Vec3 inv = g.inv_spacing;
   const Vec3 u0 = Mul(p - g.node, inv), vel = Mul(s->t, inv);
-  const double cap = CellStepCap(f, cfg) / s->n;  // ds = n dt
+  const double cap2 = CellStepCap2(f, cfg);
+  // The largest parameter step within the cap (ds = n dt), computed only where it binds.
+  auto capped = [&](double h) { return h * h * (s->n * s->n) > cap2 ? std::sqrt(cap2) / s->n : h; };
   CellExit exit = PredictCellExit(g, p, s->t, s->d);
-  double h = std::min({*dt, cap, exit.dt});
+  double h = capped(std::min(*dt, exit.dt));
   bool aim = h == exit.dt;
+  // The cell beyond the face aimed at, prepared alongside the step (it needs only the face).
+  const CellExit aimed = aim ? exit : CellExit();
+  if (aim) f.NextCell(g, exit.axis, exit.side, spare);
+  bool landed = false;  // the step ends kCellOvershoot past that face and crossed no other
   // All stages from the start cell's polynomial: the field the step sees is smooth.
   auto d_at = [&](const Vec3& r) {
     double n;
@@ -347,34 +418,38 @@ int CellStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, GridCe
   int tries = 0;
   for (;; ++tries) {
     const Vec3 A = s->d * h;
-    const Vec3 B = d_at(s->r + s->t * (h / 2) + A * (h / 8)) * h;
-    Vec3 d_end;
-    next = SharmaFinish(d_at, GrinState{s->r, s->t}, A, B, h, &err, &d_end);
+    const Vec3 d_mid = d_at(s->r + s->t * (h / 2) + A * (h / 8)), B = d_mid * h;
+    next = SharmaFinish<true>(d_at, GrinState{s->r, s->t}, A, B, h, &err);
     if (tries > 60) break;
     if (err > cfg.tolerance_um) {
       h *= Shrink(err, cfg.tolerance_um);
       aim = false;
       continue;
     }
-    const Vec3 u1 = Mul(next.r - c - g.node, inv);
+    Vec3 u1 = Mul(next.r - c - g.node, inv);
     if (aim) {
-      // The prediction (from D at the start only) misses the face by O(dD/dt dt^3): move the end
-      // along the path onto it, kCellOvershoot past, with the end's T and D (second order in
-      // the correction, which is ~1e-4 of the step; its error is third order in that).
+      // The prediction (from D at the start only) misses the face by O(dD/dt dt^3): the step is
+      // extended (or shortened) along the path onto it, kCellOvershoot past, by
+      // r += T snap + D snap^2 / 2, T += D snap, with T and D at the end from the first two
+      // stages (so that this runs alongside the last): T + B is T there to O(the step's error
+      // / dt) and 2 D_mid - D0 is D there to O(d^2D/dt^2 dt^2). As the correction is ~1e-4 of
+      // the step, the errors it adds are ~1e-4 of the step's own.
       const int a = exit.axis;
       const double target = (exit.side > 0 ? g.hi[a] : g.lo[a]) + exit.side * kCellOvershoot;
-      const double rvel = 1 / (next.t[a] * inv[a]), gap = target - u1[a];
+      const Vec3 t_end = s->t + B, d_end = d_mid * 2 - s->d;
+      const double rvel = 1 / (t_end[a] * inv[a]), gap = target - u1[a];
       double snap = gap * rvel;
       snap = (gap - d_end[a] * inv[a] * snap * snap / 2) * rvel;
       if (std::abs(snap) < 0.01 * h) {
-        next.r = next.r + next.t * snap + d_end * (snap * snap / 2);
+        next.r = next.r + t_end * snap + d_end * (snap * snap / 2);
         next.t = next.t + d_end * snap;
         h += snap;
-        break;  // inside the cell up to the face: nothing else was crossed on the way
+        u1 = Mul(next.r - c - g.node, inv);
+        landed = exit.axis == aimed.axis && exit.side == aimed.side;
       }
     }
-    // A face the step crossed by more than kStraddle (the prediction missed it, or the snap was
-    // too long): the step is taken again, aimed at the first such face.
+    // A face the step crossed by more than kStraddle (the prediction missed it: another face
+    // first, or a snap too long): the step is taken again, aimed at the first such face.
     double first = 1;
     CellExit missed;
     for (int a = 0; a < 3; ++a) {
@@ -385,22 +460,31 @@ int CellStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, GridCe
       if (along < first) first = along, missed = {h * along, a, int(side)};
     }
     if (missed.axis < 0) break;
+    landed = false;
     exit = missed;
     h = std::max(exit.dt, 1e-3 * h);
     aim = true;
   }
   *used = h;
-  *dt = std::min(Proposal(err, cfg.tolerance_um, h, aim, *dt), cap);
+  *dt = capped(Proposal(err, cfg.tolerance_um, h, aim, *dt));
   // The end point in its own cell, which the next step starts from (the gradient jumps at the
   // face: the next step's first stage is the next cell's).
   const Vec3 q = next.r - c;
-  *cell = f.CellWith(q, inv);
+  if (landed) {
+    cells->current = 1 - cells->current;
+    cell = spare;
+  } else {
+    *cell = f.CellWith(q, inv);
+  }
+  cell->at = q;
   Vec3 grad;
   s->r = next.r;
   IndexField::EvalInCell(*cell, q, &s->n, &grad);
   s->d = grad * s->n;
-  const double tl = Length(next.t);
-  s->t = tl > 0 ? next.t * (s->n / tl) : next.t;
+  // |T| = n holds to the integrator's accuracy (n is continuous at faces); the projection back
+  // onto it (a root and a division) is taken where it has drifted by more than 1e-10.
+  const double t2 = Dot(next.t, next.t), n2 = s->n * s->n;
+  s->t = std::abs(t2 - n2) > 1e-10 * n2 && t2 > 0 ? next.t * (s->n / std::sqrt(t2)) : next.t;
   return 3 * (tries + 1);
 }
 

@@ -411,7 +411,7 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
   double dt = 0.05 * im.size[obj] / Length(s.t);
   // 3D grids: steps from face to face (the cell of s.r is kept between steps).
   const bool cell_steps = cfg.cell_steps && !cfg.step_doubling && f.type == IndexFieldType::kGrid3D;
-  GridCell cell;
+  GridCellPair cells;
   // Paths shorter than the clearance cannot reach a surface (spheres only; 0 otherwise). `clear`
   // is a lower bound of the clearance at s.r: the distance to a surface changes by at most the
   // length of a chord, so the bound follows the steps and the clearance itself is computed only
@@ -422,9 +422,19 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
     return clear;
   };
   auto moved = [&](double chord) { clear -= chord * (1 + 1e-12) + 1e-12; };
+  // Whether the cell of s.r (cell steps keep it) has corner values that differ by more than the
+  // uniform tolerance along an axis: then its block is not uniform and there is no straight
+  // step to look up.
+  auto in_varying_cell = [&] {
+    const Vec3 p = s.r - center;
+    const GridCell& cell = cells.now();
+    const double tol = cfg.uniform_tolerance;
+    return cell.at.x == p.x && cell.at.y == p.y && cell.at.z == p.z &&
+           (std::abs(cell.c[1]) > tol || std::abs(cell.c[2]) > tol || std::abs(cell.c[3]) > tol);
+  };
   ++c.grin_segments;
   for (int step = 0; step < cfg.max_steps; ++step) {
-    if (uniform) {
+    if (uniform && !(cell_steps && in_varying_cell())) {
       // Straight across uniform cells when that beats the next curved step.
       const double free = uniform->FreeLength(s.r - center);
       if (free > dt * s.n) {
@@ -451,7 +461,7 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
     GrinPoint s1 = s;
     double used = 0, next = dt;
     if (cell_steps) {
-      CellStep(f, center, local, &cell, &s1, &next, &used);
+      CellStep(f, center, local, &cells, &s1, &next, &used);
     } else {
       AdaptiveStep(f, center, local, &s1, &next, &used);
     }

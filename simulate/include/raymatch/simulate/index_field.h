@@ -32,6 +32,19 @@ struct GridCell {
   Vec3 inv_spacing;        ///< 1 / spacing per axis
   double lo[3] = {0, 0, 0}, hi[3] = {0, 0, 0};  ///< extent in u, v, w (+-inf beyond the edge)
   double c[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+  /// Cell index per axis: 0 ... count - 2 between samples, -1 before the first sample, count - 1
+  /// beyond the last (and 0 along an axis with a single sample).
+  int k[3] = {0, 0, 0};
+  size_t base = 0;               ///< values index of the node at `node`
+  size_t stride[3] = {0, 0, 0};  ///< values index steps to the other corners (0: constant axis)
+};
+
+/// The integrator's two cells: the one the current point is in, and a spare in which the next
+/// one is built while a step is computed (CellStep swaps them; nothing is copied).
+struct GridCellPair {
+  GridCell cell[2];
+  int current = 0;
+  const GridCell& now() const { return cell[current]; }
 };
 
 class IndexField {
@@ -65,8 +78,15 @@ class IndexField {
   GridCell Cell(const Vec3& p) const;
   /// The same with the reciprocal spacings given (the integrator's cells share them).
   GridCell CellWith(const Vec3& p, const Vec3& inv_spacing) const;
+  /// The cell beyond the face of `cell` on `axis` at side +1 (hi) or -1 (lo), into *next; its
+  /// `at` is left unset.
+  void NextCell(const GridCell& cell, int axis, int side, GridCell* next) const;
   /// 3D grids: the interpolant of `cell` (extended as a polynomial) and its gradient at p.
   static void EvalInCell(const GridCell& cell, const Vec3& p, double* n, Vec3* grad_n);
+
+ private:
+  void Fill(GridCell* cell) const;     ///< node, extent, strides and corners from cell->k
+  void Corners(GridCell* cell) const;  ///< coefficients from cell->base and cell->stride
 };
 
 inline void IndexField::EvalInCell(const GridCell& g, const Vec3& p, double* n, Vec3* grad) {
@@ -150,10 +170,10 @@ int AdaptiveStep(const IndexField& f, const Vec3& center, const GrinSettings& cf
                  double* dt, double* used);
 /// The same for a 3D grid, one cell at a time (GrinSettings::cell_steps): the step ends just
 /// past the face of `*cell` that the ray meets first (or earlier, if the tolerance says so),
-/// its inner stages use the cell's polynomial, and `*cell` becomes the cell of the step's end.
-/// `*cell` is rebuilt when it was not located from s->r (its `at` differs).
-int CellStep(const IndexField& f, const Vec3& center, const GrinSettings& cfg, GridCell* cell,
-             GrinPoint* s, double* dt, double* used);
+/// its inner stages use the cell's polynomial, and cells->now() becomes the cell of the step's
+/// end. It is located afresh when it was not located from s->r (its `at` differs).
+int CellStep(const IndexField& f, const Vec3& center, const GrinSettings& cfg,
+             GridCellPair* cells, GrinPoint* s, double* dt, double* used);
 /// The same from a bare state (computes the first stage).
 int AdaptiveStep(const IndexField& f, const Vec3& center, const GrinSettings& cfg, GrinState* s,
                  double* dt, double* used);

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstddef>
 #include <limits>
 
 namespace raymatch::simulate {
@@ -127,23 +128,19 @@ GridCell IndexField::CellWith(const Vec3& p, const Vec3& inv_spacing) const {
 
 void IndexField::NextCell(const GridCell& g, int a, int side, GridCell* next) const {
   // The same cell but for axis a: one node further, and the same strides but for that axis.
-  const int count[3] = {nx, ny, nz};
-  const double o[3] = {origin_um.x, origin_um.y, origin_um.z};
-  const double h[3] = {spacing_um.x, spacing_um.y, spacing_um.z};
-  const size_t full[3] = {1, size_t(nx), size_t(nx) * size_t(ny)};
-  next->inv_spacing = g.inv_spacing;
-  for (int b = 0; b < 3; ++b) {
-    next->k[b] = g.k[b], next->lo[b] = g.lo[b], next->hi[b] = g.hi[b];
-    next->stride[b] = g.stride[b];
-  }
-  Vec3 node = g.node;
-  const int n = count[a], k = std::clamp(g.k[a] + side, -1, n - 1);
+  *next = g;
+  const int n = a == 0 ? nx : a == 1 ? ny : nz;
+  const size_t full = a == 0 ? 1 : a == 1 ? size_t(nx) : size_t(nx) * size_t(ny);
+  const int k = std::clamp(g.k[a] + side, -1, n - 1);
   const int i_old = std::clamp(g.k[a], 0, n - 1), i = std::clamp(k, 0, n - 1);
   next->k[a] = k;
-  SetAxis(n, k, full[a], &next->lo[a], &next->hi[a], &next->stride[a]);
-  (a == 0 ? node.x : a == 1 ? node.y : node.z) = o[a] + i * h[a];
-  next->node = node;
-  next->base = i >= i_old ? g.base + size_t(i - i_old) * full[a] : g.base - size_t(i_old - i) * full[a];
+  SetAxis(n, k, full, &next->lo[a], &next->hi[a], &next->stride[a]);
+  switch (a) {
+    case 0: next->node.x = origin_um.x + i * spacing_um.x; break;
+    case 1: next->node.y = origin_um.y + i * spacing_um.y; break;
+    default: next->node.z = origin_um.z + i * spacing_um.z; break;
+  }
+  next->base = g.base + size_t(ptrdiff_t(i - i_old) * ptrdiff_t(full));  // wraps like a signed step
   Corners(next);
 }
 

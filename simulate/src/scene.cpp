@@ -544,6 +544,7 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
     s.trace.grin.max_steps = static_cast<int>(tr.Integer("grin_max_steps", s.trace.grin.max_steps, 1, 1000000000));
     s.trace.grin.uniform_tolerance =
         tr.InRange("grin_uniform_tolerance", -1.0, 1e-3, s.trace.grin.uniform_tolerance);
+    s.trace.grin.cell_steps = tr.Bool("grin_cell_steps", s.trace.grin.cell_steps);
     tr.Finish();
   }
   if (s.trace.rays == 0 && s.trace.photons_per_pixel == 0) s.trace.rays = 1000000;

@@ -478,10 +478,10 @@ int CellStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, GridCe
   s->r = next.r;
   IndexField::EvalInCell(*cell, q, &s->n, &grad);
   s->d = grad * s->n;
-  // |T| = n holds to the integrator's accuracy (n is continuous at faces); the projection back
-  // onto it (a root and a division) is taken where it has drifted by more than 1e-10.
-  const double t2 = Dot(next.t, next.t), n2 = s->n * s->n;
-  s->t = std::abs(t2 - n2) > 1e-10 * n2 && t2 > 0 ? next.t * (s->n / std::sqrt(t2)) : next.t;
+  // Keep |T| = n(R), as MakeGrinPoint does (skipping it where |T| had not drifted saved
+  // nothing measurable).
+  const double t2 = Dot(next.t, next.t);
+  s->t = t2 > 0 ? next.t * (s->n / std::sqrt(t2)) : next.t;
   return 3 * (tries + 1);
 }
 

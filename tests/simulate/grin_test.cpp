@@ -16,6 +16,16 @@
 namespace raymatch::simulate {
 namespace {
 
+// An empty 3D grid field of nx x ny x nz samples (values to be filled in).
+IndexField Grid3D(int nx, int ny, int nz, const Vec3& spacing_um, const Vec3& origin_um) {
+  IndexField f;
+  f.type = IndexFieldType::kGrid3D;
+  f.nx = nx, f.ny = ny, f.nz = nz;
+  f.spacing_um = spacing_um;
+  f.origin_um = origin_um;
+  return f;
+}
+
 // Linear n^2 = n0^2 + k.p gives R'' = k/2 (in t = s/n): an exact parabola
 // R(t) = R0 + T0 t + k t^2 / 4, which the Sharma scheme reproduces exactly (up to rounding).
 TEST(Grin, LinearN2GivesExactParabolasEvenWithHugeSteps) {
@@ -93,6 +103,26 @@ Scene LensScene() {
   return s;
 }
 
+// A 20 deg cone over a 40 um field, imaged with 1 um pixels at the object.
+Scene ConeScene() {
+  Scene s = LensScene();
+  s.camera.pixel_pitch_um = 20;
+  s.source.type = SourceType::kCone;
+  s.source.half_angle_deg = 20;
+  s.source.field_radius_um = 40;
+  return s;
+}
+
+// sum |a - b| / sum a over the pixels.
+double RelativeL1(const PlaneResult& a, const PlaneResult& b) {
+  double diff = 0, total = 0;
+  for (size_t i = 0; i < a.counts.size(); ++i) {
+    diff += std::abs(a.counts.pixels[i] - b.counts.pixels[i]);
+    total += a.counts.pixels[i];
+  }
+  return diff / total;
+}
+
 // Luneburg lens n = sqrt(2 - (r/R)^2) (n = 1 at its surface, in vacuum) focuses a collimated
 // beam onto its rear pole. Rays up to h = 0.4 R leave the pole within the NA 0.42.
 TEST(Grin, LuneburgLensFocusesOnItsRearPole) {
@@ -117,11 +147,7 @@ TEST(Grin, LuneburgLensFocusesOnItsRearPole) {
 // A grid of constant index behaves like the homogeneous sphere: with the same random streams
 // the images agree up to rays whose fate changes by the exit-point tolerance.
 TEST(Grin, UniformGridMatchesHomogeneousSphere) {
-  Scene s = LensScene();
-  s.camera.pixel_pitch_um = 20;
-  s.source.type = SourceType::kCone;
-  s.source.half_angle_deg = 20;
-  s.source.field_radius_um = 40;
+  Scene s = ConeScene();
   ObjectSpec o;
   o.shape = ShapeType::kSphere;
   o.radius_um = 10;
@@ -141,14 +167,7 @@ TEST(Grin, UniformGridMatchesHomogeneousSphere) {
   const PlaneResult b = Simulator(s).TracePlane(4, 0, 200000);
   s.trace.grin.uniform_tolerance = GrinSettings().uniform_tolerance;
   const PlaneResult c = Simulator(s).TracePlane(4, 0, 200000);
-  for (const PlaneResult* r : {&b, &c}) {
-    double diff = 0, total = 0;
-    for (size_t i = 0; i < a.counts.size(); ++i) {
-      diff += std::abs(a.counts.pixels[i] - r->counts.pixels[i]);
-      total += a.counts.pixels[i];
-    }
-    EXPECT_LT(diff / total, 1e-3);
-  }
+  for (const PlaneResult* r : {&b, &c}) EXPECT_LT(RelativeL1(a, *r), 1e-3);
   EXPECT_GT(b.counters.grin_steps, 0u);
   EXPECT_EQ(b.counters.grin_uniform_steps, 0u);
   EXPECT_GT(c.counters.grin_uniform_steps, 0u);
@@ -173,12 +192,9 @@ SlabGrid MakeSlabGrid(uint64_t seed) {
   const int count = 41;  // 20 um in x, y and z
   RayRng rng(seed, 0, 0);
   for (int i = 0; i < count; ++i) g.n.push_back(1.35 + 0.25 * rng.Uniform());  // up to 0.5/um
-  g.field = std::make_shared<IndexField>();
+  g.field = std::make_shared<IndexField>(
+      Grid3D(count, count, count, {g.h, g.h, g.h}, {g.x0, g.x0, g.x0}));
   IndexField& f = *g.field;
-  f.type = IndexFieldType::kGrid3D;
-  f.nx = f.ny = f.nz = count;
-  f.spacing_um = {g.h, g.h, g.h};
-  f.origin_um = {g.x0, g.x0, g.x0};
   for (int k = 0; k < count; ++k)
     for (int j = 0; j < count; ++j)
       for (int i = 0; i < count; ++i) f.values.push_back(g.n[i]);
@@ -253,11 +269,7 @@ TEST(Grin, CellStepsFollowAPiecewiseLinearIndexExactly) {
 // from a point just past that face, for every face of cells inside the grid, at its edges and
 // beyond them (where the field holds the edge values), and its polynomial is the field there.
 TEST(Grin, NextCellIsTheCellBeyondTheFace) {
-  IndexField f;
-  f.type = IndexFieldType::kGrid3D;
-  f.nx = 5, f.ny = 4, f.nz = 6;
-  f.spacing_um = {0.5, 0.7, 0.6};
-  f.origin_um = {-1, -1.4, -1.8};
+  IndexField f = Grid3D(5, 4, 6, {0.5, 0.7, 0.6}, {-1, -1.4, -1.8});
   RayRng rng(3, 0, 0);
   for (int i = 0; i < f.nx * f.ny * f.nz; ++i) f.values.push_back(1.33 + 0.1 * rng.Uniform());
   const double h[3] = {0.5, 0.7, 0.6}, o[3] = {-1, -1.4, -1.8};
@@ -308,11 +320,7 @@ TEST(Grin, NextCellIsTheCellBeyondTheFace) {
 // straight rays of the homogeneous sphere (same random streams: the images agree up to rays
 // whose fate changes by the exit-point tolerance).
 TEST(Grin, CellStepsThroughAGridSmallerThanItsObject) {
-  Scene s = LensScene();
-  s.camera.pixel_pitch_um = 20;
-  s.source.type = SourceType::kCone;
-  s.source.half_angle_deg = 20;
-  s.source.field_radius_um = 40;
+  Scene s = ConeScene();
   s.objects = {testing::SphereObject(10, 1.4)};
   const PlaneResult a = Simulator(s).TracePlane(4, 0, 100000);
   auto f = std::make_shared<IndexField>();
@@ -324,12 +332,7 @@ TEST(Grin, CellStepsThroughAGridSmallerThanItsObject) {
   s.objects[0].index_field = f;
   s.trace.grin.uniform_tolerance = -1;  // curved steps everywhere
   const PlaneResult b = Simulator(s).TracePlane(4, 0, 100000);
-  double diff = 0, total = 0;
-  for (size_t i = 0; i < a.counts.size(); ++i) {
-    diff += std::abs(a.counts.pixels[i] - b.counts.pixels[i]);
-    total += a.counts.pixels[i];
-  }
-  EXPECT_LT(diff / total, 1e-3);
+  EXPECT_LT(RelativeL1(a, b), 1e-3);
   EXPECT_GT(b.counters.grin_steps, 0u);
   EXPECT_EQ(b.counters.fates[int(Fate::kGrinStepCap)], 0u);
   EXPECT_EQ(b.counters.fates[int(Fate::kLostInside)], 0u);
@@ -339,11 +342,7 @@ TEST(Grin, CellStepsThroughAGridSmallerThanItsObject) {
 // grid's edge, and a free length that never reaches a non-uniform cell (checked by sampling
 // straight paths of that length in random directions from random points).
 TEST(Grin, UniformCellsNeverReachANonUniformCell) {
-  IndexField f;
-  f.type = IndexFieldType::kGrid3D;
-  f.nx = 21, f.ny = 17, f.nz = 19;
-  f.spacing_um = {0.5, 0.7, 0.6};
-  f.origin_um = {-5, -5.6, -5.4};
+  IndexField f = Grid3D(21, 17, 19, {0.5, 0.7, 0.6}, {-5, -5.6, -5.4});
   f.values.assign(size_t(f.nx) * f.ny * f.nz, 1.33);
   // A non-uniform blob: the node (12, 8, 9) raised (its 8 neighbouring cells change).
   f.values[(size_t(9) * f.ny + 8) * f.nx + 12] = 1.34;
@@ -408,12 +407,8 @@ TEST(Grin, AxisymmetricAndThreeDGridsAgree) {
     for (int j = 0; j < 47; ++j)
       for (int i = 0; i < 47; ++i)
         g3->values.push_back(n_of(std::hypot(-11.5 + i * h, -11.5 + j * h), -11.5 + k * h));
-  Scene s = LensScene();
+  Scene s = ConeScene();
   s.camera.nx = s.camera.ny = 40;
-  s.camera.pixel_pitch_um = 20;
-  s.source.type = SourceType::kCone;
-  s.source.half_angle_deg = 20;
-  s.source.field_radius_um = 40;
   ObjectSpec o;
   o.shape = ShapeType::kSphere;
   o.radius_um = R;

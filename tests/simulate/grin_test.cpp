@@ -265,6 +265,33 @@ TEST(Grin, CellStepsFollowAPiecewiseLinearIndexExactly) {
               worst_cells, worst_halves);
 }
 
+// Rays entering a box along z, parallel to the grid's faces and some exactly on its node planes,
+// through n = a + b x (exactly trilinear): T_z = n0 is conserved, and the path is the catenary
+// n(x(z)) = n0 cosh(b (z - z0) / n0) (from dz = n0 dx / sqrt(n^2 - n0^2)). The x faces are
+// reached by the bending alone (the ray starts with no x velocity), the y faces never.
+TEST(Grin, RaysParallelToGridFacesFollowTheCatenary) {
+  const double a = 1.4, b = 0.04, h = 0.5;
+  auto f = std::make_shared<IndexField>(Grid3D(25, 25, 25, {h, h, h}, {-6, -6, -6}));
+  for (int k = 0; k < 25; ++k)
+    for (int j = 0; j < 25; ++j)
+      for (int i = 0; i < 25; ++i) f->values.push_back(a + b * (-6 + h * i));
+  Scene s = LensScene();
+  ObjectSpec o = testing::BoxObject({5, 5, 5}, a);
+  o.index_field = f;
+  s.objects = {o};
+  s.trace.grin.tolerance_um = 1e-8;
+  const Simulator sim(s);
+  for (double x0 : {-4.0, -2.5, -1.3, 0.0, 0.5, 2.75}) {
+    const double y0 = x0 == 0.0 ? 0.0 : 1.5;  // on a y node plane too
+    const auto e = sim.TraceThroughObjects({x0, y0, -7}, {0, 0, 1});
+    ASSERT_FALSE(e.ended) << x0;
+    const double n0 = a + b * x0, n1 = n0 * std::cosh(b * 10 / n0);
+    const Vec3 exact((n1 - a) / b, y0, 5);
+    EXPECT_LT(Length(e.origin - exact), 1e-8 * double(e.counters.grin_steps) + 1e-9)
+        << x0 << ": " << e.origin.x << " against " << exact.x;
+  }
+}
+
 // The cell beyond a face (built incrementally while a step is computed) is the cell located
 // from a point just past that face, for every face of cells inside the grid, at its edges and
 // beyond them (where the field holds the edge values), and its polynomial is the field there.

@@ -4,6 +4,7 @@
 
 #include <cmath>
 #include <tuple>
+#include <utility>
 
 #include "raymatch/simulate/index_field.h"
 #include "raymatch/simulate/tracer.h"
@@ -196,9 +197,27 @@ TEST(HardCases, MeshHeadersClaimingHugeCountsAreRejected) {
   }
 }
 
+// A 10 um sphere with index field f (1.6 inside r = 5 um, 1.3 outside) under a 20 deg cone:
+// the image is sane, and the integrator never runs out of steps. Rays totally reflected at the
+// surface of a radially symmetric medium stay trapped forever (angular momentum is conserved):
+// the interaction cap ends them, as documented.
+void ExpectSaneThroughSteepJump(std::shared_ptr<IndexField> f) {
+  Scene s = Base();
+  ObjectSpec o = Sphere(10, 1.3);
+  o.index_field = std::move(f);
+  s.objects = {o};
+  s.source.type = SourceType::kCone;
+  s.source.half_angle_deg = 20;
+  s.trace.grin.tolerance_um = 1e-4;
+  const PlaneResult r = Simulator(s).TracePlane(0, 0, 20000);
+  ExpectSane(r);
+  EXPECT_GT(r.counters.grin_steps, 0u);
+  EXPECT_EQ(r.counters.fates[int(Fate::kGrinStepCap)], 0u);
+  EXPECT_LT(r.counters.fates[int(Fate::kInteractionCap)], 20u);
+}
+
 // Very steep gradient: the index jumps by 0.3 within one cell of a grid.
 TEST(HardCases, VerySteepGradientAndJumpInAGrid) {
-  Scene s = Base();
   auto f = std::make_shared<IndexField>();
   f->type = IndexFieldType::kGridRZ;
   f->nx = 30, f->ny = 1, f->nz = 60;
@@ -206,19 +225,24 @@ TEST(HardCases, VerySteepGradientAndJumpInAGrid) {
   f->origin_um = {0, 0, -12};
   for (int k = 0; k < 60; ++k)
     for (int i = 0; i < 30; ++i) f->values.push_back(i * 0.4 < 5 ? 1.6 : 1.3);
-  ObjectSpec o = Sphere(10, 1.3);
-  o.index_field = f;
-  s.objects = {o};
-  s.source.type = SourceType::kCone;
-  s.source.half_angle_deg = 20;
-  s.trace.grin.tolerance_um = 1e-4;
-  const PlaneResult r = Simulator(s).TracePlane(0, 0, 20000);
-  ExpectSane(r);
-  // Rays totally reflected at the surface of a radially symmetric medium stay trapped forever
-  // (angular momentum is conserved): the interaction cap ends them, as documented. The
-  // integrator itself must never run out of steps.
-  EXPECT_EQ(r.counters.fates[int(Fate::kGrinStepCap)], 0u);
-  EXPECT_LT(r.counters.fates[int(Fate::kInteractionCap)], 20u);
+  ExpectSaneThroughSteepJump(f);
+}
+
+// The same in a 3D grid, stepped cell by cell: the faces the rays cross at the jump carry the
+// largest jumps of the gradient a grid can hold.
+TEST(HardCases, VerySteepJumpInAThreeDGridSteppedCellByCell) {
+  auto f = std::make_shared<IndexField>();
+  f->type = IndexFieldType::kGrid3D;
+  f->nx = f->ny = f->nz = 53;
+  f->spacing_um = {0.4, 0.4, 0.4};
+  f->origin_um = {-10.4, -10.4, -10.4};
+  for (int k = 0; k < 53; ++k)
+    for (int j = 0; j < 53; ++j)
+      for (int i = 0; i < 53; ++i) {
+        const double x = -10.4 + 0.4 * i, y = -10.4 + 0.4 * j, z = -10.4 + 0.4 * k;
+        f->values.push_back(x * x + y * y + z * z < 25 ? 1.6 : 1.3);
+      }
+  ExpectSaneThroughSteepJump(f);
 }
 
 // Scale: objects from 0.1 um to 10 mm give the same Debye external-reflection fraction

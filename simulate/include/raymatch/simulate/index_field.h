@@ -24,8 +24,8 @@ enum class IndexFieldType { kLuneburg, kFishEye, kParabolic, kLinearN2, kGridRZ,
 ///   n = c0 + c1 u + c2 v + c3 w + c4 uv + c5 uw + c6 vw + c7 uvw.
 /// Beyond the grid's edge along an axis (and along an axis with a single sample) the field holds
 /// its edge value: that axis's terms vanish and the cell reaches to infinity along it. The
-/// integrator evaluates the two inner stages of a step with the polynomial of the cell the step
-/// starts in (IndexField::EvalInCell), so a step that ends on a face sees a smooth field.
+/// integrator evaluates every stage of a step with the polynomial of the cell the step starts in
+/// (IndexField::EvalInCell), so a step that ends on a face sees a smooth field.
 struct GridCell {
   Vec3 at{NAN, NAN, NAN};  ///< the local point it was located from (the integrator's cache key)
   Vec3 node;               ///< local coordinates of the cell's first node (where u = v = w = 0)
@@ -72,7 +72,8 @@ class IndexField {
     Eval(p, &n, &g);
     return n;
   }
-  /// Largest step the integrator may take (half the finest grid spacing; 0 = no cap).
+  /// Largest step the integrator may take (half the finest grid spacing; 0 = no cap); 3D grids
+  /// stepped cell by cell are capped at the cell's diagonal instead.
   double MaxStepUm() const;
   /// 3D grids: the cell that holds local point p (on a face: the cell beyond it).
   GridCell Cell(const Vec3& p) const;
@@ -100,8 +101,6 @@ inline void IndexField::EvalInCell(const GridCell& g, const Vec3& p, double* n, 
   *n = c[0] + c[2] * v + c[3] * w + c[6] * vw + u * gu;
   *grad = Vec3(gu * g.inv_spacing.x, gv * g.inv_spacing.y, gw * g.inv_spacing.z);
 }
-
-
 
 /// How far past a face a step that ends on it lands (in cells): the next step starts in the
 /// next cell. The field the step used there is the previous cell's polynomial; the error that

@@ -392,7 +392,7 @@ int CellStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, GridCe
   if (!(cell->at.x == p.x && cell->at.y == p.y && cell->at.z == p.z)) *cell = f.Cell(p);
   const GridCell& g = *cell;
   const Vec3 inv = g.inv_spacing;
-  const Vec3 u0 = Mul(p - g.node, inv), vel = Mul(s->t, inv);
+  const Vec3 u0 = Mul(p - g.node, inv);
   const double cap2 = CellStepCap2(f, cfg);
   // The largest parameter step within the cap (ds = n dt), computed only where it binds.
   auto capped = [&](double h) { return h * h * (s->n * s->n) > cap2 ? std::sqrt(cap2) / s->n : h; };

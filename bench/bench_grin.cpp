@@ -39,6 +39,16 @@ void SetVariant(GrinSettings* g, int64_t variant) {
   g->cell_steps = variant >= 3;
 }
 
+/// sum |image - reference| / sum reference over the pixels.
+double RelativeL1(const PlaneResult& image, const PlaneResult& reference) {
+  double diff = 0, total = 0;
+  for (size_t i = 0; i < reference.counts.size(); ++i) {
+    diff += std::abs(image.counts.pixels[i] - reference.counts.pixels[i]);
+    total += reference.counts.pixels[i];
+  }
+  return diff / total;
+}
+
 void BM_LuneburgTolerance(benchmark::State& state) {
   const double R = 23, tol = std::pow(10.0, -double(state.range(0)));
   Scene s = Optics();
@@ -140,20 +150,12 @@ void BM_DropImageTolerance(benchmark::State& state) {
   Scene scene = DropScene(false, std::pow(10.0, -double(state.range(0))));
   SetVariant(&scene.trace.grin, state.range(1));
   const Simulator sim(scene);
-  double diff = 0, total = 0, steps = 0;
-  for (auto _ : state) {
-    const PlaneResult r = sim.TracePlane(0, 0, rays, one);
-    diff = total = 0;
-    for (size_t i = 0; i < r.counts.size(); ++i) {
-      diff += std::abs(r.counts.pixels[i] - ref.counts.pixels[i]);
-      total += ref.counts.pixels[i];
-    }
-    steps = r.counters.grin_steps;
-  }
+  PlaneResult last;
+  for (auto _ : state) last = sim.TracePlane(0, 0, rays, one);
   state.SetItemsProcessed(state.iterations() * rays);
   state.counters["tolerance_um"] = std::pow(10.0, -double(state.range(0)));
-  state.counters["rel_L1_vs_ref"] = diff / total;
-  state.counters["steps_per_ray"] = steps / rays;
+  state.counters["rel_L1_vs_ref"] = RelativeL1(last, ref);
+  state.counters["steps_per_ray"] = double(last.counters.grin_steps) / rays;
 }
 BENCHMARK(BM_DropImageTolerance)
     ->ArgsProduct({benchmark::CreateDenseRange(2, 8, 1), {0, 2}})
@@ -180,25 +182,13 @@ void BM_Grid3DDropImage(benchmark::State& state) {
   Scene scene = DropScene(true, std::pow(10.0, -double(state.range(1))));
   SetVariant(&scene.trace.grin, state.range(0));
   const Simulator sim(scene);
-  double steps = 0, straight = 0;
   PlaneResult last;
-  for (auto _ : state) {
-    last = sim.TracePlane(0, 0, rays, one);
-    steps = last.counters.grin_steps, straight = last.counters.grin_uniform_steps;
-  }
-  auto rel_l1 = [&](const PlaneResult& a) {
-    double diff = 0, total = 0;
-    for (size_t i = 0; i < a.counts.size(); ++i) {
-      diff += std::abs(last.counts.pixels[i] - a.counts.pixels[i]);
-      total += a.counts.pixels[i];
-    }
-    return diff / total;
-  };
+  for (auto _ : state) last = sim.TracePlane(0, 0, rays, one);
   state.SetItemsProcessed(state.iterations() * rays);
-  state.counters["steps_per_ray"] = steps / rays;
-  state.counters["uniform_steps_per_ray"] = straight / rays;
-  state.counters["rel_L1_vs_ref"] = rel_l1(ref);
-  state.counters["rel_L1_vs_cells_ref"] = rel_l1(ref_cells);
+  state.counters["steps_per_ray"] = double(last.counters.grin_steps) / rays;
+  state.counters["uniform_steps_per_ray"] = double(last.counters.grin_uniform_steps) / rays;
+  state.counters["rel_L1_vs_ref"] = RelativeL1(last, ref);
+  state.counters["rel_L1_vs_cells_ref"] = RelativeL1(last, ref_cells);
 }
 BENCHMARK(BM_Grid3DDropImage)
     ->ArgsProduct({{0, 1, 2, 3}, {5}})

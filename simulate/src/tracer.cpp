@@ -410,7 +410,7 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
   }
   double dt = 0.05 * im.size[obj] / Length(s.t);
   // 3D grids: steps from face to face (the cell of s.r is kept between steps).
-  const bool cell_steps = cfg.cell_steps && !cfg.step_doubling && f.type == IndexFieldType::kGrid3D;
+  const bool cell_steps = UsesCellSteps(f, cfg);
   GridCellPair cells;
   // Paths shorter than the clearance cannot reach a surface (spheres only; 0 otherwise). `clear`
   // is a lower bound of the clearance at s.r: the distance to a surface changes by at most the
@@ -1152,10 +1152,10 @@ std::vector<std::string> Simulator::Effects() const {
       e.push_back("partial_reflection:polarized");
   }
   if (impl_->has_grin) e.push_back("gradient_index:sharma_embedded");
-  const bool grid3d = std::any_of(impl_->field.begin(), impl_->field.end(), [](const IndexField* f) {
-    return f && f->type == IndexFieldType::kGrid3D;
-  });
-  if (grid3d && scene_.trace.grin.cell_steps) e.push_back("gradient_index:cell_steps");
+  if (std::any_of(impl_->field.begin(), impl_->field.end(), [&](const IndexField* f) {
+        return f && UsesCellSteps(*f, scene_.trace.grin);
+      }))
+    e.push_back("gradient_index:cell_steps");
   if (impl_->geometry.has_meshes()) e.push_back("mesh_bvh:embree");
   if (scene_.optics.corrector.enabled) e.push_back("angular_corrector");
   e.push_back(scene_.optics.model == ObjectiveModel::kSingle ? "objective:single_ideal_lens"

@@ -33,7 +33,7 @@ struct GridCell {
   double lo[3] = {0, 0, 0}, hi[3] = {0, 0, 0};  ///< extent in u, v, w (+-inf beyond the edge)
   double c[8] = {0, 0, 0, 0, 0, 0, 0, 0};
   /// Cell index per axis: 0 ... count - 2 between samples, -1 before the first sample, count - 1
-  /// beyond the last (and 0 along an axis with a single sample).
+  /// beyond the last (an axis with a single sample has only -1 and 0, both unbounded).
   int k[3] = {0, 0, 0};
   size_t base = 0;               ///< values index of the node at `node`
   size_t stride[3] = {0, 0, 0};  ///< values index steps to the other corners (0: constant axis)
@@ -173,6 +173,11 @@ int AdaptiveStep(const IndexField& f, const Vec3& center, const GrinSettings& cf
 /// end. It is located afresh when it was not located from s->r (its `at` differs).
 int CellStep(const IndexField& f, const Vec3& center, const GrinSettings& cfg,
              GridCellPair* cells, GrinPoint* s, double* dt, double* used);
+/// Whether a field is integrated with CellStep under these settings (3D grids, cell steps on,
+/// the embedded controller).
+inline bool UsesCellSteps(const IndexField& f, const GrinSettings& cfg) {
+  return cfg.cell_steps && !cfg.step_doubling && f.type == IndexFieldType::kGrid3D;
+}
 /// The same from a bare state (computes the first stage).
 int AdaptiveStep(const IndexField& f, const Vec3& center, const GrinSettings& cfg, GrinState* s,
                  double* dt, double* used);

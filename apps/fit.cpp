@@ -28,6 +28,8 @@ int RunFitCommand(const FitCliOptions& o) {
     std::cout << "  " << p.key << " = " << p.best << (p.unit.empty() ? "" : " " + p.unit)
               << "  +- " << p.sigma << "  (Cramer-Rao bound " << p.sigma_cramer_rao
               << ", repeat-seed scatter " << p.sigma_repeat << ")" << (p.at_bound ? "  AT BOUND" : "") << "\n";
+  if (r.goodness.pixels > 0)
+    std::cout << (r.goodness.mismatch ? "WARNING: " : "goodness of fit: ") << r.goodness.verdict << "\n";
   std::cout << r.evaluations.size() << " evaluations, " << r.total_seconds << " s; report: " << report << "\n";
   if (r.status == "flat") {
     std::cerr << "raymatch fit: error: " << r.message << "\n";

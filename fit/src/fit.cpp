@@ -59,8 +59,8 @@ class Runner {
   }
 
   /// Expected images at `th` with the ray fraction and binning of schedule level `level`.
-  std::vector<Image> Images(const std::vector<double>& th, size_t level, uint64_t seed,
-                            const std::string& stage, double* error) {
+  Simulated Images(const std::vector<double>& th, size_t level, uint64_t seed,
+                   const std::string& stage, double* error) {
     // With fixed ray streams an image is a function of (theta, level, seed): the searches come
     // back to points they have traced (Ceres evaluates the Jacobian where it accepted a step;
     // the uncertainties start from where the polish ended), so recent images are kept.
@@ -76,7 +76,7 @@ class Runner {
     ev.ray_fraction = fraction;
     ev.seed = seed;
     ev.stage = stage;
-    std::vector<Image> mu = model_.Expected(th, fraction, seed, &ev.rays);
+    Simulated mu = model_.Expected(th, fraction, seed, &ev.rays);
     ev.bin = model_.BinAt(level);
     ev.error = model_.Error(mu, ev.bin);
     ev.seconds = Since(t0);
@@ -130,7 +130,7 @@ class Runner {
     size_t level;
     uint64_t seed;
     double error;
-    std::vector<Image> images;
+    Simulated images;
   };
   std::deque<Cached> cache_;
 };
@@ -248,7 +248,7 @@ std::vector<double> Pattern(Runner& run, const FitSpec& spec, FitResult* res) {
 /// curvature) or forward (for Levenberg-Marquardt's search directions: P instead of 2P
 /// evaluations); one-sided at a bound. Step: half the parameter's `step`.
 struct Differences {
-  std::vector<Image> mu;                  // at theta
+  Simulated mu;                           // at theta
   std::vector<std::vector<Image>> dmu;    // [image][parameter] d mu / d theta_i
   Eigen::MatrixXd jacobian;               // residuals x parameters
   Eigen::VectorXd residuals;
@@ -266,14 +266,14 @@ Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<do
   d.residuals.resize(R);
   m.DevianceResiduals(d.mu, bin, d.residuals.data());
   d.jacobian.resize(R, P);
-  d.dmu.assign(d.mu.size(), std::vector<Image>(P));
+  d.dmu.assign(d.mu.photons.size(), std::vector<Image>(P));
   d.flat.assign(P, false);
   Eigen::VectorXd rp(R), rm(R);
   for (size_t i = 0; i < P; ++i) {
     const Parameter& p = spec.parameters[i];
     const double h = 0.5 * p.step;
     std::vector<double> a = th, b = th;
-    std::vector<Image> mu_a, mu_b;
+    Simulated mu_a, mu_b;
     if (central) {
       a[i] = std::min(th[i] + h, p.upper);
       b[i] = std::max(th[i] - h, p.lower);
@@ -292,11 +292,13 @@ Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<do
     const double span = a[i] - b[i];
     d.jacobian.col(i) = (rp - rm) / span;
     bool same = true;
-    for (size_t k = 0; k < d.mu.size(); ++k) {
-      d.dmu[k][i] = Image(mu_a[k].width, mu_a[k].height);
-      for (size_t q = 0; q < mu_a[k].size(); ++q) {
-        d.dmu[k][i].pixels[q] = static_cast<float>((double(mu_a[k].pixels[q]) - mu_b[k].pixels[q]) / span);
-        same = same && mu_a[k].pixels[q] == mu_b[k].pixels[q];
+    for (size_t k = 0; k < d.mu.photons.size(); ++k) {
+      const Image& ia = mu_a.photons[k];
+      const Image& ib = mu_b.photons[k];
+      d.dmu[k][i] = Image(ia.width, ia.height);
+      for (size_t q = 0; q < ia.size(); ++q) {
+        d.dmu[k][i].pixels[q] = static_cast<float>((double(ia.pixels[q]) - ib.pixels[q]) / span);
+        same = same && ia.pixels[q] == ib.pixels[q];
       }
     }
     d.flat[i] = same;
@@ -325,7 +327,7 @@ class ImageCost : public ceres::CostFunction {
       *flat_ = d.flat;
     } else {
       double e = 0;
-      const std::vector<Image> mu = run_.Images(th, level_, seed_, "lm", &e);
+      const Simulated mu = run_.Images(th, level_, seed_, "lm", &e);
       run_.model().DevianceResiduals(mu, run_.model().BinAt(level_), residuals);
     }
     return true;
@@ -469,7 +471,7 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
         for (size_t i = 0; i < P; ++i) y[i] += scale * step(i);
         y = Clip(y, spec);
         double e = 0;
-        const std::vector<Image> mu = run.Images(y, L, seed, stage, &e);
+        const Simulated mu = run.Images(y, L, seed, stage, &e);
         Eigen::VectorXd ry(r.size());
         run.model().DevianceResiduals(mu, bin, ry.data());
         if (ry.squaredNorm() < dev - 0.5 * kPolishTolerance) x = y, r = ry, accepted = true;
@@ -585,6 +587,7 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
 
   // 2. Uncertainties at the optimum (skipped for a flat problem: there is no curvature).
   const auto t_unc = Clock::now();
+  Simulated best_sim;
   if (res.status != "flat" && spec.uncertainties) {
     // Derivatives from two independent sets of ray streams. The noise of a Monte Carlo
     // difference adds a positive bias to any sum of squared derivatives (J^T J, Fisher), which
@@ -592,7 +595,8 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
     // estimates is free of it (its noise averages out instead of adding up).
     const Differences d = Differentiate(run, spec, best, final_level, spec.seed, "fisher", true);
     const Differences d2 = Differentiate(run, spec, best, final_level, spec.seed + 7777777, "fisher", true);
-    res.best_images = d.mu;
+    res.best_images = d.mu.photons;
+    best_sim = d.mu;
     const Eigen::MatrixXd JtJ =
         0.5 * (d.jacobian.transpose() * d2.jacobian + d2.jacobian.transpose() * d.jacobian);
     Matrix H(P, std::vector<double>(P));
@@ -611,7 +615,7 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
                      "positive definite): their uncertainties are not reported";
     }
     if (spec.cramer_rao) {
-      const Matrix crb = InverseSpd(FisherInformation(d.mu, d.dmu, d2.dmu));
+      const Matrix crb = InverseSpd(FisherInformation(d.mu.photons, d.dmu, d2.dmu));
       if (!crb.empty()) {
         for (size_t i = 0; i < P; ++i) {
           res.parameters[i].sigma_cramer_rao = std::sqrt(crb[i][i]);
@@ -662,7 +666,8 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
     }
   } else {
     double e = 0;
-    res.best_images = run.Images(best, final_level, spec.seed, "best", &e);
+    best_sim = run.Images(best, final_level, spec.seed, "best", &e);
+    res.best_images = best_sim.photons;
   }
   for (size_t k = 0; k < res.best_images.size(); ++k) {
     const Image& mu = res.best_images[k];
@@ -675,9 +680,18 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
     }
     res.residuals.push_back(std::move(r));
   }
-  {
-    const std::vector<Image>& mu = res.best_images;
-    res.best_error = model.Error(mu, model.BinAt(final_level));
+  res.best_error = model.Error(best_sim, model.BinAt(final_level));
+  for (ParameterResult& p : res.parameters) p.sigma_statistical = p.sigma;
+  if (spec.error == ErrorFunction::kPoisson && !best_sim.photons.empty()) {
+    // Does the model describe the image? If not, the curvature's sigmas are too small: scale
+    // them by the square root of the reduced deviance (or of the residuals' reduced block
+    // chi-square, when the misfit is spatially coherent), as a least-squares fit scales by
+    // sqrt(chi^2 / dof) (PDG, Review of Particle Physics, "Statistics", scale factor).
+    res.goodness = model.Goodness(best_sim, model.BinAt(final_level), P);
+    if (res.goodness.mismatch) {
+      for (ParameterResult& p : res.parameters) p.sigma *= res.goodness.sigma_inflation;
+      res.message += "; " + res.goodness.verdict;
+    }
   }
   const double unc_s = Since(t_unc);
   const double bg_total = model.background_seconds();

@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <sstream>
+#include <tuple>
 
 #include "raymatch/compare/measures.h"
 
@@ -22,6 +24,33 @@ inline double DevianceResidual(double e, double mu) {
   const double d = 2 * (mu - e + (e > 0 ? e * std::log(e / mu) : 0.0));
   const double r = std::sqrt(std::max(d, 0.0));
   return mu >= e ? r : -r;
+}
+
+/// The template mean of a pixel whose simulated count is `photons / w` rays of weight w photons:
+/// the count plus half a ray. A simulated count m is Poisson with mean k mu (k = 1/w rays per
+/// photon); with the plain template m/k the expected deviance is minimised at a mean 1/(2k)
+/// above the truth (E ln(m/k) = ln mu - 1/(2 k mu) + ...), with (m + 1/2)/k at the truth to
+/// O(1/(k mu)^2). It is the Jeffreys-prior form of the marginal likelihood of e given m
+/// (Poisson e, gamma posterior of the template mean; cf. Barlow and Beeston, Comput. Phys.
+/// Commun. 77, 219 (1993); Arguelles, Schneider and Yuan, JHEP 06 (2019) 030), to that order.
+inline double TemplateMean(double photons, double w, double offset_rays = 0.5) {
+  return photons + offset_rays * w;
+}
+
+/// Expected Poisson deviance 2[mu - e + e ln(e/mu)] of one pixel with known mean mu: summed
+/// over the Poisson distribution below 30, 1 + 1/(6 mu) + 1/(6 mu^2) above (the asymptotic
+/// series; McCullagh and Nelder, Generalized Linear Models, 2nd ed., section 6.2).
+double ExpectedPixelDeviance(double mu) {
+  if (mu >= 30) return 1 + 1 / (6 * mu) + 1 / (6 * mu * mu);
+  if (mu <= 0) return 0;
+  double sum = 0, p = std::exp(-mu);  // P(e = 0)
+  const int top = static_cast<int>(mu + 12 * std::sqrt(mu) + 20);
+  for (int e = 0; e <= top; ++e) {
+    const double d = 2 * (mu - e + (e > 0 ? e * std::log(e / mu) : 0.0));
+    sum += p * d;
+    p *= mu / (e + 1);
+  }
+  return sum;
 }
 
 }  // namespace
@@ -174,8 +203,8 @@ const Image* FitModel::BackgroundAt(const simulate::Simulator& sim, size_t i, ui
   return &bg.image;
 }
 
-std::vector<Image> FitModel::Expected(const std::vector<double>& theta, double fraction,
-                                      uint64_t seed, uint64_t* rays_traced) {
+Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, uint64_t seed,
+                             uint64_t* rays_traced) {
   simulate::Scene scene = SceneAt(theta);
   scene.trace.seed = seed;
   const simulate::Simulator sim(scene);
@@ -187,7 +216,8 @@ std::vector<Image> FitModel::Expected(const std::vector<double>& theta, double f
   if (inside)
     for (const auto& [c, r] : sim.ObjectBounds())
       inside = inside && Length(c - region_center_) + r <= region_radius_;
-  std::vector<Image> out;
+  Simulated out;
+  out.offset_rays = spec_.rays.finite_ray_correction ? 0.5 : 0.0;
   for (size_t i = 0; i < spec_.images.size(); ++i) {
     const double dz = scene.defocus_um[i];
     const uint32_t plane = static_cast<uint32_t>(i);
@@ -217,7 +247,8 @@ std::vector<Image> FitModel::Expected(const std::vector<double>& theta, double f
       if (sm > 0 && se > 0) s = se / sm;
     }
     for (float& v : counts.pixels) v = static_cast<float>(v * s);
-    out.push_back(std::move(counts));
+    out.photons.push_back(std::move(counts));
+    out.photons_per_ray.push_back(s);
   }
   return out;
 }
@@ -249,17 +280,20 @@ const std::vector<Image>& FitModel::Experiment(int bin) const {
   return v;
 }
 
-double FitModel::Error(const std::vector<Image>& mu_in, int bin) const {
+double FitModel::Error(const Simulated& sim, int bin) const {
   const std::vector<Image>& exp = Experiment(bin);
   std::vector<Image> mu;
-  for (const Image& m : mu_in) mu.push_back(BinImage(m, bin));
+  for (const Image& m : sim.photons) mu.push_back(BinImage(m, bin));
   double s = 0;
   size_t npix = 0;
   for (size_t i = 0; i < mu.size(); ++i) {
     const Image& e = exp[i];
     switch (spec_.error) {
       case ErrorFunction::kPoisson:
-        s += PoissonDeviance(e, mu[i]);
+        for (size_t p = 0; p < e.size(); ++p) {
+          const double r = DevianceResidual(e.pixels[p], TemplateMean(mu[i].pixels[p], sim.photons_per_ray[i], sim.offset_rays));
+          s += r * r;
+        }
         break;
       case ErrorFunction::kMse:
         for (size_t p = 0; p < e.size(); ++p) s += (double(mu[i].pixels[p]) - e.pixels[p]) * (double(mu[i].pixels[p]) - e.pixels[p]);
@@ -296,13 +330,109 @@ size_t FitModel::num_residuals(int bin) const {
   return n;
 }
 
-void FitModel::DevianceResiduals(const std::vector<Image>& mu, int bin, double* out) const {
+void FitModel::DevianceResiduals(const Simulated& sim, int bin, double* out) const {
   const std::vector<Image>& exp = Experiment(bin);
-  for (size_t i = 0; i < mu.size(); ++i) {
+  for (size_t i = 0; i < sim.photons.size(); ++i) {
     const Image& e = exp[i];
-    const Image m = BinImage(mu[i], bin);
-    for (size_t p = 0; p < e.size(); ++p) *out++ = DevianceResidual(e.pixels[p], m.pixels[p]);
+    const Image m = BinImage(sim.photons[i], bin);
+    const double w = sim.photons_per_ray[i];
+    for (size_t p = 0; p < e.size(); ++p) *out++ = DevianceResidual(e.pixels[p], TemplateMean(m.pixels[p], w, sim.offset_rays));
   }
+}
+
+std::pair<double, double> FitModel::ExpectedDeviance(const Simulated& sim, int bin, size_t parameters) const {
+  // A pixel's deviance for a correct model: the Poisson part of the experiment (exact for low
+  // counts) times 1 + w for the template's own Poisson noise (w photons per ray: variance
+  // mu (1 + 1/k) about the mean); each fitted parameter removes about one such unit.
+  double mean = 0, var = 0, units = 0, pixels = 0;
+  for (size_t i = 0; i < sim.photons.size(); ++i) {
+    const Image m = BinImage(sim.photons[i], bin);
+    const double w = sim.photons_per_ray[i];
+    for (float v : m.pixels) {
+      const double g = ExpectedPixelDeviance(TemplateMean(v, w, sim.offset_rays)) * (1 + w);
+      mean += g, var += 2 * g * g, units += 1 + w, pixels += 1;
+    }
+  }
+  if (pixels > 0) mean -= double(parameters) * units / pixels, var *= std::max(0.0, 1 - double(parameters) / pixels);
+  return {mean, std::sqrt(var)};
+}
+
+GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameters) const {
+  GoodnessOfFit g;
+  g.deviance = Error(sim, bin);
+  std::tie(g.expected, g.sd) = ExpectedDeviance(sim, bin, parameters);
+  g.z = g.sd > 0 ? (g.deviance - g.expected) / g.sd : 0;
+  g.reduced = g.expected > 0 ? g.deviance / g.expected : 1;
+  const std::vector<Image>& exp = Experiment(bin);
+  double cross = 0, norm = 0;
+  size_t pairs = 0;
+  for (size_t i = 0; i < sim.photons.size(); ++i) {
+    const Image m = BinImage(sim.photons[i], bin);
+    const Image& e = exp[i];
+    const double w = sim.photons_per_ray[i];
+    g.pixels += e.size();
+    // Pearson residuals with the variance of e - template: mu (1 + w).
+    Image r(e.width, e.height);
+    for (size_t p = 0; p < e.size(); ++p) {
+      const double mu = TemplateMean(m.pixels[p], w, sim.offset_rays);
+      r.pixels[p] = static_cast<float>((std::max(0.0f, e.pixels[p]) - mu) / std::sqrt(mu * (1 + w)));
+    }
+    for (int y = 0; y < r.height; ++y)
+      for (int x = 0; x < r.width; ++x) {
+        const double a = r.at(x, y);
+        norm += a * a;
+        if (x + 1 < r.width) cross += a * r.at(x + 1, y), ++pairs;
+        if (y + 1 < r.height) cross += a * r.at(x, y + 1), ++pairs;
+      }
+    // Blocks: sum of (e - mu) over the block / sqrt(sum of mu (1 + w)); whole blocks only.
+    const int B = g.block_px;
+    for (int by = 0; by + B <= e.height; by += B)
+      for (int bx = 0; bx + B <= e.width; bx += B) {
+        double d = 0, v = 0;
+        for (int y = by; y < by + B; ++y)
+          for (int x = bx; x < bx + B; ++x) {
+            const double mu = TemplateMean(m.at(x, y), w, sim.offset_rays);
+            d += std::max(0.0f, e.at(x, y)) - mu, v += mu * (1 + w);
+          }
+        if (v > 0) g.block_chi2 += d * d / v, ++g.blocks;
+      }
+  }
+  const double n = double(std::max<size_t>(pairs, 1));
+  g.neighbour_correlation = norm > 0 ? cross / norm * double(g.pixels) / n : 0;
+  g.neighbour_z = g.neighbour_correlation * std::sqrt(n);
+  if (g.blocks > 0) {
+    g.block_reduced = g.block_chi2 / double(g.blocks);
+    g.block_z = (g.block_chi2 - double(g.blocks)) / std::sqrt(2.0 * double(g.blocks));
+  }
+  std::vector<std::string> why;
+  auto num = [](double v, int prec) {
+    std::ostringstream os;
+    os.precision(prec);
+    os << v;
+    return os.str();
+  };
+  if (g.z > 3)
+    why.push_back("deviance " + num(g.deviance, 6) + " for " + num(g.expected, 6) + " +- " + num(g.sd, 3) +
+                  " expected (" + num(g.z, 3) + " standard deviations)");
+  if (g.block_z > 3)
+    why.push_back("residuals structured on " + std::to_string(g.block_px * bin) + "-pixel blocks (chi-square " +
+                  num(g.block_chi2, 5) + " for " + std::to_string(g.blocks) + " blocks, " + num(g.block_z, 3) +
+                  " standard deviations)");
+  if (g.neighbour_z > 3)
+    why.push_back("neighbouring residuals correlated (" + num(g.neighbour_correlation, 3) + ", " +
+                  num(g.neighbour_z, 3) + " standard deviations)");
+  g.mismatch = !why.empty();
+  if (g.mismatch) {
+    g.sigma_inflation = std::sqrt(std::max({1.0, g.reduced, g.block_reduced}));
+    g.verdict = "model mismatch: ";
+    for (size_t i = 0; i < why.size(); ++i) g.verdict += (i ? "; " : "") + why[i];
+    g.verdict += "; the model does not describe the image within its noise, sigmas inflated by " +
+                 num(g.sigma_inflation, 3) + " (values may be biased beyond that)";
+  } else {
+    g.verdict = "consistent with the noise (deviance " + num(g.deviance, 6) + " for " + num(g.expected, 6) +
+                " +- " + num(g.sd, 3) + " expected)";
+  }
+  return g;
 }
 
 }  // namespace raymatch::fit

@@ -13,6 +13,15 @@
 
 namespace raymatch::fit {
 
+/// Expected images of one evaluation: photons per pixel (the simulated counts times the
+/// photons one ray stands for) and, per image, that weight. The weight is what the likelihood
+/// needs to treat the simulated counts as the Poisson sample they are (see DevianceResiduals).
+struct Simulated {
+  std::vector<Image> photons;
+  std::vector<double> photons_per_ray;
+  double offset_rays = 0.5;  ///< rays added to each (binned) pixel's count in the template
+};
+
 class FitModel {
  public:
   /// Prepares the model: the region the objects can occupy over the parameter box, a fixed
@@ -21,15 +30,28 @@ class FitModel {
 
   /// Expected photon images (one per experimental image) at `theta` with `fraction` of the
   /// final rays and ray streams `seed`. Adds the rays traced to `*rays_traced`.
-  std::vector<Image> Expected(const std::vector<double>& theta, double fraction, uint64_t seed,
-                              uint64_t* rays_traced);
+  Simulated Expected(const std::vector<double>& theta, double fraction, uint64_t seed,
+                     uint64_t* rays_traced);
 
   /// The error function against the experiment (lower is better), on images binned `bin` x
   /// `bin` (sums of Poisson counts are Poisson; a remainder row/column is dropped).
-  double Error(const std::vector<Image>& mu, int bin = 1) const;
+  double Error(const Simulated& sim, int bin = 1) const;
 
   /// Signed deviance residuals of every (binned) pixel of every image: sum of squares = deviance.
-  void DevianceResiduals(const std::vector<Image>& mu, int bin, double* out) const;
+  /// The template is the simulated count plus half a ray (TemplateMean): the simulation is a
+  /// Poisson sample itself, and the plain deviance of a noisy template is minimised where the
+  /// template is on average 1/(2k) photons too bright per pixel (k rays per photon), which
+  /// biases every parameter that changes the image's contrast (docs/fit.md, "Finite rays").
+  void DevianceResiduals(const Simulated& sim, int bin, double* out) const;
+
+  /// Expected deviance at the optimum for a correct model (Poisson and template noise) and its
+  /// standard deviation, from the best images; `parameters` are subtracted from the degrees of
+  /// freedom.
+  std::pair<double, double> ExpectedDeviance(const Simulated& sim, int bin, size_t parameters) const;
+
+  /// Goodness of fit at the optimum: deviance against its expectation, block chi-square of the
+  /// Pearson residuals, neighbour correlation, the verdict and the sigma inflation.
+  GoodnessOfFit Goodness(const Simulated& sim, int bin, size_t parameters) const;
   size_t num_residuals(int bin = 1) const;
 
   /// The binning a ray fraction gets: the fit file's, or the smallest b with

@@ -48,6 +48,26 @@ std::string Esc(const std::string& s) {
 
 }  // namespace
 
+/// The goodness-of-fit paragraph: a red box for a model mismatch.
+static std::string GoodnessHtml(const GoodnessOfFit& g) {
+  if (g.pixels == 0) return "";
+  std::ostringstream h;
+  h << "<h2>Goodness of fit</h2>\n<p style=\"padding:6px;border:2px solid "
+    << (g.mismatch ? "#c00;background:#fee" : "#6a6;background:#efe") << "\"><b>" << Esc(g.verdict)
+    << "</b></p>\n<table><tr><th>measure</th><th>value</th><th>expected for a correct model</th>"
+       "<th>standard deviations</th></tr>\n<tr><td style=\"text-align:left\">Poisson deviance ("
+    << g.pixels << " pixels)</td><td>" << Num(g.deviance, 6) << "</td><td>" << Num(g.expected, 6) << " +- "
+    << Num(g.sd, 3) << "</td><td>" << Num(g.z, 3) << "</td></tr>\n<tr><td style=\"text-align:left\">"
+    << "chi-square of residuals summed over " << g.block_px << " x " << g.block_px << " pixel blocks</td><td>"
+    << Num(g.block_chi2, 5) << "</td><td>" << g.blocks << " +- " << Num(std::sqrt(2.0 * double(g.blocks)), 3)
+    << "</td><td>" << Num(g.block_z, 3) << "</td></tr>\n<tr><td style=\"text-align:left\">"
+    << "correlation of neighbouring residuals</td><td>" << Num(g.neighbour_correlation, 3)
+    << "</td><td>0</td><td>" << Num(g.neighbour_z, 3) << "</td></tr></table>\n<p>Sigma inflation factor "
+    << Num(g.sigma_inflation, 3) << " (applied to the reported sigma when the model does not describe "
+       "the image; see docs/fit.md, \"Goodness of fit\").</p>\n";
+  return h.str();
+}
+
 std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std::string& dir_s) {
   const fs::path dir(dir_s);
   EnsureDirectory(dir);
@@ -67,6 +87,24 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
   j["converged"] = res.converged;
   j["message"] = res.message;
   j["best_error"] = J(res.best_error);
+  if (res.goodness.pixels > 0) {
+    const GoodnessOfFit& g = res.goodness;
+    j["goodness_of_fit"] = {{"deviance", J(g.deviance)},
+                            {"expected_deviance", J(g.expected)},
+                            {"expected_deviance_sd", J(g.sd)},
+                            {"deviance_z", J(g.z)},
+                            {"reduced_deviance", J(g.reduced)},
+                            {"pixels", g.pixels},
+                            {"block_pixels", g.block_px},
+                            {"blocks", g.blocks},
+                            {"block_chi2", J(g.block_chi2)},
+                            {"block_z", J(g.block_z)},
+                            {"neighbour_correlation", J(g.neighbour_correlation)},
+                            {"neighbour_z", J(g.neighbour_z)},
+                            {"model_mismatch", g.mismatch},
+                            {"sigma_inflation", J(g.sigma_inflation)},
+                            {"verdict", g.verdict}};
+  }
   j["rays"] = {{"ray_factor", spec.rays.ray_factor},
                {"fractions", spec.rays.fractions},
                {"common_random_numbers", spec.rays.common_random_numbers},
@@ -88,6 +126,7 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
                                {"upper", p.upper},
                                {"at_bound", p.at_bound},
                                {"sigma", J(p.sigma)},
+                               {"sigma_statistical", J(p.sigma_statistical)},
                                {"sigma_curvature", J(p.sigma_curvature)},
                                {"sigma_repeat_seeds", J(p.sigma_repeat)},
                                {"sigma_cramer_rao", J(p.sigma_cramer_rao)},
@@ -193,7 +232,7 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
     << Esc(spec.file) << ": " << MethodName(spec.method) << " on " << ErrorFunctionName(spec.error)
     << ", status <b>" << Esc(res.status) << "</b>: " << Esc(res.message) << ". " << res.evaluations.size()
     << " evaluations in " << Num(res.total_seconds, 3) << " s; best error " << Num(res.best_error) << ".</p>\n"
-    << "<h2>Parameters</h2><table><tr><th>key</th><th>unit</th><th>start</th><th>best</th>"
+    << GoodnessHtml(res.goodness) << "<h2>Parameters</h2><table><tr><th>key</th><th>unit</th><th>start</th><th>best</th>"
        "<th>sigma (reported)</th><th>curvature only</th><th>repeat seeds (simulation noise)</th>"
        "<th>Cramer-Rao bound</th><th>CRB incl. simulation noise</th><th>bounds</th></tr>\n";
   for (const ParameterResult& p : res.parameters)

@@ -351,6 +351,9 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
         hh << "<tr><td>" << p.key << "</td><td>" << p.best << " " << p.unit << "</td><td>" << p.sigma
            << "</td><td>" << p.sigma_cramer_rao << "</td></tr>";
       hh << "</table>";
+      if (fr2.goodness.pixels > 0)
+        hh << "<p style='padding:4px;border:2px solid " << (fr2.goodness.mismatch ? "#c00" : "#6a6")
+           << "'>Goodness of fit: " << fr2.goodness.verdict << "</p>";
       fit_html += hh.str();
       sum.fits.push_back({stem, fr2.status});
     });

@@ -161,6 +161,7 @@ void BindFit(py::module_& m) {
           d["lower"] = p.lower;
           d["upper"] = p.upper;
           d["sigma"] = p.sigma;
+          d["sigma_statistical"] = p.sigma_statistical;
           d["sigma_curvature"] = p.sigma_curvature;
           d["sigma_repeat"] = p.sigma_repeat;
           d["sigma_cramer_rao"] = p.sigma_cramer_rao;
@@ -196,6 +197,25 @@ void BindFit(py::module_& m) {
         d["correlation"] = ToMatrix(r.correlation);
         d["crb_correlation"] = ToMatrix(r.crb_correlation);
         d["best_error"] = r.best_error;
+        if (r.goodness.pixels > 0) {
+          const fit::GoodnessOfFit& g = r.goodness;
+          py::dict gd;
+          gd["deviance"] = g.deviance;
+          gd["expected_deviance"] = g.expected;
+          gd["expected_deviance_sd"] = g.sd;
+          gd["deviance_z"] = g.z;
+          gd["reduced_deviance"] = g.reduced;
+          gd["pixels"] = g.pixels;
+          gd["block_chi2"] = g.block_chi2;
+          gd["blocks"] = g.blocks;
+          gd["block_z"] = g.block_z;
+          gd["neighbour_correlation"] = g.neighbour_correlation;
+          gd["neighbour_z"] = g.neighbour_z;
+          gd["model_mismatch"] = g.mismatch;
+          gd["sigma_inflation"] = g.sigma_inflation;
+          gd["verdict"] = g.verdict;
+          d["goodness_of_fit"] = gd;
+        }
         d["evaluations"] = evals;
         d["best_images"] = best;
         d["residuals"] = resid;

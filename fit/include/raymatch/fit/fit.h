@@ -58,6 +58,10 @@ struct RaySchedule {
   /// Scale each simulated image to the experiment's total photons (the exposure's maximum-
   /// likelihood value, profiled out); false: the photon count is taken as known.
   bool fit_exposure = true;
+  /// Treat the simulated counts as the Poisson sample they are: the template of each pixel is
+  /// the count plus half a ray (false: the plain count, which biases the fit by O(1/ray_factor);
+  /// for comparisons only; docs/fit.md, "Finite rays").
+  bool finite_ray_correction = true;
   /// Pixel binning per fraction (empty: the smallest b with b^2 x ray_factor x fraction >= 1).
   std::vector<int> binning;
 };
@@ -112,6 +116,8 @@ struct ParameterResult {
   /// since the simulation's own shot noise (variance mu / (ray_factor x fraction)) adds to the
   /// experiment's in the fitted values.
   double sigma = 0;
+  /// sigma before the model-mismatch inflation (equal to sigma when the fit is consistent).
+  double sigma_statistical = 0;
   double sigma_repeat = 0;     ///< scatter of repeated fits with independent simulation seeds
   double sigma_cramer_rao = 0; ///< Cramer-Rao bound of the image(s), noise-free expectation
   /// Expected precision including the simulation's own shot noise:
@@ -119,6 +125,29 @@ struct ParameterResult {
   double sigma_expected = 0;
   bool at_bound = false;
   std::vector<double> slice_x, slice_error;  ///< error along this axis through the optimum
+};
+
+/// Does the model describe the image? Computed at the optimum on the final level's pixels.
+struct GoodnessOfFit {
+  double deviance = 0;           ///< Poisson deviance at the optimum (the fit's error)
+  double expected = 0;           ///< its expectation for a correct model (experiment's and
+                                 ///< simulation's Poisson noise, fitted parameters removed)
+  double sd = 0;                 ///< its standard deviation
+  double z = 0;                  ///< (deviance - expected) / sd
+  double reduced = 1;            ///< deviance / expected
+  size_t pixels = 0;
+  /// Residual structure: Pearson residuals summed over blocks of block_px x block_px pixels,
+  /// each block normalised to unit variance; their chi-square against the block count.
+  int block_px = 8;
+  size_t blocks = 0;
+  double block_chi2 = 0, block_z = 0, block_reduced = 1;
+  /// Correlation of neighbouring Pearson residuals (right and lower neighbours): 0 +- 1/sqrt(pairs).
+  double neighbour_correlation = 0, neighbour_z = 0;
+  bool mismatch = false;         ///< any of the three z above 3 (one-sided, p < 0.0014 each)
+  /// Factor applied to every sigma: sqrt of the larger of the reduced deviance and the reduced
+  /// block chi-square when `mismatch`, else 1.
+  double sigma_inflation = 1;
+  std::string verdict;           ///< "consistent with the noise" or "model mismatch: ..."
 };
 
 struct FitResult {
@@ -129,6 +158,7 @@ struct FitResult {
   std::vector<std::vector<double>> correlation;     ///< from the curvature covariance
   std::vector<std::vector<double>> crb_correlation; ///< from the inverse Fisher information
   double best_error = 0;
+  GoodnessOfFit goodness;      ///< Poisson error only (empty otherwise)
   std::vector<Evaluation> evaluations;
   std::vector<Image> best_images;   ///< expected photons per image at the optimum
   std::vector<Image> residuals;     ///< (sim - exp)/sqrt(sim (1 + 1/ray_factor))

@@ -1,0 +1,160 @@
+#!/usr/bin/python3
+"""Fit accuracy benchmark (issue 26): are the fits right, not just precise?
+
+Each case is a sphere whose "experiment" is traced by `raymatch simulate` itself with its own
+seed (ray counting is photon counting, so there is no model mismatch), then fitted for x, y, z,
+radius and index from nominal starts (1.8 um off in z, 0.6 um in radius, 0.005 in index,
+0.4 um in x and y, with alternating signs). Over K realisations it prints, per parameter:
+  mean error / CRB   (bias; |.| <= 0.5 wanted)
+  RMS error / CRB    (efficiency; <= 1.5 wanted)
+  RMS(error / sigma) (honest error bars; 0.8 .. 1.25 wanted)
+and the time per fit. The cases:
+  A  "steep": n 1.39, radius 13 um, 6 um out of focus, 20 deg cone (inside the NA),
+     0.5 um object pixels (96 x 96), 1000 photons per pixel
+  B  "valley": radius 18 um, n 1.337, 27 deg cone (wider than the NA), two planes (-9, +3 um)
+     fitted jointly, 1 um pixels (100 x 90), 1000 photons per pixel
+  C  "bench": bench/fit_sphere.sh's sphere: radius 15.5 um, n 1.3371, 27 deg cone, -4 um,
+     1 um pixels (120 x 100), 1000 photons per pixel
+Usage: bench/fit_accuracy.py OUT [--cases ABC] [--k 16] [--fit-lines 'key = value' ...]
+Writes OUT/<case>/k<i>/fit/fit.json and OUT/summary.json; prints a Markdown table.
+Environment: RAYMATCH (the executable; default build/release/apps/raymatch).
+"""
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+RAYMATCH = os.environ.get("RAYMATCH", os.path.join(ROOT, "build/release/apps/raymatch"))
+
+CASES = {
+    "A": dict(truth=[0.3, -0.2, 0.4, 13.0, 1.39], cone=20, pixels=[96, 96], pitch=10,
+              planes=[6.0], ppp=1000,
+              bounds=[(-3, 3, 0.2), (-3, 3, 0.2), (-4, 4, 0.4), (11, 15, 0.2), (1.37, 1.41, 0.002)]),
+    "B": dict(truth=[0.4, -0.3, 0.5, 18.0, 1.337], cone=27, pixels=[100, 90], pitch=20,
+              planes=[-9.0, 3.0], ppp=1000,
+              bounds=[(-3, 3, 0.2), (-3, 3, 0.2), (-4, 4, 0.4), (16, 20, 0.2), (1.32, 1.355, 0.002)]),
+    "C": dict(truth=[0.6, -0.4, 0.5, 15.5, 1.3371], cone=27, pixels=[120, 100], pitch=20,
+              planes=[-4.0], ppp=1000,
+              bounds=[(-3, 3, 0.2), (-3, 3, 0.2), (-4, 4, 0.4), (14, 17, 0.2), (1.32, 1.35, 0.002)]),
+}
+NAMES = ["x (um)", "y (um)", "z (um)", "radius (um)", "index"]
+KEYS = ["object.drop.center_um[0]", "object.drop.center_um[1]", "object.drop.center_um[2]",
+        "object.drop.radius_um", "object.drop.index"]
+OFFSETS = [0.4, 0.4, 1.8, 0.6, 0.005]  # nominal start - truth (signs alternate per realisation)
+
+
+def scene(case, theta, seed):
+    x, y, z, r, n = theta
+    return f"""name = "sphere"
+seed = {seed}
+[source]
+type = "cone"
+half_angle_deg = {case['cone']}
+[[object]]
+name = "drop"
+type = "sphere"
+center_um = [{x}, {y}, {z}]
+radius_um = {r}
+index = {n}
+[objective]
+focal_length_mm = 10
+na = 0.42
+working_distance_mm = 20
+[tube_lens]
+focal_length_mm = 200
+[camera]
+pixels = [{case['pixels'][0]}, {case['pixels'][1]}]
+pixel_pitch_um = {case['pitch']}
+[trace]
+photons_per_pixel = {case['ppp']}
+partial_reflection = "unpolarized"
+"""
+
+
+def run_case(name, case, K, out, fit_lines):
+    rows = []
+    for k in range(K):
+        d = os.path.join(out, name, f"k{k}")
+        os.makedirs(d, exist_ok=True)
+        truth = case["truth"]
+        sgn = 1 if k % 2 == 0 else -1
+        start = [t + sgn * o * (1 if i % 2 == 0 else -1) for i, (t, o) in enumerate(zip(truth, OFFSETS))]
+        open(os.path.join(d, "truth.toml"), "w").write(scene(case, truth, 100 + k))
+        open(os.path.join(d, "model.toml"), "w").write(scene(case, start, 1))
+        images = []
+        for p in case["planes"]:
+            sub = os.path.join(d, f"exp{p:+g}")
+            subprocess.run([RAYMATCH, "simulate", os.path.join(d, "truth.toml"), "--defocus-um", f"{p}",
+                            "-o", sub, "-q", "--no-png"], check=True)
+            tif = [f for f in os.listdir(sub) if f.endswith(".tif")][0]
+            images.append((os.path.relpath(os.path.join(sub, tif), d), p))
+        lines = ["scene = \"model.toml\"", f"seed = {7 + k}"] + list(fit_lines)
+        for f, p in images:
+            lines += ["[[image]]", f"file = \"{f}\"", f"defocus_um = {p}"]
+        for key, (lo, hi, st) in zip(KEYS, case["bounds"]):
+            lines += ["[[parameter]]", f"key = \"{key}\"", f"lower = {lo}", f"upper = {hi}", f"step = {st}"]
+        lines += ["[uncertainty]", "repeat_seeds = 0", "slice_points = 0"]
+        open(os.path.join(d, "fit.toml"), "w").write("\n".join(lines) + "\n")
+        t0 = time.time()
+        rc = subprocess.run([RAYMATCH, "fit", os.path.join(d, "fit.toml"), "-o", os.path.join(d, "fit"),
+                             "--quiet"]).returncode
+        wall = time.time() - t0
+        fj = json.load(open(os.path.join(d, "fit", "fit.json")))
+        rows.append(dict(fit=fj, wall=wall, rc=rc))
+        errs = [(p["best"] - t) / p["sigma_cramer_rao"] for p, t in zip(fj["parameters"], truth)]
+        print(f"{name} k{k}: {wall:.1f} s, exit {rc}, (best - truth)/CRB " +
+              " ".join(f"{e:+.2f}" for e in errs), file=sys.stderr, flush=True)
+    return rows
+
+
+def summarise(name, case, rows):
+    K = len(rows)
+    out = []
+    for i, pname in enumerate(NAMES):
+        t = case["truth"][i]
+        err = [r["fit"]["parameters"][i]["best"] - t for r in rows]
+        crb = [r["fit"]["parameters"][i]["sigma_cramer_rao"] for r in rows]
+        sig = [r["fit"]["parameters"][i]["sigma"] for r in rows]
+        mean_crb = sum(crb) / K
+        out.append(dict(case=name, parameter=pname,
+                        mean_error_over_crb=sum(err) / K / mean_crb,
+                        rms_error_over_crb=math.sqrt(sum(e * e for e in err) / K) / mean_crb,
+                        rms_error_over_sigma=math.sqrt(sum((e / s) ** 2 for e, s in zip(err, sig)) / K),
+                        mean_crb=mean_crb, mean_sigma=sum(sig) / K))
+    walls = [r["wall"] for r in rows]
+    return out, dict(case=name, fits=K, mean_seconds=sum(walls) / K, max_seconds=max(walls),
+                     exits=sorted(set(r["rc"] for r in rows)),
+                     evaluations=sum(len(r["fit"]["evaluations"]) for r in rows) / K)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("out")
+    ap.add_argument("--cases", default="ABC")
+    ap.add_argument("--k", type=int, default=16, help="noise realisations per case")
+    ap.add_argument("--fit-lines", nargs="*", default=[], help="extra top-level fit-file lines")
+    a = ap.parse_args()
+    table, timing = [], []
+    for c in a.cases:
+        rows = run_case(c, CASES[c], a.k, a.out, a.fit_lines)
+        t, s = summarise(c, CASES[c], rows)
+        table += t
+        timing.append(s)
+    json.dump(dict(parameters=table, timing=timing, command=sys.argv, fit_lines=a.fit_lines),
+              open(os.path.join(a.out, "summary.json"), "w"), indent=1)
+    print("| case | parameter | mean error/CRB | RMS error/CRB | RMS(error/sigma) | mean CRB |")
+    print("|---|---|---|---|---|---|")
+    for r in table:
+        print(f"| {r['case']} | {r['parameter']} | {r['mean_error_over_crb']:+.2f} | "
+              f"{r['rms_error_over_crb']:.2f} | {r['rms_error_over_sigma']:.2f} | {r['mean_crb']:.3g} |")
+    for s in timing:
+        print(f"case {s['case']}: {s['fits']} fits, {s['mean_seconds']:.1f} s per fit (max "
+              f"{s['max_seconds']:.1f}), {s['evaluations']:.0f} evaluations, exits {s['exits']}")
+
+
+if __name__ == "__main__":
+    main()

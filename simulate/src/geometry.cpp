@@ -96,6 +96,11 @@ TriangleMesh LocalMesh(const ObjectSpec& o) {
     }
     for (unsigned f = 0; f < mesh->mNumFaces; ++f) {
       const aiFace& face = mesh->mFaces[f];
+      for (unsigned k = 0; k < face.mNumIndices; ++k)
+        if (face.mIndices[k] >= mesh->mNumVertices)
+          throw Error(o.where, "mesh '" + o.mesh_file + "': face " + std::to_string(f + 1) +
+                                   " names vertex " + std::to_string(face.mIndices[k] + 1) + " of " +
+                                   std::to_string(mesh->mNumVertices) + "; truncated or corrupt");
       if (face.mNumIndices == 3)
         m.triangles.push_back({base + face.mIndices[0], base + face.mIndices[1],
                                base + face.mIndices[2]});

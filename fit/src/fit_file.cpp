@@ -7,9 +7,11 @@
 #include <sstream>
 
 #include "raymatch/compare/focus_scan.h"
+#include "raymatch/core/image.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/toml_reader.h"
 #include "raymatch/fit/fit.h"
+#include "raymatch/simulate/geometry.h"
 #include "raymatch/simulate/scene.h"
 
 namespace raymatch::fit {
@@ -186,6 +188,58 @@ std::string GridCount(double n) {
   std::snprintf(buf, sizeof buf, n < 1e15 ? "%.0f" : "%.3g", n);
   return buf;
 }
+/// Refuses an experimental image that cannot hold a brightfield experiment (issue 25): no light
+/// at all (a camera that did not fire), a flat level far from the photon count the scene or fit
+/// file declares (a wrong gain, dark frame or exposure), or mostly saturated pixels. Each message
+/// names the fit file's [[image]] entry and the image file and says what is wrong.
+void CheckExperimentImage(const FitImage& fi, double expected_photons_per_pixel,
+                          const std::string& expected_from) {
+  const Image& im = fi.photons;
+  if (im.empty()) throw Error(fi.where, "image " + fi.file + " has no pixels");
+  double max = -1e300, sum = 0;
+  for (float v : im.pixels) {
+    max = std::max(max, double(v));
+    sum += v;
+  }
+  if (!(max > 0))
+    throw Error(fi.where, "image " + fi.file + " has no signal: every pixel is " +
+                              (max == 0 ? "0" : "0 or below") +
+                              " photons after dark subtraction (did the camera fire and the lamp "
+                              "light? is the dark frame given as the image?)");
+  size_t at_max = 0;
+  for (float v : im.pixels) at_max += double(v) >= max * (1 - 1e-6);
+  const double saturated = double(at_max) / double(im.size());
+  if (saturated > 0.5) {
+    char buf[64];
+    std::snprintf(buf, sizeof buf, "%.0f %% of its pixels sit at its largest value %.6g", 100 * saturated, max);
+    throw Error(fi.where, "image " + fi.file + " is mostly saturated: " + buf +
+                              "; expose it less (or check that it is a camera image, not a constant)");
+  }
+  // The flat level: mean of the border frame BorderMedian uses (robust at low counts, where the
+  // median of Poisson counts is coarse).
+  const int bw = std::max(1, std::min(im.width, im.height) / 8);
+  double border = 0;
+  size_t n = 0;
+  for (int y = 0; y < im.height; ++y)
+    for (int x = 0; x < im.width; ++x)
+      if (x < bw || y < bw || x >= im.width - bw || y >= im.height - bw) border += im.at(x, y), ++n;
+  border /= double(std::max<size_t>(n, 1));
+  if (!(border > 0))
+    throw Error(fi.where, "image " + fi.file + " has no light around the object: the mean of its border "
+                              "pixels is " + std::to_string(border) +
+                              " photons (a brightfield image has a lit background; check the dark frame)");
+  constexpr double kLevelFactor = 3;
+  if (expected_photons_per_pixel > 0 &&
+      (border > kLevelFactor * expected_photons_per_pixel || border * kLevelFactor < expected_photons_per_pixel)) {
+    char buf[160];
+    std::snprintf(buf, sizeof buf, "its flat level (mean of the border pixels) is %.4g photons per pixel, "
+                  "%.3g times the %.4g", border, border / expected_photons_per_pixel, expected_photons_per_pixel);
+    throw Error(fi.where, "image " + fi.file + " does not match the experiment's photon count: " + buf +
+                              " of " + expected_from + " (more than a factor 3 apart); check gain_e_per_dn, "
+                              "the dark frame and the exposure, or correct photons_per_pixel");
+  }
+}
+
 }  // namespace
 
 FitSpec LoadFitSpec(const std::string& path) { return LoadFitSpec(path, ""); }
@@ -211,6 +265,12 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
   }
   if (!f.calibration_file.empty()) f.scene.insert_or_assign("calibration", f.calibration_file);
   const simulate::Scene scene = simulate::LoadScene(f.scene, f.scene_file);  // checks it
+  // Mesh files are read when a simulator is built: check them now (the meshes are cached, so
+  // the fit reads each file once), before anything runs or is written.
+  if (std::any_of(scene.objects.begin(), scene.objects.end(),
+                  [](const simulate::ObjectSpec& o) { return o.shape == simulate::ShapeType::kMesh; })) {
+    const simulate::Geometry check(scene.objects);
+  }
   f.seed = static_cast<uint64_t>(r.Integer("seed", 1, 0, INT64_MAX));
   const std::string m = r.Choice("method", {"grid", "pattern", "lm"}, "lm");
   f.method = m == "grid" ? Method::kGrid : m == "pattern" ? Method::kPattern : Method::kLevenbergMarquardt;
@@ -335,6 +395,14 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     u.Finish();
   }
   r.Finish();
+  // The images against the photon count the fit will trace for (as FitModel chooses it).
+  double expected = f.rays.photons_per_pixel;
+  std::string from = f.file + " [rays] photons_per_pixel";
+  if (expected == 0 && scene.trace.photons_per_pixel > 0) {
+    expected = scene.trace.photons_per_pixel;
+    from = f.scene_file + " [trace]";
+  }
+  for (const FitImage& fi : f.images) CheckExperimentImage(fi, expected, from);
   return f;
 }
 

@@ -120,6 +120,45 @@ TEST_F(FitFile, BadKeysAndBoundsNameTheFileLineAndKey) {
   EXPECT_NE(twice.find("twice"), std::string::npos) << twice;
 }
 
+// Issue 25, defect 4: an experiment with no light was fitted ("converged", the radius at its
+// bound). Images without signal, at a flat level far from the photon count the fit traces for,
+// or mostly saturated are refused naming the [[image]] entry, the file and what is wrong.
+TEST_F(FitFile, ImagesWithoutUsableLightAreRefused) {
+  const std::string param = "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n";
+  const Image good = ReadImage(exp_);
+  EXPECT_EQ(ErrorOf(Fit(param)), "no error");  // the traced experiment at 20 photons per pixel
+  auto with_image = [&](const Image& im, const std::string& extra = "") {
+    WriteFloatImage(exp_, im, "");
+    return ErrorOf(Fit(param, extra));
+  };
+  const std::string zero = with_image(Image(good.width, good.height, 0.f));
+  EXPECT_NE(zero.find("fit.toml:"), std::string::npos) << zero;
+  EXPECT_NE(zero.find("exp.tif has no signal"), std::string::npos) << zero;
+  Image scaled = good;
+  for (float& v : scaled.pixels) v *= 10;
+  const std::string bright = with_image(scaled);
+  EXPECT_NE(bright.find("photon count"), std::string::npos) << bright;
+  EXPECT_NE(bright.find("model.toml [trace]"), std::string::npos) << bright;
+  for (float& v : scaled.pixels) v /= 100;
+  EXPECT_NE(with_image(scaled).find("photon count"), std::string::npos);
+  // [rays] photons_per_pixel is the count the fit traces for, so it is the one compared.
+  const std::string rays = with_image(good, "[rays]\nphotons_per_pixel = 200\n");
+  EXPECT_NE(rays.find("[rays] photons_per_pixel"), std::string::npos) << rays;
+  EXPECT_EQ(with_image(scaled, "[rays]\nphotons_per_pixel = 2\n"), "no error");
+  Image clipped = good;
+  for (size_t i = 0; i < clipped.size(); ++i)
+    if (i % 3) clipped.pixels[i] = 4095;
+  const std::string sat = with_image(clipped);
+  EXPECT_NE(sat.find("mostly saturated"), std::string::npos) << sat;
+  Image dark_border = good;  // light in the middle only
+  for (int y = 0; y < good.height; ++y)
+    for (int x = 0; x < good.width; ++x)
+      if (x < 8 || y < 8 || x >= good.width - 8 || y >= good.height - 8) dark_border.at(x, y) = 0;
+  const std::string border = with_image(dark_border);
+  EXPECT_NE(border.find("no light around the object"), std::string::npos) << border;
+  WriteFloatImage(exp_, good, "");
+}
+
 TEST_F(FitFile, ParameterThatDoesNotChangeTheImageIsReportedFlat) {
   // The drop sits far outside the view: moving it sideways changes no pixel.
   dir_.Write("model.toml", SceneText(400, 0, 0, 23, 1.335, 20, 1));

@@ -8,7 +8,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 parsers=("$@")
-if ((${#parsers[@]} == 0)); then parsers=(scene calibration npy pipeline fit metadata zemax); fi
+if ((${#parsers[@]} == 0)); then parsers=(scene calibration npy pipeline fit metadata zemax stack mesh); fi
 cmake -S . -B build/fuzz -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
   -DCMAKE_C_COMPILER=clang -DCMAKE_CXX_COMPILER=clang++ \
   -DCMAKE_CXX_FLAGS="-fsanitize=address,undefined,fuzzer-no-link -fno-sanitize-recover=undefined -fno-omit-frame-pointer" \

@@ -167,6 +167,9 @@ void LoadMesh(const ObjectSpec& o, std::vector<float>* verts, std::vector<unsign
   const Mat3 rot = RotationFromEulerDeg(o.rotation_deg.x, o.rotation_deg.y, o.rotation_deg.z);
   for (const Vec3& v : m.vertices) {
     const Vec3 p = rot * v + o.center_um;
+    // Embree holds vertices in float: a coordinate beyond its range would become Inf.
+    if (!(std::abs(p.x) < 1e30 && std::abs(p.y) < 1e30 && std::abs(p.z) < 1e30))
+      throw Error(o.where, what + " has a vertex beyond 1e30 um after scaling and placing; check scale_um");
     verts->insert(verts->end(), {float(p.x), float(p.y), float(p.z)});
   }
   for (const auto& t : m.triangles) idx->insert(idx->end(), {t[0], t[1], t[2]});

@@ -301,7 +301,12 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     compare::PrepareOptions prep;
     prep.dark_file = fi.dark_file;
     prep.gain_e_per_dn = fi.gain_e_per_dn;
-    fi.photons = compare::PrepareExperiment(raw, prep, dark.empty() ? nullptr : &dark, nullptr);
+    try {
+      fi.photons = compare::PrepareExperiment(raw, prep, dark.empty() ? nullptr : &dark, nullptr);
+    } catch (const Error& err) {  // e.g. a dark frame of another size: name both files
+      throw Error(fi.where, "image " + fi.file + (fi.dark_file.empty() ? "" : " with dark frame " + fi.dark_file) +
+                                ": " + err.message());
+    }
     if (fi.photons.width != scene.camera.nx || fi.photons.height != scene.camera.ny)
       throw Error(fi.where, "image " + fi.file + " is " + std::to_string(fi.photons.width) + " x " +
                                 std::to_string(fi.photons.height) + " pixels; the scene's camera has " +

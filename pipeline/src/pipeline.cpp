@@ -100,10 +100,14 @@ compare::PrepareOptions Preparation(const std::string& dark_file, double gain) {
 
 /// An experimental image in photons (dark-subtracted, times the gain), as compare-scan
 /// prepares it.
-Image Prepared(const Image& raw, const compare::PrepareOptions& p) {
+Image Prepared(const Image& raw, const compare::PrepareOptions& p, const std::string& file) {
   Image dark;
   if (!p.dark_file.empty()) dark = ReadImage(p.dark_file);
-  return compare::PrepareExperiment(raw, p, dark.empty() ? nullptr : &dark, nullptr);
+  try {
+    return compare::PrepareExperiment(raw, p, dark.empty() ? nullptr : &dark, nullptr);
+  } catch (const Error& e) {  // e.g. a dark frame of another size: name both files
+    throw Error(FileLocation{file}, (p.dark_file.empty() ? "" : "with dark frame " + p.dark_file + ": ") + e.message());
+  }
 }
 
 }  // namespace
@@ -236,12 +240,12 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   const ExperimentMetadata ex = ReadExperimentMetadata(cfg.experiment);
   const compare::Stack exp = compare::ReadStack(ex.scan_csv);
   const compare::PrepareOptions prep = Preparation(ex.dark, ex.gain);
-  const Image mid = Prepared(exp.images[exp.images.size() / 2], prep);
+  const Image mid = Prepared(exp.images[exp.images.size() / 2], prep, exp.files[exp.files.size() / 2]);
   std::optional<MeshObjectMetadata> mesh_meta;
   Image mesh_image;
   if (!cfg.merging.empty()) {
     mesh_meta = ReadMeshObjectMetadata(cfg.merging);
-    mesh_image = Prepared(ReadImage(mesh_meta->image), Preparation(mesh_meta->dark, mesh_meta->gain));
+    mesh_image = Prepared(ReadImage(mesh_meta->image), Preparation(mesh_meta->dark, mesh_meta->gain), mesh_meta->image);
     CheckMeshFile(*mesh_meta, cfg.merging);
   }
   CheckFitFiles(cfg.fits, lf_in);

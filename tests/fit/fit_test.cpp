@@ -159,6 +159,19 @@ TEST_F(FitFile, ImagesWithoutUsableLightAreRefused) {
   WriteFloatImage(exp_, good, "");
 }
 
+// Found by the fit-file mutation campaign (issue 25): a dark frame of another size than its
+// image gave "error: dark frame size differs from the image" with no file named.
+TEST_F(FitFile, DarkFrameOfAnotherSizeNamesBothFiles) {
+  WriteFloatImage(dir_ / "dark.tif", Image(10, 10, 1.f), "");
+  const std::string e = ErrorOf(dir_.Write(
+      "fit.toml", "scene = \"model.toml\"\n[[image]]\nfile = \"exp.tif\"\ndark = \"dark.tif\"\ndefocus_um = -10\n"
+                  "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"));
+  EXPECT_NE(e.find("fit.toml:2:"), std::string::npos) << e;
+  EXPECT_NE(e.find("exp.tif"), std::string::npos) << e;
+  EXPECT_NE(e.find("dark.tif"), std::string::npos) << e;
+  EXPECT_NE(e.find("size"), std::string::npos) << e;
+}
+
 TEST_F(FitFile, ParameterThatDoesNotChangeTheImageIsReportedFlat) {
   // The drop sits far outside the view: moving it sideways changes no pixel.
   dir_.Write("model.toml", SceneText(400, 0, 0, 23, 1.335, 20, 1));

@@ -182,6 +182,7 @@ void SetSceneValue(toml::table& scene, const std::string& key, double value,
 
 namespace {
 constexpr int kMaxGridPoints = 10001;  ///< grid samples per parameter
+constexpr double kMaxDefocusUm = 1e5;   ///< |defocus| of an image, and of its bounds when fitted
 /// A grid's size for a message (the product of the axes can exceed any integer type).
 std::string GridCount(double n) {
   char buf[32];
@@ -255,6 +256,9 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     r.String("scene", "");
   } else {
     f.scene_file = ResolvePath(path, r.String("scene"));
+    if (!fs::is_regular_file(f.scene_file))
+      r.Fail("scene", (fs::is_directory(f.scene_file) ? "is a folder, not a scene file: " : "scene file not found: ") +
+                          f.scene_file);
   }
   f.scene = ParseTomlFile(f.scene_file);
   if (!calibration_override.empty()) {
@@ -288,6 +292,8 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     fi.where = im.Where();
     fi.file = ResolvePath(path, im.String("file"));
     fi.defocus_um = im.Number("defocus_um");
+    if (!(std::abs(fi.defocus_um) <= kMaxDefocusUm))
+      im.Fail("defocus_um", "expected a focus position within +-1e5 um (10 cm)");
     if (im.Has("dark")) fi.dark_file = ResolvePath(path, im.String("dark"));
     fi.gain_e_per_dn = im.Positive("gain_e_per_dn", 1.0);
     im.Finish();
@@ -329,6 +335,8 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
           segs[1].index || *segs[0].index >= f.images.size())
         p.Fail("key", "image keys are image[i].defocus_um with i < " + std::to_string(f.images.size()));
       current = f.images[*segs[0].index].defocus_um;
+      if (!(std::abs(p.Number("lower")) <= kMaxDefocusUm && std::abs(p.Number("upper")) <= kMaxDefocusUm))
+        p.Fail("lower", "focus positions lie within +-1e5 um (10 cm)");
     } else {
       try {
         current = SceneValue(f.scene, q.key, f.scene_file);

@@ -172,6 +172,30 @@ TEST_F(FitFile, DarkFrameOfAnotherSizeNamesBothFiles) {
   EXPECT_NE(e.find("size"), std::string::npos) << e;
 }
 
+// Found by the mutation campaign: an image at defocus 1e300 um was refused only when the scene
+// was traced ("scene.toml: no light reaches the sensor"), naming the wrong file.
+TEST_F(FitFile, FocusPositionsBeyondTenCentimetresAreRefused) {
+  const std::string img = ErrorOf(dir_.Write("fit.toml", "scene = \"model.toml\"\n[[image]]\nfile = \"exp.tif\"\n"
+      "defocus_um = 1e300\n[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"));
+  EXPECT_NE(img.find("fit.toml:4:"), std::string::npos) << img;
+  EXPECT_NE(img.find("defocus_um"), std::string::npos) << img;
+  const std::string bounds = ErrorOf(Fit("[[parameter]]\nkey = \"image[0].defocus_um\"\nlower = -1e300\nupper = 0\n"));
+  EXPECT_NE(bounds.find("fit.toml:"), std::string::npos) << bounds;
+  EXPECT_NE(bounds.find("lower"), std::string::npos) << bounds;
+}
+
+// Found by the mutation campaign: `scene = "."` was read as an empty scene (".:1:1: error:
+// missing required key 'source'"), naming neither the fit file nor what was wrong.
+TEST_F(FitFile, SceneThatIsAFolderOrMissingIsNamed) {
+  for (const char* scene : {".", "nothere.toml"}) {
+    const std::string e = ErrorOf(dir_.Write("fit.toml", std::string("scene = \"") + scene + "\"\n[[image]]\n"
+        "file = \"exp.tif\"\ndefocus_um = -10\n[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"));
+    EXPECT_NE(e.find("fit.toml:1:"), std::string::npos) << e;
+    EXPECT_NE(e.find(std::string(scene) == "." ? "is a folder" : "not found"), std::string::npos) << e;
+  }
+  EXPECT_THROW(ParseTomlFile(dir_.path().string()), Error);
+}
+
 TEST_F(FitFile, ParameterThatDoesNotChangeTheImageIsReportedFlat) {
   // The drop sits far outside the view: moving it sideways changes no pixel.
   dir_.Write("model.toml", SceneText(400, 0, 0, 23, 1.335, 20, 1));

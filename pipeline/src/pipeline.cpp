@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <exception>
 #include <filesystem>
 #include <unistd.h>
 #include <fstream>
@@ -249,6 +250,17 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     CheckMeshFile(*mesh_meta, cfg.merging);
   }
   CheckFitFiles(cfg.fits, lf_in);
+  // A run that fails later (an input that only the calibration or the simulation can judge)
+  // removes the output folder again when it made it: all in it would be this failed run's.
+  struct RemoveIfFailed {
+    fs::path dir;
+    bool armed;
+    int exceptions = std::uncaught_exceptions();
+    ~RemoveIfFailed() {
+      std::error_code ec;
+      if (armed && std::uncaught_exceptions() > exceptions) fs::remove_all(dir, ec);
+    }
+  } remove_if_failed{out, !fs::exists(out)};
   EnsureDirectory(out);
   PipelineSummary sum;
   // index.html describes one complete run: removed now, written last, so that an interrupted

@@ -201,7 +201,7 @@ TEST(BadInputCli, RunChecksEveryInputBeforeMakingItsFolder) {
   testing::TempDir dir;
   const std::string pipeline = SamplePipeline(dir, "[fit]\nfiles = [\"fit/sphere.toml\"]\n");
   dir.Write("merging/merging_drops.obj", kBadMeshes[3].second);  // an open mesh
-  CliRun r = Raymatch("run " + pipeline + " -q", dir);
+  CliRun r = Raymatch("run " + pipeline + " -q -o " + (dir / "out/run"), dir);
   EXPECT_EQ(r.code, 1) << r.err;
   EXPECT_TRUE(Has(r.err, "merging_drops.obj")) << r.err;
   EXPECT_FALSE(fs::exists(dir / "out")) << r.err;
@@ -215,10 +215,25 @@ TEST(BadInputCli, RunChecksEveryInputBeforeMakingItsFolder) {
   fit.replace(fit.find("../drop46/drop_z-10um.tif"), 25, "../drop46/black.tif");
   fit.replace(fit.find("dark = \"../drop46/dark.tif\"\n"), 28, "");
   dir.Write("fit/sphere.toml", fit);
-  r = Raymatch("run " + pipeline + " -q", dir);
+  r = Raymatch("run " + pipeline + " -q -o " + (dir / "out/run"), dir);
   EXPECT_EQ(r.code, 1) << r.err;
   EXPECT_TRUE(Has(r.err, "sphere.toml:")) << r.err;
   EXPECT_TRUE(Has(r.err, "no signal")) << r.err;
+  EXPECT_FALSE(fs::exists(dir / "out")) << r.err;
+  // An input only a later step can judge (a tube lens of 9e18 mm: the calibration runs, the
+  // simulation finds no light): the folder this run made is removed again (found by
+  // scripts/mutate-fit-pipeline.py).
+  dir.Write("fit/sphere.toml", ss.str());
+  std::ifstream lf_in(dir / "lightfield/metadata.toml");
+  std::stringstream lf;
+  lf << lf_in.rdbuf();
+  std::string meta = lf.str();
+  ASSERT_NE(meta.find("tube_focal_mm = 200"), std::string::npos);
+  meta.replace(meta.find("tube_focal_mm = 200"), 19, "tube_focal_mm = 9223372036854775807");
+  dir.Write("lightfield/metadata.toml", meta);
+  r = Raymatch("run " + pipeline + " -q --ray-fraction 0.005 -o " + (dir / "out/run"), dir);
+  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_TRUE(Has(r.err, "error")) << r.err;
   EXPECT_FALSE(fs::exists(dir / "out")) << r.err;
   EXPECT_EQ(Partials(dir.path()), 0);
 }

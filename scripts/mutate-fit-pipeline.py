@@ -685,6 +685,10 @@ def main():
         sys.exit("no raymatch executable at %s (build it or give --raymatch)" % raymatch)
     work = os.path.abspath(args.work)
     shutil.rmtree(work, ignore_errors=True)
+    # A copy of the executable: a rebuild during the campaign must not change (or remove) it.
+    os.makedirs(work)
+    shutil.copy2(raymatch, os.path.join(work, "raymatch"))
+    raymatch = os.path.join(work, "raymatch")
     fit_base, pipe_base = os.path.join(work, "base-fit"), os.path.join(work, "base-pipeline")
     make_fit_base(fit_base)
     make_pipeline_base(pipe_base)

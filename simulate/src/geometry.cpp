@@ -79,9 +79,29 @@ TriangleMesh LocalMesh(const ObjectSpec& o) {
   if (o.mesh) return *o.mesh;
   CheckMeshFileSizes(o);
   Assimp::Importer importer;
-  const aiScene* sc = importer.ReadFile(
-      o.mesh_file, aiProcess_Triangulate | aiProcess_JoinIdenticalVertices |
-                       aiProcess_PreTransformVertices);
+  // Read first, check every face's vertex indices, and only then post-process: Assimp's steps
+  // (triangulation, joining vertices) index vertices without checking, and a corrupt file (a
+  // binary PLY naming vertex 2^24) crashed inside them (found by scripts/fuzz.sh mesh).
+  const aiScene* sc = importer.ReadFile(o.mesh_file, 0);
+  if (!sc || !sc->mNumMeshes)
+    throw Error(o.where, "cannot read mesh '" + o.mesh_file + "': " + importer.GetErrorString());
+  for (unsigned k = 0; k < sc->mNumMeshes; ++k) {
+    const aiMesh* mesh = sc->mMeshes[k];
+    if (!mesh || (mesh->mNumVertices && !mesh->mVertices) || (mesh->mNumFaces && !mesh->mFaces))
+      throw Error(o.where, "mesh '" + o.mesh_file + "': a mesh without vertex or face data; truncated or corrupt");
+    for (unsigned f = 0; f < mesh->mNumFaces; ++f) {
+      const aiFace& face = mesh->mFaces[f];
+      if (face.mNumIndices && !face.mIndices)
+        throw Error(o.where, "mesh '" + o.mesh_file + "': face " + std::to_string(f + 1) + " has no indices");
+      for (unsigned i = 0; i < face.mNumIndices; ++i)
+        if (face.mIndices[i] >= mesh->mNumVertices)
+          throw Error(o.where, "mesh '" + o.mesh_file + "': face " + std::to_string(f + 1) +
+                                   " names vertex " + std::to_string(face.mIndices[i] + 1) + " of " +
+                                   std::to_string(mesh->mNumVertices) + "; truncated or corrupt");
+    }
+  }
+  sc = importer.ApplyPostProcessing(aiProcess_Triangulate | aiProcess_JoinIdenticalVertices |
+                                    aiProcess_PreTransformVertices);
   if (!sc || !sc->mNumMeshes)
     throw Error(o.where, "cannot read mesh '" + o.mesh_file + "': " + importer.GetErrorString());
   TriangleMesh m;

@@ -13,9 +13,22 @@
 #include <memory>
 #include <mutex>
 #include <sstream>
+#include <stdexcept>
 
 #include "raymatch/core/error.h"
 #include "raymatch/simulate/shapes.h"
+
+// Debian's Assimp 5.2 is built with its internal assertions on, and a failed one calls abort():
+// a corrupt ASCII PLY whose face lines run into other text aborted inside the post-processing
+// (found by scripts/fuzz.sh mesh). This definition takes the place of the library's (the
+// executable's symbol interposes on the shared library's) and turns the assertion into an
+// error, which LocalMesh reports naming the mesh file.
+namespace Assimp {
+void aiAssertViolation(const char* expression, const char* file, int line) {
+  throw std::runtime_error(std::string("Assimp's internal check '") + (expression ? expression : "?") +
+                           "' failed (" + (file ? file : "?") + ":" + std::to_string(line) + ")");
+}
+}  // namespace Assimp
 
 namespace raymatch::simulate {
 
@@ -100,7 +113,12 @@ TriangleMesh LocalMesh(const ObjectSpec& o) {
   // Read first, check every face's vertex indices, and only then post-process: Assimp's steps
   // (triangulation, joining vertices) index vertices without checking, and a corrupt file (a
   // binary PLY naming vertex 2^24) crashed inside them (found by scripts/fuzz.sh mesh).
-  const aiScene* sc = importer.ReadFile(o.mesh_file, 0);
+  const aiScene* sc = nullptr;
+  try {
+    sc = importer.ReadFile(o.mesh_file, 0);
+  } catch (const std::exception& e) {  // an Assimp assertion (above)
+    throw Error(o.where, "cannot read mesh '" + o.mesh_file + "': " + e.what() + "; corrupt file");
+  }
   if (!sc || !sc->mNumMeshes)
     throw Error(o.where, "cannot read mesh '" + o.mesh_file + "': " + importer.GetErrorString());
   for (unsigned k = 0; k < sc->mNumMeshes; ++k) {
@@ -118,8 +136,12 @@ TriangleMesh LocalMesh(const ObjectSpec& o) {
                                    std::to_string(mesh->mNumVertices) + "; truncated or corrupt");
     }
   }
-  sc = importer.ApplyPostProcessing(aiProcess_Triangulate | aiProcess_JoinIdenticalVertices |
-                                    aiProcess_PreTransformVertices);
+  try {
+    sc = importer.ApplyPostProcessing(aiProcess_Triangulate | aiProcess_JoinIdenticalVertices |
+                                      aiProcess_PreTransformVertices);
+  } catch (const std::exception& e) {  // an Assimp assertion (above)
+    throw Error(o.where, "cannot read mesh '" + o.mesh_file + "': " + e.what() + "; corrupt file");
+  }
   if (!sc || !sc->mNumMeshes)
     throw Error(o.where, "cannot read mesh '" + o.mesh_file + "': " + importer.GetErrorString());
   TriangleMesh m;

@@ -198,12 +198,14 @@ TEST(HardCases, MeshHeadersClaimingHugeCountsAreRejected) {
 }
 
 // Issue 25, found by scripts/fuzz.sh mesh (inputs in fuzz/corpus/mesh/): a PLY header line that
-// is not a PLY keyword made Assimp 5.2's reader loop forever, and a binary PLY whose faces name
-// missing vertices crashed inside Assimp's post-processing. Both are now errors naming the file.
+// is not a PLY keyword made Assimp 5.2's reader loop forever, a binary PLY whose faces name
+// missing vertices crashed inside Assimp's post-processing, and an ASCII PLY whose faces run
+// into other text failed an assertion there (abort). All are now errors naming the file.
 TEST(HardCases, CorruptPlyFilesAreRefusedNotHungOrCrashed) {
   const std::string corpus = std::string(RAYMATCH_SOURCE_DIR) + "/fuzz/corpus/mesh/";
   for (const auto& [name, what] : {std::pair{"hang_unknown_ply_header_line.ply", "not a PLY header line"},
-                                   std::pair{"crash_face_index_in_postprocessing.ply", "names vertex"}}) {
+                                   std::pair{"crash_face_index_in_postprocessing.ply", "names vertex"},
+                                   std::pair{"abort_assimp_assertion.ply", "internal check"}}) {
     Scene s = Base();
     ObjectSpec o;
     o.shape = ShapeType::kMesh;

@@ -408,14 +408,12 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     u.Finish();
   }
   r.Finish();
-  // The images against the photon count the fit will trace for (as FitModel chooses it).
-  double expected = f.rays.photons_per_pixel;
-  std::string from = f.file + " [rays] photons_per_pixel";
-  if (expected == 0 && scene.trace.photons_per_pixel > 0) {
-    expected = scene.trace.photons_per_pixel;
-    from = f.scene_file + " [trace]";
-  }
-  for (const FitImage& fi : f.images) CheckExperimentImage(fi, expected, from);
+  // The images against the scene's photon count ([trace] photons_per_pixel, or signal x
+  // well_capacity). A fit file's [rays] photons_per_pixel replaces it as the count the fit traces
+  // for (some fits trace more rays than the experiment had photons): then only the checks that
+  // need no photon count apply.
+  const double expected = f.rays.photons_per_pixel > 0 ? 0 : scene.trace.photons_per_pixel;
+  for (const FitImage& fi : f.images) CheckExperimentImage(fi, expected, f.scene_file + " [trace]");
   return f;
 }
 

@@ -91,7 +91,8 @@ const std::pair<const char*, std::string> kBadMeshes[] = {
     {"NaN vertex", "v 0 0 0\nv nan 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\n"},
     {"open mesh", "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\n"},
     {"coincident copies", std::string(kTetra) + "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 5 7 6\nf 5 6 8\nf 6 7 8\nf 5 8 7\n"},
-    {"garbage bytes", std::string("\x01\x9f\xff garbage \x00\x02 not a mesh\n", 30)},
+    {"garbage bytes", std::string("\x01\x9f\xff garbage \x00\x02 not a mesh\n",
+                                  sizeof "\x01\x9f\xff garbage \x00\x02 not a mesh\n" - 1)},
 };
 
 TEST(BadInputCli, SimulateWithAnUnusableMeshLeavesNoOutputFolder) {

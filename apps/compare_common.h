@@ -8,6 +8,7 @@
 #include <string>
 
 #include "raymatch/compare/measures.h"
+#include "raymatch/core/atomic_file.h"
 
 namespace raymatch::apps {
 
@@ -67,6 +68,7 @@ inline int RunCompareGuarded(const std::function<int()>& fn) {
   try {
     return fn();
   } catch (const compare::CompareError& e) {
+    RemoveCreatedEmptyDirectories();  // nothing written: no empty report folder either
     std::cerr << "raymatch: " << e.what() << "\n";
     switch (e.kind()) {
       case compare::FailureKind::kSizeMismatch: return kSizeMismatch;
@@ -74,6 +76,7 @@ inline int RunCompareGuarded(const std::function<int()>& fn) {
       default: return kFail;
     }
   } catch (const Error& e) {
+    RemoveCreatedEmptyDirectories();
     std::cerr << "raymatch: " << e.what() << "\n";
     return kFileError;
   }

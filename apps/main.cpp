@@ -3,6 +3,7 @@
 
 #include "commands.h"
 #include "mpi_session.h"
+#include "raymatch/core/atomic_file.h"
 #include "raymatch/core/error.h"
 #include "raymatch/core/provenance.h"
 #include "raymatch/core/version.h"
@@ -17,8 +18,10 @@ int RunGuarded(const std::function<int()>& fn, int error_code) {
   try {
     return fn();
   } catch (const raymatch::Error& e) {
+    RemoveCreatedEmptyDirectories();  // a refused input leaves no empty output folder
     ReportError(std::string("raymatch: ") + e.what() + "\n", error_code);
   } catch (const std::exception& e) {
+    RemoveCreatedEmptyDirectories();
     ReportError(std::string("raymatch: error: ") + e.what() + "\n", error_code);
   }
   return error_code;

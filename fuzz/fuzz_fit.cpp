@@ -35,7 +35,11 @@ rays = 1000
 
 std::string Folder() {
   const std::string dir = raymatch::fuzz::ScratchFolder("fit", {{"scene.toml", kScene}});
-  raymatch::Image img(32, 16, 100.f), dark(32, 16, 10.f);
+  // Not constant: an image with more than half its pixels at its maximum is refused as
+  // saturated before the parameter checks.
+  raymatch::Image img(32, 16), dark(32, 16, 10.f);
+  for (int y = 0; y < 16; ++y)
+    for (int x = 0; x < 32; ++x) img.at(x, y) = float(100 + (x * 7 + y * 3) % 11);
   img.at(16, 8) = 20.f;
   raymatch::WriteFloatImage(dir + "/image.tif", img, "fuzz image");
   raymatch::WriteFloatImage(dir + "/dark.tif", dark, "fuzz dark");

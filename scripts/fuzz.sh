@@ -8,7 +8,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 parsers=("$@")
-if ((${#parsers[@]} == 0)); then parsers=(scene calibration npy pipeline fit metadata zemax); fi
+if ((${#parsers[@]} == 0)); then parsers=(scene calibration npy pipeline fit metadata zemax stack mesh); fi
 cmake -S . -B build/fuzz -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
   -DCMAKE_C_COMPILER=clang -DCMAKE_CXX_COMPILER=clang++ \
   -DCMAKE_CXX_FLAGS="-fsanitize=address,undefined,fuzzer-no-link -fno-sanitize-recover=undefined -fno-omit-frame-pointer" \
@@ -20,6 +20,9 @@ cmake --build build/fuzz -j "${RAYMATCH_JOBS:-1}" --target "${targets[@]}"
 mkdir -p build/fuzz/artifacts
 export ASAN_OPTIONS="detect_leaks=1:halt_on_error=1"
 export UBSAN_OPTIONS="halt_on_error=1:print_stacktrace=1"
+# The same LeakSanitizer suppressions as check-sanitizers.sh (Debian libraries only, each with
+# its reason).
+export LSAN_OPTIONS="suppressions=$PWD/scripts/lsan-suppressions.txt:print_suppressions=0"
 for p in "${parsers[@]}"; do
   work=build/fuzz/corpus/$p
   mkdir -p "$work"
@@ -27,5 +30,5 @@ for p in "${parsers[@]}"; do
   echo "== fuzzing $p for ${FUZZ_SECONDS:-60} s"
   build/fuzz/fuzz/fuzz_"$p" "$work" -max_total_time="${FUZZ_SECONDS:-60}" -timeout=10 \
     -rss_limit_mb=2048 -max_len=65536 -print_final_stats=1 \
-    -artifact_prefix=build/fuzz/artifacts/"$p"- 2>&1 | tail -n 12
+    -artifact_prefix=build/fuzz/artifacts/"$p"- 2>&1 | tail -n 40
 done

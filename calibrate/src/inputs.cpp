@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <filesystem>
+#include <utility>
 
 #include "raymatch/core/error.h"
 #include "raymatch/core/image_io.h"
@@ -38,6 +39,12 @@ void ReadCommon(TomlReader& r, CameraInfo* cam, OpticsInfo* opt) {
   opt->working_distance_mm = o.Positive("working_distance_mm", opt->objective_focal_mm);
   opt->tube_focal_mm = o.Positive("tube_focal_mm");
   opt->wavelength_um = o.InRange("wavelength_um", 0.2, 2.0, 0.462);
+  // A microscope's lengths: a value beyond 10 m (e.g. a mistyped 9e18) would be accepted here
+  // and only fail, far from this file, when the calibrated scene is traced.
+  for (const auto& [key, v] : {std::pair<const char*, double>{"objective_focal_mm", opt->objective_focal_mm},
+                               {"working_distance_mm", opt->working_distance_mm},
+                               {"tube_focal_mm", opt->tube_focal_mm}})
+    if (v > 1e4) o.Fail(key, "expected at most 10000 mm (10 m) for a microscope");
   o.Finish();
 }
 

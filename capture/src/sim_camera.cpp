@@ -98,6 +98,14 @@ class SimCamera : public Camera {
       throw Error(FileLocation{path}, "sim camera: no ray of the open field reaches the sensor");
     base_area_um2_ = FieldArea(base);
     base_power_ = SourcePower(scene_.source);
+    // The objects (meshes, index fields) are traced only in frames with the objects in view:
+    // build them once now so that an unusable mesh is refused when the camera opens, before a
+    // capture makes its output folder.
+    if (!objects_.empty()) {
+      Scene with_objects = scene_;
+      with_objects.objects = objects_;
+      const simulate::Simulator check(with_objects);
+    }
   }
 
   const CameraInfo& info() const override { return info_; }

@@ -29,52 +29,107 @@ Image LoadChecked(const std::string& path) {
 
 }  // namespace
 
+namespace {
+
+// A stack index that cannot be read as one (bad JSON, wrong types, an unparsable or non-finite
+// defocus) is a file error (exit 4), naming the file and the line or field.
+[[noreturn]] void IndexError(const FileLocation& where, const std::string& message) {
+  throw CompareError(FailureKind::kFileError, where, message);
+}
+
+// A defocus written as text: the whole field must be a finite number.
+bool ParseDefocus(const std::string& text, double* z) {
+  std::string t = text;
+  while (!t.empty() && (t.back() == ' ' || t.back() == '\t' || t.back() == '\r')) t.pop_back();
+  size_t b = 0;
+  while (b < t.size() && (t[b] == ' ' || t[b] == '\t')) ++b;
+  t = t.substr(b);
+  if (t.empty()) return false;
+  try {
+    size_t used = 0;
+    *z = std::stod(t, &used);
+    return used == t.size();
+  } catch (const std::exception&) {
+    return false;
+  }
+}
+
+void ReadJsonIndex(const std::string& index, std::istream& in, const fs::path& base, Stack* s) {
+  nlohmann::json j;
+  try {
+    j = nlohmann::json::parse(in);
+  } catch (const std::exception& e) {
+    IndexError(FileLocation{index}, std::string("not valid JSON: ") + e.what());
+  }
+  const char* shape = "expected {\"planes\": [{\"defocus_um\": <number>, \"image\": \"<file>\"}, ...]}";
+  if (!j.is_object() || !j.contains("planes") || !j["planes"].is_array())
+    IndexError(FileLocation{index}, std::string("no \"planes\" array: ") + shape);
+  const nlohmann::json& planes = j["planes"];
+  for (size_t i = 0; i < planes.size(); ++i) {
+    const nlohmann::json& p = planes[i];
+    const std::string field = "planes[" + std::to_string(i) + "]";
+    if (!p.is_object()) IndexError(FileLocation{index}, field + " is not an object: " + shape);
+    if (!p.contains("defocus_um")) IndexError(FileLocation{index}, field + ".defocus_um is missing");
+    if (!p.contains("image")) IndexError(FileLocation{index}, field + ".image is missing");
+    const nlohmann::json& z = p["defocus_um"];
+    if (!z.is_number())
+      IndexError(FileLocation{index}, field + ".defocus_um must be a number (micrometres), got " +
+                                          std::string(z.type_name()) + " " + z.dump());
+    const double dz = z.get<double>();
+    if (!std::isfinite(dz)) IndexError(FileLocation{index}, field + ".defocus_um must be finite");
+    const nlohmann::json& im = p["image"];
+    if (!im.is_string() || im.get<std::string>().empty())
+      IndexError(FileLocation{index}, field + ".image must be a non-empty file name (string), got " +
+                                          std::string(im.type_name()) + " " + im.dump());
+    s->defocus_um.push_back(dz);
+    s->files.push_back((base / im.get<std::string>()).string());
+  }
+}
+
+void ReadCsvIndex(const std::string& index, std::istream& in, const fs::path& base, Stack* s) {
+  std::string line;
+  int n = 0;
+  while (std::getline(in, line)) {
+    ++n;
+    while (!line.empty() && line.back() == '\r') line.pop_back();
+    if (line.empty() || line[0] == '#') continue;
+    const size_t comma = line.find(',');
+    double z = 0;
+    const bool number = comma != std::string::npos && ParseDefocus(line.substr(0, comma), &z);
+    if (!number) {
+      if (n == 1) continue;  // header
+      IndexError(FileLocation{index, n, 1},
+                 comma == std::string::npos
+                     ? "expected 'defocus_um,file', found no comma"
+                     : "the defocus '" + line.substr(0, comma) +
+                           "' is not a number (expected 'defocus_um,file' in micrometres)");
+    }
+    if (!std::isfinite(z))
+      IndexError(FileLocation{index, n, 1},
+                 "the defocus '" + line.substr(0, comma) + "' is not a finite number");
+    std::string f = line.substr(comma + 1);
+    while (!f.empty() && (f.back() == '\r' || f.back() == ' ')) f.pop_back();
+    if (f.empty()) IndexError(FileLocation{index, n, int(comma) + 2}, "no image file after the defocus");
+    s->defocus_um.push_back(z);
+    s->files.push_back((base / f).string());
+  }
+}
+
+}  // namespace
+
 Stack ReadStack(const std::string& index) {
   if (!fs::exists(index))
     throw CompareError(FailureKind::kFileError, FileLocation{index}, "stack index not found");
+  if (fs::is_directory(index))
+    throw CompareError(FailureKind::kFileError, FileLocation{index}, "is a folder, not a stack index");
   const fs::path base = fs::path(index).parent_path();
   Stack s;
   std::ifstream in(index);
-  if (fs::path(index).extension() == ".json") {
-    nlohmann::json j;
-    try {
-      j = nlohmann::json::parse(in);
-    } catch (const std::exception& e) {
-      throw CompareError(FailureKind::kInvalidInput, FileLocation{index},
-                         std::string("not valid JSON: ") + e.what());
-    }
-    if (!j.contains("planes") || !j["planes"].is_array())
-      throw CompareError(FailureKind::kInvalidInput, FileLocation{index},
-                         "expected {\"planes\": [{\"defocus_um\": .., \"image\": ..}, ...]}");
-    for (const auto& p : j["planes"]) {
-      if (!p.contains("defocus_um") || !p.contains("image"))
-        throw CompareError(FailureKind::kInvalidInput, FileLocation{index},
-                           "each plane needs defocus_um and image");
-      s.defocus_um.push_back(p["defocus_um"].get<double>());
-      s.files.push_back((base / p["image"].get<std::string>()).string());
-    }
-  } else {
-    std::string line;
-    int n = 0;
-    while (std::getline(in, line)) {
-      ++n;
-      if (line.empty() || line[0] == '#') continue;
-      const size_t comma = line.find(',');
-      double z;
-      try {
-        if (comma == std::string::npos) throw std::invalid_argument("");
-        z = std::stod(line.substr(0, comma));
-      } catch (const std::exception&) {
-        if (n == 1) continue;  // header
-        throw CompareError(FailureKind::kInvalidInput, FileLocation{index, n, 1},
-                           "expected 'defocus_um,file'");
-      }
-      std::string f = line.substr(comma + 1);
-      while (!f.empty() && (f.back() == '\r' || f.back() == ' ')) f.pop_back();
-      s.defocus_um.push_back(z);
-      s.files.push_back((base / f).string());
-    }
-  }
+  if (!in) throw CompareError(FailureKind::kFileError, FileLocation{index}, "cannot open the stack index");
+  if (fs::path(index).extension() == ".json")
+    ReadJsonIndex(index, in, base, &s);
+  else
+    ReadCsvIndex(index, in, base, &s);
   if (s.files.empty())
     throw CompareError(FailureKind::kInvalidInput, FileLocation{index}, "the stack is empty");
   for (const auto& f : s.files) {

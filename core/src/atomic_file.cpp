@@ -9,6 +9,7 @@
 #include <cstring>
 #include <fstream>
 #include <mutex>
+#include <vector>
 
 #include "raymatch/core/error.h"
 
@@ -175,12 +176,45 @@ void WriteTextFileAtomic(const fs::path& path, const std::string& text) {
   CommitTemporary(tmp, path);
 }
 
+namespace {
+std::mutex g_created_mutex;
+std::vector<fs::path> g_created;  // folders EnsureDirectory made, parents first
+}  // namespace
+
 void EnsureDirectory(const fs::path& dir) {
   if (dir.empty()) return;
   std::error_code ec;
+  // The folders this call will create (the missing ancestors, outermost first), remembered so
+  // that a command that fails can remove them again while they are empty.
+  std::vector<fs::path> missing;
+  fs::path p = fs::absolute(dir, ec).lexically_normal();
+  if (!p.has_filename()) p = p.parent_path();  // "a/b/" -> "a/b"
+  while (!ec && !p.empty() && p != p.root_path()) {
+    std::error_code e2;
+    if (fs::exists(fs::symlink_status(p, e2))) break;
+    missing.insert(missing.begin(), p);
+    p = p.parent_path();
+  }
+  ec.clear();
   fs::create_directories(dir, ec);
   if (ec || !fs::is_directory(dir))
     throw Error(FileLocation{dir.string()}, "cannot create output directory: " + ec.message());
+  std::lock_guard<std::mutex> lock(g_created_mutex);
+  for (const fs::path& m : missing)
+    if (fs::is_directory(m)) g_created.push_back(m);
+}
+
+int RemoveCreatedEmptyDirectories() noexcept {
+  std::lock_guard<std::mutex> lock(g_created_mutex);
+  int removed = 0;
+  for (auto it = g_created.rbegin(); it != g_created.rend(); ++it) {  // innermost first
+    std::error_code ec;
+    if (fs::is_directory(fs::symlink_status(*it, ec)) && fs::is_empty(*it, ec) && !ec &&
+        fs::remove(*it, ec))
+      ++removed;
+  }
+  g_created.clear();
+  return removed;
 }
 
 void RemoveStaleOutput(const fs::path& path) {

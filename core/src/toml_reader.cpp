@@ -1,12 +1,15 @@
 #include "raymatch/core/toml_reader.h"
 
 #include <cmath>
+#include <filesystem>
 #include <fstream>
 #include <sstream>
 
 namespace raymatch {
 
 toml::table ParseTomlFile(const std::string& path) {
+  std::error_code ec;
+  if (std::filesystem::is_directory(path, ec)) throw Error(FileLocation{path}, "is a folder, not a TOML file");
   std::ifstream in(path, std::ios::binary);
   if (!in) throw Error(FileLocation{path}, "cannot open file for reading");
   std::stringstream ss;

@@ -7,9 +7,11 @@
 #include <sstream>
 
 #include "raymatch/compare/focus_scan.h"
+#include "raymatch/core/image.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/toml_reader.h"
 #include "raymatch/fit/fit.h"
+#include "raymatch/simulate/geometry.h"
 #include "raymatch/simulate/scene.h"
 
 namespace raymatch::fit {
@@ -180,12 +182,65 @@ void SetSceneValue(toml::table& scene, const std::string& key, double value,
 
 namespace {
 constexpr int kMaxGridPoints = 10001;  ///< grid samples per parameter
+constexpr double kMaxDefocusUm = 1e5;   ///< |defocus| of an image, and of its bounds when fitted
 /// A grid's size for a message (the product of the axes can exceed any integer type).
 std::string GridCount(double n) {
   char buf[32];
   std::snprintf(buf, sizeof buf, n < 1e15 ? "%.0f" : "%.3g", n);
   return buf;
 }
+/// Refuses an experimental image that cannot hold a brightfield experiment (issue 25): no light
+/// at all (a camera that did not fire), a flat level far from the photon count the scene or fit
+/// file declares (a wrong gain, dark frame or exposure), or mostly saturated pixels. Each message
+/// names the fit file's [[image]] entry and the image file and says what is wrong.
+void CheckExperimentImage(const FitImage& fi, double expected_photons_per_pixel,
+                          const std::string& expected_from) {
+  const Image& im = fi.photons;
+  if (im.empty()) throw Error(fi.where, "image " + fi.file + " has no pixels");
+  double max = -1e300, sum = 0;
+  for (float v : im.pixels) {
+    max = std::max(max, double(v));
+    sum += v;
+  }
+  if (!(max > 0))
+    throw Error(fi.where, "image " + fi.file + " has no signal: every pixel is " +
+                              (max == 0 ? "0" : "0 or below") +
+                              " photons after dark subtraction (did the camera fire and the lamp "
+                              "light? is the dark frame given as the image?)");
+  size_t at_max = 0;
+  for (float v : im.pixels) at_max += double(v) >= max * (1 - 1e-6);
+  const double saturated = double(at_max) / double(im.size());
+  if (saturated > 0.5) {
+    char buf[64];
+    std::snprintf(buf, sizeof buf, "%.0f %% of its pixels sit at its largest value %.6g", 100 * saturated, max);
+    throw Error(fi.where, "image " + fi.file + " is mostly saturated: " + buf +
+                              "; expose it less (or check that it is a camera image, not a constant)");
+  }
+  // The flat level: mean of the border frame BorderMedian uses (robust at low counts, where the
+  // median of Poisson counts is coarse).
+  const int bw = std::max(1, std::min(im.width, im.height) / 8);
+  double border = 0;
+  size_t n = 0;
+  for (int y = 0; y < im.height; ++y)
+    for (int x = 0; x < im.width; ++x)
+      if (x < bw || y < bw || x >= im.width - bw || y >= im.height - bw) border += im.at(x, y), ++n;
+  border /= double(std::max<size_t>(n, 1));
+  if (!(border > 0))
+    throw Error(fi.where, "image " + fi.file + " has no light around the object: the mean of its border "
+                              "pixels is " + std::to_string(border) +
+                              " photons (a brightfield image has a lit background; check the dark frame)");
+  constexpr double kLevelFactor = 3;
+  if (expected_photons_per_pixel > 0 &&
+      (border > kLevelFactor * expected_photons_per_pixel || border * kLevelFactor < expected_photons_per_pixel)) {
+    char buf[160];
+    std::snprintf(buf, sizeof buf, "its flat level (mean of the border pixels) is %.4g photons per pixel, "
+                  "%.3g times the %.4g", border, border / expected_photons_per_pixel, expected_photons_per_pixel);
+    throw Error(fi.where, "image " + fi.file + " does not match the experiment's photon count: " + buf +
+                              " of " + expected_from + " (more than a factor 3 apart); check gain_e_per_dn, "
+                              "the dark frame and the exposure, or correct photons_per_pixel");
+  }
+}
+
 }  // namespace
 
 FitSpec LoadFitSpec(const std::string& path) { return LoadFitSpec(path, ""); }
@@ -201,6 +256,9 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     r.String("scene", "");
   } else {
     f.scene_file = ResolvePath(path, r.String("scene"));
+    if (!fs::is_regular_file(f.scene_file))
+      r.Fail("scene", (fs::is_directory(f.scene_file) ? "is a folder, not a scene file: " : "scene file not found: ") +
+                          f.scene_file);
   }
   f.scene = ParseTomlFile(f.scene_file);
   if (!calibration_override.empty()) {
@@ -211,6 +269,12 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
   }
   if (!f.calibration_file.empty()) f.scene.insert_or_assign("calibration", f.calibration_file);
   const simulate::Scene scene = simulate::LoadScene(f.scene, f.scene_file);  // checks it
+  // Mesh files are read when a simulator is built: check them now (the meshes are cached, so
+  // the fit reads each file once), before anything runs or is written.
+  if (std::any_of(scene.objects.begin(), scene.objects.end(),
+                  [](const simulate::ObjectSpec& o) { return o.shape == simulate::ShapeType::kMesh; })) {
+    const simulate::Geometry check(scene.objects);
+  }
   f.seed = static_cast<uint64_t>(r.Integer("seed", 1, 0, INT64_MAX));
   const std::string m = r.Choice("method", {"grid", "pattern", "lm"}, "lm");
   f.method = m == "grid" ? Method::kGrid : m == "pattern" ? Method::kPattern : Method::kLevenbergMarquardt;
@@ -228,6 +292,8 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     fi.where = im.Where();
     fi.file = ResolvePath(path, im.String("file"));
     fi.defocus_um = im.Number("defocus_um");
+    if (!(std::abs(fi.defocus_um) <= kMaxDefocusUm))
+      im.Fail("defocus_um", "expected a focus position within +-1e5 um (10 cm)");
     if (im.Has("dark")) fi.dark_file = ResolvePath(path, im.String("dark"));
     fi.gain_e_per_dn = im.Positive("gain_e_per_dn", 1.0);
     im.Finish();
@@ -241,7 +307,12 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     compare::PrepareOptions prep;
     prep.dark_file = fi.dark_file;
     prep.gain_e_per_dn = fi.gain_e_per_dn;
-    fi.photons = compare::PrepareExperiment(raw, prep, dark.empty() ? nullptr : &dark, nullptr);
+    try {
+      fi.photons = compare::PrepareExperiment(raw, prep, dark.empty() ? nullptr : &dark, nullptr);
+    } catch (const Error& err) {  // e.g. a dark frame of another size: name both files
+      throw Error(fi.where, "image " + fi.file + (fi.dark_file.empty() ? "" : " with dark frame " + fi.dark_file) +
+                                ": " + err.message());
+    }
     if (fi.photons.width != scene.camera.nx || fi.photons.height != scene.camera.ny)
       throw Error(fi.where, "image " + fi.file + " is " + std::to_string(fi.photons.width) + " x " +
                                 std::to_string(fi.photons.height) + " pixels; the scene's camera has " +
@@ -264,6 +335,8 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
           segs[1].index || *segs[0].index >= f.images.size())
         p.Fail("key", "image keys are image[i].defocus_um with i < " + std::to_string(f.images.size()));
       current = f.images[*segs[0].index].defocus_um;
+      if (!(std::abs(p.Number("lower")) <= kMaxDefocusUm && std::abs(p.Number("upper")) <= kMaxDefocusUm))
+        p.Fail("lower", "focus positions lie within +-1e5 um (10 cm)");
     } else {
       try {
         current = SceneValue(f.scene, q.key, f.scene_file);
@@ -336,6 +409,12 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     u.Finish();
   }
   r.Finish();
+  // The images against the scene's photon count ([trace] photons_per_pixel, or signal x
+  // well_capacity). A fit file's [rays] photons_per_pixel replaces it as the count the fit traces
+  // for (some fits trace more rays than the experiment had photons): then only the checks that
+  // need no photon count apply.
+  const double expected = f.rays.photons_per_pixel > 0 ? 0 : scene.trace.photons_per_pixel;
+  for (const FitImage& fi : f.images) CheckExperimentImage(fi, expected, f.scene_file + " [trace]");
   return f;
 }
 

@@ -3,9 +3,12 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <exception>
 #include <filesystem>
+#include <unistd.h>
 #include <fstream>
 #include <iostream>
+#include <optional>
 #include <sstream>
 
 #include <nlohmann/json.hpp>
@@ -22,6 +25,7 @@
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/provenance.h"
 #include "raymatch/core/toml_reader.h"
+#include "raymatch/simulate/geometry.h"
 #include "raymatch/simulate/scan.h"
 #include "raymatch/simulate/scene.h"
 
@@ -97,10 +101,14 @@ compare::PrepareOptions Preparation(const std::string& dark_file, double gain) {
 
 /// An experimental image in photons (dark-subtracted, times the gain), as compare-scan
 /// prepares it.
-Image Prepared(const Image& raw, const compare::PrepareOptions& p) {
+Image Prepared(const Image& raw, const compare::PrepareOptions& p, const std::string& file) {
   Image dark;
   if (!p.dark_file.empty()) dark = ReadImage(p.dark_file);
-  return compare::PrepareExperiment(raw, p, dark.empty() ? nullptr : &dark, nullptr);
+  try {
+    return compare::PrepareExperiment(raw, p, dark.empty() ? nullptr : &dark, nullptr);
+  } catch (const Error& e) {  // e.g. a dark frame of another size: name both files
+    throw Error(FileLocation{file}, (p.dark_file.empty() ? "" : "with dark frame " + p.dark_file + ": ") + e.message());
+  }
 }
 
 }  // namespace
@@ -161,12 +169,98 @@ bool Reusable(const fs::path& stamp, const std::string& inputs, const std::vecto
 
 std::string Img(const std::string& png, const std::string& alt = "") { return EmbeddedPng(png, alt); }
 
+/// The mesh object's mesh, read and checked as the simulation will use it (closed, finite,
+/// usable triangles), before anything is written.
+void CheckMeshFile(const MeshObjectMetadata& m, const std::string& folder) {
+  simulate::ObjectSpec o;
+  o.shape = simulate::ShapeType::kMesh;
+  o.mesh_file = m.mesh;
+  o.where = FileLocation{(fs::path(folder) / "metadata.toml").string()};
+  if (!fs::is_regular_file(m.mesh)) throw Error(o.where, "mesh file not found: " + m.mesh);
+  const simulate::Geometry check({o});
+}
+
+/// The fit files, read and checked before the calibration exists: each is loaded as the fit
+/// will load it (scene, images, keys, bounds, the images' light) with a stand-in calibration
+/// that has the light-field folder's optics and a uniform light field, in a scratch folder.
+void CheckFitFiles(const std::vector<std::string>& fits, const calibrate::LightFieldInput& lf) {
+  if (fits.empty()) return;
+  CalibrationData d;
+  d.objective_focal_mm = lf.optics.objective_focal_mm;
+  d.working_distance_mm = lf.optics.working_distance_mm;
+  d.na = lf.optics.na;
+  d.tube_focal_mm = lf.optics.tube_focal_mm;
+  d.pixel_pitch_um = lf.camera.pixel_pitch_um;
+  d.wavelength_um = lf.optics.wavelength_um;
+  d.angular_map = Image(8, 8, 1.f);
+  d.angular_extent = std::clamp(lf.optics.acceptance_sin(), 0.05, 0.95);
+  std::error_code ec;
+  const fs::path scratch = fs::temp_directory_path(ec) /
+                           ("raymatch-run-check-" + std::to_string(::getpid()));
+  fs::create_directories(scratch, ec);
+  if (ec) return;  // no scratch space: the fits are checked when they run
+  struct Cleanup {
+    fs::path dir;
+    ~Cleanup() {
+      std::error_code e;
+      fs::remove_all(dir, e);
+    }
+  } cleanup{scratch};
+  const std::string cal = (scratch / "calibration.toml").string();
+  WriteCalibrationFile(cal, d);
+  for (const std::string& file : fits) fit::LoadFitSpec(file, "", cal);
+}
+
+/// A string field of a JSON report this command wrote earlier (a reused step's summary): any
+/// damage is an error naming the file and the field, never a JSON library exception.
+std::string ReportField(const fs::path& file, const std::string& field) {
+  std::ifstream in(file);
+  nlohmann::json j;
+  try {
+    j = nlohmann::json::parse(in);
+  } catch (const std::exception& e) {
+    throw Error(FileLocation{file.string()}, std::string("not valid JSON (") + e.what() +
+                                                 "); delete it or run with --force to recompute the step");
+  }
+  if (!j.is_object() || !j.contains(field) || !j[field].is_string())
+    throw Error(FileLocation{file.string()}, "field '" + field + "' is missing or not a string; delete the "
+                                             "file or run with --force to recompute the step");
+  return j[field].get<std::string>();
+}
+
 }  // namespace
 
 PipelineSummary RunPipeline(const PipelineOptions& opt) {
   using clock = std::chrono::steady_clock;
   const PipelineFile cfg = ReadPipelineFile(opt.pipeline_file);
   const fs::path out = opt.output_dir.empty() ? fs::path(cfg.output) : fs::path(opt.output_dir);
+  // Every input is read and checked before the output folder is made (issue 25): a refused
+  // input leaves no folder and no file.
+  const calibrate::LightFieldInput lf_in = calibrate::ReadLightFieldInput(cfg.lightfield);
+  const calibrate::FlatFieldInput ff_in = calibrate::ReadFlatFieldInput(cfg.flatfield);
+  const ExperimentMetadata ex = ReadExperimentMetadata(cfg.experiment);
+  const compare::Stack exp = compare::ReadStack(ex.scan_csv);
+  const compare::PrepareOptions prep = Preparation(ex.dark, ex.gain);
+  const Image mid = Prepared(exp.images[exp.images.size() / 2], prep, exp.files[exp.files.size() / 2]);
+  std::optional<MeshObjectMetadata> mesh_meta;
+  Image mesh_image;
+  if (!cfg.merging.empty()) {
+    mesh_meta = ReadMeshObjectMetadata(cfg.merging);
+    mesh_image = Prepared(ReadImage(mesh_meta->image), Preparation(mesh_meta->dark, mesh_meta->gain), mesh_meta->image);
+    CheckMeshFile(*mesh_meta, cfg.merging);
+  }
+  CheckFitFiles(cfg.fits, lf_in);
+  // A run that fails later (an input that only the calibration or the simulation can judge)
+  // removes the output folder again when it made it: all in it would be this failed run's.
+  struct RemoveIfFailed {
+    fs::path dir;
+    bool armed;
+    int exceptions = std::uncaught_exceptions();
+    ~RemoveIfFailed() {
+      std::error_code ec;
+      if (armed && std::uncaught_exceptions() > exceptions) fs::remove_all(dir, ec);
+    }
+  } remove_if_failed{out, !fs::exists(out)};
   EnsureDirectory(out);
   PipelineSummary sum;
   // index.html describes one complete run: removed now, written last, so that an interrupted
@@ -184,7 +278,6 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
 
   // 1. Calibration.
   const fs::path cal_file = out / "calibration.toml";
-  const calibrate::LightFieldInput lf_in = calibrate::ReadLightFieldInput(cfg.lightfield);
   const std::string cal_inputs =
       FolderStamp(cfg.lightfield) + "|" + FolderStamp(cfg.flatfield) + "|" +
       (lf_in.flat.empty() ? "" : FileChecksum(lf_in.flat)) + "|" + std::to_string(cfg.extrapolate_to_deg) +
@@ -195,10 +288,8 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   if (!opt.force && Reusable(out / ".calibration.stamp", cal_inputs, {cal_file, cal_report})) {
     say("calibration inputs unchanged: reusing " + cal_file.string());
     cal = ReadCalibrationFile(cal_file.string());
-    std::ifstream rin(cal_report);
-    const nlohmann::json rj = nlohmann::json::parse(rin);
-    lf_report = rj.at("light_field").get<std::string>();
-    co_report = rj.at("corrector").get<std::string>();
+    lf_report = ReportField(cal_report, "light_field");
+    co_report = ReportField(cal_report, "corrector");
     sum.reused.push_back("calibrate");
   } else {
     // A step's stamp goes before it rewrites its outputs and comes back after the last one, so an
@@ -214,7 +305,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
       copt.zones = cfg.zones;
       copt.smoothness = cfg.smoothness;
       const calibrate::CorrectorSummary co =
-          calibrate::CalibrateCorrector(calibrate::ReadFlatFieldInput(cfg.flatfield), copt, &lf.data);
+          calibrate::CalibrateCorrector(ff_in, copt, &lf.data);
       for (const auto& w : lf.warnings) std::cerr << "raymatch run: warning: " << w << "\n";
       for (const auto& w : co.warnings) std::cerr << "raymatch run: warning: " << w << "\n";
       WriteCalibrationFile(cal_file.string(), co.data);
@@ -231,10 +322,6 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
 
   // 2. Scene for the experiment: nominal drop, the experiment's image size and planes, the
   // exposure recovered from the background of the middle plane.
-  const ExperimentMetadata ex = ReadExperimentMetadata(cfg.experiment);
-  const compare::Stack exp = compare::ReadStack(ex.scan_csv);
-  const compare::PrepareOptions prep = Preparation(ex.dark, ex.gain);
-  const Image mid = Prepared(exp.images[exp.images.size() / 2], prep);
   sum.photons_per_pixel = BorderMedian(mid);
   const double frac = opt.ray_fraction > 0 ? opt.ray_fraction : cfg.ray_fraction;
   std::ostringstream sc;
@@ -296,12 +383,12 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   if (!cfg.merging.empty()) {
     timed("mesh object", [&] {
       say("simulating the mesh object (" + cfg.merging + ")");
-      const MeshObjectMetadata mm = ReadMeshObjectMetadata(cfg.merging);
+      const MeshObjectMetadata& mm = *mesh_meta;
       const std::string& image = mm.image;
       const std::string& mesh = mm.mesh;
       const double dz = mm.defocus_um;
       const auto& rot = mm.rotation_deg;
-      const Image e = Prepared(ReadImage(image), Preparation(mm.dark, mm.gain));
+      const Image& e = mesh_image;
       std::ostringstream ms;
       ms.precision(10);
       ms << "name = \"mesh_object\"\ncalibration = \"calibration.toml\"\nseed = " << cfg.seed

@@ -13,9 +13,22 @@
 #include <memory>
 #include <mutex>
 #include <sstream>
+#include <stdexcept>
 
 #include "raymatch/core/error.h"
 #include "raymatch/simulate/shapes.h"
+
+// Debian's Assimp 5.2 is built with its internal assertions on, and a failed one calls abort():
+// a corrupt ASCII PLY whose face lines run into other text aborted inside the post-processing
+// (found by scripts/fuzz.sh mesh). This definition takes the place of the library's (the
+// executable's symbol interposes on the shared library's) and turns the assertion into an
+// error, which LocalMesh reports naming the mesh file.
+namespace Assimp {
+void aiAssertViolation(const char* expression, const char* file, int line) {
+  throw std::runtime_error(std::string("Assimp's internal check '") + (expression ? expression : "?") +
+                           "' failed (" + (file ? file : "?") + ":" + std::to_string(line) + ")");
+}
+}  // namespace Assimp
 
 namespace raymatch::simulate {
 
@@ -51,8 +64,24 @@ void CheckMeshFileSizes(const ObjectSpec& o) {
     in.seekg(0);
     std::string line;
     uintmax_t declared = 0;
+    bool ended = false;
     for (int k = 0; k < 10000 && std::getline(in, line); ++k) {
-      if (line.rfind("end_header", 0) == 0) break;
+      if (line.rfind("end_header", 0) == 0) {
+        ended = true;
+        break;
+      }
+      // Only the header's keywords: Assimp 5.2's PLY reader looped forever on a header line it
+      // did not know ("propert", found by scripts/fuzz.sh mesh).
+      std::istringstream ws(line);
+      std::string first;
+      ws >> first;
+      if (first.empty() && k > 0) continue;  // a blank line
+      if (k == 0 ? first != "ply"
+                 : first != "format" && first != "comment" && first != "obj_info" && first != "element" &&
+                       first != "property")
+        throw Error(o.where, "mesh '" + o.mesh_file + "': PLY header line " + std::to_string(k + 1) +
+                                 " is not a PLY header line (ply, format, comment, obj_info, element, "
+                                 "property, end_header)");
       std::istringstream ls(line);
       std::string word, name;
       uintmax_t count = 0;
@@ -64,6 +93,8 @@ void CheckMeshFileSizes(const ObjectSpec& o) {
                                    " bytes; truncated or corrupt");
       }
     }
+    if (!ended)
+      throw Error(o.where, "mesh '" + o.mesh_file + "': the PLY header has no end_header line");
   } else if (got == 84 && std::string(head, 5) != "solid" && IsStlFile(o.mesh_file)) {
     uint32_t triangles;
     std::memcpy(&triangles, head + 80, 4);  // binary STL: little-endian count after the header
@@ -79,9 +110,38 @@ TriangleMesh LocalMesh(const ObjectSpec& o) {
   if (o.mesh) return *o.mesh;
   CheckMeshFileSizes(o);
   Assimp::Importer importer;
-  const aiScene* sc = importer.ReadFile(
-      o.mesh_file, aiProcess_Triangulate | aiProcess_JoinIdenticalVertices |
-                       aiProcess_PreTransformVertices);
+  // Read first, check every face's vertex indices, and only then post-process: Assimp's steps
+  // (triangulation, joining vertices) index vertices without checking, and a corrupt file (a
+  // binary PLY naming vertex 2^24) crashed inside them (found by scripts/fuzz.sh mesh).
+  const aiScene* sc = nullptr;
+  try {
+    sc = importer.ReadFile(o.mesh_file, 0);
+  } catch (const std::exception& e) {  // an Assimp assertion (above)
+    throw Error(o.where, "cannot read mesh '" + o.mesh_file + "': " + e.what() + "; corrupt file");
+  }
+  if (!sc || !sc->mNumMeshes)
+    throw Error(o.where, "cannot read mesh '" + o.mesh_file + "': " + importer.GetErrorString());
+  for (unsigned k = 0; k < sc->mNumMeshes; ++k) {
+    const aiMesh* mesh = sc->mMeshes[k];
+    if (!mesh || (mesh->mNumVertices && !mesh->mVertices) || (mesh->mNumFaces && !mesh->mFaces))
+      throw Error(o.where, "mesh '" + o.mesh_file + "': a mesh without vertex or face data; truncated or corrupt");
+    for (unsigned f = 0; f < mesh->mNumFaces; ++f) {
+      const aiFace& face = mesh->mFaces[f];
+      if (face.mNumIndices && !face.mIndices)
+        throw Error(o.where, "mesh '" + o.mesh_file + "': face " + std::to_string(f + 1) + " has no indices");
+      for (unsigned i = 0; i < face.mNumIndices; ++i)
+        if (face.mIndices[i] >= mesh->mNumVertices)
+          throw Error(o.where, "mesh '" + o.mesh_file + "': face " + std::to_string(f + 1) +
+                                   " names vertex " + std::to_string(face.mIndices[i] + 1) + " of " +
+                                   std::to_string(mesh->mNumVertices) + "; truncated or corrupt");
+    }
+  }
+  try {
+    sc = importer.ApplyPostProcessing(aiProcess_Triangulate | aiProcess_JoinIdenticalVertices |
+                                      aiProcess_PreTransformVertices);
+  } catch (const std::exception& e) {  // an Assimp assertion (above)
+    throw Error(o.where, "cannot read mesh '" + o.mesh_file + "': " + e.what() + "; corrupt file");
+  }
   if (!sc || !sc->mNumMeshes)
     throw Error(o.where, "cannot read mesh '" + o.mesh_file + "': " + importer.GetErrorString());
   TriangleMesh m;
@@ -96,6 +156,11 @@ TriangleMesh LocalMesh(const ObjectSpec& o) {
     }
     for (unsigned f = 0; f < mesh->mNumFaces; ++f) {
       const aiFace& face = mesh->mFaces[f];
+      for (unsigned k = 0; k < face.mNumIndices; ++k)
+        if (face.mIndices[k] >= mesh->mNumVertices)
+          throw Error(o.where, "mesh '" + o.mesh_file + "': face " + std::to_string(f + 1) +
+                                   " names vertex " + std::to_string(face.mIndices[k] + 1) + " of " +
+                                   std::to_string(mesh->mNumVertices) + "; truncated or corrupt");
       if (face.mNumIndices == 3)
         m.triangles.push_back({base + face.mIndices[0], base + face.mIndices[1],
                                base + face.mIndices[2]});
@@ -162,6 +227,9 @@ void LoadMesh(const ObjectSpec& o, std::vector<float>* verts, std::vector<unsign
   const Mat3 rot = RotationFromEulerDeg(o.rotation_deg.x, o.rotation_deg.y, o.rotation_deg.z);
   for (const Vec3& v : m.vertices) {
     const Vec3 p = rot * v + o.center_um;
+    // Embree holds vertices in float: a coordinate beyond its range would become Inf.
+    if (!(std::abs(p.x) < 1e30 && std::abs(p.y) < 1e30 && std::abs(p.z) < 1e30))
+      throw Error(o.where, what + " has a vertex beyond 1e30 um after scaling and placing; check scale_um");
     verts->insert(verts->end(), {float(p.x), float(p.y), float(p.z)});
   }
   for (const auto& t : m.triangles) idx->insert(idx->end(), {t[0], t[1], t[2]});

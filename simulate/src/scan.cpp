@@ -136,8 +136,10 @@ void CheckPlanePositions(const Scene& scene) {
 ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
   const auto t0 = std::chrono::steady_clock::now();
   CheckPlanePositions(scene);
-  EnsureDirectory(opt.output_dir);
+  // Every input (meshes, index fields, ray lists, the calibration) is read and checked while the
+  // simulator is built, before the output folder is made: a refused input leaves no folder.
   Simulator sim(scene);
+  EnsureDirectory(opt.output_dir);
   ScanSummary sum;
   sum.index_json = (fs::path(opt.output_dir) / (scene.name + "_scan.json")).string();
   sum.index_csv = (fs::path(opt.output_dir) / (scene.name + "_scan.csv")).string();

@@ -214,6 +214,25 @@ TEST(LightField, BadInputs) {
   bool warned = false;
   for (const auto& w : s.warnings) warned |= w.find("does not scale with dz") != std::string::npos;
   EXPECT_TRUE(warned) << s.BriefReport();
+  // Found by scripts/mutate-fit-pipeline.py (issue 25): a tube lens of 9e18 mm was accepted and
+  // failed only when `run` traced the calibrated scene, naming that scene.
+  testing::TempDir far;
+  WriteFolder(far, 15, {20, 30});
+  std::ifstream fin(far / "metadata.toml");
+  std::stringstream fs;
+  fs << fin.rdbuf();
+  std::string ft = fs.str();
+  const size_t at = ft.find("tube_focal_mm = ");
+  ASSERT_NE(at, std::string::npos) << ft;
+  ft.replace(at, ft.find('\n', at) - at, "tube_focal_mm = 9223372036854775807");
+  std::ofstream(far / "metadata.toml") << ft;
+  try {
+    ReadLightFieldInput(far.path().string());
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("metadata.toml:"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("tube_focal_mm"), std::string::npos) << e.what();
+  }
 }
 
 TEST(LightField, SaturationIsReportedAndSizesMustMatch) {

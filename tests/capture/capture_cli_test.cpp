@@ -312,5 +312,25 @@ TEST(CaptureCli, InterruptLeavesCompleteFramesOnly) {
   EXPECT_LT(frames, 400);
 }
 
+// Issue 25, defect 3 for `capture`: the simulated camera's objects (here an open mesh) are
+// built when the camera opens, before `capture frames` makes its folder (it was left empty).
+TEST(CaptureCli, UnusableMeshLeavesNoOutputFolder) {
+  testing::TempDir dir;
+  dir.Write("bad.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\n");
+  std::string text = kSimScene;
+  text.insert(text.find("[objective]"), "[[object]]\ntype = \"mesh\"\nfile = \"bad.obj\"\nscale_um = 10\n"
+                                        "material = \"water\"\n");
+  const std::string scene = dir.Write("cam.toml", text);
+  const auto r = Raymatch("capture frames --camera sim:" + scene + " --exposure-us 1000 -o " + dir / "out/a.tif", dir);
+  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_NE(r.err.find("bad.obj"), std::string::npos) << r.err;
+  EXPECT_FALSE(std::filesystem::exists(dir / "out")) << r.err;
+  // The control: with a closed mesh the same command writes its frame.
+  dir.Write("bad.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\n");
+  const auto ok = Raymatch("capture frames --camera sim:" + scene + " --exposure-us 1000 -o " + dir / "out/a.tif", dir);
+  EXPECT_EQ(ok.code, 0) << ok.err;
+  EXPECT_TRUE(std::filesystem::exists(dir / "out/a.tif"));
+}
+
 }  // namespace
 }  // namespace raymatch

@@ -173,11 +173,85 @@ TEST(FocusScan, BadStacks) {
   EXPECT_EQ(KindOf([&] { ReadStack(dir.Write("s.csv", "0,a.tif\n5,small.tif\n")); }),
             FailureKind::kSizeMismatch);
   EXPECT_EQ(KindOf([&] { ReadStack(dir.Write("bad.csv", "0,a.tif\nfive,a.tif\n")); }),
-            FailureKind::kInvalidInput);
+            FailureKind::kFileError);
   const Stack a = ReadStack(dir.Write("ok.csv", "defocus_um,file\n0,a.tif\n"));
   const Stack b = ReadStack(dir.Write("ok2.csv", "0,small.tif\n"));
   EXPECT_EQ(KindOf([&] { RunFocusScan(a, b, {}); }), FailureKind::kSizeMismatch);
   EXPECT_EQ(KindOf([&] { RunFocusScan(a, Stack{}, {}); }), FailureKind::kInvalidInput);
+}
+
+// The message of the CompareError `f` throws (empty, and a test failure, when none).
+std::pair<FailureKind, std::string> ErrorOf(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const CompareError& e) {
+    return {e.kind(), e.what()};
+  } catch (const std::exception& e) {
+    ADD_FAILURE() << "not a CompareError: " << e.what();
+    return {FailureKind::kInvalidInput, e.what()};
+  }
+  ADD_FAILURE() << "no error";
+  return {FailureKind::kInvalidInput, ""};
+}
+
+// Issue 25, defect 1: every field of a JSON stack index is type-checked; a wrong type is a file
+// error naming the file and the field (it was an uncaught nlohmann::json::type_error).
+TEST(FocusScan, JsonIndexFieldsAreTypeChecked) {
+  testing::TempDir dir;
+  WriteFloatImage(dir / "a.tif", Plane(0), "");
+  struct Case {
+    const char* json;
+    const char* field;
+  };
+  const Case cases[] = {
+      {R"({"planes": [{"defocus_um": "0", "image": "a.tif"}]})", "planes[0].defocus_um"},
+      {R"({"planes": [{"defocus_um": 0, "image": "a.tif"}, {"defocus_um": null, "image": "a.tif"}]})",
+       "planes[1].defocus_um"},
+      {R"({"planes": [{"defocus_um": [0], "image": "a.tif"}]})", "planes[0].defocus_um"},
+      {R"({"planes": [{"defocus_um": 0, "image": 7}]})", "planes[0].image"},
+      {R"({"planes": [{"defocus_um": 0, "image": ""}]})", "planes[0].image"},
+      {R"({"planes": [{"defocus_um": 0}]})", "planes[0].image"},
+      {R"({"planes": [{"image": "a.tif"}]})", "planes[0].defocus_um"},
+      {R"({"planes": [3]})", "planes[0]"},
+      {R"({"planes": {"defocus_um": 0}})", "planes"},
+      {R"([1, 2])", "planes"},
+      {R"("planes")", "planes"},
+      {R"({"planes": [{"defocus_um": 0, "image": "a.tif"})", "not valid JSON"},
+  };
+  int i = 0;
+  for (const Case& c : cases) {
+    const std::string file = dir.Write("i" + std::to_string(i++) + ".json", c.json);
+    const auto [kind, what] = ErrorOf([&] { ReadStack(file); });
+    EXPECT_EQ(kind, FailureKind::kFileError) << c.json;
+    EXPECT_NE(what.find(file), std::string::npos) << what;
+    EXPECT_NE(what.find(c.field), std::string::npos) << c.json << " -> " << what;
+  }
+  const Stack ok = ReadStack(dir.Write("ok.json", R"({"planes": [{"defocus_um": -2.5, "image": "a.tif"}]})"));
+  ASSERT_EQ(ok.defocus_um.size(), 1u);
+  EXPECT_EQ(ok.defocus_um[0], -2.5);
+}
+
+// Issue 25, defect 2: a CSV index's defocus must be a finite number, the whole field; nan, inf,
+// '5um' or an empty field is a file error naming the file and line.
+TEST(FocusScan, CsvIndexDefocusMustBeAFiniteNumber) {
+  testing::TempDir dir;
+  WriteFloatImage(dir / "a.tif", Plane(0), "");
+  for (const char* z : {"nan", "NaN", "inf", "-inf", "1e999", "5um", "5 6", " ", "0x"}) {
+    const std::string file = dir.Write("z.csv", std::string("defocus_um,file\n0,a.tif\n") + z + ",a.tif\n");
+    const auto [kind, what] = ErrorOf([&] { ReadStack(file); });
+    EXPECT_EQ(kind, FailureKind::kFileError) << z;
+    EXPECT_NE(what.find(file + ":3:"), std::string::npos) << z << " -> " << what;
+  }
+  // A first line that is not a header but a NaN plane is not skipped as a header.
+  const std::string first = dir.Write("first.csv", "nan,a.tif\n0,a.tif\n");
+  const auto [kind, what] = ErrorOf([&] { ReadStack(first); });
+  EXPECT_EQ(kind, FailureKind::kFileError);
+  EXPECT_NE(what.find(first + ":1:"), std::string::npos) << what;
+  EXPECT_EQ(KindOf([&] { ReadStack(dir.Write("nofile.csv", "0,\n")); }), FailureKind::kFileError);
+  // Spaces and CRLF line ends are fine.
+  const Stack ok = ReadStack(dir.Write("ok.csv", "defocus_um,file\r\n 2.5 ,a.tif\r\n"));
+  ASSERT_EQ(ok.defocus_um.size(), 1u);
+  EXPECT_EQ(ok.defocus_um[0], 2.5);
 }
 
 }  // namespace

@@ -160,5 +160,26 @@ TEST(AtomicFile, TemporariesAreUnregisteredAfterCommitAndFailure) {
     EXPECT_EQ(e.path().filename().string().find(".partial-"), std::string::npos) << e.path();
 }
 
+// Issue 25: a command that fails removes the output folders it made while they are still empty
+// (EnsureDirectory records them), innermost first; folders that existed or hold a file stay.
+TEST(AtomicFile, CreatedFoldersAreRemovedWhileEmpty) {
+  testing::TempDir dir;
+  RemoveCreatedEmptyDirectories();  // forget folders earlier tests made
+  namespace fs = std::filesystem;
+  fs::create_directories(dir / "old");
+  EnsureDirectory(dir / "old/a/b/c/");
+  EnsureDirectory(dir / "new/x");
+  EnsureDirectory(dir / "kept/y");
+  WriteTextFileAtomic(dir / "kept/y/file.txt", "x");
+  EnsureDirectory(dir / "old");  // existed: not recorded
+  EXPECT_EQ(RemoveCreatedEmptyDirectories(), 5);  // old/a/b/c, old/a/b, old/a, new/x, new
+  EXPECT_TRUE(fs::is_directory(dir / "old"));
+  EXPECT_FALSE(fs::exists(dir / "old/a"));
+  EXPECT_FALSE(fs::exists(dir / "new"));
+  EXPECT_TRUE(fs::exists(dir / "kept/y/file.txt"));
+  EXPECT_EQ(RemoveCreatedEmptyDirectories(), 0);  // forgotten once done
+  EXPECT_TRUE(fs::is_directory(dir.path()));
+}
+
 }  // namespace
 }  // namespace raymatch

@@ -18,6 +18,22 @@
 namespace raymatch::fit {
 namespace {
 
+// Under AddressSanitizer (the `sanitize` preset, -O1; scripts/check-sanitizers.sh) tracing is
+// tens of times slower and this suite did not finish in 25 minutes: there the fits below trace a
+// quarter of the photons. Every check stays; the tolerances are in units of each fit's own
+// reported sigma (which grows accordingly) or in grid steps.
+#if defined(__SANITIZE_ADDRESS__)
+constexpr double kPhotonScale = 0.25;
+#elif defined(__has_feature)
+#if __has_feature(address_sanitizer)
+constexpr double kPhotonScale = 0.25;
+#else
+constexpr double kPhotonScale = 1;
+#endif
+#else
+constexpr double kPhotonScale = 1;
+#endif
+
 // A 46 um water-like drop under a 27 deg cone, imaged with 1 um pixels at the object.
 std::string SceneText(double x, double y, double z, double r, double n, double ppp, int seed,
                       int nx = 64, int ny = 56) {
@@ -120,6 +136,82 @@ TEST_F(FitFile, BadKeysAndBoundsNameTheFileLineAndKey) {
   EXPECT_NE(twice.find("twice"), std::string::npos) << twice;
 }
 
+// Issue 25, defect 4: an experiment with no light was fitted ("converged", the radius at its
+// bound). Images without signal, at a flat level far from the photon count the fit traces for,
+// or mostly saturated are refused naming the [[image]] entry, the file and what is wrong.
+TEST_F(FitFile, ImagesWithoutUsableLightAreRefused) {
+  const std::string param = "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n";
+  const Image good = ReadImage(exp_);
+  EXPECT_EQ(ErrorOf(Fit(param)), "no error");  // the traced experiment at 20 photons per pixel
+  auto with_image = [&](const Image& im, const std::string& extra = "") {
+    WriteFloatImage(exp_, im, "");
+    return ErrorOf(Fit(param, extra));
+  };
+  const std::string zero = with_image(Image(good.width, good.height, 0.f));
+  EXPECT_NE(zero.find("fit.toml:"), std::string::npos) << zero;
+  EXPECT_NE(zero.find("exp.tif has no signal"), std::string::npos) << zero;
+  Image scaled = good;
+  for (float& v : scaled.pixels) v *= 10;
+  const std::string bright = with_image(scaled);
+  EXPECT_NE(bright.find("photon count"), std::string::npos) << bright;
+  EXPECT_NE(bright.find("model.toml [trace]"), std::string::npos) << bright;
+  for (float& v : scaled.pixels) v /= 100;
+  EXPECT_NE(with_image(scaled).find("photon count"), std::string::npos);
+  // [rays] photons_per_pixel replaces the scene's count as the one the fit traces for (a fit may
+  // trace more rays than the experiment had photons): no level check then.
+  EXPECT_EQ(with_image(good, "[rays]\nphotons_per_pixel = 200\n"), "no error");
+  EXPECT_EQ(with_image(scaled, "[rays]\nphotons_per_pixel = 2\n"), "no error");
+  Image clipped = good;
+  for (size_t i = 0; i < clipped.size(); ++i)
+    if (i % 3) clipped.pixels[i] = 4095;
+  const std::string sat = with_image(clipped);
+  EXPECT_NE(sat.find("mostly saturated"), std::string::npos) << sat;
+  Image dark_border = good;  // light in the middle only
+  for (int y = 0; y < good.height; ++y)
+    for (int x = 0; x < good.width; ++x)
+      if (x < 8 || y < 8 || x >= good.width - 8 || y >= good.height - 8) dark_border.at(x, y) = 0;
+  const std::string border = with_image(dark_border);
+  EXPECT_NE(border.find("no light around the object"), std::string::npos) << border;
+  WriteFloatImage(exp_, good, "");
+}
+
+// Found by the fit-file mutation campaign (issue 25): a dark frame of another size than its
+// image gave "error: dark frame size differs from the image" with no file named.
+TEST_F(FitFile, DarkFrameOfAnotherSizeNamesBothFiles) {
+  WriteFloatImage(dir_ / "dark.tif", Image(10, 10, 1.f), "");
+  const std::string e = ErrorOf(dir_.Write(
+      "fit.toml", "scene = \"model.toml\"\n[[image]]\nfile = \"exp.tif\"\ndark = \"dark.tif\"\ndefocus_um = -10\n"
+                  "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"));
+  EXPECT_NE(e.find("fit.toml:2:"), std::string::npos) << e;
+  EXPECT_NE(e.find("exp.tif"), std::string::npos) << e;
+  EXPECT_NE(e.find("dark.tif"), std::string::npos) << e;
+  EXPECT_NE(e.find("size"), std::string::npos) << e;
+}
+
+// Found by the mutation campaign: an image at defocus 1e300 um was refused only when the scene
+// was traced ("scene.toml: no light reaches the sensor"), naming the wrong file.
+TEST_F(FitFile, FocusPositionsBeyondTenCentimetresAreRefused) {
+  const std::string img = ErrorOf(dir_.Write("fit.toml", "scene = \"model.toml\"\n[[image]]\nfile = \"exp.tif\"\n"
+      "defocus_um = 1e300\n[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"));
+  EXPECT_NE(img.find("fit.toml:4:"), std::string::npos) << img;
+  EXPECT_NE(img.find("defocus_um"), std::string::npos) << img;
+  const std::string bounds = ErrorOf(Fit("[[parameter]]\nkey = \"image[0].defocus_um\"\nlower = -1e300\nupper = 0\n"));
+  EXPECT_NE(bounds.find("fit.toml:"), std::string::npos) << bounds;
+  EXPECT_NE(bounds.find("lower"), std::string::npos) << bounds;
+}
+
+// Found by the mutation campaign: `scene = "."` was read as an empty scene (".:1:1: error:
+// missing required key 'source'"), naming neither the fit file nor what was wrong.
+TEST_F(FitFile, SceneThatIsAFolderOrMissingIsNamed) {
+  for (const char* scene : {".", "nothere.toml"}) {
+    const std::string e = ErrorOf(dir_.Write("fit.toml", std::string("scene = \"") + scene + "\"\n[[image]]\n"
+        "file = \"exp.tif\"\ndefocus_um = -10\n[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"));
+    EXPECT_NE(e.find("fit.toml:1:"), std::string::npos) << e;
+    EXPECT_NE(e.find(std::string(scene) == "." ? "is a folder" : "not found"), std::string::npos) << e;
+  }
+  EXPECT_THROW(ParseTomlFile(dir_.path().string()), Error);
+}
+
 TEST_F(FitFile, ParameterThatDoesNotChangeTheImageIsReportedFlat) {
   // The drop sits far outside the view: moving it sideways changes no pixel.
   dir_.Write("model.toml", SceneText(400, 0, 0, 23, 1.335, 20, 1));
@@ -170,8 +262,8 @@ TEST(PoissonDeviance, ZeroAtEqualImagesAndChiSquareNearby) {
 // optimum). The full statistical study at the sample's photon count is the slow test below.
 TEST_F(FitFile, FiveParameterSphereRecoversTheTruth) {
   const double truth[5] = {1.3, -0.7, 0.8, 23, 1.33885};
-  exp_ = MakeExperiment(dir_, "exp", SceneText(1.3, -0.7, 0.8, 23, 1.33885, 400, 9), -10);
-  dir_.Write("model.toml", SceneText(0, 0, 0, 22.5, 1.335, 400, 1));
+  exp_ = MakeExperiment(dir_, "exp", SceneText(1.3, -0.7, 0.8, 23, 1.33885, 400 * kPhotonScale, 9), -10);
+  dir_.Write("model.toml", SceneText(0, 0, 0, 22.5, 1.335, 400 * kPhotonScale, 1));
   const std::string params =
       "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -3\nupper = 3\nstep = 0.2\n"
       "[[parameter]]\nkey = \"object.drop.center_um[1]\"\nlower = -3\nupper = 3\nstep = 0.2\n"
@@ -213,7 +305,7 @@ TEST(GridScan, MergingDropsDefocusAndTiltLandOnTheTruth) {
       << "[[object]]\nname = \"merge\"\ntype = \"mesh\"\nfile = \"" << mesh << "\"\nrotation_deg = [0, "
       << rot_y << ", 0]\nindex = 1.3371\n[objective]\nfocal_length_mm = 10\nna = 0.42\n"
       << "working_distance_mm = 20\n[tube_lens]\nfocal_length_mm = 200\n[camera]\npixels = [80, 56]\n"
-      << "pixel_pitch_um = 20\n[trace]\nphotons_per_pixel = 2500\n";
+      << "pixel_pitch_um = 20\n[trace]\nphotons_per_pixel = " << 2500 * kPhotonScale << "\n";
     return s.str();
   };
   MakeExperiment(dir, "exp", scene(78, 21), 6);  // truth: tilt 12 deg, defocus 6 um

@@ -15,8 +15,10 @@ foreach(f bin/raymatch include/raymatch/core/version.h include/raymatch/simulate
     message(FATAL_ERROR "not installed: ${prefix}/${f}")
   endif()
 endforeach()
+# The build's compiler flags (the sanitize preset's -fsanitize=...: its static libraries need the
+# sanitizer runtimes at link time).
 run(${CMAKE_COMMAND} -S ${SOURCE_DIR}/consumer -B ${WORK_DIR}/build -G ${GENERATOR}
-    -DCMAKE_BUILD_TYPE=Release -DCMAKE_PREFIX_PATH=${prefix})
+    -DCMAKE_BUILD_TYPE=Release -DCMAKE_PREFIX_PATH=${prefix} "-DCMAKE_CXX_FLAGS=${CXX_FLAGS}")
 run(${CMAKE_COMMAND} --build ${WORK_DIR}/build)
 run(${WORK_DIR}/build/consumer)
 message(STATUS "consumer: ${out}")
@@ -27,7 +29,7 @@ run(${prefix}/bin/raymatch --version)
 message(STATUS "installed CLI: ${out}")
 if(HAVE_PYTHON)
   # Newlines, not semicolons: a semicolon would split the CMake argument.
-  run(${CMAKE_COMMAND} -E env PYTHONPATH=${prefix}/${PYTHON_DIR} ${PYTHON} -c "import raymatch, sys
+  run(${CMAKE_COMMAND} -E env PYTHONPATH=${prefix}/${PYTHON_DIR} ${PYTHON_ENV} ${PYTHON} -c "import raymatch, sys
 print(raymatch.__version__, raymatch.__file__)
 s = raymatch.simulate(raymatch.Scene.from_dict({'camera': {'pixels': [8, 8], 'pixel_pitch_um': 20},
     'source': {'type': 'cone', 'half_angle_deg': 20}, 'objective': {'focal_length_mm': 10, 'na': 0.42,

@@ -197,6 +197,31 @@ TEST(HardCases, MeshHeadersClaimingHugeCountsAreRejected) {
   }
 }
 
+// Issue 25, found by scripts/fuzz.sh mesh (inputs in fuzz/corpus/mesh/): a PLY header line that
+// is not a PLY keyword made Assimp 5.2's reader loop forever, a binary PLY whose faces name
+// missing vertices crashed inside Assimp's post-processing, and an ASCII PLY whose faces run
+// into other text failed an assertion there (abort). All are now errors naming the file.
+TEST(HardCases, CorruptPlyFilesAreRefusedNotHungOrCrashed) {
+  const std::string corpus = std::string(RAYMATCH_SOURCE_DIR) + "/fuzz/corpus/mesh/";
+  for (const auto& [name, what] : {std::pair{"hang_unknown_ply_header_line.ply", "not a PLY header line"},
+                                   std::pair{"crash_face_index_in_postprocessing.ply", "names vertex"},
+                                   std::pair{"abort_assimp_assertion.ply", "internal check"}}) {
+    Scene s = Base();
+    ObjectSpec o;
+    o.shape = ShapeType::kMesh;
+    o.mesh_file = corpus + name;
+    o.index = 1.5;
+    s.objects = {o};
+    try {
+      Simulator sim(s);
+      ADD_FAILURE() << name << " was read";
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find(name), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find(what), std::string::npos) << e.what();
+    }
+  }
+}
+
 // A 10 um sphere with index field f (1.6 inside r = 5 um, 1.3 outside) under a 20 deg cone:
 // the image is sane, and the integrator never runs out of steps. Rays totally reflected at the
 // surface of a radially symmetric medium stay trapped forever (angular momentum is conserved):

@@ -21,8 +21,10 @@ struct Stack {
 
 /// Reads a stack index: a CSV "defocus_um,file" (header allowed) or the simulator's JSON index
 /// ({"planes": [{"defocus_um": .., "image": ..}]}). Paths are relative to the index. Throws
-/// CompareError (kFileError for missing files, kInvalidInput for empty/malformed stacks or
-/// NaN pixels, kSizeMismatch for images of different sizes within the stack).
+/// CompareError: kFileError for missing files and for an index that cannot be read as one (not
+/// JSON, a field of the wrong type, a defocus that is not a whole finite number), naming the
+/// file and the field or line; kInvalidInput for an empty stack or NaN pixels; kSizeMismatch
+/// for images of different sizes within the stack.
 Stack ReadStack(const std::string& index_path);
 
 /// Turning camera images into photon counts.

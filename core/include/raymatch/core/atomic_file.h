@@ -33,8 +33,14 @@ std::string WriteFailureHint(const std::filesystem::path& path);
 /// Writes text atomically; throws Error naming `path` when it cannot (disk full, no permission).
 void WriteTextFileAtomic(const std::filesystem::path& path, const std::string& text);
 
-/// Creates a directory (and parents); throws Error naming it on failure.
+/// Creates a directory (and parents); throws Error naming it on failure. The folders it creates
+/// are remembered for RemoveCreatedEmptyDirectories.
 void EnsureDirectory(const std::filesystem::path& dir);
+
+/// Removes every folder EnsureDirectory created in this process that is still empty (innermost
+/// first; a folder holding anything stays) and forgets them all; returns how many it removed.
+/// Commands call it when they fail, so that a refused input leaves no empty output folder.
+int RemoveCreatedEmptyDirectories() noexcept;
 
 /// Removes an output that describes a whole run (an index, a stamp) before the run rewrites
 /// what it describes, so that an interrupted run does not leave it describing a mix of old and

@@ -23,10 +23,15 @@
 #include "raymatch/simulate/interfaces.h"
 #include "raymatch/simulate/sampling.h"
 #include "packet.h"
+#include "stages-inl.h"  // the static target: the stages' one-lane instantiation
+#include "stages.h"
 
 namespace raymatch::simulate {
 
 const char* SimdTarget() { return packet::TargetName(); }
+
+namespace st = stages::HWY_NAMESPACE;
+using L1 = stages::ScalarLanes;  // one ray: the stages' scalar instantiation
 
 const char* FateName(Fate f) {
   static const char* names[] = {"detected",           "outside_na",      "missed_sensor",
@@ -82,6 +87,16 @@ constexpr double kDeg = M_PI / 180.0;
 // Each source yields a point where the ray crosses z = 0 (absent objects) and a unit direction
 // with d.z > 0; the tracer then starts it on the source plane before all objects.
 
+/// SampleUnitDisc through the shared stage: tries from the ray's stream until one lies inside.
+inline void UnitDisc(RayRng& rng, double* a, double* b) {
+  for (;;) {
+    // Two statements: the words are drawn in this order (argument order is unspecified).
+    const double ca = double(rng.NextU32()) - 0x1p31;  // the centred word, exact
+    const double cb = double(rng.NextU32()) - 0x1p31;
+    if (st::DiscTry<L1>(ca, cb, *a, *b)) return;
+  }
+}
+
 struct Field {
   FieldShape shape;
   double radius, half_w, half_h;
@@ -89,9 +104,11 @@ struct Field {
   Distribution2D map;  // optional spatial map over the rectangle
   Vec3 Sample(RayRng& rng) const {
     if (shape == FieldShape::kDisc) {
-      double x, y;
-      SampleUnitDisc(rng, &x, &y);
-      return center + Vec3(x * radius, y * radius, 0);
+      double a, b;
+      UnitDisc(rng, &a, &b);
+      const double c[3] = {center.x, center.y, center.z};
+      const st::V3<L1> p = st::DiscFieldPoint<L1>(c, radius, a, b);
+      return Vec3(p.x, p.y, p.z);
     }
     const double u0 = rng.Uniform(), u1 = rng.Uniform();
     if (!map.empty()) {
@@ -120,10 +137,10 @@ struct ConeSource {
   double sin_max;
   bool Sample(RayRng& rng, Vec3* p, Vec3* d) const {
     *p = field.Sample(rng);
-    double u, v;
-    SampleUnitDisc(rng, &u, &v);
-    u *= sin_max, v *= sin_max;
-    *d = Vec3(u, v, std::sqrt(1 - u * u - v * v));  // u^2 + v^2 < sin_max^2 < 1
+    double a, b;
+    UnitDisc(rng, &a, &b);
+    const st::V3<L1> dir = st::ConeDirection<L1>(a, b, sin_max);  // u^2 + v^2 < sin_max^2 < 1
+    *d = Vec3(dir.x, dir.y, dir.z);
     return true;
   }
 };
@@ -159,10 +176,9 @@ struct LightFieldSource {
   bool Direction(double u0, double u1, Vec3* d) const {
     double x, y;
     angular.Sample(u0, u1, &x, &y);
-    const double u = (2 * x - 1) * extent, v = (1 - 2 * y) * extent;
-    const double w2 = 1 - u * u - v * v;
-    if (w2 <= 0) return false;  // no physical direction
-    *d = Vec3(u, v, std::sqrt(w2));
+    st::V3<L1> dir;
+    if (st::TabulatedDirection<L1>(x, y, extent, dir)) return false;  // no physical direction
+    *d = Vec3(dir.x, dir.y, dir.z);
     return true;
   }
 };
@@ -184,37 +200,14 @@ struct RayListSource {
 
 using SourceVariant = std::variant<CollimatedSource, ConeSource, PointSource, LightFieldSource, RayListSource>;
 
-// ---------------------------------------------------------------- optics
-
-struct Lens {
-  double z, f, rim;  // plane (um, at defocus 0), focal length (um), rim radius (0 = none)
-  double power;      // 1 / f: a slope changes by -x / f, done as a product (divisions are slow)
-};
-
-struct Optics {
-  // All z at defocus 0; shifted by the defocus at trace time.
-  double corrector_z = 0;
-  std::vector<double> ring_outer2;  // squared outer radii (um^2)
-  std::vector<double> ring_t;
-  Lens lenses[3];  // objective (1 or 2) + tube lens
-  int num_lenses = 0;
-  int stop_after = 0;  // the stop plane follows lens index stop_after-1
-  double stop_z = 0, stop_r2 = 0;
-  double sensor_z = 0;
-  double pitch = 0, inv_pitch = 0, off_x = 0, off_y = 0, sign = -1;
-  double psf_sigma_sensor = 0;  // Gaussian PSF at the sensor (um), 0 = none
-  int nx = 0, ny = 0;
-};
-
 }  // namespace
 
 /// Whether the straight line through p along unit d passes within sqrt(r2) of c: the one test
 /// that splits a plane's rays into those that can meet the fit's region and the others
 /// (SplitRaysBySphere and TraceFarRays must agree ray for ray).
 static inline bool LinePassesWithin(const Vec3& p, const Vec3& d, const Vec3& c, double r2) {
-  const Vec3 w = c - p;
-  const double t = Dot(w, d);
-  return Dot(w, w) - t * t <= r2;
+  const double cc[3] = {c.x, c.y, c.z};
+  return st::LineDistance2<L1>(cc, {p.x, p.y, p.z}, {d.x, d.y, d.z}) <= r2;
 }
 
 // Which of a plane's rays to trace: all of [0, n), a list of indices, or all but a sorted list.
@@ -231,12 +224,26 @@ struct RaySelection {
 namespace {
 
 // Per-thread accumulation: integer counts, so sums do not depend on the partition.
+/// Rays of the packet path that meet the scene's one sphere, waiting for the sphere stage.
+struct SphereQueue {
+  std::unique_ptr<packet::Rays> rays;  // made on first use
+  size_t count = 0;
+  /// Lane i of batch r (its id, cursor and source sample) joins; true when the queue is full.
+  bool Push(const packet::Rays& r, size_t i) {
+    packet::Rays& q = *rays;
+    const size_t m = count++;
+    q.ids[m] = r.ids[i], q.cursor[m] = r.cursor[i];
+    q.px[m] = r.px[i], q.py[m] = r.py[i], q.pz[m] = r.pz[i];
+    q.dx[m] = r.dx[i], q.dy[m] = r.dy[i], q.dz[m] = r.dz[i];
+    return count == packet::kBatch;
+  }
+};
+
 struct Accum {
   std::vector<uint32_t> image;  // the nx * ny pixels, then spare elements (not part of it)
   TraceCounters counters;
   std::unique_ptr<packet::Rays> rays;  // the packet path's batch (made on first use)
-  std::unique_ptr<packet::Rays> near;  // rays queued for the sphere stage
-  size_t near_count = 0;
+  SphereQueue sphere_queue;
 };
 
 }  // namespace
@@ -244,7 +251,8 @@ struct Accum {
 struct Simulator::Impl {
   Geometry geometry;
   SourceVariant source;
-  Optics optics;
+  Optics optics;                  // at defocus 0
+  PacketSupport packets;          // whether the packet path takes this scene
   std::vector<double> index;             // per object
   std::vector<const IndexField*> field;  // per object; null = homogeneous
   std::vector<UniformCells> uniform;      // per object; empty unless a grid field
@@ -289,6 +297,8 @@ Field MakeField(const Scene& s, double auto_radius) {
   return f;
 }
 
+}  // namespace
+
 Optics MakeOptics(const Scene& s) {
   Optics o;
   const OpticsSpec& sp = s.optics;
@@ -321,6 +331,7 @@ Optics MakeOptics(const Scene& s) {
   const double tube_z = o.stop_z + sp.tube_distance_mm * 1e3;
   o.lenses[o.num_lenses++] = {tube_z, sp.tube_focal_mm * 1e3, 0, 1 / (sp.tube_focal_mm * 1e3)};
   o.sensor_z = tube_z + sp.tube_focal_mm * 1e3 + s.camera.sensor_shift_mm * 1e3;
+  o.corrector = sp.corrector.enabled;
   if (sp.corrector.enabled) {
     const double cz = sp.corrector.distance_mm > 0 ? sp.corrector.distance_mm * 1e3 : z;
     o.corrector_z = cz;
@@ -343,6 +354,8 @@ Optics MakeOptics(const Scene& s) {
   o.ny = s.camera.ny;
   return o;
 }
+
+namespace {
 
 /// Pseudo-random unit vector perpendicular to d (polarisation of a new ray).
 Vec3 RandomPerpendicular(const Vec3& d, double u) {
@@ -521,8 +534,7 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
   Fate fate = Fate::kDetected;
   bool done = false;
   // Objects the ray is inside, innermost last (nested objects: a bubble in a drop).
-  constexpr int kMaxDepth = 16;
-  int stack[kMaxDepth];
+  int stack[kMaxNesting];
   int depth = 0;
   auto index_at = [&](int obj, const Vec3& x) {
     if (obj < 0) return im.medium;
@@ -610,7 +622,7 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
       d = Normalize(dt);
       o = hp - nf * geo.epsilon(h.object);
       if (entering) {
-        if (depth == kMaxDepth) {
+        if (depth == kMaxNesting) {
           fate = Fate::kLostInside;  // deeper nesting than supported
           done = true;
           break;
@@ -639,13 +651,13 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
 }
 
 template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
-void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, double defocus,
+void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Optics& op,
                      uint64_t ray, const Vec3& p, Vec3 d, RayRng& rng, const RaySelection& sel,
                      Accum& acc, std::vector<uint64_t>* near_out);
 
 /// One ray of the plane, from its own stream: the scalar path, and the packet path's fallback.
 template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
-void TraceRay(const Simulator::Impl& im, const Source& src, const TraceSpec& trace, double defocus,
+void TraceRay(const Simulator::Impl& im, const Source& src, const TraceSpec& trace, const Optics& op,
               uint32_t plane, uint64_t ray, const RaySelection& sel, Accum& acc,
               std::vector<uint64_t>* near_out) {
   TraceCounters& c = acc.counters;
@@ -655,17 +667,16 @@ void TraceRay(const Simulator::Impl& im, const Source& src, const TraceSpec& tra
     ++c.fates[int(Fate::kEscaped)];
     return;
   }
-  TraceSampledRay<kPR, kCorrector, kMesh, Source>(im, trace, defocus, ray, p, d, rng, sel, acc,
+  TraceSampledRay<kPR, kCorrector, kMesh, Source>(im, trace, op, ray, p, d, rng, sel, acc,
                                                   near_out);
 }
 
 /// TraceRay after the source: the ray leaves p along d; rng stands after the source's words.
 template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
-void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, double defocus,
+void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Optics& op,
                      uint64_t ray, const Vec3& p, Vec3 d, RayRng& rng, const RaySelection& sel,
                      Accum& acc, std::vector<uint64_t>* near_out) {
   const Geometry& geo = im.geometry;
-  const Optics& op = im.optics;
   const bool has_objects = !geo.empty();
   TraceCounters& c = acc.counters;
   if (sel.split && LinePassesWithin(p, d, sel.split_center, sel.split_r2)) {
@@ -674,7 +685,10 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, double d
   }
   Vec3 o = p;
   // (1 / d.z, a product: the packet path reuses the reciprocal for the slopes below)
-  if constexpr (!std::is_same_v<Source, PointSource>) o = p + d * ((im.source_z - p.z) * (1 / d.z));
+  if constexpr (!std::is_same_v<Source, PointSource>) {
+    const st::V3<L1> q = st::OnPlane<L1>(im.source_z, {p.x, p.y, p.z}, {d.x, d.y, d.z}, 1 / d.z);
+    o = Vec3(q.x, q.y, q.z);
+  }
   Vec3 pol;
   if constexpr (kPR == PartialReflection::kPolarized) pol = RandomPerpendicular(d, rng.Uniform());
 
@@ -685,67 +699,31 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, double d
     fate = Fate::kEscaped;
     done = true;
   }
-  if (!done) {
-    // Paraxial optics on exact slopes (tangent law): x' = x + s dz, s' = s - x / f.
-    const double inv_dz = 1 / d.z;
-    double z = o.z, x = o.x, y = o.y, sx = d.x * inv_dz, sy = d.y * inv_dz;
-    auto go = [&](double zp) {
-      x += sx * (zp - z);
-      y += sy * (zp - z);
-      z = zp;
-    };
-    if constexpr (kCorrector) {
-      ++c.corrector_tests;
-      go(op.corrector_z + defocus);
-      const double r2 = x * x + y * y;
-      size_t ring = 0;
-      while (ring < op.ring_outer2.size() && r2 > op.ring_outer2[ring]) ++ring;
-      if (ring == op.ring_outer2.size()) {
-        fate = Fate::kOutsideNa;
-        done = true;
-      } else if (rng.Uniform() >= op.ring_t[ring]) {
-        fate = Fate::kAbsorbedCorrector;
-        done = true;
-      }
-    }
-    for (int l = 0; l < op.num_lenses && !done; ++l) {
-      if (l == op.stop_after) {
-        go(op.stop_z + defocus);
-        if (x * x + y * y > op.stop_r2) {
-          fate = Fate::kOutsideNa;
-          done = true;
-          break;
-        }
-      }
-      const Lens& L = op.lenses[l];
-      go(L.z + defocus);
-      if (L.rim > 0 && x * x + y * y > L.rim * L.rim) {
-        fate = Fate::kOutsideNa;
-        done = true;
-        break;
-      }
-      sx -= x * L.power;
-      sy -= y * L.power;
-    }
-    if (!done) {
-      go(op.sensor_z + defocus);
-      double u = op.sign * x - op.off_x, v = op.sign * y - op.off_y;
-      if (op.psf_sigma_sensor > 0) {  // Box-Muller: two independent normal offsets
-        const double r = op.psf_sigma_sensor * std::sqrt(-2 * std::log(1 - rng.Uniform()));
-        const double phi = 2 * M_PI * rng.Uniform();
-        u += r * std::cos(phi);
-        v += r * std::sin(phi);
-      }
-      const double col = std::floor(u * op.inv_pitch + 0.5 * op.nx);
-      const double row = std::floor(0.5 * op.ny - v * op.inv_pitch);
-      if (col >= 0 && col < op.nx && row >= 0 && row < op.ny) {
-        ++acc.image[static_cast<size_t>(row) * op.nx + static_cast<size_t>(col)];
-      } else {
-        fate = Fate::kMissedSensor;
-      }
-    }
+  if (done) {
+    ++c.fates[int(fate)];
+    return;
   }
-  ++c.fates[int(fate)];
+  // The optics stages (stages-inl.h), one lane.
+  auto out = st::Outcome<L1>::Open();
+  st::Beam<L1> beam = st::Beam<L1>::From({o.x, o.y, o.z}, {d.x, d.y, d.z}, 1 / d.z);
+  if constexpr (kCorrector) {
+    ++c.corrector_tests;
+    st::CorrectorStage<L1>(op, beam, out, [&] { return rng.Uniform(); });
+  }
+  if (!out.settled) st::LensStage<L1>(op, beam, out);
+  if (!out.settled) {
+    double u, v;
+    st::SensorPoint<L1>(op, beam, u, v);
+    if (op.psf_sigma_sensor > 0) {  // Box-Muller: two independent normal offsets
+      const double r = op.psf_sigma_sensor * std::sqrt(-2 * std::log(1 - rng.Uniform()));
+      const double phi = 2 * M_PI * rng.Uniform();
+      u += r * std::cos(phi);
+      v += r * std::sin(phi);
+    }
+    const double pixel = st::SensorPixel<L1>(op, u, v, out);
+    if (!out.settled) ++acc.image[static_cast<size_t>(pixel)];
+  }
+  ++c.fates[int(out.settled ? st::FateOf(out.code) : Fate::kDetected)];
 }
 
 /// Calls f(ray) for the rays [begin, end) of the selection, in ascending order of i.
@@ -768,10 +746,10 @@ void ForEachSelectedRay(const RaySelection& sel, uint64_t begin, uint64_t end, F
 
 template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
 void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
-                double defocus, uint32_t plane, uint64_t begin, uint64_t end,
+                const Optics& op, uint32_t plane, uint64_t begin, uint64_t end,
                 const RaySelection& sel, Accum& acc, std::vector<uint64_t>* near_out) {
   ForEachSelectedRay(sel, begin, end, [&](uint64_t ray) {
-    TraceRay<kPR, kCorrector, kMesh>(im, src, trace, defocus, plane, ray, sel, acc, near_out);
+    TraceRay<kPR, kCorrector, kMesh>(im, src, trace, op, plane, ray, sel, acc, near_out);
   });
 }
 
@@ -797,77 +775,75 @@ packet::Table2D PacketTable(const LightFieldSource& lf) {
   return t;
 }
 
+/// The sources the packet stages sample (which Source types get a packet instantiation).
 template <class Source>
 constexpr bool kPacketSource = std::is_same_v<Source, ConeSource> ||
                                std::is_same_v<Source, CollimatedSource> ||
                                std::is_same_v<Source, LightFieldSource>;
 
+/// Whether the packet path takes the scene: the one place that decides it (Effects lists it).
+PacketSupport PacketSupportFor(const Simulator::Impl& im) {
+  const Field* field = nullptr;
+  if (const auto* cone = std::get_if<ConeSource>(&im.source)) {
+    field = &cone->field;
+  } else if (const auto* col = std::get_if<CollimatedSource>(&im.source)) {
+    field = &col->field;
+  } else if (const auto* lf = std::get_if<LightFieldSource>(&im.source)) {
+    if (im.angular_table.height == 0) return {false, "empty_angular_map"};
+    field = &lf->field;
+  } else {
+    return {false, std::holds_alternative<PointSource>(im.source) ? "point_source"
+                                                                  : "ray_list_source"};
+  }
+  if (field->shape != FieldShape::kDisc && !field->map.empty()) return {false, "spatial_map"};
+  if (im.optics.psf_sigma_sensor > 0) return {false, "camera_psf"};
+  if (im.index.size() > size_t(packet::kMaxBounds)) return {false, "too_many_objects"};
+  return {true, ""};
+}
+
 struct PacketPlan {
   packet::SourceParams source;
-  packet::OpticsParams optics;
+  packet::NearParams near;
   /// Rays that meet the scene's one homogeneous sphere go through the sphere stage too.
   std::optional<packet::SphereParams> sphere;
 };
 
-/// The packet stages' parameters for this plane, or nothing where the scene needs the scalar
-/// path throughout (point and ray-list sources, a spatial map, a camera PSF, many objects).
-std::optional<PacketPlan> MakePacketPlan(const Simulator::Impl& im, const Scene& scene,
-                                         PartialReflection pr, double defocus,
-                                         const RaySelection& sel) {
+/// The packet stages' parameters for a scene the packet path takes (PacketSupportFor).
+PacketPlan MakePacketPlan(const Simulator::Impl& im, const Scene& scene, PartialReflection pr,
+                          const RaySelection& sel) {
   PacketPlan plan;
   packet::SourceParams& ps = plan.source;
   auto set_field = [&](const Field& f) {
     ps.disc_field = f.shape == FieldShape::kDisc;
     ps.radius = f.radius, ps.half_w = f.half_w, ps.half_h = f.half_h;
     ps.center[0] = f.center.x, ps.center[1] = f.center.y, ps.center[2] = f.center.z;
-    return ps.disc_field || f.map.empty();
   };
-  bool ok = false;
   if (const auto* cone = std::get_if<ConeSource>(&im.source)) {
-    ok = set_field(cone->field);
+    set_field(cone->field);
     ps.direction = packet::SourceParams::kCone, ps.sin_max = cone->sin_max;
   } else if (const auto* col = std::get_if<CollimatedSource>(&im.source)) {
-    ok = set_field(col->field);
+    set_field(col->field);
     ps.direction = packet::SourceParams::kCollimated;
     ps.dir[0] = col->dir.x, ps.dir[1] = col->dir.y, ps.dir[2] = col->dir.z;
   } else if (const auto* lf = std::get_if<LightFieldSource>(&im.source)) {
-    ok = set_field(lf->field) && im.angular_table.height > 0;
+    set_field(lf->field);
     ps.direction = packet::SourceParams::kTabulated;
     ps.table = &im.angular_table;
   }
-  const Optics& op = im.optics;
-  const int objects = static_cast<int>(im.index.size());
-  if (!ok || op.psf_sigma_sensor > 0 || objects > packet::kMaxBounds ||
-      op.ring_outer2.size() > size_t(packet::kMaxRings))
-    return std::nullopt;
-  packet::OpticsParams& po = plan.optics;
-  po.source_z = im.source_z;
-  po.num_bounds = objects;
-  for (int k = 0; k < objects; ++k) {
+  packet::NearParams& near = plan.near;
+  near.source_z = im.source_z;
+  near.num_bounds = static_cast<int>(im.index.size());
+  for (int k = 0; k < near.num_bounds; ++k) {
     // A line farther than this from every bounding sphere cannot meet an object; the margin
     // (1e-6 of the radius + 1 nm) is far above the rounding of either test.
     const Vec3& c = im.geometry.bound_center(k);
     const double r = im.geometry.bound_radius(k) * (1 + 1e-6) + 1e-3;
-    po.bound_c[k][0] = c.x, po.bound_c[k][1] = c.y, po.bound_c[k][2] = c.z;
-    po.bound_r2[k] = r * r;
+    near.bound_c[k][0] = c.x, near.bound_c[k][1] = c.y, near.bound_c[k][2] = c.z;
+    near.bound_r2[k] = r * r;
   }
-  po.split = sel.split;
-  po.split_c[0] = sel.split_center.x, po.split_c[1] = sel.split_center.y;
-  po.split_c[2] = sel.split_center.z, po.split_r2 = sel.split_r2;
-  po.corrector = scene.optics.corrector.enabled;  // as kCorrector (no zones: all outside)
-  po.corrector_z = op.corrector_z + defocus;
-  po.rings = static_cast<int>(op.ring_outer2.size());
-  for (int k = 0; k < po.rings; ++k) po.ring_outer2[k] = op.ring_outer2[k], po.ring_t[k] = op.ring_t[k];
-  po.num_lenses = op.num_lenses, po.stop_after = op.stop_after;
-  for (int l = 0; l < op.num_lenses; ++l) {
-    po.lens_z[l] = op.lenses[l].z + defocus;
-    po.lens_power[l] = op.lenses[l].power;
-    po.lens_rim[l] = op.lenses[l].rim;
-  }
-  po.stop_z = op.stop_z + defocus, po.stop_r2 = op.stop_r2;
-  po.sensor_z = op.sensor_z + defocus;
-  po.sign = op.sign, po.off_x = op.off_x, po.off_y = op.off_y, po.inv_pitch = op.inv_pitch;
-  po.nx = op.nx, po.ny = op.ny;
+  near.split = sel.split;
+  near.split_c[0] = sel.split_center.x, near.split_c[1] = sel.split_center.y;
+  near.split_c[2] = sel.split_center.z, near.split_r2 = sel.split_r2;
   // The sphere stage: one homogeneous sphere, refraction, TIR and the unpolarised Fresnel
   // branch (the polarised branch and everything else stay on the scalar path).
   if (scene.objects.size() == 1 && scene.objects[0].shape == ShapeType::kSphere &&
@@ -886,32 +862,47 @@ std::optional<PacketPlan> MakePacketPlan(const Simulator::Impl& im, const Scene&
   return plan;
 }
 
+/// The corrector's uniform (Rays::u) for the lanes still open (out 0): the word `skip` past the
+/// lane's cursor. A lane whose words ran out goes back to the scalar path from its stream.
+void CorrectorDraws(packet::Rays& r, size_t n, int skip) {
+  for (size_t i = 0; i < n; ++i) {
+    if (r.out[i] != 0) continue;
+    const int64_t k = r.cursor[i] + skip;
+    if (k < packet::kWords) {
+      r.u[i] = r.words[k][i] * 0x1p-32;
+    } else {
+      r.out[i] = packet::kScalar;
+      r.cursor[i] = -1;
+    }
+  }
+}
+
+/// A batch's outcomes after Background or Onward into the image and the fate counters; returns
+/// how many of its rays reached the optics.
+uint64_t CountBatch(const packet::Rays& r, size_t n, Accum& acc) {
+  for (size_t i = 0; i < n; ++i) ++acc.image[static_cast<size_t>(r.slot[i])];
+  for (int f = 0; f < kNumFates; ++f) acc.counters.fates[f] += r.counts[f];
+  return r.counts[int(Fate::kDetected)] + r.counts[int(Fate::kOutsideNa)] +
+         r.counts[int(Fate::kMissedSensor)] + r.counts[int(Fate::kAbsorbedCorrector)];
+}
+
 /// The queued rays that meet the sphere, through the sphere stage and on through the optics;
 /// those that run out of random words are traced again on the scalar path.
 template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
 void TraceSphereQueue(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
-                      double defocus, uint32_t plane, const RaySelection& sel, Accum& acc,
+                      const Optics& op, uint32_t plane, const RaySelection& sel, Accum& acc,
                       std::vector<uint64_t>* near_out, const PacketPlan& plan) {
-  packet::Rays& q = *acc.near;
-  const size_t m = acc.near_count;
-  acc.near_count = 0;
+  packet::Rays& q = *acc.sphere_queue.rays;
+  const size_t m = acc.sphere_queue.count;
+  acc.sphere_queue.count = 0;
   // All their words (the batch made the third Philox block only where the source needed it).
   packet::PhiloxWords(trace.seed, plane, q.ids, m, &q);
   packet::Sphere(*plan.sphere, m, &q);
-  if constexpr (kCorrector) {
-    for (size_t i = 0; i < m; ++i) {
-      if (q.out[i] != 0) continue;
-      const int64_t k = q.cursor[i];  // the corrector's draw follows the sphere's
-      if (k < packet::kWords)
-        q.u[i] = q.words[k][i] * 0x1p-32;
-      else
-        q.out[i] = packet::kScalar;
-    }
-  }
-  packet::Onward(plan.optics, m, &q);
+  if constexpr (kCorrector) CorrectorDraws(q, m, 0);  // the corrector's draw follows the sphere's
+  packet::Onward(op, m, &q);
+  const uint64_t optics = CountBatch(q, m, acc);
   TraceCounters& c = acc.counters;
   for (size_t i = 0; i < m; ++i) {
-    ++acc.image[static_cast<size_t>(q.slot[i])];
     if (q.out[i] == packet::kScalar) continue;  // counted when traced again below
     c.shape_queries += static_cast<uint64_t>(q.queries[i]);
     c.interface_events += static_cast<uint64_t>(q.interface_events[i]);
@@ -919,101 +910,75 @@ void TraceSphereQueue(const Simulator::Impl& im, const Source& src, const TraceS
     c.rays_hitting_objects += q.events[i] > 0;
     if (q.path_class[i] >= 0) ++c.path_class[static_cast<size_t>(q.path_class[i])];
   }
-  const uint64_t outside = q.counts[size_t(-packet::kOutsideNa)];
-  const uint64_t missed = q.counts[size_t(-packet::kMissedSensor)];
-  const uint64_t absorbed = q.counts[size_t(-packet::kAbsorbed)];
-  c.fates[int(Fate::kDetected)] += q.counts[0];
-  c.fates[int(Fate::kEscaped)] += q.counts[size_t(-packet::kEscaped)];
-  c.fates[int(Fate::kOutsideNa)] += outside;
-  c.fates[int(Fate::kMissedSensor)] += missed;
-  c.fates[int(Fate::kAbsorbedCorrector)] += absorbed;
-  c.fates[int(Fate::kInteractionCap)] += q.counts[size_t(-packet::kInteractionCap)];
-  c.fates[int(Fate::kLostInside)] += q.counts[size_t(-packet::kLostInside)];
-  if constexpr (kCorrector) c.corrector_tests += q.counts[0] + outside + missed + absorbed;
+  if constexpr (kCorrector) c.corrector_tests += optics;
   for (size_t k = 0; k < q.num_rare; ++k)
-    TraceRay<kPR, kCorrector, kMesh>(im, src, trace, defocus, plane,
+    TraceRay<kPR, kCorrector, kMesh>(im, src, trace, op, plane,
                                      q.ids[static_cast<size_t>(q.rare[k])], sel, acc, near_out);
+}
+
+/// One batch of packet::kBatch rays (at most; their indices in acc.rays->ids): the source, the
+/// near test and the optics in packets, then each ray the packets handed back, in ray order.
+template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+void TraceBatch(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
+                const Optics& op, uint32_t plane, const RaySelection& sel, Accum& acc,
+                std::vector<uint64_t>* near_out, const PacketPlan& plan, size_t n) {
+  packet::Rays& r = *acc.rays;
+  // Words drawn after the source by a ray that meets nothing: polarisation, corrector.
+  constexpr int kPolWords = kPR == PartialReflection::kPolarized ? 1 : 0;
+  constexpr int kExtraWords = kPolWords + (kCorrector ? 1 : 0);
+  packet::SampleSource(plan.source, trace.seed, plane, r.ids, n, kExtraWords, &r);
+  if constexpr (std::is_same_v<Source, LightFieldSource>) packet::Tabulated(*plan.source.table, n, &r);
+  // The corrector's draw follows the source's (and the polarisation's) words.
+  if constexpr (kCorrector) CorrectorDraws(r, n, kPolWords);
+  packet::Background(plan.near, op, n, &r);
+  const uint64_t optics = CountBatch(r, n, acc);
+  TraceCounters& c = acc.counters;
+  const uint64_t queries = im.geometry.empty() ? 0 : 1;  // the one query that found nothing
+  c.shape_queries += queries * optics;  // rays that met nothing: one query each
+  if constexpr (kMesh) c.mesh_queries += optics;
+  if constexpr (kCorrector) c.corrector_tests += optics;
+  for (size_t k = 0; k < r.num_rare; ++k) {  // in ray order: the near list stays ascending
+    const size_t i = static_cast<size_t>(r.rare[k]);
+    const uint64_t ray = r.ids[i];
+    if (r.out[i] == packet::kNear) {
+      near_out->push_back(ray);
+    } else if (r.cursor[i] < 0) {  // the batch's words ran out: all again from the stream
+      TraceRay<kPR, kCorrector, kMesh>(im, src, trace, op, plane, ray, sel, acc, near_out);
+    } else if (plan.sphere) {  // near the sphere: queued for the sphere stage
+      if (acc.sphere_queue.Push(r, i))
+        TraceSphereQueue<kPR, kCorrector, kMesh>(im, src, trace, op, plane, sel, acc, near_out,
+                                                 plan);
+    } else {  // near an object: on from the packet's source sample and the stream's cursor
+      RayRng rng(trace.seed, plane, ray);
+      rng.SkipTo(static_cast<uint64_t>(r.cursor[i]));
+      TraceSampledRay<kPR, kCorrector, kMesh, Source>(im, trace, op, ray,
+                                                      Vec3(r.px[i], r.py[i], r.pz[i]),
+                                                      Vec3(r.dx[i], r.dy[i], r.dz[i]), rng, sel,
+                                                      acc, near_out);
+    }
+  }
 }
 
 /// TraceRange in batches of packet::kBatch rays: the same rays, counts and counters.
 template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
 void TraceRangePackets(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
-                       double defocus, uint32_t plane, uint64_t begin, uint64_t end,
+                       const Optics& op, uint32_t plane, uint64_t begin, uint64_t end,
                        const RaySelection& sel, Accum& acc, std::vector<uint64_t>* near_out,
                        const PacketPlan& plan) {
   if (!acc.rays) acc.rays = std::make_unique<packet::Rays>();  // value-initialised
-  if (plan.sphere && !acc.near) acc.near = std::make_unique<packet::Rays>();
-  packet::Rays& r = *acc.rays;
-  uint64_t* rays = r.ids;
+  if (plan.sphere && !acc.sphere_queue.rays)
+    acc.sphere_queue.rays = std::make_unique<packet::Rays>();
   size_t n = 0;
-  TraceCounters& c = acc.counters;
-  const uint64_t queries = im.geometry.empty() ? 0 : 1;  // the one query that found nothing
-  auto flush = [&] {
-    // Words drawn after the source by a ray that meets nothing: polarisation, corrector.
-    constexpr int kExtraWords =
-        (kPR == PartialReflection::kPolarized ? 1 : 0) + (kCorrector ? 1 : 0);
-    packet::SampleSource(plan.source, trace.seed, plane, rays, n, kExtraWords, &r);
-    if constexpr (std::is_same_v<Source, LightFieldSource>) packet::Tabulated(*plan.source.table, n, &r);
-    for (size_t i = 0; i < n; ++i) {
-      if (r.out[i] < 0) continue;
-      if constexpr (kCorrector) {
-        // The corrector's draw follows the source's (and the polarisation's) words.
-        const int64_t k = r.cursor[i] + (kPR == PartialReflection::kPolarized ? 1 : 0);
-        if (k < packet::kWords) {
-          r.u[i] = r.words[k][i] * 0x1p-32;
-        } else {  // all again on the scalar path, in ray order (the split test included)
-          r.out[i] = packet::kScalar;
-          r.cursor[i] = -1;
-        }
-      }
-    }
-    packet::Background(plan.optics, n, &r);
-    for (size_t i = 0; i < n; ++i) ++acc.image[static_cast<size_t>(r.slot[i])];
-    const uint64_t outside = r.counts[size_t(-packet::kOutsideNa)];
-    const uint64_t missed = r.counts[size_t(-packet::kMissedSensor)];
-    const uint64_t absorbed = r.counts[size_t(-packet::kAbsorbed)];
-    const uint64_t optics = r.counts[0] + outside + missed + absorbed;
-    c.fates[int(Fate::kDetected)] += r.counts[0];
-    c.fates[int(Fate::kEscaped)] += r.counts[size_t(-packet::kEscaped)];
-    c.fates[int(Fate::kOutsideNa)] += outside;
-    c.fates[int(Fate::kMissedSensor)] += missed;
-    c.fates[int(Fate::kAbsorbedCorrector)] += absorbed;
-    c.shape_queries += queries * optics;  // rays that met nothing: one query each
-    if constexpr (kMesh) c.mesh_queries += optics;
-    if constexpr (kCorrector) c.corrector_tests += optics;
-    for (size_t k = 0; k < r.num_rare; ++k) {  // in ray order: the near list stays ascending
-      const size_t i = static_cast<size_t>(r.rare[k]);
-      if (r.out[i] == packet::kNear) {
-        near_out->push_back(rays[i]);
-      } else if (r.cursor[i] < 0) {  // the batch's words ran out: all again from the stream
-        TraceRay<kPR, kCorrector, kMesh>(im, src, trace, defocus, plane, rays[i], sel, acc, near_out);
-      } else if (plan.sphere) {  // near the sphere: queue it for the sphere stage
-        packet::Rays& q = *acc.near;
-        const size_t m = acc.near_count++;
-        q.ids[m] = rays[i], q.cursor[m] = r.cursor[i];
-        q.px[m] = r.px[i], q.py[m] = r.py[i], q.pz[m] = r.pz[i];
-        q.dx[m] = r.dx[i], q.dy[m] = r.dy[i], q.dz[m] = r.dz[i];
-        if (acc.near_count == packet::kBatch)
-          TraceSphereQueue<kPR, kCorrector, kMesh>(im, src, trace, defocus, plane, sel, acc,
-                                                   near_out, plan);
-      } else {  // near an object: on from the packet's source sample and the stream's cursor
-        RayRng rng(trace.seed, plane, rays[i]);
-        rng.SkipTo(static_cast<uint64_t>(r.cursor[i]));
-        TraceSampledRay<kPR, kCorrector, kMesh, Source>(
-            im, trace, defocus, rays[i], Vec3(r.px[i], r.py[i], r.pz[i]),
-            Vec3(r.dx[i], r.dy[i], r.dz[i]), rng, sel, acc, near_out);
-      }
-    }
-    n = 0;
-  };
   ForEachSelectedRay(sel, begin, end, [&](uint64_t ray) {
-    rays[n++] = ray;
-    if (n == packet::kBatch) flush();
+    acc.rays->ids[n++] = ray;
+    if (n == packet::kBatch) {
+      TraceBatch<kPR, kCorrector, kMesh>(im, src, trace, op, plane, sel, acc, near_out, plan, n);
+      n = 0;
+    }
   });
-  if (n > 0) flush();
-  if (acc.near_count > 0)
-    TraceSphereQueue<kPR, kCorrector, kMesh>(im, src, trace, defocus, plane, sel, acc, near_out,
-                                             plan);
+  if (n > 0) TraceBatch<kPR, kCorrector, kMesh>(im, src, trace, op, plane, sel, acc, near_out, plan, n);
+  if (acc.sphere_queue.count > 0)
+    TraceSphereQueue<kPR, kCorrector, kMesh>(im, src, trace, op, plane, sel, acc, near_out, plan);
 }
 
 class Progress {
@@ -1124,6 +1089,7 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
       break;
     }
   }
+  im.packets = PacketSupportFor(im);
   if (ss.type == SourceType::kPoint) {
     for (const ObjectSpec& o : scene.objects)
       if (o.shape == ShapeType::kSphere && Length(ss.position_um - o.center_um) < o.radius_um)
@@ -1162,6 +1128,8 @@ std::vector<std::string> Simulator::Effects() const {
                                                              : "objective:two_ideal_lenses");
   e.push_back("tube_lens");
   if (scene_.camera.psf_sigma_um > 0) e.push_back("camera_psf:gaussian");
+  e.push_back(impl_->packets.ok ? std::string("simd_packets")
+                                : std::string("scalar_only:") + impl_->packets.reason);
   return e;
 }
 
@@ -1241,8 +1209,10 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
                     ranks > 1 ? control.label + " (" + std::to_string(ranks) + " ranks)" : control.label,
                     std::min(rays, my_chunks * kChunk));
 
+  const Optics op = im.optics.Shifted(defocus_um);  // this plane's optics, for both paths
   const std::optional<PacketPlan> plan =
-      control.simd ? MakePacketPlan(im, scene_, pr, defocus_um, sel) : std::nullopt;
+      control.simd && im.packets.ok ? std::optional(MakePacketPlan(im, scene_, pr, sel))
+                                    : std::nullopt;
   // Split mode: each chunk's near rays in their own list, joined in chunk order below.
   std::vector<std::vector<uint64_t>> near_by_chunk(sel.split ? chunks : 0);
   auto run_chunk = [&](uint64_t ci) {
@@ -1257,12 +1227,12 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
           auto range = [&]<PartialReflection P, bool C, bool M>() {
             if constexpr (kPacketSource<Source>) {
               if (plan) {
-                TraceRangePackets<P, C, M>(im, src, ts, defocus_um, plane_index, b, e, sel, acc,
+                TraceRangePackets<P, C, M>(im, src, ts, op, plane_index, b, e, sel, acc,
                                            near_out, *plan);
                 return;
               }
             }
-            TraceRange<P, C, M>(im, src, ts, defocus_um, plane_index, b, e, sel, acc, near_out);
+            TraceRange<P, C, M>(im, src, ts, op, plane_index, b, e, sel, acc, near_out);
           };
           auto dispatch = [&]<PartialReflection P>() {
             if (corr && mesh)

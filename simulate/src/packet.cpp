@@ -239,50 +239,6 @@ void SampleSourceImpl(const SourceParams& s, uint64_t seed, uint32_t stream, con
   }
 }
 
-// Distribution1D::Sample for each lane's u, over the cdf at cdf + cdf_offset (n + 1 values) and
-// the guide table at guide + guide_offset (g entries); returns x, and the bin in *bin.
-HWY_INLINE hn::Vec<DF> Sample1D(const double* cdf, hn::Vec<DI> cdf_offset, const int64_t* guide,
-                                hn::Vec<DI> guide_offset, int n, int64_t g, hn::Vec<DF> u,
-                                hn::Vec<DI>* bin) {
-  const DF df;
-  const DI di;
-  const auto zero = hn::Zero(df);
-  const auto one_i = hn::Set(di, 1), n_i = hn::Set(di, n);
-  // k = u > 0 ? min(size_t(u g), g - 1) : 0   (u g is exact: g is a power of two)
-  auto k = hn::ConvertTo(di, hn::Mul(u, hn::Set(df, double(g))));
-  k = hn::IfThenElse(hn::Gt(k, hn::Set(di, g - 1)), hn::Set(di, g - 1), k);
-  k = hn::IfThenElseZero(hn::RebindMask(di, hn::Gt(u, zero)), k);
-  auto i = hn::GatherIndex(di, guide, hn::Add(guide_offset, k));
-  // while (i + 1 <= n && cdf[i + 1] <= u) ++i
-  for (;;) {
-    const auto room = hn::Lt(i, n_i);
-    const auto next = hn::GatherIndex(df, cdf, hn::Add(cdf_offset, hn::IfThenElse(room, hn::Add(i, one_i), i)));
-    const auto step = hn::And(room, hn::RebindMask(di, hn::Le(next, u)));
-    if (hn::AllFalse(di, step)) break;
-    i = hn::IfThenElse(step, hn::Add(i, one_i), i);
-  }
-  // i = clamp(i, 0, n - 1); while (i > 0 && cdf[i + 1] - cdf[i] <= 0) --i
-  i = hn::IfThenElse(hn::Lt(i, hn::Zero(di)), hn::Zero(di), i);
-  i = hn::IfThenElse(hn::Gt(i, hn::Set(di, n - 1)), hn::Set(di, n - 1), i);
-  hn::Vec<DF> lo, hi;
-  for (;;) {
-    lo = hn::GatherIndex(df, cdf, hn::Add(cdf_offset, i));
-    hi = hn::GatherIndex(df, cdf, hn::Add(cdf_offset, hn::Add(i, one_i)));
-    const auto back = hn::And(hn::Gt(i, hn::Zero(di)), hn::RebindMask(di, hn::Le(hn::Sub(hi, lo), zero)));
-    if (hn::AllFalse(di, back)) break;
-    i = hn::IfThenElse(back, hn::Sub(i, one_i), i);
-  }
-  // du = width > 0 ? (u - cdf[i]) / width : 0.5; x = min((i + clamp(du, 0, 1)) / n, 1 - 2^-53)
-  const auto width = hn::Sub(hi, lo);
-  const auto du = hn::IfThenElse(hn::Gt(width, zero), hn::Div(hn::Sub(u, lo), width), hn::Set(df, 0.5));
-  const auto one = hn::Set(df, 1.0);
-  const auto clamped = hn::IfThenElse(hn::Lt(du, zero), zero, hn::IfThenElse(hn::Lt(one, du), one, du));
-  const auto x = hn::Div(hn::Add(hn::ConvertTo(df, i), clamped), hn::Set(df, double(n)));
-  const auto below_one = hn::Set(df, 0x1.fffffffffffffp-1);  // std::nextafter(1.0, 0.0)
-  *bin = i;
-  return hn::IfThenElse(hn::Lt(below_one, x), below_one, x);
-}
-
 void TabulatedImpl(const Table2D& t, size_t n, Rays* r) {
   const DF df;
   const DI di;
@@ -294,14 +250,14 @@ void TabulatedImpl(const Table2D& t, size_t n, Rays* r) {
     if (hn::AllFalse(df, open)) continue;
     // Distribution2D::Sample(u0, u1): y from the marginal with u1, then x in that row with u0
     hn::Vec<DI> row, col;
-    const auto y = Sample1D(t.marginal_cdf.data(), hn::Zero(di), t.marginal_guide.data(),
+    const auto y = st::Sample1D<L>(t.marginal_cdf.data(), hn::Zero(di), t.marginal_guide.data(),
                             hn::Zero(di), t.height, t.marginal_guide_size, hn::LoadU(df, r->v + i), &row);
     // The row's offsets, multiplied in double (exact for these sizes; not every target
     // multiplies 64-bit integers).
     const auto row_d = hn::ConvertTo(df, row);
     const auto cdf_at = hn::ConvertTo(di, hn::Mul(row_d, hn::Set(df, double(t.width + 1))));
     const auto guide_at = hn::ConvertTo(di, hn::Mul(row_d, hn::Set(df, double(t.row_guide_size))));
-    const auto x = Sample1D(t.row_cdf.data(), cdf_at, t.row_guide.data(), guide_at, t.width,
+    const auto x = st::Sample1D<L>(t.row_cdf.data(), cdf_at, t.row_guide.data(), guide_at, t.width,
                             t.row_guide_size, hn::LoadU(df, r->u + i), &col);
     // Beyond the unit circle: escaped
     st::V3<L> d;

@@ -37,8 +37,11 @@ namespace hn = hwy::HWY_NAMESPACE;
 /// The packet path's lanes: as many doubles as this target's vectors hold.
 struct VecLanes {
   using D = hn::ScalableTag<double>;
+  using DI = hn::RebindToSigned<D>;
   using V = hn::Vec<D>;
   using M = hn::Mask<D>;
+  using I = hn::Vec<DI>;
+  using MI = hn::Mask<DI>;
   static constexpr bool kOneLane = false;
   static HWY_INLINE V Set(double x) { return hn::Set(D(), x); }
   static HWY_INLINE V Add(V a, V b) { return hn::Add(a, b); }
@@ -60,6 +63,19 @@ struct VecLanes {
   static HWY_INLINE M False() { return hn::Lt(hn::Zero(D()), hn::Zero(D())); }
   static HWY_INLINE M True() { return hn::Eq(hn::Zero(D()), hn::Zero(D())); }
   static HWY_INLINE bool Stop(M) { return false; }
+  static HWY_INLINE I ISet(int64_t x) { return hn::Set(DI(), x); }
+  static HWY_INLINE I IAdd(I a, I b) { return hn::Add(a, b); }
+  static HWY_INLINE I ISub(I a, I b) { return hn::Sub(a, b); }
+  static HWY_INLINE MI ILt(I a, I b) { return hn::Lt(a, b); }
+  static HWY_INLINE MI IGt(I a, I b) { return hn::Gt(a, b); }
+  static HWY_INLINE I ISelect(MI m, I a, I b) { return hn::IfThenElse(m, a, b); }
+  static HWY_INLINE MI IAnd(MI a, MI b) { return hn::And(a, b); }
+  static HWY_INLINE MI ToIMask(M m) { return hn::RebindMask(DI(), m); }
+  static HWY_INLINE bool INone(MI m) { return hn::AllFalse(DI(), m); }
+  static HWY_INLINE I ToInt(V x) { return hn::ConvertTo(DI(), x); }
+  static HWY_INLINE V ToDouble(I x) { return hn::ConvertTo(D(), x); }
+  static HWY_INLINE V Gather(const double* p, I i) { return hn::GatherIndex(D(), p, i); }
+  static HWY_INLINE I GatherI(const int64_t* p, I i) { return hn::GatherIndex(DI(), p, i); }
 };
 
 template <class L>
@@ -144,6 +160,52 @@ template <class L>
 HWY_INLINE V3<L> OnPlane(double z0, const V3<L>& p, const V3<L>& d, typename L::V inv_dz) {
   const typename L::V s = L::Mul(L::Sub(L::Set(z0), p.z), inv_dz);
   return {L::Add(p.x, L::Mul(d.x, s)), L::Add(p.y, L::Mul(d.y, s)), L::Add(p.z, L::Mul(d.z, s))};
+}
+
+/// Distribution1D::Sample: u in [0, 1) to x in [0, 1) over the piecewise-constant density with
+/// n bins whose cdf (n + 1 values) starts at cdf + cdf_at and whose guide table (g entries, a
+/// power of two; entry k: the largest i with cdf[i] <= k / g) at guide + guide_at; *bin gets
+/// the bin. From the guide's entry for u's bucket forward to the largest i with cdf[i] <= u,
+/// then back out of empty bins, then linear within the bin.
+template <class L, class G>
+HWY_INLINE typename L::V Sample1D(const double* cdf, typename L::I cdf_at, const G* guide,
+                                  typename L::I guide_at, int n, int64_t g, typename L::V u,
+                                  typename L::I* bin) {
+  using V = typename L::V;
+  using I = typename L::I;
+  const V zero = L::Set(0.0), one = L::Set(1.0);
+  const I one_i = L::ISet(1), n_i = L::ISet(n);
+  // k = u > 0 ? min(int(u g), g - 1) : 0   (u g is exact: g is a power of two)
+  I k = L::ToInt(L::Mul(u, L::Set(double(g))));
+  k = L::ISelect(L::IGt(k, L::ISet(g - 1)), L::ISet(g - 1), k);
+  k = L::ISelect(L::ToIMask(L::Gt(u, zero)), k, L::ISet(0));
+  I i = L::GatherI(guide, L::IAdd(guide_at, k));
+  for (;;) {  // while (i + 1 <= n && cdf[i + 1] <= u) ++i
+    const auto room = L::ILt(i, n_i);
+    const V next = L::Gather(cdf, L::IAdd(cdf_at, L::ISelect(room, L::IAdd(i, one_i), i)));
+    const auto step = L::IAnd(room, L::ToIMask(L::Le(next, u)));
+    if (L::INone(step)) break;
+    i = L::ISelect(step, L::IAdd(i, one_i), i);
+  }
+  // i = clamp(i, 0, n - 1); while (i > 0 && cdf[i + 1] - cdf[i] <= 0) --i: no empty bin
+  i = L::ISelect(L::ILt(i, L::ISet(0)), L::ISet(0), i);
+  i = L::ISelect(L::IGt(i, L::ISet(n - 1)), L::ISet(n - 1), i);
+  V lo, hi;
+  for (;;) {
+    lo = L::Gather(cdf, L::IAdd(cdf_at, i));
+    hi = L::Gather(cdf, L::IAdd(cdf_at, L::IAdd(i, one_i)));
+    const auto back = L::IAnd(L::IGt(i, L::ISet(0)), L::ToIMask(L::Le(L::Sub(hi, lo), zero)));
+    if (L::INone(back)) break;
+    i = L::ISelect(back, L::ISub(i, one_i), i);
+  }
+  // du = width > 0 ? (u - cdf[i]) / width : 0.5; x = min((i + clamp(du, 0, 1)) / n, 1 - 2^-53)
+  const V width = L::Sub(hi, lo);
+  const V du = L::Select(L::Gt(width, zero), L::Div(L::Sub(u, lo), width), L::Set(0.5));
+  const V clamped = L::Select(L::Lt(du, zero), zero, L::Select(L::Lt(one, du), one, du));
+  const V x = L::Div(L::Add(L::ToDouble(i), clamped), L::Set(double(n)));
+  const V below_one = L::Set(0x1.fffffffffffffp-1);  // std::nextafter(1.0, 0.0)
+  *bin = i;
+  return L::Select(L::Lt(below_one, x), below_one, x);
 }
 
 // ---------------------------------------------------------------- objects

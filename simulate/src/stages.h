@@ -80,6 +80,8 @@ namespace stages {
 struct ScalarLanes {
   using V = double;
   using M = bool;
+  using I = int64_t;  ///< integer lanes (indices) beside V
+  using MI = bool;
   static constexpr bool kOneLane = true;
   static V Set(double x) { return x; }
   static V Add(V a, V b) { return a + b; }
@@ -103,6 +105,21 @@ struct ScalarLanes {
   /// Whether a stage may stop here because every lane is settled: one lane stops as soon as
   /// its fate is known; vectors run every lane to the end of the stage (no branch).
   static bool Stop(M settled) { return settled; }
+  // Integer lanes.
+  static I ISet(int64_t x) { return x; }
+  static I IAdd(I a, I b) { return a + b; }
+  static I ISub(I a, I b) { return a - b; }
+  static MI ILt(I a, I b) { return a < b; }
+  static MI IGt(I a, I b) { return a > b; }
+  static I ISelect(MI m, I a, I b) { return m ? a : b; }
+  static MI IAnd(MI a, MI b) { return a && b; }
+  static MI ToIMask(M m) { return m; }
+  static bool INone(MI m) { return !m; }
+  static I ToInt(V x) { return static_cast<int64_t>(x); }  ///< truncation
+  static V ToDouble(I x) { return static_cast<double>(x); }
+  static V Gather(const double* p, I i) { return p[i]; }
+  template <class G>
+  static I GatherI(const G* p, I i) { return p[i]; }
 };
 
 }  // namespace stages

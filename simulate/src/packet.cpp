@@ -333,6 +333,19 @@ void BackgroundImpl(const NearParams& near, const Optics& o, size_t n, bool from
   }
 }
 
+// rng.Uniform() from each lane's next word (its cursor < kWords) where `m`, else 0.
+HWY_INLINE hn::Vec<DF> UniformAtCursor(const Rays& r, size_t i, hn::Vec<DI> cursor,
+                                       hn::Mask<DF> m) {
+  const DF df;
+  auto u = hn::Zero(df);
+  for (int j = 0; j < kWords; ++j) {
+    const auto at = hn::And(m, hn::RebindMask(df, hn::Eq(cursor, hn::Set(DI(), j))));
+    if (hn::AllFalse(df, at)) continue;
+    u = hn::IfThenElse(at, Uniform(r.words[j] + i), u);
+  }
+  return u;
+}
+
 // TraceObjects for one homogeneous sphere, several rays at a time (packet.h, Sphere). Each line
 // mirrors the scalar one it is named after: IntersectSphere, Normalize, Refract, Fresnel,
 // Reflect and the object stack (here a depth: the stack can only hold this sphere).
@@ -406,16 +419,11 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
                  fy2 = hn::IfThenElse(entering, ny, hn::Neg(ny)),
                  fz2 = hn::IfThenElse(entering, nz, hn::Neg(nz));  // nf: faces the incoming ray
       const auto cos_i = hn::Neg(dot(dx, dy, dz, fx2, fy2, fz2));
-      // Refract(d, nf, n1 / n2): sin2_t = eta^2 max(0, 1 - cos_i^2); TIR when >= 1
-      const auto eta = hn::Div(n1, n2);
-      const auto c2 = hn::Sub(one, hn::Mul(cos_i, cos_i));
-      const auto sin2_t = hn::Mul(hn::Mul(eta, eta), hn::IfThenElse(hn::Lt(zero, c2), c2, zero));
-      const auto tir = hn::Ge(sin2_t, one);
-      const auto ct = hn::Sqrt(hn::IfThenElse(tir, zero, hn::Sub(one, sin2_t)));
-      const auto k = hn::Sub(hn::Mul(eta, cos_i), ct);  // t = d eta + nf (eta cos_i - ct)
-      const auto tx = hn::Add(hn::Mul(dx, eta), hn::Mul(fx2, k)),
-                 ty = hn::Add(hn::Mul(dy, eta), hn::Mul(fy2, k)),
-                 tz = hn::Add(hn::Mul(dz, eta), hn::Mul(fz2, k));
+      // Refract(d, nf, n1 / n2)
+      st::V3<L> tr;
+      hn::Vec<DF> ct;
+      const auto tir = st::Refract<L>({dx, dy, dz}, {fx2, fy2, fz2}, hn::Div(n1, n2), cos_i, tr, ct);
+      const auto tx = tr.x, ty = tr.y, tz = tr.z;
       auto reflect = tir;
       if (sp.fresnel) {
         const auto draw = hn::AndNot(tir, active);
@@ -424,19 +432,9 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
         const auto out_of_words = hn::And(draw, hn::RebindMask(df, hn::Gt(cursor, hn::Set(di, kWords - 1))));
         finish(out_of_words, kScalar);
         const auto drawing = hn::AndNot(out_of_words, draw);
-        auto u = zero;
-        for (int j = 0; j < kWords; ++j) {
-          const auto at = hn::And(drawing, hn::RebindMask(df, hn::Eq(cursor, hn::Set(di, j))));
-          if (hn::AllFalse(df, at)) continue;
-          u = hn::IfThenElse(at, Uniform(r->words[j] + i), u);
-        }
+        const auto u = UniformAtCursor(*r, i, cursor, drawing);
         count(cursor, drawing);
-        // Fresnel(n1, n2, cos_i, cos_t).R() = (rs^2 + rp^2) / 2
-        const auto a1 = hn::Mul(n1, cos_i), a2 = hn::Mul(n2, ct);
-        const auto rs = hn::Div(hn::Sub(a1, a2), hn::Add(a1, a2));
-        const auto b1 = hn::Mul(n2, cos_i), b2 = hn::Mul(n1, ct);
-        const auto rp = hn::Div(hn::Sub(b1, b2), hn::Add(b1, b2));
-        const auto R = hn::Mul(hn::Set(df, 0.5), hn::Add(hn::Mul(rs, rs), hn::Mul(rp, rp)));
+        const auto R = st::FresnelReflectance<L>(n1, n2, cos_i, ct);  // Fresnel(...).R()
         reflect = hn::Or(reflect, hn::And(drawing, hn::Lt(u, R)));
       }
       // Reflected: d = Normalize(Reflect(d, nf)), o = hp + nf eps; transmitted: d = Normalize(t),

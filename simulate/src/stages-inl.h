@@ -219,6 +219,35 @@ HWY_INLINE typename L::V LineDistance2(const double c[3], const V3<L>& p, const 
   return L::Sub(Dot(w, w), L::Mul(t, t));
 }
 
+/// Snell refraction of unit d at unit normal nf facing the incoming ray, eta = n1 / n2 and
+/// cos_i = -Dot(d, nf): sin2_t = eta^2 max(0, 1 - cos_i^2); t = d eta + nf (eta cos_i - cos_t).
+/// Returns the lanes with total internal reflection (sin2_t >= 1; t is not a direction there).
+template <class L>
+HWY_INLINE typename L::M Refract(const V3<L>& d, const V3<L>& nf, typename L::V eta,
+                                 typename L::V cos_i, V3<L>& t, typename L::V& cos_t) {
+  const typename L::V zero = L::Set(0.0), one = L::Set(1.0);
+  const typename L::V c2 = L::Sub(one, L::Mul(cos_i, cos_i));
+  const typename L::V sin2_t = L::Mul(L::Mul(eta, eta), L::Select(L::Lt(zero, c2), c2, zero));
+  const typename L::M tir = L::Ge(sin2_t, one);
+  cos_t = L::Sqrt(L::Select(tir, zero, L::Sub(one, sin2_t)));
+  const typename L::V k = L::Sub(L::Mul(eta, cos_i), cos_t);
+  t = {L::Add(L::Mul(d.x, eta), L::Mul(nf.x, k)), L::Add(L::Mul(d.y, eta), L::Mul(nf.y, k)),
+       L::Add(L::Mul(d.z, eta), L::Mul(nf.z, k))};
+  return tir;
+}
+
+/// The unpolarised Fresnel reflectance (rs^2 + rp^2) / 2 from n1 into n2 (Born & Wolf signs):
+/// rs = (n1 cos_i - n2 cos_t) / (n1 cos_i + n2 cos_t), rp = (n2 cos_i - n1 cos_t) / (...).
+template <class L>
+HWY_INLINE typename L::V FresnelReflectance(typename L::V n1, typename L::V n2,
+                                            typename L::V cos_i, typename L::V cos_t) {
+  const typename L::V a1 = L::Mul(n1, cos_i), a2 = L::Mul(n2, cos_t);
+  const typename L::V rs = L::Div(L::Sub(a1, a2), L::Add(a1, a2));
+  const typename L::V b1 = L::Mul(n2, cos_i), b2 = L::Mul(n1, cos_t);
+  const typename L::V rp = L::Div(L::Sub(b1, b2), L::Add(b1, b2));
+  return L::Mul(L::Set(0.5), L::Add(L::Mul(rs, rs), L::Mul(rp, rp)));
+}
+
 // ---------------------------------------------------------------- optics
 
 /// A ray between the objects and the sensor, paraxial optics on exact slopes (tangent law): at

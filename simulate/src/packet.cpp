@@ -173,7 +173,6 @@ void SampleSourceImpl(const SourceParams& s, uint64_t seed, uint32_t stream, con
   const DF df;
   const DI di;
   const size_t N = hn::Lanes(df);
-  const auto one = hn::Set(df, 1.0);
   // The first two blocks for the whole batch up front (independent vectors keep the multiplier
   // busy); the third only for vectors that reach it.
   for (size_t i = 0; i < n; i += N)
@@ -324,8 +323,11 @@ void BackgroundImpl(const NearParams& near, const Optics& o, size_t n, bool from
     const auto inv_dz = hn::Div(hn::Set(df, 1.0), d.z);
     auto b = st::Beam<L>::From(from_objects ? p : st::OnPlane<L>(near.source_z, p, d, inv_dz), d,
                                inv_dz);
-    if (o.corrector) st::CorrectorStage<L>(o, b, out, [&] { return hn::LoadU(df, r->u + i); });
-    st::LensStage<L>(o, b, out);
+    auto corrector_uniform = [&] { return hn::LoadU(df, r->u + i); };
+    if (o.corrector)
+      st::OpticalTrain<L, true>(o, b, out, corrector_uniform);
+    else
+      st::OpticalTrain<L, false>(o, b, out, corrector_uniform);
     hn::Vec<DF> u, v;
     st::SensorPoint<L>(o, b, u, v);
     const auto pixel = st::SensorPixel<L>(o, u, v, out);

@@ -72,7 +72,7 @@ SourceVariant MakeSource(const Scene& own, double auto_radius, packet::Table2D* 
       LightFieldSource lf{MakeField(own, auto_radius), Distribution2D(ss.angular_map),
                           ss.angular_extent};
       *angular_table = PacketTable(lf);
-      return std::move(lf);
+      return lf;
     }
     case SourceType::kRayList: {
       std::vector<float> w;

@@ -289,8 +289,7 @@ HWY_INLINE void CorrectorStage(const Optics& o, Beam<L>& b, Outcome<L>& out, Uni
   out.Mark(L::Ge(uniform(), t), Fate::kAbsorbedCorrector);  // rng.Uniform() >= the zone's t
 }
 
-/// The ideal lenses with the aperture stop before lens stop_after, each with its rim; the beam
-/// ends on the sensor plane.
+/// The ideal lenses with the aperture stop before lens stop_after, each with its rim.
 template <class L>
 HWY_INLINE void LensStage(const Optics& o, Beam<L>& b, Outcome<L>& out) {
   for (int l = 0; l < o.num_lenses; ++l) {
@@ -308,6 +307,20 @@ HWY_INLINE void LensStage(const Optics& o, Beam<L>& b, Outcome<L>& out) {
     b.sx = L::Sub(b.sx, L::Mul(b.x, L::Set(lens.power)));  // sx -= x / f
     b.sy = L::Sub(b.sy, L::Mul(b.y, L::Set(lens.power)));
   }
+}
+
+/// The optical train from the objects to the sensor plane, in order: each element is a stage
+/// above. A new element is one stage function and one line here (its parameters in Optics, and
+/// a Fate if it removes rays for a new reason); both paths then trace it.
+template <class L, bool kCorrector, class Uniform>
+HWY_INLINE void OpticalTrain(const Optics& o, Beam<L>& b, Outcome<L>& out,
+                             Uniform&& corrector_uniform) {
+  if constexpr (kCorrector) {
+    CorrectorStage<L>(o, b, out, corrector_uniform);
+    if (L::Stop(out.settled)) return;
+  }
+  LensStage<L>(o, b, out);
+  if (L::Stop(out.settled)) return;
   b.Go(o.sensor_z);
 }
 

@@ -69,11 +69,8 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Op
   // The optics stages (stages-inl.h), one lane.
   auto out = st::Outcome<L1>::Open();
   st::Beam<L1> beam = st::Beam<L1>::From({o.x, o.y, o.z}, {d.x, d.y, d.z}, 1 / d.z);
-  if constexpr (kCorrector) {
-    ++c.corrector_tests;
-    st::CorrectorStage<L1>(op, beam, out, [&] { return rng.Uniform(); });
-  }
-  if (!out.settled) st::LensStage<L1>(op, beam, out);
+  if constexpr (kCorrector) ++c.corrector_tests;
+  st::OpticalTrain<L1, kCorrector>(op, beam, out, [&] { return rng.Uniform(); });
   if (!out.settled) {
     double u, v;
     st::SensorPoint<L1>(op, beam, u, v);

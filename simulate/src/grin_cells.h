@@ -24,8 +24,8 @@ constexpr double kCellOvershoot = 1e-9;
 /// kCellOvershoot past the face it meets first, and that face.
 struct CellExit {
   double dt = std::numeric_limits<double>::infinity();  ///< +inf: through no face
-  int axis = -1;  ///< 0, 1, 2 for x, y, z
-  int side = 0;   ///< +1: the face at `hi`, -1: at `lo`
+  int axis = -1;                                        ///< 0, 1, 2 for x, y, z
+  int side = 0;                                         ///< +1: the face at `hi`, -1: at `lo`
 };
 /// The exit predicted from the path p + t dt + d dt^2 / 2 (local point p, optical direction t,
 /// D = n grad n at p).
@@ -35,6 +35,6 @@ CellExit PredictCellExit(const GridCell& cell, const Vec3& p, const Vec3& t, con
 /// past the face of `*cell` that the ray meets first (or earlier, if the tolerance says so),
 /// its inner stages use the cell's polynomial, and cells->now() becomes the cell of the step's
 /// end. It is located afresh when it was not located from s->r (its `at` differs).
-int CellStep(const IndexField& f, const Vec3& center, const GrinSettings& cfg,
-             GridCellPair* cells, GrinPoint* s, double* dt, double* used);
+int CellStep(const IndexField& f, const Vec3& center, const GrinSettings& cfg, GridCellPair* cells,
+             GrinPoint* s, double* dt, double* used);
 }  // namespace raymatch::simulate

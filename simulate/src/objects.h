@@ -6,9 +6,9 @@
 #include <algorithm>
 #include <cmath>
 
+#include "grin_cells.h"
 #include "raymatch/core/rng.h"
 #include "raymatch/simulate/interfaces.h"
-#include "grin_cells.h"
 #include "tracer_impl.h"
 
 namespace raymatch::simulate {
@@ -33,7 +33,8 @@ inline bool IsCentralField(const IndexField& f) {
   return f.type == IndexFieldType::kLuneburg || f.type == IndexFieldType::kFishEye;
 }
 
-inline void ProjectOnInvariants(const IndexField& f, const Vec3& center, const Vec3& l, GrinPoint* s) {
+inline void ProjectOnInvariants(const IndexField& f, const Vec3& center, const Vec3& l,
+                                GrinPoint* s) {
   const double l2 = Dot(l, l);
   Vec3 p = s->r - center;
   if (l2 > 0) p = p - l * (Dot(p, l) / l2);  // back into the plane of the orbit

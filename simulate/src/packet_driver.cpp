@@ -13,8 +13,8 @@ PacketSupport PacketSupportFor(const Simulator::Impl& im) {
     if (im.angular_table.height == 0) return {false, "empty_angular_map"};
     field = &lf->field;
   } else {
-    return {false, std::holds_alternative<PointSource>(im.source) ? "point_source"
-                                                                  : "ray_list_source"};
+    return {false,
+            std::holds_alternative<PointSource>(im.source) ? "point_source" : "ray_list_source"};
   }
   if (field->shape != FieldShape::kDisc && !field->map.empty()) return {false, "spatial_map"};
   if (im.optics.psf_sigma_sensor > 0) return {false, "camera_psf"};

@@ -13,9 +13,9 @@ namespace raymatch::simulate {
 
 /// The sources the packet stages sample (which Source types get a packet instantiation).
 template <class Source>
-constexpr bool kPacketSource = std::is_same_v<Source, ConeSource> ||
-                               std::is_same_v<Source, CollimatedSource> ||
-                               std::is_same_v<Source, LightFieldSource>;
+constexpr bool kPacketSource =
+    std::is_same_v<Source, ConeSource> || std::is_same_v<Source, CollimatedSource> ||
+    std::is_same_v<Source, LightFieldSource>;
 
 /// Whether the packet path takes the scene: the one place that decides it (Effects lists it).
 PacketSupport PacketSupportFor(const Simulator::Impl& im);
@@ -80,14 +80,15 @@ void TraceBatch(const Simulator::Impl& im, const Source& src, const TraceSpec& t
   constexpr int kPolWords = kPR == PartialReflection::kPolarized ? 1 : 0;
   constexpr int kExtraWords = kPolWords + (kCorrector ? 1 : 0);
   packet::SampleSource(plan.source, trace.seed, plane, r.ids, n, kExtraWords, &r);
-  if constexpr (std::is_same_v<Source, LightFieldSource>) packet::Tabulated(*plan.source.table, n, &r);
+  if constexpr (std::is_same_v<Source, LightFieldSource>)
+    packet::Tabulated(*plan.source.table, n, &r);
   // The corrector's draw follows the source's (and the polarisation's) words.
   if constexpr (kCorrector) CorrectorDraws(r, n, kPolWords);
   packet::Background(plan.near, op, n, &r);
   const uint64_t optics = CountBatch(r, n, acc);
   TraceCounters& c = acc.counters;
   const uint64_t queries = im.geometry.empty() ? 0 : 1;  // the one query that found nothing
-  c.shape_queries += queries * optics;  // rays that met nothing: one query each
+  c.shape_queries += queries * optics;                   // rays that met nothing: one query each
   if constexpr (kMesh) c.mesh_queries += optics;
   if constexpr (kCorrector) c.corrector_tests += optics;
   for (size_t k = 0; k < r.num_rare; ++k) {  // in ray order: the near list stays ascending
@@ -104,10 +105,9 @@ void TraceBatch(const Simulator::Impl& im, const Source& src, const TraceSpec& t
     } else {  // near an object: on from the packet's source sample and the stream's cursor
       RayRng rng(trace.seed, plane, ray);
       rng.SkipTo(static_cast<uint64_t>(r.cursor[i]));
-      TraceSampledRay<kPR, kCorrector, kMesh, Source>(im, trace, op, ray,
-                                                      Vec3(r.px[i], r.py[i], r.pz[i]),
-                                                      Vec3(r.dx[i], r.dy[i], r.dz[i]), rng, sel,
-                                                      acc, near_out);
+      TraceSampledRay<kPR, kCorrector, kMesh, Source>(
+          im, trace, op, ray, Vec3(r.px[i], r.py[i], r.pz[i]), Vec3(r.dx[i], r.dy[i], r.dz[i]), rng,
+          sel, acc, near_out);
     }
   }
 }
@@ -129,7 +129,8 @@ void TraceRangePackets(const Simulator::Impl& im, const Source& src, const Trace
       n = 0;
     }
   });
-  if (n > 0) TraceBatch<kPR, kCorrector, kMesh>(im, src, trace, op, plane, sel, acc, near_out, plan, n);
+  if (n > 0)
+    TraceBatch<kPR, kCorrector, kMesh>(im, src, trace, op, plane, sel, acc, near_out, plan, n);
   if (acc.sphere_queue.count > 0)
     TraceSphereQueue<kPR, kCorrector, kMesh>(im, src, trace, op, plane, sel, acc, near_out, plan);
 }

@@ -30,7 +30,8 @@ Field MakeField(const Scene& s, double auto_radius) {
     Image m(m0.width + 2 * px, m0.height + 2 * py);
     for (int y = 0; y < m.height; ++y)
       for (int x = 0; x < m.width; ++x)
-        m.at(x, y) = m0.at(std::clamp(x - px, 0, m0.width - 1), std::clamp(y - py, 0, m0.height - 1));
+        m.at(x, y) =
+            m0.at(std::clamp(x - px, 0, m0.width - 1), std::clamp(y - py, 0, m0.height - 1));
     f.half_w += px * cw, f.half_h += py * ch;
     f.map = Distribution2D(m);
   }
@@ -60,9 +61,9 @@ SourceVariant MakeSource(const Scene& own, double auto_radius, packet::Table2D* 
   switch (ss.type) {
     case SourceType::kCollimated: {
       const double t = ss.tilt_deg * kDeg, a = ss.azimuth_deg * kDeg;
-      return
-          CollimatedSource{MakeField(own, auto_radius),
-                           Vec3(std::sin(t) * std::cos(a), std::sin(t) * std::sin(a), std::cos(t))};
+      return CollimatedSource{
+          MakeField(own, auto_radius),
+          Vec3(std::sin(t) * std::cos(a), std::sin(t) * std::sin(a), std::cos(t))};
     }
     case SourceType::kCone:
       return ConeSource{MakeField(own, auto_radius), std::sin(ss.half_angle_deg * kDeg)};

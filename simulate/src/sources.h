@@ -6,11 +6,11 @@
 #include <cmath>
 #include <variant>
 
+#include "packet.h"
 #include "raymatch/core/rng.h"
 #include "raymatch/core/vec.h"
 #include "raymatch/simulate/sampling.h"
 #include "raymatch/simulate/scene.h"
-#include "packet.h"
 #include "stages-inl.h"  // the static target: the stages' one-lane instantiation
 
 namespace raymatch::simulate {

@@ -117,8 +117,8 @@ inline Fate FateOf(double code) { return static_cast<Fate>(static_cast<int>(-cod
 /// and b = 2u' - 1 for u = word 2^-32 (every step exact, so equal to centred 2^-31), and whether
 /// (a, b) lies inside the unit disc (a a + b b < 1; a try at or beyond it is rejected).
 template <class L>
-HWY_INLINE typename L::M DiscTry(typename L::V centred_a, typename L::V centred_b,
-                                 typename L::V& a, typename L::V& b) {
+HWY_INLINE typename L::M DiscTry(typename L::V centred_a, typename L::V centred_b, typename L::V& a,
+                                 typename L::V& b) {
   a = L::Mul(centred_a, L::Set(0x1p-31));
   b = L::Mul(centred_b, L::Set(0x1p-31));
   return L::Lt(L::Add(L::Mul(a, a), L::Mul(b, b)), L::Set(1.0));
@@ -239,8 +239,8 @@ HWY_INLINE typename L::M Refract(const V3<L>& d, const V3<L>& nf, typename L::V 
 /// The unpolarised Fresnel reflectance (rs^2 + rp^2) / 2 from n1 into n2 (Born & Wolf signs):
 /// rs = (n1 cos_i - n2 cos_t) / (n1 cos_i + n2 cos_t), rp = (n2 cos_i - n1 cos_t) / (...).
 template <class L>
-HWY_INLINE typename L::V FresnelReflectance(typename L::V n1, typename L::V n2,
-                                            typename L::V cos_i, typename L::V cos_t) {
+HWY_INLINE typename L::V FresnelReflectance(typename L::V n1, typename L::V n2, typename L::V cos_i,
+                                            typename L::V cos_t) {
   const typename L::V a1 = L::Mul(n1, cos_i), a2 = L::Mul(n2, cos_t);
   const typename L::V rs = L::Div(L::Sub(a1, a2), L::Add(a1, a2));
   const typename L::V b1 = L::Mul(n2, cos_i), b2 = L::Mul(n1, cos_t);
@@ -326,8 +326,7 @@ HWY_INLINE void OpticalTrain(const Optics& o, Beam<L>& b, Outcome<L>& out,
 
 /// Where the beam meets the sensor, in the stored image's frame: u = sign x - off_x, likewise v.
 template <class L>
-HWY_INLINE void SensorPoint(const Optics& o, const Beam<L>& b, typename L::V& u,
-                            typename L::V& v) {
+HWY_INLINE void SensorPoint(const Optics& o, const Beam<L>& b, typename L::V& u, typename L::V& v) {
   u = L::Sub(L::Mul(L::Set(o.sign), b.x), L::Set(o.off_x));
   v = L::Sub(L::Mul(L::Set(o.sign), b.y), L::Set(o.off_y));
 }
@@ -341,8 +340,8 @@ HWY_INLINE typename L::V SensorPixel(const Optics& o, typename L::V u, typename 
   const typename L::V nx = L::Set(o.nx), ny = L::Set(o.ny);
   const typename L::V col = L::Floor(L::Add(L::Mul(u, inv_pitch), L::Set(0.5 * o.nx)));
   const typename L::V row = L::Floor(L::Sub(L::Set(0.5 * o.ny), L::Mul(v, inv_pitch)));
-  const typename L::M inside = L::And(L::And(L::Ge(col, zero), L::Lt(col, nx)),
-                                      L::And(L::Ge(row, zero), L::Lt(row, ny)));
+  const typename L::M inside =
+      L::And(L::And(L::Ge(col, zero), L::Lt(col, nx)), L::And(L::Ge(row, zero), L::Lt(row, ny)));
   out.Mark(L::Not(inside), Fate::kMissedSensor);
   return L::Add(L::Mul(row, nx), col);
 }

@@ -28,7 +28,7 @@ struct Lens {
 /// MakeOptics gives the planes at defocus 0; `Shifted` moves them by a plane's defocus, and both
 /// paths trace with that copy.
 struct Optics {
-  bool corrector = false;           ///< a corrector stage (no zones: every ray is outside)
+  bool corrector = false;  ///< a corrector stage (no zones: every ray is outside)
   double corrector_z = 0;
   std::vector<double> ring_outer2;  ///< squared outer radii of the zones (um^2), ascending
   std::vector<double> ring_t;       ///< their transmissions
@@ -65,12 +65,12 @@ namespace packet {
 // What became of a lane of the packet path (Rays::out): a pixel index (>= 0), a fate's code
 // (FateCode: minus the fate's number), or one of the two codes after the fates.
 constexpr double FateCode(Fate f) { return -static_cast<double>(static_cast<int>(f)); }
-inline constexpr double kScalar = -double(kNumFates);     ///< trace on the scalar path
+inline constexpr double kScalar = -double(kNumFates);    ///< trace on the scalar path
 inline constexpr double kNear = -double(kNumFates + 1);  ///< split mode: meets the split sphere
 /// The fates the packet stages give (the others come from the scalar path only).
-inline constexpr Fate kPacketFates[] = {Fate::kOutsideNa,       Fate::kMissedSensor,
+inline constexpr Fate kPacketFates[] = {Fate::kOutsideNa,         Fate::kMissedSensor,
                                         Fate::kAbsorbedCorrector, Fate::kInteractionCap,
-                                        Fate::kEscaped,         Fate::kLostInside};
+                                        Fate::kEscaped,           Fate::kLostInside};
 }  // namespace packet
 
 namespace stages {
@@ -119,7 +119,9 @@ struct ScalarLanes {
   static V ToDouble(I x) { return static_cast<double>(x); }
   static V Gather(const double* p, I i) { return p[i]; }
   template <class G>
-  static I GatherI(const G* p, I i) { return p[i]; }
+  static I GatherI(const G* p, I i) {
+    return p[i];
+  }
 };
 
 }  // namespace stages

@@ -7,8 +7,8 @@
 #include <type_traits>
 #include <vector>
 
-#include "raymatch/core/rng.h"
 #include "objects.h"
+#include "raymatch/core/rng.h"
 #include "tracer_impl.h"
 
 namespace raymatch::simulate {
@@ -20,8 +20,8 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Op
 
 /// One ray of the plane, from its own stream: the scalar path, and the packet path's fallback.
 template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
-void TraceRay(const Simulator::Impl& im, const Source& src, const TraceSpec& trace, const Optics& op,
-              uint32_t plane, uint64_t ray, const RaySelection& sel, Accum& acc,
+void TraceRay(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
+              const Optics& op, uint32_t plane, uint64_t ray, const RaySelection& sel, Accum& acc,
               std::vector<uint64_t>* near_out) {
   TraceCounters& c = acc.counters;
   RayRng rng(trace.seed, plane, ray);

@@ -4,10 +4,10 @@
 #include <memory>
 #include <vector>
 
+#include "packet.h"
 #include "raymatch/simulate/geometry.h"
 #include "raymatch/simulate/index_field.h"
 #include "raymatch/simulate/tracer.h"
-#include "packet.h"
 #include "sources.h"
 #include "stages.h"
 
@@ -26,8 +26,8 @@ struct RaySelection {
   const uint64_t* list = nullptr;
   const uint64_t* skip = nullptr;
   size_t skip_count = 0;
-  uint64_t first = 0;         // without a list: the rays [first, first + n)
-  bool split = false;         // leave out (and report) rays whose line meets the sphere
+  uint64_t first = 0;  // without a list: the rays [first, first + n)
+  bool split = false;  // leave out (and report) rays whose line meets the sphere
   Vec3 split_center;
   double split_r2 = 0;
 };
@@ -58,16 +58,16 @@ struct Accum {
 struct Simulator::Impl {
   Geometry geometry;
   SourceVariant source;
-  Optics optics;                  // at defocus 0
-  PacketSupport packets;          // whether the packet path takes this scene
+  Optics optics;                         // at defocus 0
+  PacketSupport packets;                 // whether the packet path takes this scene
   std::vector<double> index;             // per object
   std::vector<const IndexField*> field;  // per object; null = homogeneous
-  std::vector<UniformCells> uniform;      // per object; empty unless a grid field
+  std::vector<UniformCells> uniform;     // per object; empty unless a grid field
   std::vector<Vec3> center;
   std::vector<double> size;  // characteristic size (for first GRIN steps)
   bool has_grin = false;
   packet::Table2D angular_table;  // the light field's table for the packet path
-  double field_radius_um = 0;  // resolved source field radius (automatic or given)
+  double field_radius_um = 0;     // resolved source field radius (automatic or given)
   double medium;
   double source_z;
   explicit Impl(const Scene& s) : geometry(s.objects) {}

@@ -3,7 +3,8 @@
 // so one binary runs everywhere and uses all the vector width there is.
 //
 // Bit-identity with the scalar tracer rests on three rules: the same operations in the same
-// order (each line below names the scalar line it mirrors), IEEE double arithmetic with
+// order (the physical stages are the scalar path's own, stages-inl.h, instantiated here for
+// vectors; the rest names the scalar line it mirrors), IEEE double arithmetic with
 // correctly rounded division and square root in both paths, and no contraction of a * b + c
 // into a fused multiply-add (CMake builds this file with -ffp-contract=off; Highway's MulAdd is
 // never used). test_simulate's Packet.* tests compare images, counters and near lists with the

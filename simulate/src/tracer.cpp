@@ -5,21 +5,17 @@
 #include <tbb/global_control.h>
 #include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
-#include <unistd.h>
 
 #include <chrono>
 #include <cmath>
-#include <condition_variable>
-#include <cstdio>
-#include <mutex>
 #include <optional>
 #include <thread>
 #include <variant>
 
 #include "raymatch/core/cluster.h"
 #include "raymatch/core/error.h"
-#include "raymatch/core/rng.h"
 #include "raymatch/core/progress.h"
+#include "raymatch/core/rng.h"
 #include "objects.h"
 #include "packet_driver.h"
 #include "trace_ray.h"
@@ -28,7 +24,6 @@
 namespace raymatch::simulate {
 
 const char* SimdTarget() { return packet::TargetName(); }
-
 
 const char* FateName(Fate f) {
   static const char* names[] = {"detected",           "outside_na",      "missed_sensor",

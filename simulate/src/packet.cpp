@@ -284,22 +284,22 @@ HWY_INLINE void Summarise(const Optics& o, hn::Vec<DF> out, size_t i, size_t n, 
   r->counts[int(Fate::kDetected)] += hn::CountTrue(df, hn::And(valid, detected));
   for (Fate f : kPacketFates)
     r->counts[int(f)] += hn::CountTrue(df, hn::And(valid, hn::Eq(out, hn::Set(df, FateCode(f)))));
-  const auto rare = hn::And(valid, hn::Or(hn::Eq(out, hn::Set(df, kScalar)), hn::Eq(out, hn::Set(df, kNear))));
-  if (!hn::AllFalse(df, rare)) {
+  const auto back = hn::And(valid, hn::Or(hn::Eq(out, hn::Set(df, kScalar)), hn::Eq(out, hn::Set(df, kNear))));
+  if (!hn::AllFalse(df, back)) {
     uint8_t bits[8] = {};
-    hn::StoreMaskBits(df, rare, bits);
+    hn::StoreMaskBits(df, back, bits);
     for (size_t k = 0; k < hn::Lanes(df); ++k)
-      if ((bits[k / 8] >> (k % 8)) & 1) r->rare[r->num_rare++] = static_cast<int64_t>(i + k);
+      if ((bits[k / 8] >> (k % 8)) & 1) r->handed_back[r->num_handed_back++] = static_cast<int64_t>(i + k);
   }
 }
 
 // The near test (before the optics only), then the optics stages (stages-inl.h) to a pixel.
-void BackgroundImpl(const NearParams& near, const Optics& o, size_t n, bool from_objects,
+void OpticsImpl(const NearParams& near, const Optics& o, size_t n, bool from_objects,
                     Rays* r) {
   const DF df;
   const size_t N = hn::Lanes(df);
   const auto zero = hn::Zero(df);
-  r->num_rare = 0;
+  r->num_handed_back = 0;
   for (uint64_t& c : r->counts) c = 0;
   for (size_t i = 0; i < n; i += N) {
     const st::V3<L> p{hn::LoadU(df, r->px + i), hn::LoadU(df, r->py + i), hn::LoadU(df, r->pz + i)};
@@ -509,7 +509,7 @@ namespace raymatch::simulate::packet {
 
 HWY_EXPORT(PhiloxWordsImpl);
 HWY_EXPORT(SampleSourceImpl);
-HWY_EXPORT(BackgroundImpl);
+HWY_EXPORT(OpticsImpl);
 HWY_EXPORT(SphereImpl);
 HWY_EXPORT(TabulatedImpl);
 
@@ -520,11 +520,11 @@ void SampleSource(const SourceParams& s, uint64_t seed, uint32_t stream, const u
                   size_t n, int extra_words, Rays* r) {
   HWY_DYNAMIC_DISPATCH(SampleSourceImpl)(s, seed, stream, rays, n, extra_words, r);
 }
-void Background(const NearParams& near, const Optics& o, size_t n, Rays* r) {
-  HWY_DYNAMIC_DISPATCH(BackgroundImpl)(near, o, n, false, r);
+void NearTestAndOptics(const NearParams& near, const Optics& o, size_t n, Rays* r) {
+  HWY_DYNAMIC_DISPATCH(OpticsImpl)(near, o, n, false, r);
 }
-void Onward(const Optics& o, size_t n, Rays* r) {
-  HWY_DYNAMIC_DISPATCH(BackgroundImpl)(NearParams{}, o, n, true, r);
+void OpticsAfterObjects(const Optics& o, size_t n, Rays* r) {
+  HWY_DYNAMIC_DISPATCH(OpticsImpl)(NearParams{}, o, n, true, r);
 }
 void Sphere(const SphereParams& s, size_t n, Rays* r) { HWY_DYNAMIC_DISPATCH(SphereImpl)(s, n, r); }
 void Tabulated(const Table2D& t, size_t n, Rays* r) { HWY_DYNAMIC_DISPATCH(TabulatedImpl)(t, n, r); }

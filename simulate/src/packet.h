@@ -73,13 +73,13 @@ struct Rays {
   double dx[kBatch], dy[kBatch], dz[kBatch];  ///< unit direction
   double u[kBatch], v[kBatch];  ///< tabulated direction's uniforms; u: then the corrector draw
   double out[kBatch];           ///< pixel index, FateCode(fate), kScalar or kNear (stages.h)
-  // Background's summary of out[0, n): the image element each lane adds one to (its pixel, or
+  // The optics' summary of out[0, n): the image element each lane adds one to (its pixel, or
   // for every other outcome a spare element past the image, npix + lane % 8, so that the adds
   // never wait on each other), the lanes for the scalar path or the near list (kScalar, kNear)
   // in lane order, and how many lanes got each fate (counts[int(fate)]).
   int64_t slot[kBatch];
-  int64_t rare[kBatch];
-  size_t num_rare = 0;
+  int64_t handed_back[kBatch];
+  size_t num_handed_back = 0;
   uint64_t counts[kNumFates] = {};
   // The sphere stage's work per lane (TraceCounters' meanings), and the rays' indices.
   int64_t queries[kBatch], interface_events[kBatch], fresnel[kBatch], path_class[kBatch];
@@ -103,17 +103,18 @@ void PhiloxWords(uint64_t seed, uint32_t stream, const uint64_t* rays, size_t n,
 void SampleSource(const SourceParams& s, uint64_t seed, uint32_t stream, const uint64_t* rays,
                   size_t n, int extra_words, Rays* r);
 /// LightFieldSource::Direction for the lanes with out 0: d from the uniforms (u, v) through the
-/// table (Distribution2D::Sample), or out = FateCode(escaped) for a direction beyond the unit circle.
+/// table (Distribution2D::Sample), or out = FateCode(escaped) for a direction beyond the unit
+/// circle.
 void Tabulated(const Table2D& t, size_t n, Rays* r);
 /// Rays::out and its summary from p, d (and u: the corrector's uniform); lanes whose out is
 /// already negative on entry keep it (the caller marks rejected or out-of-words rays).
-void Background(const NearParams& near, const Optics& o, size_t n, Rays* r);
+void NearTestAndOptics(const NearParams& near, const Optics& o, size_t n, Rays* r);
 /// Rays from their source samples (p, d, cursor) through one homogeneous sphere until they
 /// leave it: Rays::out 0 (p, d: where and how it left; cursor after its draws), the code of
 /// escaped, interaction_cap or lost_inside, or kScalar (out of words); the per-lane work counters.
 void Sphere(const SphereParams& s, size_t n, Rays* r);
-/// Background for rays that left the objects at p along d (no source plane, no near tests).
-void Onward(const Optics& o, size_t n, Rays* r);
+/// The optics for rays that left the objects at p along d (no source plane, no near tests).
+void OpticsAfterObjects(const Optics& o, size_t n, Rays* r);
 /// The instruction set chosen at run time, e.g. "AVX3" (Highway's target name).
 const char* TargetName();
 

@@ -91,8 +91,8 @@ void CorrectorDraws(packet::Rays& r, size_t n, int skip) {
   }
 }
 
-/// A batch's outcomes after Background or Onward into the image and the fate counters; returns
-/// how many of its rays reached the optics.
+/// A batch's outcomes after NearTestAndOptics or OpticsAfterObjects into the image and the fate
+/// counters; returns how many of its rays reached the optics.
 uint64_t CountBatch(const packet::Rays& r, size_t n, Accum& acc) {
   for (size_t i = 0; i < n; ++i) ++acc.image[static_cast<size_t>(r.slot[i])];
   for (int f = 0; f < kNumFates; ++f) acc.counters.fates[f] += r.counts[f];

@@ -35,8 +35,8 @@ PacketPlan MakePacketPlan(const Simulator::Impl& im, const Scene& scene, Partial
 /// lane's cursor. A lane whose words ran out goes back to the scalar path from its stream.
 void CorrectorDraws(packet::Rays& r, size_t n, int skip);
 
-/// A batch's outcomes after Background or Onward into the image and the fate counters; returns
-/// how many of its rays reached the optics.
+/// A batch's outcomes after NearTestAndOptics or OpticsAfterObjects into the image and the fate
+/// counters; returns how many of its rays reached the optics.
 uint64_t CountBatch(const packet::Rays& r, size_t n, Accum& acc);
 
 /// The queued rays that meet the sphere, through the sphere stage and on through the optics;
@@ -52,7 +52,7 @@ void TraceSphereQueue(const Simulator::Impl& im, const Source& src, const TraceS
   packet::PhiloxWords(trace.seed, plane, q.ids, m, &q);
   packet::Sphere(*plan.sphere, m, &q);
   if constexpr (kCorrector) CorrectorDraws(q, m, 0);  // the corrector's draw follows the sphere's
-  packet::Onward(op, m, &q);
+  packet::OpticsAfterObjects(op, m, &q);
   const uint64_t optics = CountBatch(q, m, acc);
   TraceCounters& c = acc.counters;
   for (size_t i = 0; i < m; ++i) {
@@ -64,9 +64,10 @@ void TraceSphereQueue(const Simulator::Impl& im, const Source& src, const TraceS
     if (q.path_class[i] >= 0) ++c.path_class[static_cast<size_t>(q.path_class[i])];
   }
   if constexpr (kCorrector) c.corrector_tests += optics;
-  for (size_t k = 0; k < q.num_rare; ++k)
+  for (size_t k = 0; k < q.num_handed_back; ++k)
     TraceRay<kPR, kCorrector, kMesh>(im, src, trace, op, plane,
-                                     q.ids[static_cast<size_t>(q.rare[k])], sel, acc, near_out);
+                                     q.ids[static_cast<size_t>(q.handed_back[k])], sel, acc,
+                                     near_out);
 }
 
 /// One batch of packet::kBatch rays (at most; their indices in acc.rays->ids): the source, the
@@ -84,15 +85,15 @@ void TraceBatch(const Simulator::Impl& im, const Source& src, const TraceSpec& t
     packet::Tabulated(*plan.source.table, n, &r);
   // The corrector's draw follows the source's (and the polarisation's) words.
   if constexpr (kCorrector) CorrectorDraws(r, n, kPolWords);
-  packet::Background(plan.near, op, n, &r);
+  packet::NearTestAndOptics(plan.near, op, n, &r);
   const uint64_t optics = CountBatch(r, n, acc);
   TraceCounters& c = acc.counters;
   const uint64_t queries = im.geometry.empty() ? 0 : 1;  // the one query that found nothing
   c.shape_queries += queries * optics;                   // rays that met nothing: one query each
   if constexpr (kMesh) c.mesh_queries += optics;
   if constexpr (kCorrector) c.corrector_tests += optics;
-  for (size_t k = 0; k < r.num_rare; ++k) {  // in ray order: the near list stays ascending
-    const size_t i = static_cast<size_t>(r.rare[k]);
+  for (size_t k = 0; k < r.num_handed_back; ++k) {  // in ray order: the near list stays ascending
+    const size_t i = static_cast<size_t>(r.handed_back[k]);
     const uint64_t ray = r.ids[i];
     if (r.out[i] == packet::kNear) {
       near_out->push_back(ray);

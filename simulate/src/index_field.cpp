@@ -5,6 +5,8 @@
 #include <cstddef>
 #include <limits>
 
+#include "grin_cells.h"
+
 namespace raymatch::simulate {
 
 namespace {

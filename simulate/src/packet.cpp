@@ -3,7 +3,8 @@
 // so one binary runs everywhere and uses all the vector width there is.
 //
 // Bit-identity with the scalar tracer rests on three rules: the same operations in the same
-// order (each line below names the scalar line it mirrors), IEEE double arithmetic with
+// order (the physical stages are the scalar path's own, stages-inl.h, instantiated here for
+// vectors; the rest names the scalar line it mirrors), IEEE double arithmetic with
 // correctly rounded division and square root in both paths, and no contraction of a * b + c
 // into a fused multiply-add (CMake builds this file with -ffp-contract=off; Highway's MulAdd is
 // never used). test_simulate's Packet.* tests compare images, counters and near lists with the
@@ -15,11 +16,14 @@
 #include <hwy/highway.h>
 
 #include "packet.h"
+#include "stages-inl.h"
 
 HWY_BEFORE_NAMESPACE();
 namespace raymatch::simulate::packet {
 namespace HWY_NAMESPACE {
 namespace hn = hwy::HWY_NAMESPACE;
+namespace st = stages::HWY_NAMESPACE;
+using L = st::VecLanes;  // the stages' lane type here
 
 using DF = hn::ScalableTag<double>;
 using DU = hn::RebindToUnsigned<DF>;  // u64 lanes, as many as the doubles
@@ -116,10 +120,8 @@ HWY_INLINE hn::Vec<DF> Symmetric(Words& words, int word) {
 // The pair of words at j as SampleUnitDisc forms it: (2u - 1, 2u' - 1), and whether it lies in
 // the unit disc (a * a + b * b < 1; the loop there rejects >= 1).
 HWY_INLINE hn::Mask<DF> DiscPair(Words& w, int j, hn::Vec<DF>& a, hn::Vec<DF>& b) {
-  const DF df;
-  a = Symmetric(w, j);      // a = 2 * rng.Uniform() - 1
-  b = Symmetric(w, j + 1);  // b = 2 * rng.Uniform() - 1
-  return hn::Lt(hn::Add(hn::Mul(a, a), hn::Mul(b, b)), hn::Set(df, 1.0));
+  w.Need(j + 1);
+  return st::DiscTry<L>(Centred(w.r->words[j] + w.i), Centred(w.r->words[j + 1] + w.i), a, b);
 }
 
 // SampleUnitDisc from each lane's cursor on (even: every draw before it came in pairs). A lane
@@ -172,7 +174,6 @@ void SampleSourceImpl(const SourceParams& s, uint64_t seed, uint32_t stream, con
   const DF df;
   const DI di;
   const size_t N = hn::Lanes(df);
-  const auto one = hn::Set(df, 1.0);
   // The first two blocks for the whole batch up front (independent vectors keep the multiplier
   // busy); the third only for vectors that reach it.
   for (size_t i = 0; i < n; i += N)
@@ -189,8 +190,8 @@ void SampleSourceImpl(const SourceParams& s, uint64_t seed, uint32_t stream, con
         TwoDiscs(w, cursor, a, b, da, db);
       else
         UnitDisc(w, cursor, a, b);
-      px = hn::Add(hn::Set(df, s.center[0]), hn::Mul(a, hn::Set(df, s.radius)));
-      py = hn::Add(hn::Set(df, s.center[1]), hn::Mul(b, hn::Set(df, s.radius)));
+      const st::V3<L> p = st::DiscFieldPoint<L>(s.center, s.radius, a, b);
+      px = p.x, py = p.y;
     } else {  // rectangle: center + ((2 u0 - 1) half_w, (2 u1 - 1) half_h, 0)
       px = hn::Add(hn::Set(df, s.center[0]), hn::Mul(Symmetric(w, 0), hn::Set(df, s.half_w)));
       py = hn::Add(hn::Set(df, s.center[1]), hn::Mul(Symmetric(w, 1), hn::Set(df, s.half_h)));
@@ -202,11 +203,10 @@ void SampleSourceImpl(const SourceParams& s, uint64_t seed, uint32_t stream, con
     switch (s.direction) {
       case SourceParams::kCone: {  // ConeSource::Sample
         if (!two_discs) UnitDisc(w, cursor, da, db);
-        const auto u = hn::Mul(da, hn::Set(df, s.sin_max)), v = hn::Mul(db, hn::Set(df, s.sin_max));
-        hn::StoreU(u, df, r->dx + i);
-        hn::StoreU(v, df, r->dy + i);
-        // sqrt(1 - u * u - v * v)
-        hn::StoreU(hn::Sqrt(hn::Sub(hn::Sub(one, hn::Mul(u, u)), hn::Mul(v, v))), df, r->dz + i);
+        const st::V3<L> d = st::ConeDirection<L>(da, db, s.sin_max);
+        hn::StoreU(d.x, df, r->dx + i);
+        hn::StoreU(d.y, df, r->dy + i);
+        hn::StoreU(d.z, df, r->dz + i);
         break;
       }
       case SourceParams::kCollimated:
@@ -239,86 +239,39 @@ void SampleSourceImpl(const SourceParams& s, uint64_t seed, uint32_t stream, con
   }
 }
 
-// Distribution1D::Sample for each lane's u, over the cdf at cdf + cdf_offset (n + 1 values) and
-// the guide table at guide + guide_offset (g entries); returns x, and the bin in *bin.
-HWY_INLINE hn::Vec<DF> Sample1D(const double* cdf, hn::Vec<DI> cdf_offset, const int64_t* guide,
-                                hn::Vec<DI> guide_offset, int n, int64_t g, hn::Vec<DF> u,
-                                hn::Vec<DI>* bin) {
-  const DF df;
-  const DI di;
-  const auto zero = hn::Zero(df);
-  const auto one_i = hn::Set(di, 1), n_i = hn::Set(di, n);
-  // k = u > 0 ? min(size_t(u g), g - 1) : 0   (u g is exact: g is a power of two)
-  auto k = hn::ConvertTo(di, hn::Mul(u, hn::Set(df, double(g))));
-  k = hn::IfThenElse(hn::Gt(k, hn::Set(di, g - 1)), hn::Set(di, g - 1), k);
-  k = hn::IfThenElseZero(hn::RebindMask(di, hn::Gt(u, zero)), k);
-  auto i = hn::GatherIndex(di, guide, hn::Add(guide_offset, k));
-  // while (i + 1 <= n && cdf[i + 1] <= u) ++i
-  for (;;) {
-    const auto room = hn::Lt(i, n_i);
-    const auto next = hn::GatherIndex(df, cdf, hn::Add(cdf_offset, hn::IfThenElse(room, hn::Add(i, one_i), i)));
-    const auto step = hn::And(room, hn::RebindMask(di, hn::Le(next, u)));
-    if (hn::AllFalse(di, step)) break;
-    i = hn::IfThenElse(step, hn::Add(i, one_i), i);
-  }
-  // i = clamp(i, 0, n - 1); while (i > 0 && cdf[i + 1] - cdf[i] <= 0) --i
-  i = hn::IfThenElse(hn::Lt(i, hn::Zero(di)), hn::Zero(di), i);
-  i = hn::IfThenElse(hn::Gt(i, hn::Set(di, n - 1)), hn::Set(di, n - 1), i);
-  hn::Vec<DF> lo, hi;
-  for (;;) {
-    lo = hn::GatherIndex(df, cdf, hn::Add(cdf_offset, i));
-    hi = hn::GatherIndex(df, cdf, hn::Add(cdf_offset, hn::Add(i, one_i)));
-    const auto back = hn::And(hn::Gt(i, hn::Zero(di)), hn::RebindMask(di, hn::Le(hn::Sub(hi, lo), zero)));
-    if (hn::AllFalse(di, back)) break;
-    i = hn::IfThenElse(back, hn::Sub(i, one_i), i);
-  }
-  // du = width > 0 ? (u - cdf[i]) / width : 0.5; x = min((i + clamp(du, 0, 1)) / n, 1 - 2^-53)
-  const auto width = hn::Sub(hi, lo);
-  const auto du = hn::IfThenElse(hn::Gt(width, zero), hn::Div(hn::Sub(u, lo), width), hn::Set(df, 0.5));
-  const auto one = hn::Set(df, 1.0);
-  const auto clamped = hn::IfThenElse(hn::Lt(du, zero), zero, hn::IfThenElse(hn::Lt(one, du), one, du));
-  const auto x = hn::Div(hn::Add(hn::ConvertTo(df, i), clamped), hn::Set(df, double(n)));
-  const auto below_one = hn::Set(df, 0x1.fffffffffffffp-1);  // std::nextafter(1.0, 0.0)
-  *bin = i;
-  return hn::IfThenElse(hn::Lt(below_one, x), below_one, x);
-}
-
 void TabulatedImpl(const Table2D& t, size_t n, Rays* r) {
   const DF df;
   const DI di;
   const size_t N = hn::Lanes(df);
-  const auto zero = hn::Zero(df), one = hn::Set(df, 1.0), two = hn::Set(df, 2.0);
-  const auto extent = hn::Set(df, t.extent);
+  const auto zero = hn::Zero(df);
   for (size_t i = 0; i < n; i += N) {
     auto out = hn::LoadU(df, r->out + i);
     const auto open = hn::Eq(out, zero);
     if (hn::AllFalse(df, open)) continue;
     // Distribution2D::Sample(u0, u1): y from the marginal with u1, then x in that row with u0
     hn::Vec<DI> row, col;
-    const auto y = Sample1D(t.marginal_cdf.data(), hn::Zero(di), t.marginal_guide.data(),
+    const auto y = st::Sample1D<L>(t.marginal_cdf.data(), hn::Zero(di), t.marginal_guide.data(),
                             hn::Zero(di), t.height, t.marginal_guide_size, hn::LoadU(df, r->v + i), &row);
     // The row's offsets, multiplied in double (exact for these sizes; not every target
     // multiplies 64-bit integers).
     const auto row_d = hn::ConvertTo(df, row);
     const auto cdf_at = hn::ConvertTo(di, hn::Mul(row_d, hn::Set(df, double(t.width + 1))));
     const auto guide_at = hn::ConvertTo(di, hn::Mul(row_d, hn::Set(df, double(t.row_guide_size))));
-    const auto x = Sample1D(t.row_cdf.data(), cdf_at, t.row_guide.data(), guide_at, t.width,
+    const auto x = st::Sample1D<L>(t.row_cdf.data(), cdf_at, t.row_guide.data(), guide_at, t.width,
                             t.row_guide_size, hn::LoadU(df, r->u + i), &col);
-    // u = (2 x - 1) extent, v = (1 - 2 y) extent, w2 = 1 - u u - v v; beyond the circle: escaped
-    const auto u = hn::Mul(hn::Sub(hn::Mul(two, x), one), extent);
-    const auto v = hn::Mul(hn::Sub(one, hn::Mul(two, y)), extent);
-    const auto w2 = hn::Sub(hn::Sub(one, hn::Mul(u, u)), hn::Mul(v, v));
-    const auto beyond = hn::And(open, hn::Le(w2, zero));
-    out = hn::IfThenElse(beyond, hn::Set(df, kEscaped), out);
+    // Beyond the unit circle: escaped
+    st::V3<L> d;
+    const auto beyond = hn::And(open, st::TabulatedDirection<L>(x, y, t.extent, d));
+    out = hn::IfThenElse(beyond, hn::Set(df, FateCode(Fate::kEscaped)), out);
     hn::StoreU(out, df, r->out + i);
-    hn::StoreU(u, df, r->dx + i);
-    hn::StoreU(v, df, r->dy + i);
-    hn::StoreU(hn::Sqrt(hn::IfThenElse(beyond, one, w2)), df, r->dz + i);
+    hn::StoreU(d.x, df, r->dx + i);
+    hn::StoreU(d.y, df, r->dy + i);
+    hn::StoreU(d.z, df, r->dz + i);
   }
 }
 
 // Stores the lanes' outcomes and adds the lanes below n to the batch's summary (Rays).
-HWY_INLINE void Summarise(const OpticsParams& o, hn::Vec<DF> out, size_t i, size_t n, Rays* r) {
+HWY_INLINE void Summarise(const Optics& o, hn::Vec<DF> out, size_t i, size_t n, Rays* r) {
   const DF df;
   const DI di;
   hn::StoreU(out, df, r->out + i);
@@ -328,111 +281,72 @@ HWY_INLINE void Summarise(const OpticsParams& o, hn::Vec<DF> out, size_t i, size
   const auto spare = hn::Add(hn::Set(df, o.nx * o.ny),
                              hn::ConvertTo(df, hn::And(hn::Iota(di, 0), hn::Set(di, kSpareSlots - 1))));
   hn::StoreU(hn::ConvertTo(di, hn::IfThenElse(detected, out, spare)), di, r->slot + i);
-  r->counts[0] += hn::CountTrue(df, hn::And(valid, detected));
-  for (double code : {kEscaped, kOutsideNa, kMissedSensor, kAbsorbed, kInteractionCap, kLostInside})
-    r->counts[static_cast<size_t>(-code)] +=
-        hn::CountTrue(df, hn::And(valid, hn::Eq(out, hn::Set(df, code))));
-  const auto rare = hn::And(valid, hn::Or(hn::Eq(out, hn::Set(df, kScalar)), hn::Eq(out, hn::Set(df, kNear))));
-  if (!hn::AllFalse(df, rare)) {
+  r->counts[int(Fate::kDetected)] += hn::CountTrue(df, hn::And(valid, detected));
+  for (Fate f : kPacketFates)
+    r->counts[int(f)] += hn::CountTrue(df, hn::And(valid, hn::Eq(out, hn::Set(df, FateCode(f)))));
+  const auto back = hn::And(valid, hn::Or(hn::Eq(out, hn::Set(df, kScalar)), hn::Eq(out, hn::Set(df, kNear))));
+  if (!hn::AllFalse(df, back)) {
     uint8_t bits[8] = {};
-    hn::StoreMaskBits(df, rare, bits);
+    hn::StoreMaskBits(df, back, bits);
     for (size_t k = 0; k < hn::Lanes(df); ++k)
-      if ((bits[k / 8] >> (k % 8)) & 1) r->rare[r->num_rare++] = static_cast<int64_t>(i + k);
+      if ((bits[k / 8] >> (k % 8)) & 1) r->handed_back[r->num_handed_back++] = static_cast<int64_t>(i + k);
   }
 }
 
-void BackgroundImpl(const OpticsParams& o, size_t n, bool from_objects, Rays* r) {
+// The near test (before the optics only), then the optics stages (stages-inl.h) to a pixel.
+void OpticsImpl(const NearParams& near, const Optics& o, size_t n, bool from_objects,
+                    Rays* r) {
   const DF df;
   const size_t N = hn::Lanes(df);
   const auto zero = hn::Zero(df);
-  r->num_rare = 0;
+  r->num_handed_back = 0;
   for (uint64_t& c : r->counts) c = 0;
   for (size_t i = 0; i < n; i += N) {
-    const auto px = hn::LoadU(df, r->px + i), py = hn::LoadU(df, r->py + i),
-               pz = hn::LoadU(df, r->pz + i);
-    const auto dx = hn::LoadU(df, r->dx + i), dy = hn::LoadU(df, r->dy + i),
-               dz = hn::LoadU(df, r->dz + i);
-    auto out = hn::LoadU(df, r->out + i);
-    auto settled = hn::Lt(out, zero);  // lanes whose outcome is known
-    // Distance test of the line (p, d) to a centre c: Dot(w, w) - t * t, w = c - p, t = Dot(w, d)
-    // (LinePassesWithin).
-    auto line_dist2 = [&](const double* c) {
-      const auto wx = hn::Sub(hn::Set(df, c[0]), px), wy = hn::Sub(hn::Set(df, c[1]), py),
-                 wz = hn::Sub(hn::Set(df, c[2]), pz);
-      const auto t = hn::Add(hn::Add(hn::Mul(wx, dx), hn::Mul(wy, dy)), hn::Mul(wz, dz));
-      const auto ww = hn::Add(hn::Add(hn::Mul(wx, wx), hn::Mul(wy, wy)), hn::Mul(wz, wz));
-      return hn::Sub(ww, hn::Mul(t, t));
-    };
-    auto mark = [&](hn::Mask<DF> m, double code) {
-      const auto now = hn::AndNot(settled, m);
-      out = hn::IfThenElse(now, hn::Set(df, code), out);
-      settled = hn::Or(settled, now);
-    };
+    const st::V3<L> p{hn::LoadU(df, r->px + i), hn::LoadU(df, r->py + i), hn::LoadU(df, r->pz + i)};
+    const st::V3<L> d{hn::LoadU(df, r->dx + i), hn::LoadU(df, r->dy + i), hn::LoadU(df, r->dz + i)};
+    const auto code = hn::LoadU(df, r->out + i);
+    st::Outcome<L> out{hn::Lt(code, zero), code};  // settled: lanes whose outcome is known
     if (!from_objects) {
-      if (o.split) mark(hn::Le(line_dist2(o.split_c), hn::Set(df, o.split_r2)), kNear);
-      for (int k = 0; k < o.num_bounds; ++k)
-        mark(hn::Le(line_dist2(o.bound_c[k]), hn::Set(df, o.bound_r2[k])), kScalar);
-      mark(hn::Le(dz, zero), kScalar);  // the scalar path calls these escaped; let it
+      if (near.split)
+        out.MarkCode(hn::Le(st::LineDistance2<L>(near.split_c, p, d), hn::Set(df, near.split_r2)),
+                     kNear);
+      for (int k = 0; k < near.num_bounds; ++k)
+        out.MarkCode(
+            hn::Le(st::LineDistance2<L>(near.bound_c[k], p, d), hn::Set(df, near.bound_r2[k])),
+            kScalar);
+      out.MarkCode(hn::Le(d.z, zero), kScalar);  // the scalar path calls these escaped; let it
     }
-    if (hn::AllTrue(df, settled)) {
-      Summarise(o, out, i, n, r);
+    if (hn::AllTrue(df, out.settled)) {
+      Summarise(o, out.code, i, n, r);
       continue;
     }
-    // o = p + d * ((source_z - p.z) * (1 / d.z)); the slopes sx = d.x * (1 / d.z), sy likewise.
     // After the objects, p is already where the ray left them.
-    const auto inv_dz = hn::Div(hn::Set(df, 1.0), dz);
-    auto x = px, y = py, z = pz;
-    if (!from_objects) {
-      const auto s = hn::Mul(hn::Sub(hn::Set(df, o.source_z), pz), inv_dz);
-      x = hn::Add(px, hn::Mul(dx, s)), y = hn::Add(py, hn::Mul(dy, s));
-      z = hn::Add(pz, hn::Mul(dz, s));
-    }
-    auto sx = hn::Mul(dx, inv_dz), sy = hn::Mul(dy, inv_dz);
-    auto go = [&](double zp) {  // x += sx * (zp - z); y += sy * (zp - z); z = zp
-      const auto dzp = hn::Sub(hn::Set(df, zp), z);
-      x = hn::Add(x, hn::Mul(sx, dzp));
-      y = hn::Add(y, hn::Mul(sy, dzp));
-      z = hn::Set(df, zp);
-    };
-    auto r2 = [&] { return hn::Add(hn::Mul(x, x), hn::Mul(y, y)); };
-    if (o.corrector) {
-      go(o.corrector_z);
-      const auto rr = r2();
-      // while (ring < n && r2 > ring_outer2[ring]) ++ring; then the zone's transmission
-      auto beyond = hn::Eq(zero, zero);  // still beyond every zone so far
-      auto t = hn::Set(df, o.ring_t[0]);
-      for (int k = 0; k < o.rings; ++k) {
-        beyond = hn::And(beyond, hn::Gt(rr, hn::Set(df, o.ring_outer2[k])));
-        if (k + 1 < o.rings) t = hn::IfThenElse(beyond, hn::Set(df, o.ring_t[k + 1]), t);
-      }
-      mark(beyond, kOutsideNa);
-      mark(hn::Ge(hn::LoadU(df, r->u + i), t), kAbsorbed);  // rng.Uniform() >= ring_t[ring]
-    }
-    for (int l = 0; l < o.num_lenses; ++l) {
-      if (l == o.stop_after) {
-        go(o.stop_z);
-        mark(hn::Gt(r2(), hn::Set(df, o.stop_r2)), kOutsideNa);
-      }
-      go(o.lens_z[l]);
-      if (o.lens_rim[l] > 0)
-        mark(hn::Gt(r2(), hn::Set(df, o.lens_rim[l] * o.lens_rim[l])), kOutsideNa);
-      sx = hn::Sub(sx, hn::Mul(x, hn::Set(df, o.lens_power[l])));  // sx -= x * L.power
-      sy = hn::Sub(sy, hn::Mul(y, hn::Set(df, o.lens_power[l])));
-    }
-    go(o.sensor_z);
-    // u = sign x - off_x, v = sign y - off_y; col = floor(u inv_pitch + 0.5 nx),
-    // row = floor(0.5 ny - v inv_pitch)
-    const auto u = hn::Sub(hn::Mul(hn::Set(df, o.sign), x), hn::Set(df, o.off_x));
-    const auto v = hn::Sub(hn::Mul(hn::Set(df, o.sign), y), hn::Set(df, o.off_y));
-    const auto inv_pitch = hn::Set(df, o.inv_pitch);
-    const auto col = hn::Floor(hn::Add(hn::Mul(u, inv_pitch), hn::Set(df, 0.5 * o.nx)));
-    const auto row = hn::Floor(hn::Sub(hn::Set(df, 0.5 * o.ny), hn::Mul(v, inv_pitch)));
-    const auto inside = hn::And(hn::And(hn::Ge(col, zero), hn::Lt(col, hn::Set(df, o.nx))),
-                                hn::And(hn::Ge(row, zero), hn::Lt(row, hn::Set(df, o.ny))));
-    mark(hn::Not(inside), kMissedSensor);
-    out = hn::IfThenElse(settled, out, hn::Add(hn::Mul(row, hn::Set(df, o.nx)), col));
-    Summarise(o, out, i, n, r);
+    const auto inv_dz = hn::Div(hn::Set(df, 1.0), d.z);
+    auto b = st::Beam<L>::From(from_objects ? p : st::OnPlane<L>(near.source_z, p, d, inv_dz), d,
+                               inv_dz);
+    auto corrector_uniform = [&] { return hn::LoadU(df, r->u + i); };
+    if (o.corrector)
+      st::OpticalTrain<L, true>(o, b, out, corrector_uniform);
+    else
+      st::OpticalTrain<L, false>(o, b, out, corrector_uniform);
+    hn::Vec<DF> u, v;
+    st::SensorPoint<L>(o, b, u, v);
+    const auto pixel = st::SensorPixel<L>(o, u, v, out);
+    Summarise(o, hn::IfThenElse(out.settled, out.code, pixel), i, n, r);
   }
+}
+
+// rng.Uniform() from each lane's next word (its cursor < kWords) where `m`, else 0.
+HWY_INLINE hn::Vec<DF> UniformAtCursor(const Rays& r, size_t i, hn::Vec<DI> cursor,
+                                       hn::Mask<DF> m) {
+  const DF df;
+  auto u = hn::Zero(df);
+  for (int j = 0; j < kWords; ++j) {
+    const auto at = hn::And(m, hn::RebindMask(df, hn::Eq(cursor, hn::Set(DI(), j))));
+    if (hn::AllFalse(df, at)) continue;
+    u = hn::IfThenElse(at, Uniform(r.words[j] + i), u);
+  }
+  return u;
 }
 
 // TraceObjects for one homogeneous sphere, several rays at a time (packet.h, Sphere). Each line
@@ -452,10 +366,8 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
     const auto px = hn::LoadU(df, r->px + i), py = hn::LoadU(df, r->py + i),
                pz = hn::LoadU(df, r->pz + i);
     auto dx = hn::LoadU(df, r->dx + i), dy = hn::LoadU(df, r->dy + i), dz = hn::LoadU(df, r->dz + i);
-    // o = p + d * ((source_z - p.z) * (1 / d.z))
-    const auto s = hn::Mul(hn::Sub(hn::Set(df, sp.source_z), pz), hn::Div(one, dz));
-    auto ox = hn::Add(px, hn::Mul(dx, s)), oy = hn::Add(py, hn::Mul(dy, s)),
-         oz = hn::Add(pz, hn::Mul(dz, s));
+    const st::V3<L> o = st::OnPlane<L>(sp.source_z, {px, py, pz}, {dx, dy, dz}, hn::Div(one, dz));
+    auto ox = o.x, oy = o.y, oz = o.z;
     auto cursor = hn::LoadU(di, r->cursor + i);
     auto out = hn::Zero(df);
     auto active = hn::FirstN(df, n - i);
@@ -498,7 +410,7 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
       // if (++events > max_interactions) the ray ends
       count(events, active);
       finish(hn::And(active, hn::RebindMask(df, hn::Gt(events, hn::Set(di, sp.max_interactions)))),
-             kInteractionCap);
+             FateCode(Fate::kInteractionCap));
       if (hn::AllFalse(df, active)) break;
       count(interface, active);
       const auto entering = hn::Lt(dot(dx, dy, dz, nx, ny, nz), zero);
@@ -510,16 +422,11 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
                  fy2 = hn::IfThenElse(entering, ny, hn::Neg(ny)),
                  fz2 = hn::IfThenElse(entering, nz, hn::Neg(nz));  // nf: faces the incoming ray
       const auto cos_i = hn::Neg(dot(dx, dy, dz, fx2, fy2, fz2));
-      // Refract(d, nf, n1 / n2): sin2_t = eta^2 max(0, 1 - cos_i^2); TIR when >= 1
-      const auto eta = hn::Div(n1, n2);
-      const auto c2 = hn::Sub(one, hn::Mul(cos_i, cos_i));
-      const auto sin2_t = hn::Mul(hn::Mul(eta, eta), hn::IfThenElse(hn::Lt(zero, c2), c2, zero));
-      const auto tir = hn::Ge(sin2_t, one);
-      const auto ct = hn::Sqrt(hn::IfThenElse(tir, zero, hn::Sub(one, sin2_t)));
-      const auto k = hn::Sub(hn::Mul(eta, cos_i), ct);  // t = d eta + nf (eta cos_i - ct)
-      const auto tx = hn::Add(hn::Mul(dx, eta), hn::Mul(fx2, k)),
-                 ty = hn::Add(hn::Mul(dy, eta), hn::Mul(fy2, k)),
-                 tz = hn::Add(hn::Mul(dz, eta), hn::Mul(fz2, k));
+      // Refract(d, nf, n1 / n2)
+      st::V3<L> tr;
+      hn::Vec<DF> ct;
+      const auto tir = st::Refract<L>({dx, dy, dz}, {fx2, fy2, fz2}, hn::Div(n1, n2), cos_i, tr, ct);
+      const auto tx = tr.x, ty = tr.y, tz = tr.z;
       auto reflect = tir;
       if (sp.fresnel) {
         const auto draw = hn::AndNot(tir, active);
@@ -528,19 +435,9 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
         const auto out_of_words = hn::And(draw, hn::RebindMask(df, hn::Gt(cursor, hn::Set(di, kWords - 1))));
         finish(out_of_words, kScalar);
         const auto drawing = hn::AndNot(out_of_words, draw);
-        auto u = zero;
-        for (int j = 0; j < kWords; ++j) {
-          const auto at = hn::And(drawing, hn::RebindMask(df, hn::Eq(cursor, hn::Set(di, j))));
-          if (hn::AllFalse(df, at)) continue;
-          u = hn::IfThenElse(at, Uniform(r->words[j] + i), u);
-        }
+        const auto u = UniformAtCursor(*r, i, cursor, drawing);
         count(cursor, drawing);
-        // Fresnel(n1, n2, cos_i, cos_t).R() = (rs^2 + rp^2) / 2
-        const auto a1 = hn::Mul(n1, cos_i), a2 = hn::Mul(n2, ct);
-        const auto rs = hn::Div(hn::Sub(a1, a2), hn::Add(a1, a2));
-        const auto b1 = hn::Mul(n2, cos_i), b2 = hn::Mul(n1, ct);
-        const auto rp = hn::Div(hn::Sub(b1, b2), hn::Add(b1, b2));
-        const auto R = hn::Mul(hn::Set(df, 0.5), hn::Add(hn::Mul(rs, rs), hn::Mul(rp, rp)));
+        const auto R = st::FresnelReflectance<L>(n1, n2, cos_i, ct);  // Fresnel(...).R()
         reflect = hn::Or(reflect, hn::And(drawing, hn::Lt(u, R)));
       }
       // Reflected: d = Normalize(Reflect(d, nf)), o = hp + nf eps; transmitted: d = Normalize(t),
@@ -556,10 +453,12 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
       const auto new_ox = hn::IfThenElse(reflect, hn::Add(hx, ax), hn::Sub(hx, ax));
       const auto new_oy = hn::IfThenElse(reflect, hn::Add(hy, ay), hn::Sub(hy, ay));
       const auto new_oz = hn::IfThenElse(reflect, hn::Add(hz, az), hn::Sub(hz, az));
-      // The object stack: entering pushes (a 17th level is lost inside), leaving pops.
+      // The object stack: entering pushes (one level beyond kMaxNesting is lost inside), leaving
+      // pops.
       const auto transmit = hn::AndNot(reflect, active);
       const auto push = hn::And(transmit, entering);
-      finish(hn::And(push, hn::RebindMask(df, hn::Eq(depth, hn::Set(di, 16)))), kLostInside);
+      finish(hn::And(push, hn::RebindMask(df, hn::Eq(depth, hn::Set(di, kMaxNesting)))),
+             FateCode(Fate::kLostInside));
       const auto pushing = hn::And(push, active);
       const auto popping = hn::And(hn::AndNot(entering, transmit), inside);
       depth = hn::IfThenElse(as_i(pushing), hn::Add(depth, hn::Set(di, 1)), depth);
@@ -586,8 +485,9 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
     // (d.z <= 0) -> escaped; the rest go on to the optics from where they left.
     const auto ended = hn::Lt(out, zero);
     out = hn::IfThenElse(hn::AndNot(ended, hn::RebindMask(df, hn::Gt(depth, hn::Zero(di)))),
-                         hn::Set(df, kLostInside), out);
-    out = hn::IfThenElse(hn::And(hn::Eq(out, zero), hn::Le(dz, zero)), hn::Set(df, kEscaped), out);
+                         hn::Set(df, FateCode(Fate::kLostInside)), out);
+    out = hn::IfThenElse(hn::And(hn::Eq(out, zero), hn::Le(dz, zero)),
+                         hn::Set(df, FateCode(Fate::kEscaped)), out);
     hn::StoreU(out, df, r->out + i);
     hn::StoreU(ox, df, r->px + i), hn::StoreU(oy, df, r->py + i), hn::StoreU(oz, df, r->pz + i);
     hn::StoreU(dx, df, r->dx + i), hn::StoreU(dy, df, r->dy + i), hn::StoreU(dz, df, r->dz + i);
@@ -609,7 +509,7 @@ namespace raymatch::simulate::packet {
 
 HWY_EXPORT(PhiloxWordsImpl);
 HWY_EXPORT(SampleSourceImpl);
-HWY_EXPORT(BackgroundImpl);
+HWY_EXPORT(OpticsImpl);
 HWY_EXPORT(SphereImpl);
 HWY_EXPORT(TabulatedImpl);
 
@@ -620,11 +520,11 @@ void SampleSource(const SourceParams& s, uint64_t seed, uint32_t stream, const u
                   size_t n, int extra_words, Rays* r) {
   HWY_DYNAMIC_DISPATCH(SampleSourceImpl)(s, seed, stream, rays, n, extra_words, r);
 }
-void Background(const OpticsParams& o, size_t n, Rays* r) {
-  HWY_DYNAMIC_DISPATCH(BackgroundImpl)(o, n, false, r);
+void NearTestAndOptics(const NearParams& near, const Optics& o, size_t n, Rays* r) {
+  HWY_DYNAMIC_DISPATCH(OpticsImpl)(near, o, n, false, r);
 }
-void Onward(const OpticsParams& o, size_t n, Rays* r) {
-  HWY_DYNAMIC_DISPATCH(BackgroundImpl)(o, n, true, r);
+void OpticsAfterObjects(const Optics& o, size_t n, Rays* r) {
+  HWY_DYNAMIC_DISPATCH(OpticsImpl)(NearParams{}, o, n, true, r);
 }
 void Sphere(const SphereParams& s, size_t n, Rays* r) { HWY_DYNAMIC_DISPATCH(SphereImpl)(s, n, r); }
 void Tabulated(const Table2D& t, size_t n, Rays* r) { HWY_DYNAMIC_DISPATCH(TabulatedImpl)(t, n, r); }

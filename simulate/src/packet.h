@@ -3,33 +3,27 @@
 //
 // A batch of up to kBatch rays is traced stage by stage in structure-of-arrays form: the first
 // kWords words of every ray's Philox stream, the source sample, and for rays whose straight line
-// passes no object, the whole way through the corrector and the ideal lenses to a pixel. Every
-// operation is the one the scalar tracer performs, in the same order, in IEEE double precision
-// without fused multiply-adds (the file is built with -ffp-contract=off), so a ray traced here
-// lands in the same pixel with the same fate as on the scalar path, bit for bit. Where the scene
-// is one homogeneous sphere, the rays that meet it go through a sphere stage too (Sphere). Other
-// rays that meet an object go on from their packet source sample on the scalar path; rays that
-// need more random words than the batch holds are traced again from their own stream.
+// passes no object, the whole way through the corrector and the ideal lenses to a pixel. The
+// physical stages (disc samples, source directions, the near test, the optics) are the scalar
+// path's own, instantiated for vectors (stages-inl.h); the sphere stage follows the scalar
+// TraceObjects operation by operation. All of it in IEEE double without fused multiply-adds (the
+// files are built with -ffp-contract=off), so a ray traced here lands in the same pixel with the
+// same fate as on the scalar path, bit for bit. Where the scene is one homogeneous sphere, the
+// rays that meet it go through the sphere stage (Sphere); other rays that meet an object go on
+// from their packet source sample on the scalar path; rays that need more random words than the
+// batch holds are traced again from their own stream.
 #include <cstddef>
 #include <cstdint>
 #include <vector>
+
+#include "stages.h"
 
 namespace raymatch::simulate::packet {
 
 inline constexpr size_t kBatch = 256;  ///< rays per batch: a multiple of every vector length
 inline constexpr int kWords = 12;      ///< random words per ray made up front (3 Philox blocks)
 inline constexpr int kMaxBounds = 8;   ///< objects the near test takes; more: scalar path
-inline constexpr int kMaxRings = 16;   ///< corrector zones the packet stage takes
 
-// What became of each lane (Rays::out): a pixel index (>= 0) or one of these.
-inline constexpr double kScalar = -1;        ///< trace on the scalar path from the ray's stream
-inline constexpr double kNear = -2;          ///< split mode: the line meets the split sphere
-inline constexpr double kEscaped = -3;       ///< the source rejected the ray
-inline constexpr double kOutsideNa = -4;     ///< corrector rim, aperture stop or lens rim
-inline constexpr double kMissedSensor = -5;  ///< passed the optics, fell beside the sensor
-inline constexpr double kAbsorbed = -6;      ///< removed by a corrector zone's transmission draw
-inline constexpr double kInteractionCap = -7;  ///< more interface events than max_interactions
-inline constexpr double kLostInside = -8;      ///< the stack says inside after the last surface
 inline constexpr int kPathClasses = 8;         ///< TraceCounters::path_class
 
 /// The light field's angular table (a Distribution2D, sampling.h) laid out for the packet
@@ -56,8 +50,9 @@ struct SourceParams {
   double dir[3] = {0, 0, 1};
 };
 
-/// Everything after the source, with the defocus already added to every plane's z.
-struct OpticsParams {
+/// The near test before the optics: rays whose straight line passes within an object's
+/// bounding sphere (with a margin) leave the packet for the scalar path or the sphere stage.
+struct NearParams {
   double source_z = 0;
   int num_bounds = 0;  ///< object bounding spheres (centre, squared radius with a margin)
   double bound_c[kMaxBounds][3] = {};
@@ -65,14 +60,6 @@ struct OpticsParams {
   bool split = false;  ///< TraceFarRays: report rays whose line passes within the sphere
   double split_c[3] = {0, 0, 0};
   double split_r2 = 0;
-  bool corrector = false;
-  double corrector_z = 0;
-  int rings = 0;
-  double ring_outer2[kMaxRings] = {}, ring_t[kMaxRings] = {};
-  int num_lenses = 0, stop_after = 0;
-  double lens_z[3] = {}, lens_power[3] = {}, lens_rim[3] = {};  ///< power = 1 / f
-  double stop_z = 0, stop_r2 = 0, sensor_z = 0;
-  double sign = 1, off_x = 0, off_y = 0, inv_pitch = 1, nx = 0, ny = 0;
 };
 
 /// Image elements the packet path needs beyond the nx * ny pixels (Rays::slot).
@@ -85,15 +72,15 @@ struct Rays {
   double px[kBatch], py[kBatch], pz[kBatch];  ///< source sample on its plane
   double dx[kBatch], dy[kBatch], dz[kBatch];  ///< unit direction
   double u[kBatch], v[kBatch];  ///< tabulated direction's uniforms; u: then the corrector draw
-  double out[kBatch];           ///< pixel index or one of the codes above
-  // Background's summary of out[0, n): the image element each lane adds one to (its pixel, or
+  double out[kBatch];           ///< pixel index, FateCode(fate), kScalar or kNear (stages.h)
+  // The optics' summary of out[0, n): the image element each lane adds one to (its pixel, or
   // for every other outcome a spare element past the image, npix + lane % 8, so that the adds
   // never wait on each other), the lanes for the scalar path or the near list (kScalar, kNear)
-  // in lane order, and how many lanes got each other code (counts[-code]; [0]: detected).
+  // in lane order, and how many lanes got each fate (counts[int(fate)]).
   int64_t slot[kBatch];
-  int64_t rare[kBatch];
-  size_t num_rare = 0;
-  uint64_t counts[16] = {};
+  int64_t handed_back[kBatch];
+  size_t num_handed_back = 0;
+  uint64_t counts[kNumFates] = {};
   // The sphere stage's work per lane (TraceCounters' meanings), and the rays' indices.
   int64_t queries[kBatch], interface_events[kBatch], fresnel[kBatch], path_class[kBatch];
   int64_t events[kBatch];  ///< > 0: the ray met the sphere
@@ -116,17 +103,18 @@ void PhiloxWords(uint64_t seed, uint32_t stream, const uint64_t* rays, size_t n,
 void SampleSource(const SourceParams& s, uint64_t seed, uint32_t stream, const uint64_t* rays,
                   size_t n, int extra_words, Rays* r);
 /// LightFieldSource::Direction for the lanes with out 0: d from the uniforms (u, v) through the
-/// table (Distribution2D::Sample), or out = kEscaped for a direction beyond the unit circle.
+/// table (Distribution2D::Sample), or out = FateCode(escaped) for a direction beyond the unit
+/// circle.
 void Tabulated(const Table2D& t, size_t n, Rays* r);
 /// Rays::out and its summary from p, d (and u: the corrector's uniform); lanes whose out is
 /// already negative on entry keep it (the caller marks rejected or out-of-words rays).
-void Background(const OpticsParams& o, size_t n, Rays* r);
+void NearTestAndOptics(const NearParams& near, const Optics& o, size_t n, Rays* r);
 /// Rays from their source samples (p, d, cursor) through one homogeneous sphere until they
-/// leave it: Rays::out 0 (p, d: where and how it left; cursor after its draws) or kEscaped,
-/// kInteractionCap, kLostInside, kScalar (out of words); the per-lane work counters.
+/// leave it: Rays::out 0 (p, d: where and how it left; cursor after its draws), the code of
+/// escaped, interaction_cap or lost_inside, or kScalar (out of words); the per-lane work counters.
 void Sphere(const SphereParams& s, size_t n, Rays* r);
-/// Background for rays that left the objects at p along d (no source plane, no near tests).
-void Onward(const OpticsParams& o, size_t n, Rays* r);
+/// The optics for rays that left the objects at p along d (no source plane, no near tests).
+void OpticsAfterObjects(const Optics& o, size_t n, Rays* r);
 /// The instruction set chosen at run time, e.g. "AVX3" (Highway's target name).
 const char* TargetName();
 

@@ -2,6 +2,8 @@
 
 #include <algorithm>
 
+#include "stages-inl.h"  // the static target: the stages' one-lane instantiation
+
 namespace raymatch::simulate {
 
 Distribution1D::Distribution1D(const float* f, int n) : func_(f, f + n), cdf_(n + 1, 0.0) {
@@ -23,20 +25,15 @@ Distribution1D::Distribution1D(const float* f, int n) : func_(f, f + n), cdf_(n 
 }
 
 double Distribution1D::Sample(double u, int* bin) const {
-  const int n = size();
-  // Largest i with cdf_[i] <= u (std::upper_bound - 1): from the guide table's entry for u's
-  // bucket (cdf_[guide] <= k / g <= u), forward over the few cdf values in the bucket. A binary
-  // search over the cdf was 44 % of a light-field image's time (mispredicted branches).
-  const size_t g = guide_.size();
-  const size_t k = u > 0 ? std::min(static_cast<size_t>(u * double(g)), g - 1) : 0;
-  int i = guide_[k];
-  while (i + 1 <= n && cdf_[i + 1] <= u) ++i;
-  i = std::clamp(i, 0, n - 1);
-  while (i > 0 && cdf_[i + 1] - cdf_[i] <= 0) --i;  // never land in an empty bin
-  const double width = cdf_[i + 1] - cdf_[i];
-  const double du = width > 0 ? (u - cdf_[i]) / width : 0.5;
-  *bin = i;
-  return std::min((i + std::clamp(du, 0.0, 1.0)) / n, std::nextafter(1.0, 0.0));
+  // The stage the packet path samples light-field tables with (stages-inl.h), on one lane. A
+  // guide table (in place of a binary search over the cdf, whose mispredicted branches were
+  // 44 % of a light-field image's time) gives the start.
+  using L = stages::ScalarLanes;
+  int64_t i = 0;
+  const double x = stages::HWY_NAMESPACE::Sample1D<L>(cdf_.data(), 0, guide_.data(), 0, size(),
+                                                      static_cast<int64_t>(guide_.size()), u, &i);
+  *bin = static_cast<int>(i);
+  return x;
 }
 
 Distribution2D::Distribution2D(const Image& img) {

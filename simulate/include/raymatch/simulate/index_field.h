@@ -39,14 +39,6 @@ struct GridCell {
   size_t stride[3] = {0, 0, 0};  ///< values index steps to the other corners (0: constant axis)
 };
 
-/// The integrator's two cells: the one the current point is in, and a spare in which the next
-/// one is built while a step is computed (CellStep swaps them; nothing is copied).
-struct GridCellPair {
-  GridCell cell[2];
-  int current = 0;
-  const GridCell& now() const { return cell[current]; }
-};
-
 class IndexField {
  public:
   IndexFieldType type = IndexFieldType::kLuneburg;
@@ -102,34 +94,18 @@ inline void IndexField::EvalInCell(const GridCell& g, const Vec3& p, double* n, 
   *grad = Vec3(gu * g.inv_spacing.x, gv * g.inv_spacing.y, gw * g.inv_spacing.z);
 }
 
-/// How far past a face a step that ends on it lands (in cells): the next step starts in the
-/// next cell. The field the step used there is the previous cell's polynomial; the error that
-/// makes in the direction is |jump of grad n| x this distance.
-constexpr double kCellOvershoot = 1e-9;
-
-/// Where a ray leaves a grid cell (GridCell): the parameter step (ds = n dt) to a point
-/// kCellOvershoot past the face it meets first, and that face.
-struct CellExit {
-  double dt = std::numeric_limits<double>::infinity();  ///< +inf: through no face
-  int axis = -1;  ///< 0, 1, 2 for x, y, z
-  int side = 0;   ///< +1: the face at `hi`, -1: at `lo`
-};
-/// The exit predicted from the path p + t dt + d dt^2 / 2 (local point p, optical direction t,
-/// D = n grad n at p).
-CellExit PredictCellExit(const GridCell& cell, const Vec3& p, const Vec3& t, const Vec3& d);
-
 /// Tolerances for the gradient-index integrator.
 struct GrinSettings {
   double tolerance_um = 1e-5;   ///< position error allowed per step (embedded error estimate)
   double max_step_um = 0;       ///< cap on the step length (0: the field's own cap, else none)
-  int max_steps = 2000000;      ///< per ray segment; beyond it the ray ends (interaction_cap)
+  int max_steps = 2000000;      ///< per ray segment; beyond it the ray ends (grin_step_cap)
   /// Grid fields: cross runs of cells whose corner values differ by at most this (index units)
   /// in one straight step; < 0 turns it off. The deflection neglected is below
   /// tolerance x path / spacing (1e-10 rad over 100 um at 0.1 um spacing for the default).
   double uniform_tolerance = 1e-13;
   /// 3D grids: steps end on cell faces (just past them), so that no step straddles the jump of
   /// the interpolant's gradient at a face, and are capped at the diagonal of a cell (not half the
-  /// size of a cell). Off: steps may straddle faces, capped at half a cell (as before issue 13).
+  /// size of a cell). Off: steps may straddle faces, capped at half a cell.
   bool cell_steps = true;
   /// The former controller (step doubling of Sharma steps, 11 field evaluations per accepted
   /// step against 3): kept for comparisons in benchmarks; same tolerance meaning.
@@ -167,12 +143,6 @@ GrinPoint SharmaStep(const IndexField& f, const Vec3& center, const GrinPoint& s
 /// result is kept: local extrapolation). Returns the number of field evaluations used.
 int AdaptiveStep(const IndexField& f, const Vec3& center, const GrinSettings& cfg, GrinPoint* s,
                  double* dt, double* used);
-/// The same for a 3D grid, one cell at a time (GrinSettings::cell_steps): the step ends just
-/// past the face of `*cell` that the ray meets first (or earlier, if the tolerance says so),
-/// its inner stages use the cell's polynomial, and cells->now() becomes the cell of the step's
-/// end. It is located afresh when it was not located from s->r (its `at` differs).
-int CellStep(const IndexField& f, const Vec3& center, const GrinSettings& cfg,
-             GridCellPair* cells, GrinPoint* s, double* dt, double* used);
 /// Whether a field is integrated with CellStep under these settings (3D grids, cell steps on,
 /// the embedded controller).
 inline bool UsesCellSteps(const IndexField& f, const GrinSettings& cfg) {

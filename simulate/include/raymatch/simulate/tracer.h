@@ -21,7 +21,7 @@
 
 namespace raymatch::simulate {
 
-struct RaySelection;  // tracer.cpp: which of a plane's rays to trace
+struct RaySelection;  // simulate/src/tracer_impl.h: which of a plane's rays to trace
 
 /// What became of a ray. Every traced ray ends in exactly one fate.
 enum class Fate : int {
@@ -66,7 +66,8 @@ struct PlaneResult {
   double seconds = 0;
   int threads = 0;       ///< worker threads per process
   int ranks = 1;         ///< MPI ranks that traced the image together (core/cluster.h)
-  bool simd = false;     ///< rays that met nothing went through the SIMD packet path
+  bool simd = false;     ///< the plane went through the SIMD packet path (Simulator::Effects
+                         ///< says whether a scene can; RunControl::simd whether it may)
 };
 
 /// The SIMD instruction set the packet path uses on this CPU (chosen at run time), e.g. "AVX3"
@@ -78,8 +79,8 @@ struct RunControl {
   int threads = 0;          ///< 0: scene's value, then all cores
   bool progress = false;    ///< progress bar on stderr
   std::string label;        ///< shown in the progress bar
-  /// Trace the rays that meet no object in SIMD packets (the same image bit for bit); false:
-  /// one ray at a time, for comparisons.
+  /// Trace in SIMD packets where the scene allows (the same image bit for bit); false: one ray
+  /// at a time, for comparisons.
   bool simd = true;
 };
 
@@ -152,7 +153,9 @@ class Simulator {
   /// Rays per image for this scene (given directly, or from the photon target).
   uint64_t RaysPerImage() const;
 
-  /// The stages this tracer runs, e.g. {"source:cone", "refraction", "partial_reflection:..."}.
+  /// The stages this tracer runs, e.g. {"source:cone", "refraction", "partial_reflection:..."},
+  /// and last whether the SIMD packet path takes the scene: "simd_packets", or
+  /// "scalar_only:<reason>" (point_source, ray_list_source, spatial_map, camera_psf, ...).
   std::vector<std::string> Effects() const;
   const Scene& scene() const { return scene_; }
   double source_plane_z_um() const;
@@ -162,7 +165,7 @@ class Simulator {
   std::vector<std::pair<Vec3, double>> ObjectBounds() const;
   bool has_mesh_bvh() const;        ///< an Embree BVH was built
 
-  struct Impl;  ///< defined in tracer.cpp only
+  struct Impl;  ///< defined in simulate/src/tracer_impl.h only
 
  private:
   PlaneResult Trace(double defocus_um, uint32_t plane_index, uint64_t rays,

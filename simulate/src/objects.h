@@ -1,0 +1,312 @@
+#pragma once
+// The objects stage of the scalar path: a ray through the scene's objects (refraction, total
+// internal reflection, Fresnel branches, the object stack, gradient-index media) until it leaves
+// them all. The packet path's sphere stage (packet.cpp, Sphere) does the same for one
+// homogeneous sphere.
+#include <algorithm>
+#include <cmath>
+
+#include "grin_cells.h"
+#include "raymatch/core/rng.h"
+#include "raymatch/simulate/interfaces.h"
+#include "tracer_impl.h"
+
+namespace raymatch::simulate {
+
+/// Pseudo-random unit vector perpendicular to d (polarisation of a new ray).
+inline Vec3 RandomPerpendicular(const Vec3& d, double u) {
+  const Vec3 a = std::abs(d.x) < 0.9 ? Vec3(1, 0, 0) : Vec3(0, 1, 0);
+  const Vec3 e1 = Normalize(Cross(d, a)), e2 = Cross(d, e1);
+  const double phi = 2 * M_PI * u;
+  return e1 * std::cos(phi) + e2 * std::sin(phi);
+}
+
+enum class GrinOutcome { kHit, kStepCap, kNoSurface };
+
+/// A spherically symmetric field (n depends on |p - centre| only: Luneburg, fish-eye) conserves
+/// the ray's angular momentum L = (r - c) x T (Bouguer's formula, Born & Wolf sec. 3.2.1) and
+/// the eikonal |T| = n. Near a tangent exit a position error e moves the exit by e / alpha
+/// along the surface (alpha: the exit angle to it), so each accepted state is projected back
+/// onto both invariants (Hairer, Lubich & Wanner, Geometric Numerical Integration, 2006,
+/// sec. IV.4): the orbit keeps its exact shape and the exit angle follows from L.
+inline bool IsCentralField(const IndexField& f) {
+  return f.type == IndexFieldType::kLuneburg || f.type == IndexFieldType::kFishEye;
+}
+
+inline void ProjectOnInvariants(const IndexField& f, const Vec3& center, const Vec3& l,
+                                GrinPoint* s) {
+  const double l2 = Dot(l, l);
+  Vec3 p = s->r - center;
+  if (l2 > 0) p = p - l * (Dot(p, l) / l2);  // back into the plane of the orbit
+  const double p2 = Dot(p, p);
+  if (!(p2 > 0)) return;
+  const Vec3 t_perp = Cross(l, p) / p2;  // p x t_perp = l for p normal to l
+  const double sign = Dot(s->t, p) >= 0 ? 1.0 : -1.0;
+  const GrinPoint q = MakeGrinPoint(f, center, center + p, s->t);  // n and D at the new point
+  const double radial2 = q.n * q.n - Dot(t_perp, t_perp);
+  *s = q;
+  s->t = t_perp + p * (sign * std::sqrt(std::max(0.0, radial2)) / std::sqrt(p2));
+}
+
+/// Follows a curved ray inside gradient-index object `obj` from `o` (direction `d`) to the next
+/// surface. Each accepted step's chord is tested against the surfaces; a step whose chord crosses
+/// one is shortened (the crossing parameter scales the step) until the crossing chord is shorter
+/// than 1e-3 um or 1e-5 of the object size, then the ray leaves at the chord's hit point with
+/// the direction T/|T| at the step's end. Across uniform cells of a grid the ray goes straight
+/// in one step (exact there), to the surface if it is nearer.
+template <bool kMesh>
+GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cfg, int obj,
+                               const Vec3& o, const Vec3& d, Hit* hit, Vec3* hp, Vec3* dout,
+                               TraceCounters& c) {
+  const IndexField& f = *im.field[obj];
+  const UniformCells* uniform = im.uniform[obj].empty() ? nullptr : &im.uniform[obj];
+  const Vec3& center = im.center[obj];
+  const Geometry& geo = im.geometry;
+  const double surface_tol = std::min(1e-3, 1e-5 * im.size[obj]);
+  GrinPoint s = MakeGrinPoint(f, center, o, d);
+  const bool central = IsCentralField(f);
+  const Vec3 angular_momentum = Cross(o - center, s.t);
+  // The orbit of a central field leaves the sphere it entered at the angle alpha to the surface
+  // with cos(pi/2 - alpha) = |L| / (n R). Near a tangent exit (alpha -> 0) the exit point moves by
+  // e / alpha for a position error e and the direction by e / (alpha R), so the step tolerance
+  // shrinks with alpha^2 below alpha = 0.01 (down to 1e-6 of the setting): rays entering
+  // within ~5e-5 R of a Luneburg lens's edge, and only those, take smaller steps.
+  GrinSettings local = cfg;
+  if (central) {
+    const double r0 = Length(o - center);
+    const double sin_exit = r0 > 0 ? Length(angular_momentum) / (s.n * r0) : 0.0;
+    const double alpha = std::sqrt(std::max(0.0, 1 - std::min(1.0, sin_exit * sin_exit)));
+    local.tolerance_um = cfg.tolerance_um * std::clamp(alpha * alpha / 1e-4, 1e-6, 1.0);
+  }
+  double dt = 0.05 * im.size[obj] / Length(s.t);
+  // 3D grids: steps from face to face (the cell of s.r is kept between steps).
+  const bool cell_steps = UsesCellSteps(f, cfg);
+  GridCellPair cells;
+  // Paths shorter than the clearance cannot reach a surface (spheres only; 0 otherwise). `clear`
+  // is a lower bound of the clearance at s.r: the distance to a surface changes by at most the
+  // length of a chord, so the bound follows the steps and the clearance itself is computed only
+  // where a path reaches the bound (the same surface queries as computing it at every step).
+  double clear = 0;
+  auto clearance = [&](double path) {
+    if (path >= clear) clear = geo.SurfaceClearance(s.r);
+    return clear;
+  };
+  auto moved = [&](double chord) { clear -= chord * (1 + 1e-12) + 1e-12; };
+  // Whether the cell of s.r (cell steps keep it) has corner values that differ by more than the
+  // uniform tolerance along an axis: then its block is not uniform and there is no straight
+  // step to look up.
+  auto in_varying_cell = [&] {
+    const Vec3 p = s.r - center;
+    const GridCell& cell = cells.now();
+    const double tol = cfg.uniform_tolerance;
+    return cell.at.x == p.x && cell.at.y == p.y && cell.at.z == p.z &&
+           (std::abs(cell.c[1]) > tol || std::abs(cell.c[2]) > tol || std::abs(cell.c[3]) > tol);
+  };
+  ++c.grin_segments;
+  for (int step = 0; step < cfg.max_steps; ++step) {
+    if (uniform && !(cell_steps && in_varying_cell())) {
+      // Straight across uniform cells when that beats the next curved step.
+      const double free = uniform->FreeLength(s.r - center);
+      if (free > dt * s.n) {
+        const Vec3 dir = s.t / s.n;
+        Hit h;
+        ++c.grin_uniform_steps;
+        bool crosses = false;
+        if (free >= clearance(free)) {
+          ++c.shape_queries;
+          if constexpr (kMesh) ++c.mesh_queries;
+          crosses = geo.Intersect<kMesh>(s.r, dir, &h) && h.t <= free;
+        }
+        if (crosses) {
+          *hit = h;
+          *hp = s.r + dir * h.t;
+          *dout = dir;
+          return GrinOutcome::kHit;
+        }
+        s = MakeGrinPoint(f, center, s.r + dir * free, s.t);
+        moved(free);
+        continue;
+      }
+    }
+    GrinPoint s1 = s;
+    double used = 0, next = dt;
+    if (cell_steps) {
+      CellStep(f, center, local, &cells, &s1, &next, &used);
+    } else {
+      AdaptiveStep(f, center, local, &s1, &next, &used);
+    }
+    ++c.grin_steps;
+    for (int shrink = 0;; ++shrink) {
+      const Vec3 chord = s1.r - s.r;
+      const double L = Length(chord);
+      Hit h;
+      bool crosses = false;
+      if (L >= clearance(L)) {
+        ++c.shape_queries;
+        if constexpr (kMesh) ++c.mesh_queries;
+        crosses = L > 0 && geo.Intersect<kMesh>(s.r, chord / L, &h) && h.t <= L;
+      }
+      if (!crosses) {
+        if (central) ProjectOnInvariants(f, center, angular_momentum, &s1);
+        s = s1;
+        dt = next;
+        if (central) {
+          clear = 0;  // the projection moved the point off the chord
+        } else {
+          moved(L);
+        }
+        break;
+      }
+      if (L <= surface_tol || shrink > 60) {
+        *hit = h;
+        *hp = s.r + chord * (h.t / L);
+        *dout = Normalize(s1.t);
+        // In a steep gradient the direction at the step's end may already bend back inward;
+        // the crossing chord points outward by construction, so leave along it then.
+        if (Dot(*dout, h.normal) <= 0) *dout = chord / L;
+        return GrinOutcome::kHit;
+      }
+      // Aim the (shorter) step at the crossing point; it is within the accepted error. Near a
+      // tangent exit the straight chord leaves the surface much later than the curved path
+      // (both bend alike), so aiming shortened the step by ~0.1 % a try and after 60 tries the
+      // ray left at the chord's far end, past its true exit and turned backwards.
+      // From the second try on the step is at least halved: a bisection on the path.
+      const double aim = std::max(0.05, 0.999 * h.t / L);
+      used *= shrink == 0 ? aim : std::min(0.5, aim);
+      next = used;
+      s1 = SharmaStep(f, center, s, used);
+      if (central) ProjectOnInvariants(f, center, angular_momentum, &s1);
+    }
+  }
+  return GrinOutcome::kStepCap;
+}
+
+/// Traces a ray through the objects until it leaves them all (or ends). Updates o, d (and the
+/// polarisation) to the ray leaving the last surface; returns true with *fate set when the ray
+/// ended inside the objects (interaction cap, numerical loss, step cap).
+template <PartialReflection kPR, bool kMesh>
+bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng, Vec3& o, Vec3& d,
+                  Vec3& pol, TraceCounters& c, Fate* fate_out) {
+  const Geometry& geo = im.geometry;
+  Fate fate = Fate::kDetected;
+  bool done = false;
+  // Objects the ray is inside, innermost last (nested objects: a bubble in a drop).
+  int stack[kMaxNesting];
+  int depth = 0;
+  auto index_at = [&](int obj, const Vec3& x) {
+    if (obj < 0) return im.medium;
+    if (im.has_grin && im.field[obj]) return im.field[obj]->Index(x - im.center[obj]);
+    return im.index[obj];
+  };
+  int events = 0, internal_reflections = 0;
+  bool classified = false;
+  for (;;) {
+    Hit h;
+    Vec3 hp;
+    const int cur = depth ? stack[depth - 1] : -1;
+    if (im.has_grin && cur >= 0 && im.field[cur]) {
+      const GrinOutcome g = IntegrateToSurface<kMesh>(im, trace.grin, cur, o, d, &h, &hp, &d, c);
+      if (g != GrinOutcome::kHit) {
+        fate = g == GrinOutcome::kStepCap ? Fate::kGrinStepCap : Fate::kLostInside;
+        done = true;
+        break;
+      }
+    } else {
+      ++c.shape_queries;
+      if constexpr (kMesh) ++c.mesh_queries;
+      if (!geo.Intersect<kMesh>(o, d, &h)) break;
+      hp = o + d * h.t;
+    }
+    if (events == 0) ++c.rays_hitting_objects;
+    if (++events > trace.max_interactions) {
+      fate = Fate::kInteractionCap;
+      done = true;
+      break;
+    }
+    ++c.interface_events;
+    const bool entering = Dot(d, h.normal) < 0;
+    // The medium beyond a surface being left is the innermost enclosing object other than
+    // the one left.
+    int outer = -1;
+    if (!entering)
+      for (int k = depth - 1; k >= 0; --k)
+        if (stack[k] != h.object) {
+          outer = stack[k];
+          break;
+        }
+    const double n1 = entering ? index_at(cur, hp) : index_at(h.object, hp);
+    const double n2 = entering ? index_at(h.object, hp) : index_at(outer, hp);
+    const Vec3 nf = entering ? h.normal : -h.normal;  // faces the incoming ray
+    const double cos_i = -Dot(d, nf);
+    // Refraction and the Fresnel draw: the stages the packet path's sphere stage runs too.
+    st::V3<L1> t;
+    double cos_t = 0;
+    bool reflect = st::Refract<L1>({d.x, d.y, d.z}, {nf.x, nf.y, nf.z}, n1 / n2, cos_i, t, cos_t);
+    const Vec3 dt(t.x, t.y, t.z);  // (not a direction where reflect: total internal reflection)
+    if (!reflect) {
+      if constexpr (kPR == PartialReflection::kUnpolarized) {
+        ++c.fresnel_evaluations;
+        reflect = rng.Uniform() < st::FresnelReflectance<L1>(n1, n2, cos_i, cos_t);
+      } else if constexpr (kPR == PartialReflection::kPolarized) {
+        ++c.fresnel_evaluations;
+        // Split the field into s (perpendicular to the plane of incidence) and p parts;
+        // reflect with the power-weighted reflectance, then carry the new s/p mixture.
+        const FresnelCoefficients fc = Fresnel(n1, n2, cos_i, cos_t);
+        Vec3 s_dir = Cross(d, nf);
+        const double sl = Length(s_dir);
+        s_dir = sl > 1e-12 ? s_dir / sl : RandomPerpendicular(d, 0.0);
+        const double es = Dot(pol, s_dir), ep = Dot(pol, Cross(s_dir, d));
+        const double R = es * es * fc.Rs + ep * ep * fc.Rp;
+        reflect = rng.Uniform() < R;
+        const Vec3 dn = reflect ? Reflect(d, nf) : dt;
+        const double as = reflect ? fc.rs * es : (1 + fc.rs) * es;            // t_s = 1 + r_s
+        const double ap = reflect ? fc.rp * ep : (1 + fc.rp) * ep * n1 / n2;  // t_p
+        const Vec3 e = s_dir * as + Cross(s_dir, dn) * ap;
+        const double el = Length(e);
+        pol = el > 0 ? e / el : RandomPerpendicular(dn, 0.25);
+      }
+    }
+    if (reflect) {
+      d = Normalize(Reflect(d, nf));
+      o = hp + nf * geo.epsilon(h.object);
+      if (!classified) {
+        if (entering && events == 1) {
+          ++c.path_class[0];
+          classified = true;
+        } else if (!entering) {
+          ++internal_reflections;
+        }
+      }
+    } else {
+      d = Normalize(dt);
+      o = hp - nf * geo.epsilon(h.object);
+      if (entering) {
+        if (depth == kMaxNesting) {
+          fate = Fate::kLostInside;  // deeper nesting than supported
+          done = true;
+          break;
+        }
+        stack[depth++] = h.object;
+      } else {
+        for (int k = depth - 1; k >= 0; --k)
+          if (stack[k] == h.object) {
+            for (int m = k; m + 1 < depth; ++m) stack[m] = stack[m + 1];
+            --depth;
+            break;
+          }
+      }
+      if (!classified && !entering) {
+        ++c.path_class[std::min(1 + internal_reflections, kNumPathClasses - 1)];
+        classified = true;
+      }
+    }
+  }
+  if (!done && depth > 0) {
+    fate = Fate::kLostInside;
+    done = true;
+  }
+  *fate_out = fate;
+  return done;
+}
+
+}  // namespace raymatch::simulate

@@ -1,0 +1,65 @@
+// The optics after the objects (stages.h: Optics) from a scene's description.
+#include <cmath>
+
+#include "raymatch/simulate/scene.h"
+#include "stages.h"
+
+namespace raymatch::simulate {
+
+Optics MakeOptics(const Scene& s) {
+  Optics o;
+  const OpticsSpec& sp = s.optics;
+  const double f = sp.objective_focal_mm * 1e3;
+  // NA = n sin(theta) in the medium the objective looks into (docs/conventions.md).
+  const double tan_na = std::tan(std::asin(AcceptanceSin(s)));
+  double z;
+  if (sp.model == ObjectiveModel::kSingle) {
+    o.lenses[0] = {f, f, 0, 1 / f};
+    o.num_lenses = 1;
+    o.stop_z = 2 * f;
+    z = f;
+  } else {
+    // Two thin lenses from f, WD and BFD (REFERENCE.md section 6).
+    const double wd = sp.working_distance_mm * 1e3, bfd = sp.back_focal_mm * 1e3;
+    const double d = f - bfd * wd / f;
+    const double f1 = d / (1 - bfd / f), f2 = d / (1 - wd / f);
+    o.lenses[0] = {wd, f1, 0, 1 / f1};
+    o.lenses[1] = {wd + d, f2, 0, 1 / f2};
+    o.num_lenses = 2;
+    o.stop_z = wd + d + bfd;
+    z = wd;
+  }
+  o.stop_after = o.num_lenses;
+  // The stop at the back focal plane is a pure angle filter: height there = f tan(theta).
+  // Radius f tan(asin(NA / n)) passes exactly the rays a real (sine-condition) objective of this NA
+  // accepts from an on-axis point (docs/optics.md).
+  const double stop_r = f * tan_na;
+  o.stop_r2 = stop_r * stop_r;
+  const double tube_z = o.stop_z + sp.tube_distance_mm * 1e3;
+  o.lenses[o.num_lenses++] = {tube_z, sp.tube_focal_mm * 1e3, 0, 1 / (sp.tube_focal_mm * 1e3)};
+  o.sensor_z = tube_z + sp.tube_focal_mm * 1e3 + s.camera.sensor_shift_mm * 1e3;
+  o.corrector = sp.corrector.enabled;
+  if (sp.corrector.enabled) {
+    const double cz = sp.corrector.distance_mm > 0 ? sp.corrector.distance_mm * 1e3 : z;
+    o.corrector_z = cz;
+    const size_t n = sp.corrector.transmissions.size();
+    for (size_t i = 0; i < n; ++i) {
+      // Default: equal-width zones out to 2 % beyond the NA edge at the corrector plane.
+      const double r = sp.corrector.ring_outer_mm.empty() ? cz * tan_na * 1.02 * double(i + 1) / n
+                                                          : sp.corrector.ring_outer_mm[i] * 1e3;
+      o.ring_outer2.push_back(r * r);
+      o.ring_t.push_back(sp.corrector.transmissions[i]);
+    }
+  }
+  o.pitch = s.camera.pixel_pitch_um;
+  o.inv_pitch = 1 / o.pitch;  // products, not divisions, in the inner loop
+  o.off_x = s.camera.offset_um[0];
+  o.off_y = s.camera.offset_um[1];
+  o.sign = s.camera.flip ? -1.0 : 1.0;
+  o.psf_sigma_sensor = s.camera.psf_sigma_um * std::abs(Magnification(sp));
+  o.nx = s.camera.nx;
+  o.ny = s.camera.ny;
+  return o;
+}
+
+}  // namespace raymatch::simulate

@@ -1,0 +1,128 @@
+#pragma once
+// What the tracer's stages share between the scalar path and the SIMD packet path, apart from
+// the stage functions themselves (stages-inl.h): the optics' description, the outcome codes of
+// the packet path, limits both paths obey, and the one-lane "vector" the scalar path traces with.
+#include <cmath>
+#include <cstdint>
+#include <vector>
+
+#include "raymatch/simulate/tracer.h"
+
+namespace raymatch::simulate {
+
+struct Scene;
+
+/// Objects a ray can be inside at once (nested objects: a bubble in a drop). One level more
+/// ends the ray as lost inside, on both paths.
+inline constexpr int kMaxNesting = 16;
+
+/// An ideal thin lens.
+struct Lens {
+  double z = 0;      ///< plane (um)
+  double f = 0;      ///< focal length (um)
+  double rim = 0;    ///< rim radius (um), 0 = none
+  double power = 0;  ///< 1 / f: a slope changes by -x / f, done as a product (divisions are slow)
+};
+
+/// Everything after the objects: corrector zones, ideal lenses with the aperture stop, sensor.
+/// MakeOptics gives the planes at defocus 0; `Shifted` moves them by a plane's defocus, and both
+/// paths trace with that copy.
+struct Optics {
+  bool corrector = false;  ///< a corrector stage (no zones: every ray is outside)
+  double corrector_z = 0;
+  std::vector<double> ring_outer2;  ///< squared outer radii of the zones (um^2), ascending
+  std::vector<double> ring_t;       ///< their transmissions
+  Lens lenses[3];                   ///< objective (1 or 2) + tube lens
+  int num_lenses = 0;
+  int stop_after = 0;  ///< the stop plane comes before lens stop_after (after the objective)
+  double stop_z = 0, stop_r2 = 0;
+  double sensor_z = 0;
+  double pitch = 0, inv_pitch = 0, off_x = 0, off_y = 0, sign = -1;
+  double psf_sigma_sensor = 0;  ///< Gaussian PSF at the sensor (um), 0 = none (scalar path only)
+  int nx = 0, ny = 0;
+
+  /// This optics with every plane moved by `defocus` (um).
+  Optics Shifted(double defocus) const {
+    Optics o = *this;
+    o.corrector_z += defocus;
+    for (int l = 0; l < num_lenses; ++l) o.lenses[l].z += defocus;
+    o.stop_z += defocus;
+    o.sensor_z += defocus;
+    return o;
+  }
+};
+
+/// The scene's optics at defocus 0.
+Optics MakeOptics(const Scene& s);
+
+/// Whether the packet path can trace a scene, and if not, why (Simulator::Effects lists it).
+struct PacketSupport {
+  bool ok = false;
+  const char* reason = "";  ///< why not: a short phrase
+};
+
+namespace packet {
+// What became of a lane of the packet path (Rays::out): a pixel index (>= 0), a fate's code
+// (FateCode: minus the fate's number), or one of the two codes after the fates.
+constexpr double FateCode(Fate f) { return -static_cast<double>(static_cast<int>(f)); }
+inline constexpr double kScalar = -double(kNumFates);    ///< trace on the scalar path
+inline constexpr double kNear = -double(kNumFates + 1);  ///< split mode: meets the split sphere
+/// The fates the packet stages give (the others come from the scalar path only).
+inline constexpr Fate kPacketFates[] = {Fate::kOutsideNa,         Fate::kMissedSensor,
+                                        Fate::kAbsorbedCorrector, Fate::kInteractionCap,
+                                        Fate::kEscaped,           Fate::kLostInside};
+}  // namespace packet
+
+namespace stages {
+
+/// One lane: the scalar path's instantiation of the stages (stages-inl.h). A vector type of the
+/// same shape (stages-inl.h, VecLanes) gives the packet path's.
+struct ScalarLanes {
+  using V = double;
+  using M = bool;
+  using I = int64_t;  ///< integer lanes (indices) beside V
+  using MI = bool;
+  static constexpr bool kOneLane = true;
+  static V Set(double x) { return x; }
+  static V Add(V a, V b) { return a + b; }
+  static V Sub(V a, V b) { return a - b; }
+  static V Mul(V a, V b) { return a * b; }
+  static V Div(V a, V b) { return a / b; }
+  static V Sqrt(V a) { return std::sqrt(a); }
+  static V Floor(V a) { return std::floor(a); }
+  static M Lt(V a, V b) { return a < b; }
+  static M Le(V a, V b) { return a <= b; }
+  static M Gt(V a, V b) { return a > b; }
+  static M Ge(V a, V b) { return a >= b; }
+  static M Eq(V a, V b) { return a == b; }
+  static V Select(M m, V a, V b) { return m ? a : b; }
+  static M And(M a, M b) { return a && b; }
+  static M Or(M a, M b) { return a || b; }
+  static M AndNot(M not_a, M b) { return !not_a && b; }
+  static M Not(M a) { return !a; }
+  static M False() { return false; }
+  static M True() { return true; }
+  /// Whether a stage may stop here because every lane is settled: one lane stops as soon as
+  /// its fate is known; vectors run every lane to the end of the stage (no branch).
+  static bool Stop(M settled) { return settled; }
+  // Integer lanes.
+  static I ISet(int64_t x) { return x; }
+  static I IAdd(I a, I b) { return a + b; }
+  static I ISub(I a, I b) { return a - b; }
+  static MI ILt(I a, I b) { return a < b; }
+  static MI IGt(I a, I b) { return a > b; }
+  static I ISelect(MI m, I a, I b) { return m ? a : b; }
+  static MI IAnd(MI a, MI b) { return a && b; }
+  static MI ToIMask(M m) { return m; }
+  static bool INone(MI m) { return !m; }
+  static I ToInt(V x) { return static_cast<int64_t>(x); }  ///< truncation
+  static V ToDouble(I x) { return static_cast<double>(x); }
+  static V Gather(const double* p, I i) { return p[i]; }
+  template <class G>
+  static I GatherI(const G* p, I i) {
+    return p[i];
+  }
+};
+
+}  // namespace stages
+}  // namespace raymatch::simulate

@@ -1,0 +1,116 @@
+#pragma once
+// The scalar path: one ray at a time from its own random stream through the source, the
+// objects and the optics (the stages of stages-inl.h on one lane); also the packet path's
+// fallback for the rays its stages hand back.
+#include <algorithm>
+#include <cmath>
+#include <type_traits>
+#include <vector>
+
+#include "objects.h"
+#include "raymatch/core/rng.h"
+#include "tracer_impl.h"
+
+namespace raymatch::simulate {
+
+template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Optics& op,
+                     uint64_t ray, const Vec3& p, Vec3 d, RayRng& rng, const RaySelection& sel,
+                     Accum& acc, std::vector<uint64_t>* near_out);
+
+/// One ray of the plane, from its own stream: the scalar path, and the packet path's fallback.
+template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+void TraceRay(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
+              const Optics& op, uint32_t plane, uint64_t ray, const RaySelection& sel, Accum& acc,
+              std::vector<uint64_t>* near_out) {
+  TraceCounters& c = acc.counters;
+  RayRng rng(trace.seed, plane, ray);
+  Vec3 p, d;
+  if (!src.Sample(rng, &p, &d)) {
+    ++c.fates[int(Fate::kEscaped)];
+    return;
+  }
+  TraceSampledRay<kPR, kCorrector, kMesh, Source>(im, trace, op, ray, p, d, rng, sel, acc,
+                                                  near_out);
+}
+
+/// TraceRay after the source: the ray leaves p along d; rng stands after the source's words.
+template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Optics& op,
+                     uint64_t ray, const Vec3& p, Vec3 d, RayRng& rng, const RaySelection& sel,
+                     Accum& acc, std::vector<uint64_t>* near_out) {
+  const Geometry& geo = im.geometry;
+  const bool has_objects = !geo.empty();
+  TraceCounters& c = acc.counters;
+  if (sel.split && LinePassesWithin(p, d, sel.split_center, sel.split_r2)) {
+    near_out->push_back(ray);  // as SplitRaysBySphere
+    return;
+  }
+  Vec3 o = p;
+  // (1 / d.z, a product: the packet path reuses the reciprocal for the slopes below)
+  if constexpr (!std::is_same_v<Source, PointSource>) {
+    const st::V3<L1> q = st::OnPlane<L1>(im.source_z, {p.x, p.y, p.z}, {d.x, d.y, d.z}, 1 / d.z);
+    o = Vec3(q.x, q.y, q.z);
+  }
+  Vec3 pol;
+  if constexpr (kPR == PartialReflection::kPolarized) pol = RandomPerpendicular(d, rng.Uniform());
+
+  Fate fate = Fate::kDetected;
+  bool done = false;
+  if (has_objects) done = TraceObjects<kPR, kMesh>(im, trace, rng, o, d, pol, c, &fate);
+  if (!done && d.z <= 0) {
+    fate = Fate::kEscaped;
+    done = true;
+  }
+  if (done) {
+    ++c.fates[int(fate)];
+    return;
+  }
+  // The optics stages (stages-inl.h), one lane.
+  auto out = st::Outcome<L1>::Open();
+  st::Beam<L1> beam = st::Beam<L1>::From({o.x, o.y, o.z}, {d.x, d.y, d.z}, 1 / d.z);
+  if constexpr (kCorrector) ++c.corrector_tests;
+  st::OpticalTrain<L1, kCorrector>(op, beam, out, [&] { return rng.Uniform(); });
+  if (!out.settled) {
+    double u, v;
+    st::SensorPoint<L1>(op, beam, u, v);
+    if (op.psf_sigma_sensor > 0) {  // Box-Muller: two independent normal offsets
+      const double r = op.psf_sigma_sensor * std::sqrt(-2 * std::log(1 - rng.Uniform()));
+      const double phi = 2 * M_PI * rng.Uniform();
+      u += r * std::cos(phi);
+      v += r * std::sin(phi);
+    }
+    const double pixel = st::SensorPixel<L1>(op, u, v, out);
+    if (!out.settled) ++acc.image[static_cast<size_t>(pixel)];
+  }
+  ++c.fates[int(out.settled ? st::FateOf(out.code) : Fate::kDetected)];
+}
+
+/// Calls f(ray) for the rays [begin, end) of the selection, in ascending order of i.
+template <class F>
+void ForEachSelectedRay(const RaySelection& sel, uint64_t begin, uint64_t end, F&& f) {
+  // Rays to leave out (ascending): the first one at or after this range.
+  const uint64_t* skip =
+      sel.skip ? std::lower_bound(sel.skip, sel.skip + sel.skip_count, sel.first + begin) : nullptr;
+  const uint64_t* skip_end = sel.skip ? sel.skip + sel.skip_count : nullptr;
+  for (uint64_t i = begin; i < end; ++i) {
+    // A subset of the plane's rays keeps each ray's own stream (TraceRays, TracePlaneExcept).
+    const uint64_t ray = sel.list ? sel.list[i] : sel.first + i;
+    if (skip != skip_end && *skip == ray) {
+      ++skip;
+      continue;
+    }
+    f(ray);
+  }
+}
+
+template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
+                const Optics& op, uint32_t plane, uint64_t begin, uint64_t end,
+                const RaySelection& sel, Accum& acc, std::vector<uint64_t>* near_out) {
+  ForEachSelectedRay(sel, begin, end, [&](uint64_t ray) {
+    TraceRay<kPR, kCorrector, kMesh>(im, src, trace, op, plane, ray, sel, acc, near_out);
+  });
+}
+
+}  // namespace raymatch::simulate

@@ -1,0 +1,76 @@
+#pragma once
+// What the tracer's files share (tracer.cpp, trace_ray.h, objects.h, packet_driver.*): the
+// Simulator's state, a plane's ray selection, and the per-thread accumulators.
+#include <memory>
+#include <vector>
+
+#include "packet.h"
+#include "raymatch/simulate/geometry.h"
+#include "raymatch/simulate/index_field.h"
+#include "raymatch/simulate/tracer.h"
+#include "sources.h"
+#include "stages.h"
+
+namespace raymatch::simulate {
+
+/// Whether the straight line through p along unit d passes within sqrt(r2) of c: the one test
+/// that splits a plane's rays into those that can meet the fit's region and the others
+/// (SplitRaysBySphere and TraceFarRays must agree ray for ray).
+inline bool LinePassesWithin(const Vec3& p, const Vec3& d, const Vec3& c, double r2) {
+  const double cc[3] = {c.x, c.y, c.z};
+  return st::LineDistance2<L1>(cc, {p.x, p.y, p.z}, {d.x, d.y, d.z}) <= r2;
+}
+
+// Which of a plane's rays to trace: all of [0, n), a list of indices, or all but a sorted list.
+struct RaySelection {
+  const uint64_t* list = nullptr;
+  const uint64_t* skip = nullptr;
+  size_t skip_count = 0;
+  uint64_t first = 0;  // without a list: the rays [first, first + n)
+  bool split = false;  // leave out (and report) rays whose line meets the sphere
+  Vec3 split_center;
+  double split_r2 = 0;
+};
+
+/// Rays of the packet path that meet the scene's one sphere, waiting for the sphere stage.
+struct SphereQueue {
+  std::unique_ptr<packet::Rays> rays;  // made on first use
+  size_t count = 0;
+  /// Lane i of batch r (its id, cursor and source sample) joins; true when the queue is full.
+  bool Push(const packet::Rays& r, size_t i) {
+    packet::Rays& q = *rays;
+    const size_t m = count++;
+    q.ids[m] = r.ids[i], q.cursor[m] = r.cursor[i];
+    q.px[m] = r.px[i], q.py[m] = r.py[i], q.pz[m] = r.pz[i];
+    q.dx[m] = r.dx[i], q.dy[m] = r.dy[i], q.dz[m] = r.dz[i];
+    return count == packet::kBatch;
+  }
+};
+
+// Per-thread accumulation: integer counts, so sums do not depend on the partition.
+struct Accum {
+  std::vector<uint32_t> image;  // the nx * ny pixels, then spare elements (not part of it)
+  TraceCounters counters;
+  std::unique_ptr<packet::Rays> rays;  // the packet path's batch (made on first use)
+  SphereQueue sphere_queue;
+};
+
+struct Simulator::Impl {
+  Geometry geometry;
+  SourceVariant source;
+  Optics optics;                         // at defocus 0
+  PacketSupport packets;                 // whether the packet path takes this scene
+  std::vector<double> index;             // per object
+  std::vector<const IndexField*> field;  // per object; null = homogeneous
+  std::vector<UniformCells> uniform;     // per object; empty unless a grid field
+  std::vector<Vec3> center;
+  std::vector<double> size;  // characteristic size (for first GRIN steps)
+  bool has_grin = false;
+  packet::Table2D angular_table;  // the light field's table for the packet path
+  double field_radius_um = 0;     // resolved source field radius (automatic or given)
+  double medium;
+  double source_z;
+  explicit Impl(const Scene& s) : geometry(s.objects) {}
+};
+
+}  // namespace raymatch::simulate

@@ -15,7 +15,8 @@ and the time per fit. The cases:
      fitted jointly, 1 um pixels (100 x 90), 1000 photons per pixel
   C  "bench": bench/fit_sphere.sh's sphere: radius 15.5 um, n 1.3371, 27 deg cone, -4 um,
      1 um pixels (120 x 100), 1000 photons per pixel
-Usage: bench/fit_accuracy.py OUT [--cases ABC] [--k 16] [--fit-lines 'key = value' ...]
+Usage: bench/fit_accuracy.py OUT [--cases ABC] [--k 16] [--start nominal|truth]
+                             [--fit-lines 'key = value' ...]
 Writes OUT/<case>/k<i>/fit/fit.json and OUT/summary.json; prints a Markdown table.
 Environment: RAYMATCH (the executable; default build/release/apps/raymatch).
 """
@@ -75,14 +76,15 @@ partial_reflection = "unpolarized"
 """
 
 
-def run_case(name, case, K, out, fit_lines):
+def run_case(name, case, K, out, fit_lines, from_truth=False):
     rows = []
     for k in range(K):
         d = os.path.join(out, name, f"k{k}")
         os.makedirs(d, exist_ok=True)
         truth = case["truth"]
         sgn = 1 if k % 2 == 0 else -1
-        start = [t + sgn * o * (1 if i % 2 == 0 else -1) for i, (t, o) in enumerate(zip(truth, OFFSETS))]
+        start = [t + (0 if from_truth else sgn * o * (1 if i % 2 == 0 else -1))
+                 for i, (t, o) in enumerate(zip(truth, OFFSETS))]
         open(os.path.join(d, "truth.toml"), "w").write(scene(case, truth, 100 + k))
         open(os.path.join(d, "model.toml"), "w").write(scene(case, start, 1))
         images = []
@@ -136,11 +138,13 @@ def main():
     ap.add_argument("out")
     ap.add_argument("--cases", default="ABC")
     ap.add_argument("--k", type=int, default=16, help="noise realisations per case")
+    ap.add_argument("--start", choices=["nominal", "truth"], default="nominal",
+                    help="nominal: offset starts (the benchmark); truth: start at the truth (bias alone)")
     ap.add_argument("--fit-lines", nargs="*", default=[], help="extra top-level fit-file lines")
     a = ap.parse_args()
     table, timing = [], []
     for c in a.cases:
-        rows = run_case(c, CASES[c], a.k, a.out, a.fit_lines)
+        rows = run_case(c, CASES[c], a.k, a.out, a.fit_lines, a.start == "truth")
         t, s = summarise(c, CASES[c], rows)
         table += t
         timing.append(s)

@@ -474,7 +474,18 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
         const Simulated mu = run.Images(y, L, seed, stage, &e);
         Eigen::VectorXd ry(r.size());
         run.model().DevianceResiduals(mu, bin, ry.data());
-        if (ry.squaredNorm() < dev - 0.5 * kPolishTolerance) x = y, r = ry, accepted = true;
+        // Kept when it lowers the deviance, or when it lowers the Gauss-Newton decrease still
+        // predicted (the estimating equation J^T r = 0 with this smooth chord Jacobian). With
+        // fixed ray streams the deviance is rough at scales below one sigma (rays cross pixel
+        // edges one by one: jumps of a few units within +-1 sigma of the index, docs/fit.md
+        // "Finite rays"), and a search that keeps only its descents ends in whichever local dip
+        // of that roughness it meets first, up to several sigma from the smooth optimum; the
+        // predicted decrease is linear in the counts and not rough at that scale.
+        const Eigen::VectorXd gy = J.transpose() * ry;
+        const double predicted_y = gy.dot(A.ldlt().solve(gy));
+        if (ry.squaredNorm() < dev - 0.5 * kPolishTolerance ||
+            (spec.rays.smooth_polish && predicted_y < 0.5 * predicted))
+          x = y, r = ry, accepted = true;
       }
       if (!accepted) {
         if (fresh) break;

@@ -26,17 +26,6 @@ inline double DevianceResidual(double e, double mu) {
   return mu >= e ? r : -r;
 }
 
-/// The template mean of a pixel whose simulated count is `photons / w` rays of weight w photons:
-/// the count plus half a ray. A simulated count m is Poisson with mean k mu (k = 1/w rays per
-/// photon); with the plain template m/k the expected deviance is minimised at a mean 1/(2k)
-/// above the truth (E ln(m/k) = ln mu - 1/(2 k mu) + ...), with (m + 1/2)/k at the truth to
-/// O(1/(k mu)^2). It is the Jeffreys-prior form of the marginal likelihood of e given m
-/// (Poisson e, gamma posterior of the template mean; cf. Barlow and Beeston, Comput. Phys.
-/// Commun. 77, 219 (1993); Arguelles, Schneider and Yuan, JHEP 06 (2019) 030), to that order.
-inline double TemplateMean(double photons, double w, double offset_rays = 0.5) {
-  return photons + offset_rays * w;
-}
-
 /// Expected Poisson deviance 2[mu - e + e ln(e/mu)] of one pixel with known mean mu: summed
 /// over the Poisson distribution below 30, 1 + 1/(6 mu) + 1/(6 mu^2) above (the asymptotic
 /// series; McCullagh and Nelder, Generalized Linear Models, 2nd ed., section 6.2).
@@ -217,7 +206,7 @@ Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, 
     for (const auto& [c, r] : sim.ObjectBounds())
       inside = inside && Length(c - region_center_) + r <= region_radius_;
   Simulated out;
-  out.offset_rays = spec_.rays.finite_ray_correction ? 0.5 : 0.0;
+  out.finite_ray_correction = spec_.rays.finite_ray_correction;
   for (size_t i = 0; i < spec_.images.size(); ++i) {
     const double dz = scene.defocus_um[i];
     const uint32_t plane = static_cast<uint32_t>(i);
@@ -291,7 +280,7 @@ double FitModel::Error(const Simulated& sim, int bin) const {
     switch (spec_.error) {
       case ErrorFunction::kPoisson:
         for (size_t p = 0; p < e.size(); ++p) {
-          const double r = DevianceResidual(e.pixels[p], TemplateMean(mu[i].pixels[p], sim.photons_per_ray[i], sim.offset_rays));
+          const double r = DevianceResidual(e.pixels[p], TemplateMean(mu[i].pixels[p], sim.photons_per_ray[i], sim.finite_ray_correction));
           s += r * r;
         }
         break;
@@ -336,7 +325,7 @@ void FitModel::DevianceResiduals(const Simulated& sim, int bin, double* out) con
     const Image& e = exp[i];
     const Image m = BinImage(sim.photons[i], bin);
     const double w = sim.photons_per_ray[i];
-    for (size_t p = 0; p < e.size(); ++p) *out++ = DevianceResidual(e.pixels[p], TemplateMean(m.pixels[p], w, sim.offset_rays));
+    for (size_t p = 0; p < e.size(); ++p) *out++ = DevianceResidual(e.pixels[p], TemplateMean(m.pixels[p], w, sim.finite_ray_correction));
   }
 }
 
@@ -349,7 +338,7 @@ std::pair<double, double> FitModel::ExpectedDeviance(const Simulated& sim, int b
     const Image m = BinImage(sim.photons[i], bin);
     const double w = sim.photons_per_ray[i];
     for (float v : m.pixels) {
-      const double g = ExpectedPixelDeviance(TemplateMean(v, w, sim.offset_rays)) * (1 + w);
+      const double g = ExpectedPixelDeviance(TemplateMean(v, w, sim.finite_ray_correction)) * (1 + w);
       mean += g, var += 2 * g * g, units += 1 + w, pixels += 1;
     }
   }
@@ -374,7 +363,7 @@ GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameter
     // Pearson residuals with the variance of e - template: mu (1 + w).
     Image r(e.width, e.height);
     for (size_t p = 0; p < e.size(); ++p) {
-      const double mu = TemplateMean(m.pixels[p], w, sim.offset_rays);
+      const double mu = TemplateMean(m.pixels[p], w, sim.finite_ray_correction);
       r.pixels[p] = static_cast<float>((std::max(0.0f, e.pixels[p]) - mu) / std::sqrt(mu * (1 + w)));
     }
     for (int y = 0; y < r.height; ++y)
@@ -391,7 +380,7 @@ GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameter
         double d = 0, v = 0;
         for (int y = by; y < by + B; ++y)
           for (int x = bx; x < bx + B; ++x) {
-            const double mu = TemplateMean(m.at(x, y), w, sim.offset_rays);
+            const double mu = TemplateMean(m.at(x, y), w, sim.finite_ray_correction);
             d += std::max(0.0f, e.at(x, y)) - mu, v += mu * (1 + w);
           }
         if (v > 0) g.block_chi2 += d * d / v, ++g.blocks;

@@ -19,7 +19,7 @@ namespace raymatch::fit {
 struct Simulated {
   std::vector<Image> photons;
   std::vector<double> photons_per_ray;
-  double offset_rays = 0.5;  ///< rays added to each (binned) pixel's count in the template
+  bool finite_ray_correction = true;  ///< template = count + one ray (TemplateMean)
 };
 
 class FitModel {
@@ -38,10 +38,10 @@ class FitModel {
   double Error(const Simulated& sim, int bin = 1) const;
 
   /// Signed deviance residuals of every (binned) pixel of every image: sum of squares = deviance.
-  /// The template is the simulated count plus half a ray (TemplateMean): the simulation is a
-  /// Poisson sample itself, and the plain deviance of a noisy template is minimised where the
-  /// template is on average 1/(2k) photons too bright per pixel (k rays per photon), which
-  /// biases every parameter that changes the image's contrast (docs/fit.md, "Finite rays").
+  /// The template is the simulated count plus one ray (TemplateMean): the simulation is a
+  /// Poisson sample itself, and with the plain count the score equation pulls every pixel
+  /// towards a template 1/k photons brighter (k rays per photon), which biases every parameter
+  /// that changes the light in dark regions (docs/fit.md, "Finite rays").
   void DevianceResiduals(const Simulated& sim, int bin, double* out) const;
 
   /// Expected deviance at the optimum for a correct model (Poisson and template noise) and its

@@ -288,9 +288,65 @@ TEST_F(FitFile, FiveParameterSphereRecoversTheTruth) {
     EXPECT_LE(p.best, p.upper);
     EXPECT_NEAR(p.sigma_curvature / p.sigma_cramer_rao, 1, 0.3) << p.key;  // same information
   }
+  // The model is the one that made the image: the goodness of fit must not cry wolf, and the
+  // sigmas stay the statistical ones.
+  EXPECT_FALSE(r.goodness.mismatch) << r.goodness.verdict;
+  EXPECT_LT(std::abs(r.goodness.z), 3) << r.goodness.verdict;
+  EXPECT_EQ(r.parameters[0].sigma, r.parameters[0].sigma_statistical);
   // z and radius are strongly correlated in a defocused image of a sphere.
   ASSERT_EQ(r.correlation.size(), 5u);
   EXPECT_GT(std::abs(r.correlation[2][3]), 0.1);
+}
+
+// A deliberately wrong model: the experiment was blurred by a 1 um (object-side) Gaussian PSF,
+// the model has none. The drop's edge and caustic are sharper in the model than in the image, a
+// misfit the three parameters cannot absorb: the goodness of fit must say "model mismatch",
+// and every sigma must be inflated by sqrt of the reduced deviance or block chi-square.
+TEST_F(FitFile, ModelWithoutThePsfRaisesTheMismatchWarningAndInflatesSigmas) {
+  std::string blurred = SceneText(0.3, -0.2, 0, 23, 1.335, 400 * kPhotonScale, 9);
+  blurred.replace(blurred.find("pixel_pitch_um = 20\n"), 20, "pixel_pitch_um = 20\npsf_sigma_um = 1.0\n");
+  exp_ = MakeExperiment(dir_, "exp", blurred, -10);
+  dir_.Write("model.toml", SceneText(0, 0, 0, 23, 1.335, 400 * kPhotonScale, 1));
+  const FitSpec spec = LoadFitSpec(Fit(
+      "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
+      "[[parameter]]\nkey = \"object.drop.center_um[1]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
+      "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\nstep = 0.2\n",
+      "seed = 3\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n"));
+  const FitResult r = RunFit(spec);
+  ASSERT_FALSE(r.parameters.empty());
+  const GoodnessOfFit& g = r.goodness;
+  EXPECT_TRUE(g.mismatch) << g.verdict;
+  EXPECT_EQ(g.verdict.rfind("model mismatch", 0), 0u) << g.verdict;
+  EXPECT_NE(r.message.find("model mismatch"), std::string::npos) << r.message;
+  EXPECT_GT(g.z, 3) << g.verdict;  // the deviance is several sd above its expectation
+  EXPECT_GT(g.sigma_inflation, 1.05) << g.verdict;
+  for (const ParameterResult& p : r.parameters) {
+    ASSERT_GT(p.sigma_statistical, 0) << p.key;
+    EXPECT_NEAR(p.sigma / p.sigma_statistical, g.sigma_inflation, 1e-9) << p.key;
+  }
+}
+
+// The score of the Poisson deviance, sum_q G_q (1 - e_q / T_q), must vanish on average at the
+// truth although the template T is itself a Poisson sample: E[e / T] = mu E[1 / T] = 1. With the
+// template count plus one ray, T = (m + 1) w for m ~ Poisson(lambda = mu / w), the closed form
+// E[1 / (m + 1)] = (1 - exp(-lambda)) / lambda (Chao and Strawderman, J. Am. Stat. Assoc. 67,
+// 429 (1972)) gives mu E[1 / T] = 1 - exp(-lambda). The plain count is biased by ~1/lambda
+// (excluding m = 0, where it is infinite), which pulled the index of a drop several sigma.
+TEST(FiniteRays, TemplateOfCountPlusOneRayMakesThePoissonScoreUnbiased) {
+  for (double w : {1.0, 0.25, 4.0})
+    for (double mu : {2.0, 10.0, 100.0, 1000.0}) {
+      const double lambda = mu / w;
+      double inv = 0, inv_plain = 0;
+      const int lo = int(std::max(0.0, lambda - 60 * std::sqrt(lambda) - 60));
+      for (int m = lo; m < lambda + 60 * std::sqrt(lambda) + 60; ++m) {
+        const double p = std::exp(-lambda + m * std::log(lambda) - std::lgamma(m + 1.0));
+        inv += p / TemplateMean(m * w, w);
+        if (m > 0) inv_plain += p / TemplateMean(m * w, w, false);
+      }
+      EXPECT_NEAR(mu * inv, 1 - std::exp(-lambda), 1e-9) << "w " << w << " mu " << mu;
+      if (lambda >= 10)  // (the plain count's m = 0 term is infinite; below, its bias is worse)
+        EXPECT_GT(mu * inv_plain - 1, 0.5 / lambda) << "w " << w << " mu " << mu;
+    }
 }
 
 // The paper's Fig. 9: a grid scan of defocus x tilt (out of the image plane) of the merging

@@ -59,9 +59,13 @@ struct RaySchedule {
   /// likelihood value, profiled out); false: the photon count is taken as known.
   bool fit_exposure = true;
   /// Treat the simulated counts as the Poisson sample they are: the template of each pixel is
-  /// the count plus half a ray (false: the plain count, which biases the fit by O(1/ray_factor);
+  /// the count plus one ray (false: the plain count, which biases the fit by O(1/ray_factor);
   /// for comparisons only; docs/fit.md, "Finite rays").
   bool finite_ray_correction = true;
+  /// The final polish also keeps steps that halve the predicted Gauss-Newton decrease (the
+  /// score with a smooth chord Jacobian) instead of only those that lower the rough deviance
+  /// of fixed ray streams (false: descents only, which stop short in a local dip).
+  bool smooth_polish = true;
   /// Pixel binning per fraction (empty: the smallest b with b^2 x ray_factor x fraction >= 1).
   std::vector<int> binning;
 };
@@ -128,6 +132,21 @@ struct ParameterResult {
 };
 
 /// Does the model describe the image? Computed at the optimum on the final level's pixels.
+/// The template mean of a pixel whose simulated count is `photons / w` rays of weight w photons:
+/// the count plus one ray. The fit solves the score equation sum_q G_q (1 - e_q / T_q) = 0
+/// (G = dT/dtheta; the gradient of the deviance), whose terms must vanish on average at the
+/// truth. A simulated count m is Poisson with mean k mu (k = 1/w rays per photon), and the
+/// plain template T = m/k has E[1/T] = (1 + 1/(k mu) + ...)/mu: every pixel pulls towards a
+/// brighter template by 1/k photons, which biases each parameter that changes the light in dark
+/// regions (the index and radius of a drop: several sigma at k = 1). With T = (m + 1)/k,
+/// E[1/(m + 1)] = (1 - exp(-k mu))/(k mu) exactly for a Poisson m (the classic negative moment;
+/// Chao and Strawderman, J. Am. Stat. Assoc. 67, 429 (1972)), so E[e/T] = 1 up to exp(-k mu).
+/// This is the light form of the Barlow-Beeston treatment of finite Monte Carlo templates
+/// (Comput. Phys. Commun. 77, 219 (1993); Conway, arXiv:1103.0354) for a score-equation fit.
+inline double TemplateMean(double photons, double photons_per_ray, bool finite_ray_correction = true) {
+  return photons + (finite_ray_correction ? 1.0 : 0.0) * photons_per_ray;
+}
+
 struct GoodnessOfFit {
   double deviance = 0;           ///< Poisson deviance at the optimum (the fit's error)
   double expected = 0;           ///< its expectation for a correct model (experiment's and

@@ -329,6 +329,31 @@ void FitModel::DevianceResiduals(const Simulated& sim, int bin, double* out) con
   }
 }
 
+void FitModel::Score(const Simulated& sim, const std::vector<std::vector<Image>>& dmu, int bin,
+                     std::vector<double>* score, std::vector<double>* information) const {
+  const std::vector<Image>& exp = Experiment(bin);
+  const size_t P = dmu.empty() ? 0 : dmu[0].size();
+  score->assign(P, 0.0);
+  information->assign(P * P, 0.0);
+  std::vector<double> d(P);
+  for (size_t i = 0; i < sim.photons.size(); ++i) {
+    const Image& e = exp[i];
+    const Image m = BinImage(sim.photons[i], bin);
+    std::vector<Image> g;
+    for (size_t j = 0; j < P; ++j) g.push_back(BinImage(dmu[i][j], bin));
+    const double w = sim.photons_per_ray[i];
+    for (size_t p = 0; p < e.size(); ++p) {
+      const double T = std::max(TemplateMean(m.pixels[p], w, sim.finite_ray_correction), 1e-6);
+      const double f = std::max(double(e.pixels[p]), 0.0) / T - 1;
+      for (size_t a = 0; a < P; ++a) d[a] = g[a].pixels[p];
+      for (size_t a = 0; a < P; ++a) {
+        (*score)[a] += d[a] * f;
+        for (size_t b = 0; b < P; ++b) (*information)[a * P + b] += d[a] * d[b] / T;
+      }
+    }
+  }
+}
+
 std::pair<double, double> FitModel::ExpectedDeviance(const Simulated& sim, int bin, size_t parameters) const {
   // A pixel's deviance for a correct model: the Poisson part of the experiment (exact for low
   // counts) times 1 + w for the template's own Poisson noise (w photons per ray: variance

@@ -44,6 +44,13 @@ class FitModel {
   /// that changes the light in dark regions (docs/fit.md, "Finite rays").
   void DevianceResiduals(const Simulated& sim, int bin, double* out) const;
 
+  /// Poisson score and expected information for Fisher scoring, with given derivative images
+  /// dmu[image][parameter] (photons per unit): score_i = sum_q dmu_qi (e_q / T_q - 1) and
+  /// information_ij = sum_q dmu_qi dmu_qj / T_q (row-major), T_q = TemplateMean of the binned
+  /// counts. Linear in the counts: no nonlinearity of the deviance residuals enters.
+  void Score(const Simulated& sim, const std::vector<std::vector<Image>>& dmu, int bin,
+             std::vector<double>* score, std::vector<double>* information) const;
+
   /// Expected deviance at the optimum for a correct model (Poisson and template noise) and its
   /// standard deviation, from the best images; `parameters` are subtracted from the degrees of
   /// freedom.

@@ -66,6 +66,10 @@ struct RaySchedule {
   /// score with a smooth chord Jacobian) instead of only those that lower the rough deviance
   /// of fixed ray streams (false: descents only, which stop short in a local dip).
   bool smooth_polish = true;
+  /// Independent ray-stream sets whose central differences are averaged at the optimum, for
+  /// the final Gauss-Newton steps and the uncertainties (2: the two sets the uncertainties
+  /// need, no final steps). docs/fit.md, "Finite rays".
+  int jacobian_seeds = 4;
   /// Pixel binning per fraction (empty: the smallest b with b^2 x ray_factor x fraction >= 1).
   std::vector<int> binning;
 };

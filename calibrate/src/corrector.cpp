@@ -135,16 +135,32 @@ TransmissionFit FitTransmissions(const std::vector<std::vector<double>>& W,
   const Eigen::MatrixXd info = Jm.transpose() * Jm;
   Eigen::FullPivLU<Eigen::MatrixXd> lu(info);
   if (lu.isInvertible()) {
-    // With the sigma_k known, chi^2 only signals model mismatch when it is significantly above
-    // its expectation (1 + 3 sqrt(2 / dof)); only then are the uncertainties inflated by it.
+    // With the sigma_k known, chi^2 says something only when it is significantly away from its
+    // expectation: above 1 + 3 sqrt(2 / dof), the model does not describe the flat fields (or
+    // the noise is underestimated) and the uncertainties are inflated by it; 3 standard
+    // deviations below (Wilson-Hilferty normal approximation of chi^2 / dof), the stated noise
+    // of the flat-field signals overstates their scatter and the uncertainties are scaled down
+    // by it (the Birge ratio, both ways; issue 26: honest uncertainties).
     const bool mismatch = dof > 0 && f.reduced_chi2 > 1 + 3 * std::sqrt(2.0 / dof);
-    const Eigen::MatrixXd cov = lu.inverse() * (mismatch ? f.reduced_chi2 : 1.0);
+    const double a = dof > 0 ? 2.0 / (9.0 * dof) : 0;
+    f.chi2_z = dof > 0 ? (std::cbrt(f.reduced_chi2) - (1 - a)) / std::sqrt(a) : 0;
+    const bool overstated = dof > 0 && f.chi2_z < -3;
+    f.sigma_scale = mismatch || overstated ? std::sqrt(f.reduced_chi2) : 1.0;
+    const Eigen::MatrixXd cov = lu.inverse() * (f.sigma_scale * f.sigma_scale);
+    if (mismatch)
+      f.verdict = "chi^2 above its expectation: the model does not describe the flat fields within "
+                  "their noise; uncertainties inflated by sqrt(reduced chi^2)";
+    else if (overstated)
+      f.verdict = "chi^2 below its expectation (z " + std::to_string(f.chi2_z).substr(0, 5) +
+                  "): the flat fields scatter less than their stated noise; uncertainties scaled by "
+                  "sqrt(reduced chi^2)";
     for (int q = 0; q < P - 1; ++q) f.sigma[free[q]] = std::sqrt(std::max(0.0, cov(q, q)));
     f.gain_sigma = g * std::sqrt(std::max(0.0, cov(P - 1, P - 1)));
   }
   std::ostringstream msg;
   msg << "fitted " << J - fixed.size() << " zone transmissions from " << K
       << " flat fields; reduced chi^2 " << f.reduced_chi2;
+  if (!f.verdict.empty()) msg << " (" << f.verdict << ")";
   for (int j : f.undetermined)
     msg << "; zone " << j << " receives no light in any flat field: undetermined (held at zone "
         << j - 1 << "'s value)";

@@ -21,6 +21,10 @@ struct TransmissionFit {
   double gain = 0, gain_sigma = 0;
   std::vector<double> model, residual;       ///< per flat field (photons per pixel)
   double reduced_chi2 = 0;
+  double chi2_z = 0;         ///< chi^2 as a normal deviate (Wilson-Hilferty), 0 without dof
+  double sigma_scale = 1;    ///< factor applied to the uncertainties: sqrt(reduced chi^2) when
+                             ///< chi^2 is 3 sd above or below its expectation, else 1
+  std::string verdict;       ///< why sigma_scale is not 1 (empty when it is)
   std::vector<int> undetermined;             ///< zones no flat field illuminates
   std::string message;
 };
@@ -28,8 +32,8 @@ struct TransmissionFit {
 /// Fits T (T_0 = 1, bounds [0, 1.2]) and g to S_k = g sum_j T_j W[k][j] with standard
 /// deviations sigma_k (Ceres). Zones with no light in any flat field are undetermined: they are
 /// held at the previous zone's value and listed. Uncertainties from the covariance (J^T J)^-1
-/// of the sigma-weighted residuals, inflated by the reduced chi^2 only when that is
-/// significantly above 1 (model mismatch).
+/// of the sigma-weighted residuals, scaled by the reduced chi^2 when that is 3 standard
+/// deviations above 1 (model mismatch) or below it (stated noise overstated): sigma_scale.
 TransmissionFit FitTransmissions(const std::vector<std::vector<double>>& W,
                                  const std::vector<double>& S, const std::vector<double>& sigma,
                                  double smoothness);

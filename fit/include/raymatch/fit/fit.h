@@ -166,7 +166,8 @@ struct GoodnessOfFit {
   double block_chi2 = 0, block_z = 0, block_reduced = 1;
   /// Correlation of neighbouring Pearson residuals (right and lower neighbours): 0 +- 1/sqrt(pairs).
   double neighbour_correlation = 0, neighbour_z = 0;
-  bool mismatch = false;         ///< any of the three z above 3 (one-sided, p < 0.0014 each)
+  bool mismatch = false;         ///< any of the three z above 3 (one-sided, p < 0.0014 each;
+                                 ///< the neighbour test also needs a correlation above 0.05)
   /// Factor applied to every sigma: sqrt of the larger of the reduced deviance and the reduced
   /// block chi-square when `mismatch`, else 1.
   double sigma_inflation = 1;

@@ -603,12 +603,15 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
   // stops short (issue 26 item 2: z 0.2 um short, 7 CRB, from starts 1.8 um off).
   std::vector<Differences> sets;
   Simulated final_sim;
-  for (int round = 0; round < 3 && res.status != "flat" && spec.uncertainties && run.Budget(); ++round) {
+  for (int round = 0; round < 3 && res.status != "flat" && spec.uncertainties && (round == 0 || run.Budget());
+       ++round) {
     const int S = std::max(2, spec.rays.jacobian_seeds);
     sets.clear();
     for (int s = 0; s < S; ++s)
       sets.push_back(Differentiate(run, spec, best, final_level, spec.seed + 7777777ull * uint64_t(s), "fisher", true));
-    if (!(spec.method == Method::kLevenbergMarquardt && spec.error == ErrorFunction::kPoisson && S > 2)) break;
+    if (!(spec.method == Method::kLevenbergMarquardt && spec.error == ErrorFunction::kPoisson && S > 2) ||
+        !run.Budget())
+      break;  // (the sets are always taken: the uncertainties need them, as before the steps)
     {
       // Fisher scoring (the Poisson score and expected information, linear in the counts) with
       // derivative images from the other streams only: the main streams' differences count the

@@ -24,13 +24,6 @@ namespace {
 using Clock = std::chrono::steady_clock;
 double Since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
 
-std::string Fmt(double v, int prec = 6) {
-  std::ostringstream os;
-  os.precision(prec);
-  os << v;
-  return os.str();
-}
-
 using Matrix = std::vector<std::vector<double>>;
 
 Matrix Correlation(const Matrix& cov) {
@@ -304,6 +297,27 @@ Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<do
     d.flat[i] = same;
   }
   return d;
+}
+
+/// The mean of sets[first], sets[first + stride], ...: Jacobian and derivative images averaged
+/// (mu, residuals and flags of the first). Derivatives from independent ray streams average
+/// their counting noise down; disjoint halves give the unbiased cross products.
+Differences AverageSets(const std::vector<Differences>& sets, size_t first, size_t stride) {
+  Differences a = sets.at(first);
+  size_t n = 1;
+  for (size_t s = first + stride; s < sets.size(); s += stride, ++n) {
+    a.jacobian += sets[s].jacobian;
+    for (size_t k = 0; k < a.dmu.size(); ++k)
+      for (size_t i = 0; i < a.dmu[k].size(); ++i)
+        for (size_t q = 0; q < a.dmu[k][i].size(); ++q) a.dmu[k][i].pixels[q] += sets[s].dmu[k][i].pixels[q];
+  }
+  if (n > 1) {
+    a.jacobian /= double(n);
+    for (auto& per_image : a.dmu)
+      for (Image& im : per_image)
+        for (float& v : im.pixels) v = float(v / double(n));
+  }
+  return a;
 }
 
 class ImageCost : public ceres::CostFunction {
@@ -601,79 +615,61 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
   // parameter, or end with a decrease still predicted, the derivatives are taken again there
   // (at most three rounds): along the curved z-radius-index valley a single linearisation
   // stops short (issue 26 item 2: z 0.2 um short, 7 CRB, from starts 1.8 um off).
-  std::vector<Differences> sets;
+  Differences half_a, half_b;  // averages of the even and the odd sets (the first is the main streams)
   Simulated final_sim;
   for (int round = 0; round < 3 && res.status != "flat" && spec.uncertainties && (round == 0 || run.Budget());
        ++round) {
-    const int S = std::max(2, spec.rays.jacobian_seeds);
-    sets.clear();
-    for (int s = 0; s < S; ++s)
-      sets.push_back(Differentiate(run, spec, best, final_level, spec.seed + 7777777ull * uint64_t(s), "fisher", true));
+    const size_t S = size_t(std::max(2, spec.rays.jacobian_seeds));
+    std::vector<Differences> sets;
+    for (size_t s = 0; s < S; ++s)
+      sets.push_back(Differentiate(run, spec, best, final_level, spec.seed + 7777777ull * s, "fisher", true));
+    half_a = AverageSets(sets, 0, 2), half_b = AverageSets(sets, 1, 2);
     if (!(spec.method == Method::kLevenbergMarquardt && spec.error == ErrorFunction::kPoisson && S > 2) ||
         !run.Budget())
       break;  // (the sets are always taken: the uncertainties need them, as before the steps)
-    {
-      // Fisher scoring (the Poisson score and expected information, linear in the counts) with
-      // derivative images from the other streams only: the main streams' differences count the
-      // same rays as their template, and that correlation would bias the score by O(1/k).
-      std::vector<std::vector<Image>> dmu = sets[1].dmu;
-      for (auto& per_image : dmu)
-        for (Image& im : per_image) std::fill(im.pixels.begin(), im.pixels.end(), 0.f);
-      for (int s = 1; s < S; ++s)
-        for (size_t k = 0; k < dmu.size(); ++k)
-          for (size_t i = 0; i < P; ++i)
-            for (size_t q = 0; q < dmu[k][i].size(); ++q)
-              dmu[k][i].pixels[q] += float(sets[s].dmu[k][i].pixels[q] / double(S - 1));
-      const int bin = model.BinAt(final_level);
-      Simulated cur = sets[0].mu;  // the main ray streams, as in the search
-      std::vector<double> x = best, sc, info;
-      model.Score(cur, dmu, bin, &sc, &info);
-      // The information for the steps from the cross product of two disjoint halves of the sets
-      // (unbiased, as for the uncertainties): sum dmu dmu^T / T with one noisy dmu is inflated
-      // by the derivatives' noise, most along the weakly determined valley, where it shrank
-      // every step by half (measured: z crept 0.025, 0.010, 0.005 um towards a truth 0.1 um away).
-      Eigen::MatrixXd F = Eigen::Map<const Eigen::MatrixXd>(info.data(), P, P);
-      if (bin == 1) {
-        std::vector<std::vector<Image>> da = sets[0].dmu, db = sets[1].dmu;
-        for (int s = 2; s < S; ++s)
-          for (size_t k = 0; k < da.size(); ++k)
-            for (size_t i = 0; i < P; ++i) {
-              std::vector<float>& h = (s % 2 ? db : da)[k][i].pixels;
-              for (size_t q = 0; q < h.size(); ++q) h[q] += sets[s].dmu[k][i].pixels[q];
-            }
-        const double na = (S + 1) / 2, nb = S / 2;
-        const Matrix cross = FisherInformation(cur.photons, da, db);
-        Eigen::MatrixXd Fc(P, P);
+    // Fisher scoring (the Poisson score and expected information, linear in the counts) with
+    // derivative images from the other streams only: the main streams' differences count the
+    // same rays as their template, and that correlation would bias the score by O(1/k).
+    const std::vector<std::vector<Image>> dmu = AverageSets(sets, 1, 1).dmu;
+    const int bin = model.BinAt(final_level);
+    std::vector<double> x = best, sc, info;
+    model.Score(sets[0].mu, dmu, bin, &sc, &info);  // the main ray streams, as in the search
+    // The information for the steps from the cross product of the two halves (unbiased, as for
+    // the uncertainties): sum dmu dmu^T / T with one noisy dmu is inflated by the derivatives'
+    // noise, most along the weakly determined valley, where it shrank every step by half
+    // (measured: z crept 0.025, 0.010, 0.005 um towards a truth 0.1 um away).
+    Eigen::MatrixXd F = Eigen::Map<const Eigen::MatrixXd>(info.data(), P, P);
+    if (bin == 1) {
+      const Matrix cross = FisherInformation(sets[0].mu.photons, half_a.dmu, half_b.dmu);
+      if (!InverseSpd(cross).empty())  // else (rare: noise) the one-sided information
         for (size_t i = 0; i < P; ++i)
-          for (size_t j = 0; j < P; ++j) Fc(i, j) = cross[i][j] / (na * nb);
-        if (!InverseSpd(cross).empty()) F = Fc;  // else (rare: noise) the one-sided information
-      }
-      const auto solver = F.ldlt();
-      auto Predicted = [&](const std::vector<double>& v) {
-        const Eigen::VectorXd g = Eigen::Map<const Eigen::VectorXd>(v.data(), P);
-        return g.dot(solver.solve(g));
-      };
-      double predicted = Predicted(sc);
-      for (int it = 0; it < 4 && run.Budget() && predicted >= kPolishTolerance; ++it) {
-        const Eigen::VectorXd step = solver.solve(Eigen::Map<const Eigen::VectorXd>(sc.data(), P));
-        if (!step.allFinite()) break;
-        std::vector<double> y = x;
-        for (size_t i = 0; i < P; ++i) y[i] += step(i);
-        y = Clip(y, spec);
-        double e = 0;
-        const Simulated mu_y = run.Images(y, final_level, spec.seed, "final", &e);
-        std::vector<double> sy, unused;
-        model.Score(mu_y, dmu, bin, &sy, &unused);
-        const double predicted_y = Predicted(sy);
-        if (!(predicted_y < predicted)) break;
-        x = y, sc = sy, predicted = predicted_y, final_sim = mu_y;
-      }
-      bool far = false;
-      for (size_t i = 0; i < P; ++i) far = far || std::abs(x[i] - best[i]) > 0.5 * spec.parameters[i].step;
-      const bool moved = x != best;
-      best = x;
-      if ((!far && predicted < kPolishTolerance) || !moved) break;
+          for (size_t j = 0; j < P; ++j) F(i, j) = cross[i][j];
     }
+    const auto solver = F.ldlt();
+    auto Predicted = [&](const std::vector<double>& v) {
+      const Eigen::VectorXd g = Eigen::Map<const Eigen::VectorXd>(v.data(), P);
+      return g.dot(solver.solve(g));
+    };
+    double predicted = Predicted(sc);
+    for (int it = 0; it < 4 && run.Budget() && predicted >= kPolishTolerance; ++it) {
+      const Eigen::VectorXd step = solver.solve(Eigen::Map<const Eigen::VectorXd>(sc.data(), P));
+      if (!step.allFinite()) break;
+      std::vector<double> y = x;
+      for (size_t i = 0; i < P; ++i) y[i] += step(i);
+      y = Clip(y, spec);
+      double e = 0;
+      const Simulated mu_y = run.Images(y, final_level, spec.seed, "final", &e);
+      std::vector<double> sy, unused;
+      model.Score(mu_y, dmu, bin, &sy, &unused);
+      const double predicted_y = Predicted(sy);
+      if (!(predicted_y < predicted)) break;
+      x = y, sc = sy, predicted = predicted_y, final_sim = mu_y;
+    }
+    bool far = false;
+    for (size_t i = 0; i < P; ++i) far = far || std::abs(x[i] - best[i]) > 0.5 * spec.parameters[i].step;
+    const bool moved = x != best;
+    best = x;
+    if ((!far && predicted < kPolishTolerance) || !moved) break;
   }
 
   for (size_t i = 0; i < P; ++i) {
@@ -693,24 +689,8 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
     // Carlo difference adds a positive bias to any sum of squared derivatives (J^T J, Fisher),
     // which would make the information look larger than it is; the cross product of two
     // independent estimates is free of it (its noise averages out instead of adding up).
-    Differences d = sets[0], d2 = sets[1];
-    const size_t S = sets.size();
-    if (S > 2) {
-      size_t na = 1, nb = 1;
-      for (size_t s = 2; s < S; ++s) {
-        Differences& h = s % 2 ? d2 : d;
-        (s % 2 ? nb : na)++;
-        h.jacobian += sets[s].jacobian;
-        for (size_t k = 0; k < h.dmu.size(); ++k)
-          for (size_t i = 0; i < P; ++i)
-            for (size_t q = 0; q < h.dmu[k][i].size(); ++q) h.dmu[k][i].pixels[q] += sets[s].dmu[k][i].pixels[q];
-      }
-      d.jacobian /= double(na), d2.jacobian /= double(nb);
-      for (auto [h, n] : {std::pair<Differences*, size_t>{&d, na}, {&d2, nb}})
-        for (auto& per_image : h->dmu)
-          for (Image& im : per_image)
-            for (float& v : im.pixels) v = float(v / double(n));
-    }
+    const Differences& d = half_a;
+    const Differences& d2 = half_b;
     best_sim = final_sim.photons.empty() ? d.mu : final_sim;
     res.best_images = best_sim.photons;
     const Eigen::MatrixXd JtJ =

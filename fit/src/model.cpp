@@ -269,6 +269,24 @@ const std::vector<Image>& FitModel::Experiment(int bin) const {
   return v;
 }
 
+std::string Fmt(double v, int prec) {
+  std::ostringstream os;
+  os.precision(prec);
+  os << v;
+  return os.str();
+}
+
+namespace {
+/// The template of image i of `sim`, given its binned counts: each count plus one ray
+/// (TemplateMean), the mean every Poisson measure below compares the experiment with.
+std::vector<double> TemplateOf(const Image& binned, const Simulated& sim, size_t i) {
+  std::vector<double> t(binned.size());
+  for (size_t p = 0; p < binned.size(); ++p)
+    t[p] = TemplateMean(binned.pixels[p], sim.photons_per_ray[i], sim.finite_ray_correction);
+  return t;
+}
+}  // namespace
+
 double FitModel::Error(const Simulated& sim, int bin) const {
   const std::vector<Image>& exp = Experiment(bin);
   std::vector<Image> mu;
@@ -278,12 +296,14 @@ double FitModel::Error(const Simulated& sim, int bin) const {
   for (size_t i = 0; i < mu.size(); ++i) {
     const Image& e = exp[i];
     switch (spec_.error) {
-      case ErrorFunction::kPoisson:
+      case ErrorFunction::kPoisson: {
+        const std::vector<double> t = TemplateOf(mu[i], sim, i);
         for (size_t p = 0; p < e.size(); ++p) {
-          const double r = DevianceResidual(e.pixels[p], TemplateMean(mu[i].pixels[p], sim.photons_per_ray[i], sim.finite_ray_correction));
+          const double r = DevianceResidual(e.pixels[p], t[p]);
           s += r * r;
         }
         break;
+      }
       case ErrorFunction::kMse:
         for (size_t p = 0; p < e.size(); ++p) s += (double(mu[i].pixels[p]) - e.pixels[p]) * (double(mu[i].pixels[p]) - e.pixels[p]);
         npix += e.size();
@@ -323,9 +343,8 @@ void FitModel::DevianceResiduals(const Simulated& sim, int bin, double* out) con
   const std::vector<Image>& exp = Experiment(bin);
   for (size_t i = 0; i < sim.photons.size(); ++i) {
     const Image& e = exp[i];
-    const Image m = BinImage(sim.photons[i], bin);
-    const double w = sim.photons_per_ray[i];
-    for (size_t p = 0; p < e.size(); ++p) *out++ = DevianceResidual(e.pixels[p], TemplateMean(m.pixels[p], w, sim.finite_ray_correction));
+    const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i);
+    for (size_t p = 0; p < e.size(); ++p) *out++ = DevianceResidual(e.pixels[p], t[p]);
   }
 }
 
@@ -338,12 +357,11 @@ void FitModel::Score(const Simulated& sim, const std::vector<std::vector<Image>>
   std::vector<double> d(P);
   for (size_t i = 0; i < sim.photons.size(); ++i) {
     const Image& e = exp[i];
-    const Image m = BinImage(sim.photons[i], bin);
+    const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i);
     std::vector<Image> g;
     for (size_t j = 0; j < P; ++j) g.push_back(BinImage(dmu[i][j], bin));
-    const double w = sim.photons_per_ray[i];
     for (size_t p = 0; p < e.size(); ++p) {
-      const double T = std::max(TemplateMean(m.pixels[p], w, sim.finite_ray_correction), 1e-6);
+      const double T = std::max(t[p], 1e-6);
       const double f = std::max(double(e.pixels[p]), 0.0) / T - 1;
       for (size_t a = 0; a < P; ++a) d[a] = g[a].pixels[p];
       for (size_t a = 0; a < P; ++a) {
@@ -360,10 +378,9 @@ std::pair<double, double> FitModel::ExpectedDeviance(const Simulated& sim, int b
   // mu (1 + 1/k) about the mean); each fitted parameter removes about one such unit.
   double mean = 0, var = 0, units = 0, pixels = 0;
   for (size_t i = 0; i < sim.photons.size(); ++i) {
-    const Image m = BinImage(sim.photons[i], bin);
     const double w = sim.photons_per_ray[i];
-    for (float v : m.pixels) {
-      const double g = ExpectedPixelDeviance(TemplateMean(v, w, sim.finite_ray_correction)) * (1 + w);
+    for (const double t : TemplateOf(BinImage(sim.photons[i], bin), sim, i)) {
+      const double g = ExpectedPixelDeviance(t) * (1 + w);
       mean += g, var += 2 * g * g, units += 1 + w, pixels += 1;
     }
   }
@@ -381,16 +398,14 @@ GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameter
   double cross = 0, norm = 0;
   size_t pairs = 0;
   for (size_t i = 0; i < sim.photons.size(); ++i) {
-    const Image m = BinImage(sim.photons[i], bin);
     const Image& e = exp[i];
+    const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i);
     const double w = sim.photons_per_ray[i];
     g.pixels += e.size();
     // Pearson residuals with the variance of e - template: mu (1 + w).
     Image r(e.width, e.height);
-    for (size_t p = 0; p < e.size(); ++p) {
-      const double mu = TemplateMean(m.pixels[p], w, sim.finite_ray_correction);
-      r.pixels[p] = static_cast<float>((std::max(0.0f, e.pixels[p]) - mu) / std::sqrt(mu * (1 + w)));
-    }
+    for (size_t p = 0; p < e.size(); ++p)
+      r.pixels[p] = static_cast<float>((std::max(0.0f, e.pixels[p]) - t[p]) / std::sqrt(t[p] * (1 + w)));
     for (int y = 0; y < r.height; ++y)
       for (int x = 0; x < r.width; ++x) {
         const double a = r.at(x, y);
@@ -405,7 +420,7 @@ GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameter
         double d = 0, v = 0;
         for (int y = by; y < by + B; ++y)
           for (int x = bx; x < bx + B; ++x) {
-            const double mu = TemplateMean(m.at(x, y), w, sim.finite_ray_correction);
+            const double mu = t[size_t(y) * size_t(e.width) + size_t(x)];
             d += std::max(0.0f, e.at(x, y)) - mu, v += mu * (1 + w);
           }
         if (v > 0) g.block_chi2 += d * d / v, ++g.blocks;
@@ -419,18 +434,12 @@ GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameter
     g.block_z = (g.block_chi2 - double(g.blocks)) / std::sqrt(2.0 * double(g.blocks));
   }
   std::vector<std::string> why;
-  auto num = [](double v, int prec) {
-    std::ostringstream os;
-    os.precision(prec);
-    os << v;
-    return os.str();
-  };
   if (g.z > 3)
-    why.push_back("deviance " + num(g.deviance, 6) + " for " + num(g.expected, 6) + " +- " + num(g.sd, 3) +
-                  " expected (" + num(g.z, 3) + " standard deviations)");
+    why.push_back("deviance " + Fmt(g.deviance, 6) + " for " + Fmt(g.expected, 6) + " +- " + Fmt(g.sd, 3) +
+                  " expected (" + Fmt(g.z, 3) + " standard deviations)");
   if (g.block_z > 3)
     why.push_back("residuals structured on " + std::to_string(g.block_px * bin) + "-pixel blocks (chi-square " +
-                  num(g.block_chi2, 5) + " for " + std::to_string(g.blocks) + " blocks, " + num(g.block_z, 3) +
+                  Fmt(g.block_chi2, 5) + " for " + std::to_string(g.blocks) + " blocks, " + Fmt(g.block_z, 3) +
                   " standard deviations)");
   // The correlation must also matter: the simulator's own images carry a vertical neighbour
   // correlation of about 0.01 (measured between two seeds at equal parameters), 2-3.6 standard
@@ -438,18 +447,18 @@ GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameter
   // kNeighbourCorrelation on, structure the model lacks (a PSF left out: 0.1 and more) is meant.
   constexpr double kNeighbourCorrelation = 0.05;
   if (g.neighbour_z > 3 && g.neighbour_correlation > kNeighbourCorrelation)
-    why.push_back("neighbouring residuals correlated (" + num(g.neighbour_correlation, 3) + ", " +
-                  num(g.neighbour_z, 3) + " standard deviations)");
+    why.push_back("neighbouring residuals correlated (" + Fmt(g.neighbour_correlation, 3) + ", " +
+                  Fmt(g.neighbour_z, 3) + " standard deviations)");
   g.mismatch = !why.empty();
   if (g.mismatch) {
     g.sigma_inflation = std::sqrt(std::max({1.0, g.reduced, g.block_reduced}));
     g.verdict = "model mismatch: ";
     for (size_t i = 0; i < why.size(); ++i) g.verdict += (i ? "; " : "") + why[i];
     g.verdict += "; the model does not describe the image within its noise, sigmas inflated by " +
-                 num(g.sigma_inflation, 3) + " (values may be biased beyond that)";
+                 Fmt(g.sigma_inflation, 3) + " (values may be biased beyond that)";
   } else {
-    g.verdict = "consistent with the noise (deviance " + num(g.deviance, 6) + " for " + num(g.expected, 6) +
-                " +- " + num(g.sd, 3) + " expected)";
+    g.verdict = "consistent with the noise (deviance " + Fmt(g.deviance, 6) + " for " + Fmt(g.expected, 6) +
+                " +- " + Fmt(g.sd, 3) + " expected)";
   }
   return g;
 }

@@ -16,6 +16,9 @@ namespace raymatch::fit {
 /// Expected images of one evaluation: photons per pixel (the simulated counts times the
 /// photons one ray stands for) and, per image, that weight. The weight is what the likelihood
 /// needs to treat the simulated counts as the Poisson sample they are (see DevianceResiduals).
+/// A number with `prec` significant digits, for messages.
+std::string Fmt(double v, int prec = 6);
+
 struct Simulated {
   std::vector<Image> photons;
   std::vector<double> photons_per_ray;

@@ -34,6 +34,18 @@ std::string Scene(double x, double y, double z, double r, double n, int seed) {
   return s.str();
 }
 
+/// The fit file's five [[parameter]] tables: x, y, z of the drop's centre (+-3, +-3, +-4 um)
+/// and its radius and index within the given bounds.
+std::string FiveParameters(const std::string& r_lo, const std::string& r_hi, const std::string& n_lo,
+                           const std::string& n_hi) {
+  return "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -3\nupper = 3\nstep = 0.2\n"
+         "[[parameter]]\nkey = \"object.drop.center_um[1]\"\nlower = -3\nupper = 3\nstep = 0.2\n"
+         "[[parameter]]\nkey = \"object.drop.center_um[2]\"\nlower = -4\nupper = 4\nstep = 0.4\n"
+         "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = " + r_lo + "\nupper = " + r_hi +
+         "\nstep = 0.2\n[[parameter]]\nkey = \"object.drop.index\"\nlower = " + n_lo + "\nupper = " + n_hi +
+         "\nstep = 0.002\n";
+}
+
 TEST(FitStatistics, FiveParameterSphereAtTheSamplePhotonCount) {
   const double truth[5] = {1.3, -0.7, 0.8, 23, 1.33885};
   const int kRealisations = 6;
@@ -48,12 +60,8 @@ TEST(FitStatistics, FiveParameterSphereAtTheSamplePhotonCount) {
     const std::string fit = dir.Write(
         "fit.toml",
         "scene = \"model.toml\"\nseed = " + std::to_string(7 + k) +
-            "\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n"
-            "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -3\nupper = 3\nstep = 0.2\n"
-            "[[parameter]]\nkey = \"object.drop.center_um[1]\"\nlower = -3\nupper = 3\nstep = 0.2\n"
-            "[[parameter]]\nkey = \"object.drop.center_um[2]\"\nlower = -4\nupper = 4\nstep = 0.4\n"
-            "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\nstep = 0.2\n"
-            "[[parameter]]\nkey = \"object.drop.index\"\nlower = 1.32\nupper = 1.35\nstep = 0.002\n"
+            "\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n" +
+            FiveParameters("21", "25", "1.32", "1.35") +
             "[rays]\nray_factor = 2\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n");
     const FitResult r = RunFit(LoadFitSpec(fit));
     ASSERT_TRUE(r.converged) << r.message;
@@ -126,12 +134,8 @@ TEST(FitStatistics, SteepDropAtPhotonMatchedRaysIsUnbiased) {
     const std::string fit = dir.Write(
         "fit.toml",
         "scene = \"model.toml\"\nseed = " + std::to_string(7 + k) +
-            "\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = 6\n"
-            "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -3\nupper = 3\nstep = 0.2\n"
-            "[[parameter]]\nkey = \"object.drop.center_um[1]\"\nlower = -3\nupper = 3\nstep = 0.2\n"
-            "[[parameter]]\nkey = \"object.drop.center_um[2]\"\nlower = -4\nupper = 4\nstep = 0.4\n"
-            "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 11\nupper = 15\nstep = 0.2\n"
-            "[[parameter]]\nkey = \"object.drop.index\"\nlower = 1.37\nupper = 1.41\nstep = 0.002\n"
+            "\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = 6\n" +
+            FiveParameters("11", "15", "1.37", "1.41") +
             "[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n");
     const FitResult r = RunFit(LoadFitSpec(fit));
     ASSERT_TRUE(r.converged) << r.message;

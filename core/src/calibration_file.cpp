@@ -73,6 +73,10 @@ void WriteCalibrationFile(const std::string& path, const CalibrationData& d) {
          << "   # uniform disc at the object plane; 0 = not measured (simulator sizes it)\nna_limit = "
          << d.na_limit << "   # the map is cut at this NA (0 = not cut)\ncone_half_angle_deg = "
          << d.cone_half_angle_deg << "\nnote = " << Quote(d.light_field_note) << "\n";
+      if (d.edge_half_angle_deg > 0)
+        os << "edge_half_angle_deg = " << d.edge_half_angle_deg << "   # beyond na_limit: soft edge, "
+           << "half radiance here (calibrate sphere)\nedge_width_deg = " << d.edge_width_deg
+           << "   # (1 - tanh((theta - edge) / width)) / 2\n";
       if (!d.spatial_map.empty()) {
         const std::string sp = sidecar(".spatial.tif", d.spatial_map,
                                        "raymatch calibration: relative irradiance at the object plane");
@@ -85,6 +89,9 @@ void WriteCalibrationFile(const std::string& path, const CalibrationData& d) {
     for (auto& [tmp, fin] : sides) DiscardTemporary(tmp);
     throw;
   }
+  if (d.psf_sigma_um > 0)
+    os << "\n[camera]\npsf_sigma_um = " << d.psf_sigma_um
+       << "   # Gaussian PSF sigma at the object plane (calibrate sphere)\n";
   if (d.has_corrector()) {
     os << "\n[corrector]\ndistance_mm = " << d.corrector_distance_mm
        << "\nring_outer_mm = " << List(d.ring_outer_mm) << "\ntransmissions = " << List(d.transmissions)
@@ -137,6 +144,13 @@ CalibrationData ReadCalibrationFile(const std::string& path) {
     d.na_limit = l.InRange("na_limit", 0, 1, 0);
     d.cone_half_angle_deg = l.InRange("cone_half_angle_deg", 0, 90, 0);
     d.light_field_note = l.String("note", "");
+    if (l.Has("edge_half_angle_deg") || l.Has("edge_width_deg")) {
+      if (!(d.na_limit > 0)) l.Fail("edge_half_angle_deg", "a soft edge beyond the NA needs na_limit > 0");
+      d.edge_half_angle_deg = l.InRange("edge_half_angle_deg", 1, 85, 0, true, true);
+      d.edge_width_deg = l.InRange("edge_width_deg", 0.01, 20, 0, true, true);
+      if (!l.Has("edge_width_deg")) l.Fail("edge_width_deg", "required with edge_half_angle_deg");
+      if (!l.Has("edge_half_angle_deg")) l.Fail("edge_half_angle_deg", "required with edge_width_deg");
+    }
     if (l.Has("spatial_map") || l.Has("field_size_um")) {
       const std::string sp = (fs::path(path).parent_path() / l.String("spatial_map")).string();
       try {
@@ -155,6 +169,11 @@ CalibrationData ReadCalibrationFile(const std::string& path) {
       d.field_size_um[0] = fsz[0], d.field_size_um[1] = fsz[1];
     }
     l.Finish();
+  }
+  if (r.Has("camera")) {
+    TomlReader c = r.Table("camera");
+    d.psf_sigma_um = c.InRange("psf_sigma_um", 0, 100, 0);
+    c.Finish();
   }
   if (r.Has("corrector")) {
     TomlReader c = r.Table("corrector");

@@ -431,6 +431,9 @@ SourceSpec CalibratedSource(const CalibrationData& c, const std::string& file) {
   s.angular_map = c.angular_map;
   s.angular_extent = c.angular_extent;
   s.angular_map_file = file;
+  s.map_na_limit = c.na_limit;
+  s.edge_half_angle_deg = c.edge_half_angle_deg;
+  s.edge_width_deg = c.edge_width_deg;
   if (!c.spatial_map.empty()) {
     s.field_shape = FieldShape::kRect;
     s.field_size_um = {c.field_size_um[0], c.field_size_um[1]};
@@ -475,6 +478,21 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
   } else {
     s.source = CalibratedSource(*cal, cal_file);
   }
+  if (r.Has("light_field_edge")) {
+    TomlReader e = r.Table("light_field_edge");
+    if (!(s.source.type == SourceType::kLightField && s.source.map_na_limit > 0))
+      e.Fail("half_angle_deg", "the edge continues a calibrated light field cut at the objective's NA "
+                               "(a calibration file with na_limit > 0 and no [source] table)");
+    const double na_deg = std::asin(s.source.map_na_limit) * 180 / M_PI;
+    s.source.edge_half_angle_deg = e.InRange("half_angle_deg", na_deg - 10, na_deg + 10, 0);
+    s.source.edge_width_deg = e.InRange("width_deg", 0.05, 5, 0);
+    if (!e.Has("half_angle_deg") || !e.Has("width_deg"))
+      e.Fail(e.Has("half_angle_deg") ? "width_deg" : "half_angle_deg",
+             "required: half_angle_deg (degrees, within 10 of the NA's " + std::to_string(na_deg) +
+                 ") and width_deg (degrees, 0.05-5)");
+    e.Finish();
+  }
+  if (cal && cal->psf_sigma_um > 0) s.camera.psf_sigma_um = cal->psf_sigma_um;
   int i = 0;
   for (TomlReader& o : r.Tables("object")) s.objects.push_back(ReadObject(o, s, i++));
   if (r.Has("objective") || !cal) {
@@ -514,7 +532,7 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
   }
   s.camera.sensor_shift_mm = cam.Number("sensor_shift_mm", 0);
   s.camera.flip = cam.Bool("flip", true);
-  s.camera.psf_sigma_um = cam.InRange("psf_sigma_um", 0, 100, 0);
+  s.camera.psf_sigma_um = cam.InRange("psf_sigma_um", 0, 100, s.camera.psf_sigma_um);
   cam.Finish();
 
   if (r.Has("trace")) {

@@ -38,6 +38,68 @@ Field MakeField(const Scene& s, double auto_radius) {
   return f;
 }
 
+namespace {
+
+/// The calibrated map continued beyond its NA cut (SourceSpec::edge_half_angle_deg): on a grid
+/// 4x finer than the map's and aligned with it, padded out to 15 deg beyond the cut. Inside
+/// the cut a fine cell takes its map pixel's value (the same distribution as the map); beyond
+/// it, the map's value just inside the cut at the same azimuth times E(theta) / E(theta_cut),
+/// E the soft edge, averaged over 2x2 points per cell so the image moves smoothly with the
+/// edge's parameters. Map pixels on the cut left at zero by the calibration (centre outside the
+/// NA) are filled like the continuation.
+Image ContinuedMap(const SourceSpec& ss, double* extent) {
+  const Image& m = ss.angular_map;
+  const double ext = ss.angular_extent, s_na = ss.map_na_limit;
+  if (m.width != m.height) throw Error("a light field continued beyond the NA needs a square map");
+  const int n = m.width, f = 4;
+  const double pu = 2 * ext / n, cell = pu / f;  // map pixel, fine cell (direction cosines)
+  const double target = std::sin(std::min(85.0, std::asin(s_na) / kDeg + 15) * kDeg);
+  const int pad = std::max(0, int(std::ceil((std::min(0.99, target) - ext) / cell)));
+  const int nf = f * n + 2 * pad;
+  *extent = ext + pad * cell;
+  const double edge = ss.edge_half_angle_deg, width = ss.edge_width_deg;
+  auto E = [&](double s) {
+    if (s >= 1) return 0.0;
+    return 0.5 * (1 - std::tanh((std::asin(s) / kDeg - edge) / width));
+  };
+  const double e_na = E(s_na);
+  const double inner = s_na - 1.5 * pu;  // a measured ring just inside the cut
+  auto map_at = [&](double u, double v) {  // nearest map pixel, 0 outside the map
+    const int x = int(std::floor((u + ext) / pu)), y = int(std::floor((ext - v) / pu));
+    return (x < 0 || y < 0 || x >= n || y >= n) ? 0.0 : double(m.at(x, y));
+  };
+  Image out(nf, nf);
+  for (int y = 0; y < nf; ++y)
+    for (int x = 0; x < nf; ++x) {
+      const int mx = x - pad, my = y - pad;  // fine cell -> map pixel (mx / f, my / f)
+      const double uc = -*extent + (x + 0.5) * cell, vc = *extent - (y + 0.5) * cell;
+      const double sc = std::hypot(uc, vc);
+      const bool in_map = mx >= 0 && my >= 0 && mx < f * n && my < f * n;
+      const double mv = in_map ? double(m.at(mx / f, my / f)) : 0.0;
+      if (sc + 0.75 * cell < s_na && (mv > 0 || sc < inner)) {
+        out.at(x, y) = float(mv);  // wholly inside the cut: the measurement
+        continue;
+      }
+      double sum = 0;
+      for (int a = 0; a < 2; ++a)
+        for (int b = 0; b < 2; ++b) {
+          const double u = uc + (a - 0.5) * 0.5 * cell, v = vc + (b - 0.5) * 0.5 * cell;
+          const double s = std::hypot(u, v);
+          if (s < s_na && mv > 0) {
+            sum += mv;
+          } else {
+            const double phi = std::atan2(v, u);
+            const double ring = map_at(inner * std::cos(phi), inner * std::sin(phi));
+            sum += ring * (s < s_na ? 1.0 : E(s) / std::max(e_na, 1e-300));
+          }
+        }
+      out.at(x, y) = float(sum / 4);
+    }
+  return out;
+}
+
+}  // namespace
+
 /// The light field's angular table, flattened for packet::Tabulated.
 packet::Table2D PacketTable(const LightFieldSource& lf) {
   packet::Table2D t;
@@ -70,8 +132,11 @@ SourceVariant MakeSource(const Scene& own, double auto_radius, packet::Table2D* 
     case SourceType::kPoint:
       return PointSource{ss.position_um, std::cos(ss.half_angle_deg * kDeg)};
     case SourceType::kLightField: {
-      LightFieldSource lf{MakeField(own, auto_radius), Distribution2D(ss.angular_map),
-                          ss.angular_extent};
+      double extent = ss.angular_extent;
+      const bool edge = ss.edge_half_angle_deg > 0 && ss.map_na_limit > 0;
+      LightFieldSource lf{MakeField(own, auto_radius),
+                          Distribution2D(edge ? ContinuedMap(ss, &extent) : ss.angular_map), 0};
+      lf.extent = extent;
       *angular_table = PacketTable(lf);
       return lf;
     }

@@ -126,6 +126,9 @@ std::vector<std::string> Simulator::Effects() const {
   static const char* src[] = {"source:collimated", "source:cone", "source:point",
                               "source:lightfield", "source:ray_list"};  // SourceType order
   std::vector<std::string> e{src[static_cast<int>(scene_.source.type)]};
+  if (scene_.source.type == SourceType::kLightField && scene_.source.edge_half_angle_deg > 0 &&
+      scene_.source.map_na_limit > 0)
+    e.push_back("light_field_edge:tanh");
   if (!impl_->geometry.empty()) {
     e.push_back("refraction");
     e.push_back("total_internal_reflection");

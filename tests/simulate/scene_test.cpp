@@ -158,6 +158,56 @@ TEST(SceneFile, CalibrationFileSuppliesSourceCorrectorAndOptics) {
   EXPECT_NE(LoadError("calibration = \"missing.toml\"\n[camera]\npixels = [4, 4]\n").find("scene.toml:1:15: error: 'calibration'"), std::string::npos);
 }
 
+// [light_field_edge] continues a calibrated map beyond its NA cut under the soft edge
+// E(theta) = (1 - tanh((theta - edge) / width)) / 2 relative to E at the cut. Known answer: a map
+// uniform inside the cut sends the fraction A_out / (A_in + A_out) of its rays beyond the NA, with
+// A_in = pi s_na^2 and A_out = int_{s_na}^1 2 pi s E(asin s) / E(asin s_na) ds in direction
+// cosines (midpoint rule, 2e5 steps). Those rays end as outside_na; the tolerance is 4 binomial
+// standard deviations.
+TEST(SceneFile, LightFieldEdgeSendsTheSoftEdgesShareOfRaysBeyondTheNa) {
+  testing::TempDir dir;
+  CalibrationData c;
+  const int n = 64;
+  c.angular_map = Image(n, n);
+  c.angular_extent = 0.5;
+  c.na_limit = 0.42;
+  for (int y = 0; y < n; ++y)
+    for (int x = 0; x < n; ++x) {
+      const double u = (2 * (x + 0.5) / n - 1) * 0.5, v = (1 - 2 * (y + 0.5) / n) * 0.5;
+      c.angular_map.at(x, y) = std::hypot(u, v) < c.na_limit ? 1.f : 0.f;  // as calibrate cuts it
+    }
+  c.objective_focal_mm = 10, c.working_distance_mm = 20, c.na = 0.42, c.tube_focal_mm = 200;
+  c.pixel_pitch_um = 10, c.wavelength_um = 0.462;
+  WriteCalibrationFile(dir / "cal.toml", c);
+  const double kPi = 3.14159265358979323846;
+  for (const auto& [edge, width] : {std::pair{26.0, 1.0}, std::pair{29.0, 2.0}}) {
+    auto E = [&](double s) { return 0.5 * (1 - std::tanh((std::asin(s) * 180 / kPi - edge) / width)); };
+    double a_out = 0;
+    const int steps = 200000;
+    for (int i = 0; i < steps; ++i) {
+      const double s = c.na_limit + (1 - c.na_limit) * (i + 0.5) / steps;
+      a_out += 2 * kPi * s * E(s) / E(c.na_limit) * (1 - c.na_limit) / steps;
+    }
+    const double p = a_out / (kPi * c.na_limit * c.na_limit + a_out);
+    const Scene s = LoadScene(dir.Write("s.toml", "calibration = \"cal.toml\"\n[light_field_edge]\nhalf_angle_deg = " +
+                                                      std::to_string(edge) + "\nwidth_deg = " + std::to_string(width) +
+                                                      "\n[camera]\npixels = [16, 16]\n"));
+    EXPECT_EQ(s.source.edge_half_angle_deg, edge);
+    const Simulator sim(s);
+    const uint64_t rays = 400000;
+    const PlaneResult r = sim.TracePlane(0, 0, rays);
+    const double got = double(r.counters.fates[static_cast<int>(Fate::kOutsideNa)]) / rays;
+    EXPECT_NEAR(got, p, 4 * std::sqrt(p * (1 - p) / rays)) << "edge " << edge << " width " << width;
+  }
+  // Without a cut (na_limit 0) the edge has nothing to continue: an error naming the table.
+  c.na_limit = 0;
+  WriteCalibrationFile(dir / "cal0.toml", c);
+  EXPECT_NE(LoadError("calibration = \"" + (dir / "cal0.toml") + "\"\n[light_field_edge]\nhalf_angle_deg = 26\n"
+                      "width_deg = 1\n[camera]\npixels = [4, 4]\n")
+                .find("light_field_edge.half_angle_deg"),
+            std::string::npos);
+}
+
 // The annotated example in docs/scene-format.md must stay a valid scene.
 TEST(SceneFile, DocumentedExampleLoads) {
   std::ifstream in(std::string(RAYMATCH_SOURCE_DIR) + "/docs/scene-format.md");

@@ -28,6 +28,13 @@ struct CalibrationData {
   Image spatial_map;
   double field_size_um[2] = {0, 0};
   std::string light_field_note;      ///< e.g. "measured up to NA 0.42; beyond: extrapolated"
+  // The light field beyond na_limit, which no image through the objective shows: a soft edge
+  // (1 - tanh((theta - edge_half_angle_deg) / edge_width_deg)) / 2 continuing the map's
+  // outermost measured ring (docs/calibration-format.md). 0 = none (the map as it is), set by
+  // `raymatch calibrate sphere` from a drop of known shape.
+  double edge_half_angle_deg = 0, edge_width_deg = 0;
+  // Camera: the Gaussian PSF's sigma at the object plane (um), 0 = none/not calibrated.
+  double psf_sigma_um = 0;
   // Corrector: central disc + rings (empty when not calibrated).
   std::vector<double> ring_outer_mm, transmissions, transmission_sigma;
   double corrector_distance_mm = 0;  ///< plane distance from the focal plane

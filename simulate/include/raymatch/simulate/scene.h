@@ -50,6 +50,13 @@ struct SourceSpec {
   std::vector<std::array<double, 5>> rays;
   std::string ray_file;
   std::string angular_map_file, spatial_map_file;
+  /// A light field from a calibration file whose map is cut at the objective's NA: the sine of
+  /// that cut (0 = not cut), and the illumination beyond it when edge_half_angle_deg > 0: the
+  /// map's outermost measured ring continued outwards under the soft edge
+  /// E(theta) = (1 - tanh((theta - edge_half_angle_deg) / edge_width_deg)) / 2, relative to
+  /// E at the cut (scene table [light_field_edge], calibration [light_field] edge_*).
+  double map_na_limit = 0;
+  double edge_half_angle_deg = 0, edge_width_deg = 0;
 };
 
 enum class ShapeType { kSphere, kEllipsoid, kBox, kMesh };

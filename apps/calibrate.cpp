@@ -1,4 +1,4 @@
-// raymatch calibrate lightfield|corrector|zemax-export|zemax-import: measured illumination and
+// raymatch calibrate lightfield|corrector|sphere|zemax-export|zemax-import: measured illumination and
 // angular losses -> one calibration file (docs/calibration.md). Thin: options -> library call.
 #include <iostream>
 
@@ -7,6 +7,9 @@
 #include "raymatch/calibrate/lightfield.h"
 #include "raymatch/calibrate/zemax_source.h"
 #include "raymatch/core/calibration_file.h"
+#ifdef RAYMATCH_HAVE_PIPELINE
+#include "raymatch/pipeline/sphere_calibration.h"
+#endif
 
 namespace raymatch::apps {
 
@@ -75,6 +78,43 @@ void RegisterCalibrate(CLI::App& app, int* exit_code) {
       return 0;
     });
   });
+
+#ifdef RAYMATCH_HAVE_PIPELINE
+  auto sp = std::make_shared<pipeline::SphereCalibrationOptions>();
+  CLI::App* sc = cal->add_subcommand(
+      "sphere",
+      "Fit the focus scan of a spherical drop (several planes jointly) for its five parameters and\n"
+      "the nuisances no image through the objective shows: the light field's soft edge beyond the\n"
+      "NA (half-angle and width, deg) and the camera PSF (Gaussian sigma at the object plane, um).\n"
+      "Writes --base plus these into a new calibration file (docs/calibration.md, \"Sphere\n"
+      "calibration\"); the fit's files and report go to <output stem>_sphere/.");
+  sc->add_option("folder", sp->scan_folder, "Experiment folder: metadata.toml with the scan CSV, dark frame, nominal diameter")
+      ->required()
+      ->check(CLI::ExistingDirectory);
+  sc->add_option("--base", sp->base, "Calibration to extend (light field measured through the objective, corrector)")
+      ->required()
+      ->check(CLI::ExistingFile);
+  sp->output = "calibration.toml";
+  sc->add_option("-o,--output", sp->output, "Calibration file to write")->capture_default_str();
+  sc->add_option("--planes-um", sp->planes_um,
+                 "Defocus values (um) of the scan's planes to fit jointly (default: the two nearest -R/2 and +R/2)");
+  sc->add_option("--fractions", sp->fractions, "Ray fractions of the fit's levels (of the photon-matched rays)")
+      ->capture_default_str();
+  sc->add_option("--work-dir", sp->work_dir, "Folder for the fit file, scene and report (default: <output stem>_sphere/)");
+  sc->add_flag("!--fixed-width", sp->fit_width, "Keep the edge width at 1 deg instead of fitting it");
+  sc->add_flag("!--fixed-psf", sp->fit_psf, "Keep the PSF at the diffraction-limited 0.21 lambda/NA instead of fitting it");
+  sc->add_option("--threads", sp->threads, "Threads (0 = all cores)")->capture_default_str();
+  sc->callback([sp, exit_code] {
+    *exit_code = RunGuarded([&] {
+      sp->progress = true;
+      sp->say = [](const std::string& s) { std::cerr << s << "\n"; };
+      const pipeline::SphereCalibrationResult r = pipeline::CalibrateSphere(*sp);
+      std::cout << r.Brief() << "report: " << r.report << "\nwrote " << sp->output << "\n";
+      if (r.mismatch) std::cerr << "warning: the fit reports a model mismatch; the calibration may be biased\n";
+      return 0;
+    });
+  });
+#endif
 
   struct ZeOpts {
     std::string calibration, output;

@@ -1,0 +1,179 @@
+// `raymatch calibrate sphere` (sphere_calibration.h): the fit is an ordinary fit file and scene,
+// written into the work folder so that a user can read, re-run and change it.
+#include "raymatch/pipeline/sphere_calibration.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <sstream>
+
+#include <nlohmann/json.hpp>
+
+#include "raymatch/compare/focus_scan.h"
+#include "raymatch/core/atomic_file.h"
+#include "raymatch/core/calibration_file.h"
+#include "raymatch/core/error.h"
+#include "raymatch/core/provenance.h"
+#include "raymatch/fit/fit.h"
+#include "raymatch/pipeline/pipeline.h"
+#include "raymatch/simulate/water.h"
+
+namespace fs = std::filesystem;
+
+namespace raymatch::pipeline {
+
+namespace {
+
+constexpr double kDeg = M_PI / 180.0;
+
+std::string Q(const std::string& s) { return nlohmann::json(s).dump(); }  // a TOML basic string
+
+struct Free {
+  std::string key;
+  double start, lower, upper, step;
+};
+
+}  // namespace
+
+std::string SphereCalibrationResult::Brief() const {
+  std::ostringstream os;
+  os.precision(6);
+  os << "sphere calibration: " << status << " (" << seconds << " s)\n";
+  for (const auto& v : values)
+    os << "  " << v.key << " = " << v.value << " +- " << v.sigma << " (Cramer-Rao " << v.cramer_rao << ")"
+       << (v.at_bound ? "  AT BOUND" : "") << "\n";
+  os << "  goodness of fit: " << goodness << "\n";
+  return os.str();
+}
+
+SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
+  const auto t0 = std::chrono::steady_clock::now();
+  auto say = [&](const std::string& s) {
+    if (o.say) o.say(s);
+  };
+  const CalibrationData base = ReadCalibrationFile(o.base);
+  if (!base.has_light_field() || !(base.na_limit > 0))
+    throw Error(FileLocation{o.base}, "calibrate sphere needs a calibration whose light field was measured through "
+                                      "the objective (na_limit > 0): its continuation beyond the NA is what it fits");
+  const ExperimentMetadata ex = ReadExperimentMetadata(o.scan_folder);
+  const compare::Stack scan = compare::ReadStack(ex.scan_csv);
+  const double radius = ex.diameter_um / 2;
+
+  // The planes: given, or the two nearest -R/2 and +R/2.
+  std::vector<size_t> planes;
+  auto nearest = [&](double d) {
+    size_t best = 0;
+    for (size_t i = 1; i < scan.defocus_um.size(); ++i)
+      if (std::abs(scan.defocus_um[i] - d) < std::abs(scan.defocus_um[best] - d)) best = i;
+    return best;
+  };
+  if (o.planes_um.empty()) {
+    planes = {nearest(-radius / 2), nearest(radius / 2)};
+    if (planes[0] == planes[1]) planes.pop_back();
+  } else {
+    for (double d : o.planes_um) {
+      const size_t i = nearest(d);
+      if (std::abs(scan.defocus_um[i] - d) > 1e-6)
+        throw Error(FileLocation{ex.scan_csv}, "no plane at defocus " + std::to_string(d) + " um in the scan");
+      planes.push_back(i);
+    }
+  }
+
+  // Start values: the nominal drop on the axis, water's index (IAPWS R9-97) at the metadata's
+  // temperature and the calibration's wavelength, the edge 1 deg beyond the NA and 1 deg wide,
+  // a diffraction-limited PSF (Gaussian approximation of the Airy core, sigma = 0.21 lambda/NA).
+  const double n_water =
+      simulate::WaterRefractiveIndex(ex.temperature_K, simulate::WaterDensityTanaka(std::clamp(ex.temperature_K, 273.15, 313.15)),
+                                     base.wavelength_um)
+          .n;
+  const double na_deg = std::asin(base.na_limit) / kDeg;
+  const double psf0 = 0.21 * base.wavelength_um / base.na;
+  std::vector<Free> free{{"object.drop.center_um[0]", 0, -radius / 4, radius / 4, 0.2},
+                         {"object.drop.center_um[1]", 0, -radius / 4, radius / 4, 0.2},
+                         {"object.drop.center_um[2]", 0, -radius / 4, radius / 4, 0.4},
+                         {"object.drop.radius_um", radius, 0.9 * radius, 1.1 * radius, 0.2},
+                         {"object.drop.index", n_water, n_water - 0.03, n_water + 0.03, 0.002},
+                         {"light_field_edge.half_angle_deg", na_deg + 1, na_deg - 2, na_deg + 8, 0.2}};
+  if (o.fit_width) free.push_back({"light_field_edge.width_deg", 1.0, 0.2, 4, 0.2});
+  if (o.fit_psf) free.push_back({"camera.psf_sigma_um", psf0, 0, 4 * psf0, 0.05});
+
+  const fs::path work = o.work_dir.empty()
+                            ? fs::path(o.output).parent_path() / (fs::path(o.output).stem().string() + "_sphere")
+                            : fs::path(o.work_dir);
+  EnsureDirectory(work);
+  std::ostringstream scene;
+  scene.precision(10);
+  scene << "# Written by `raymatch calibrate sphere`: the drop of " << Q(fs::absolute(o.scan_folder).string())
+        << " at its start values.\nname = \"sphere_calibration\"\nseed = 1\ncalibration = "
+        << Q(fs::absolute(o.base).string()) << "\n\n[[object]]\nname = \"drop\"\ntype = \"sphere\"\n"
+        << "center_um = [0, 0, 0]\nradius_um = " << radius << "\nindex = " << n_water
+        << "   # water, IAPWS R9-97 at " << ex.temperature_K << " K\n\n[light_field_edge]\nhalf_angle_deg = "
+        << na_deg + 1 << "\nwidth_deg = 1\n\n[camera]\npixels = [" << scan.images[0].width << ", "
+        << scan.images[0].height << "]\npsf_sigma_um = " << psf0
+        << "\n\n[trace]\npartial_reflection = \"unpolarized\"\n";
+  WriteTextFileAtomic(work / "scene.toml", scene.str());
+  std::ostringstream fit;
+  fit.precision(10);
+  fit << "# Written by `raymatch calibrate sphere` (docs/calibration.md): the drop's five parameters and\n"
+         "# the light field's edge beyond the NA and the PSF, from " << planes.size() << " planes jointly.\n"
+      << "scene = \"scene.toml\"\nmethod = \"lm\"\nerror = \"poisson\"\nseed = " << o.seed << "\n";
+  for (size_t i : planes) {
+    fit << "\n[[image]]\nfile = " << Q(fs::absolute(scan.files[i]).string()) << "\ndefocus_um = " << scan.defocus_um[i]
+        << "\ngain_e_per_dn = " << ex.gain << "\n";
+    if (!ex.dark.empty()) fit << "dark = " << Q(fs::absolute(ex.dark).string()) << "\n";
+  }
+  for (const Free& f : free)
+    fit << "\n[[parameter]]\nkey = " << Q(f.key) << "\nlower = " << f.lower << "\nupper = " << f.upper
+        << "\nstep = " << f.step << "\n";
+  fit << "\n[rays]\nray_factor = " << o.ray_factor << "\nfractions = [";
+  for (size_t i = 0; i < o.fractions.size(); ++i) fit << (i ? ", " : "") << o.fractions[i];
+  fit << "]\n\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n";
+  WriteTextFileAtomic(work / "fit.toml", fit.str());
+
+  std::ostringstream msg;
+  msg << "sphere calibration: " << free.size() << " parameters from " << planes.size() << " planes (";
+  for (size_t k = 0; k < planes.size(); ++k) msg << (k ? ", " : "") << scan.defocus_um[planes[k]];
+  msg << " um) of " << o.scan_folder;
+  say(msg.str());
+  const fit::FitSpec spec = fit::LoadFitSpec((work / "fit.toml").string());
+  fit::FitOptions fo;
+  fo.threads = o.threads;
+  fo.progress = o.progress;
+  const fit::FitResult fr = fit::RunFit(spec, fo);
+
+  SphereCalibrationResult res;
+  res.report = fit::WriteFitOutputs(spec, fr, work.string());
+  res.status = fr.status;
+  res.goodness = fr.goodness.verdict;
+  res.mismatch = fr.goodness.mismatch;
+  for (const auto& p : fr.parameters) {
+    res.values.push_back({p.key, p.best, p.sigma, p.sigma_cramer_rao, p.at_bound});
+    if (p.key == "light_field_edge.half_angle_deg") res.edge_half_angle_deg = p.best;
+    if (p.key == "light_field_edge.width_deg") res.edge_width_deg = p.best;
+    if (p.key == "camera.psf_sigma_um") res.psf_sigma_um = p.best;
+  }
+  if (!o.fit_width) res.edge_width_deg = 1.0;
+  if (!o.fit_psf) res.psf_sigma_um = psf0;
+
+  CalibrationData out = base;
+  out.edge_half_angle_deg = res.edge_half_angle_deg;
+  out.edge_width_deg = res.edge_width_deg;
+  out.psf_sigma_um = res.psf_sigma_um;
+  out.provenance = ProvenanceJson();
+  for (auto& [k, v] : base.provenance.items())
+    if (!out.provenance.contains(k)) out.provenance[k] = v;
+  std::ostringstream rec;
+  rec.precision(6);
+  rec << "fit of " << fs::absolute(o.scan_folder).string() << " planes";
+  for (size_t i : planes) rec << " " << scan.defocus_um[i];
+  rec << " um: " << fr.status << "; " << fr.goodness.verdict << ";";
+  for (const auto& v : res.values) rec << " " << v.key << " = " << v.value << " +- " << v.sigma << ";";
+  out.provenance["sphere_calibration"] = rec.str();
+  out.provenance["sphere_calibration_base"] = fs::absolute(o.base).string();
+  WriteCalibrationFile(o.output, out);
+  res.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return res;
+}
+
+}  // namespace raymatch::pipeline

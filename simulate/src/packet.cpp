@@ -331,6 +331,10 @@ void OpticsImpl(const NearParams& near, const Optics& o, size_t n, bool from_obj
       st::OpticalTrain<L, false>(o, b, out, corrector_uniform);
     hn::Vec<DF> u, v;
     st::SensorPoint<L>(o, b, u, v);
+    if (o.psf_sigma_sensor > 0) {  // TraceRay: u += r cos(phi), v += r sin(phi)
+      u = hn::Add(u, hn::LoadU(df, r->psf_du + i));
+      v = hn::Add(v, hn::LoadU(df, r->psf_dv + i));
+    }
     const auto pixel = st::SensorPixel<L>(o, u, v, out);
     Summarise(o, hn::IfThenElse(out.settled, out.code, pixel), i, n, r);
   }

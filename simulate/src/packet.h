@@ -72,6 +72,7 @@ struct Rays {
   double px[kBatch], py[kBatch], pz[kBatch];  ///< source sample on its plane
   double dx[kBatch], dy[kBatch], dz[kBatch];  ///< unit direction
   double u[kBatch], v[kBatch];  ///< tabulated direction's uniforms; u: then the corrector draw
+  double psf_du[kBatch], psf_dv[kBatch];  ///< the camera PSF's offset at the sensor (PsfDraws)
   double out[kBatch];           ///< pixel index, FateCode(fate), kScalar or kNear (stages.h)
   // The optics' summary of out[0, n): the image element each lane adds one to (its pixel, or
   // for every other outcome a spare element past the image, npix + lane % 8, so that the adds

@@ -1,5 +1,7 @@
 #include "packet_driver.h"
 
+#include <cmath>
+
 namespace raymatch::simulate {
 
 /// Whether the packet path takes the scene: the one place that decides it (Effects lists it).
@@ -17,7 +19,6 @@ PacketSupport PacketSupportFor(const Simulator::Impl& im) {
             std::holds_alternative<PointSource>(im.source) ? "point_source" : "ray_list_source"};
   }
   if (field->shape != FieldShape::kDisc && !field->map.empty()) return {false, "spatial_map"};
-  if (im.optics.psf_sigma_sensor > 0) return {false, "camera_psf"};
   if (im.index.size() > size_t(packet::kMaxBounds)) return {false, "too_many_objects"};
   return {true, ""};
 }
@@ -84,6 +85,25 @@ void CorrectorDraws(packet::Rays& r, size_t n, int skip) {
     const int64_t k = r.cursor[i] + skip;
     if (k < packet::kWords) {
       r.u[i] = r.words[k][i] * 0x1p-32;
+    } else {
+      r.out[i] = packet::kScalar;
+      r.cursor[i] = -1;
+    }
+  }
+}
+
+/// The camera PSF's offsets (Rays::psf_du, psf_dv) for the lanes still open: two words from
+/// `skip` past the cursor, through TraceRay's Box-Muller expression (the same operations in the
+/// same order, so that both paths put a ray on the same pixel).
+void PsfDraws(packet::Rays& r, size_t n, int skip, double sigma) {
+  for (size_t i = 0; i < n; ++i) {
+    if (r.out[i] != 0) continue;
+    const int64_t k = r.cursor[i] + skip;
+    if (k + 1 < packet::kWords) {
+      const double rad = sigma * std::sqrt(-2 * std::log(1 - r.words[k][i] * 0x1p-32));
+      const double phi = 2 * M_PI * (r.words[k + 1][i] * 0x1p-32);
+      r.psf_du[i] = rad * std::cos(phi);
+      r.psf_dv[i] = rad * std::sin(phi);
     } else {
       r.out[i] = packet::kScalar;
       r.cursor[i] = -1;

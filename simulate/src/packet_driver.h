@@ -35,6 +35,10 @@ PacketPlan MakePacketPlan(const Simulator::Impl& im, const Scene& scene, Partial
 /// lane's cursor. A lane whose words ran out goes back to the scalar path from its stream.
 void CorrectorDraws(packet::Rays& r, size_t n, int skip);
 
+/// The camera PSF's offsets for the lanes still open: the two words `skip` past the lane's
+/// cursor (TraceRay draws them after the corrector's). Out of words: back to the scalar path.
+void PsfDraws(packet::Rays& r, size_t n, int skip, double sigma);
+
 /// A batch's outcomes after NearTestAndOptics or OpticsAfterObjects into the image and the fate
 /// counters; returns how many of its rays reached the optics.
 uint64_t CountBatch(const packet::Rays& r, size_t n, Accum& acc);
@@ -52,6 +56,7 @@ void TraceSphereQueue(const Simulator::Impl& im, const Source& src, const TraceS
   packet::PhiloxWords(trace.seed, plane, q.ids, m, &q);
   packet::Sphere(*plan.sphere, m, &q);
   if constexpr (kCorrector) CorrectorDraws(q, m, 0);  // the corrector's draw follows the sphere's
+  if (op.psf_sigma_sensor > 0) PsfDraws(q, m, kCorrector ? 1 : 0, op.psf_sigma_sensor);
   packet::OpticsAfterObjects(op, m, &q);
   const uint64_t optics = CountBatch(q, m, acc);
   TraceCounters& c = acc.counters;
@@ -80,11 +85,13 @@ void TraceBatch(const Simulator::Impl& im, const Source& src, const TraceSpec& t
   // Words drawn after the source by a ray that meets nothing: polarisation, corrector.
   constexpr int kPolWords = kPR == PartialReflection::kPolarized ? 1 : 0;
   constexpr int kExtraWords = kPolWords + (kCorrector ? 1 : 0);
-  packet::SampleSource(plan.source, trace.seed, plane, r.ids, n, kExtraWords, &r);
+  const bool psf = op.psf_sigma_sensor > 0;  // two more words: the PSF's offset
+  packet::SampleSource(plan.source, trace.seed, plane, r.ids, n, kExtraWords + (psf ? 2 : 0), &r);
   if constexpr (std::is_same_v<Source, LightFieldSource>)
     packet::Tabulated(*plan.source.table, n, &r);
   // The corrector's draw follows the source's (and the polarisation's) words.
   if constexpr (kCorrector) CorrectorDraws(r, n, kPolWords);
+  if (psf) PsfDraws(r, n, kExtraWords, op.psf_sigma_sensor);
   packet::NearTestAndOptics(plan.near, op, n, &r);
   const uint64_t optics = CountBatch(r, n, acc);
   TraceCounters& c = acc.counters;

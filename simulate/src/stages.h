@@ -38,7 +38,7 @@ struct Optics {
   double stop_z = 0, stop_r2 = 0;
   double sensor_z = 0;
   double pitch = 0, inv_pitch = 0, off_x = 0, off_y = 0, sign = -1;
-  double psf_sigma_sensor = 0;  ///< Gaussian PSF at the sensor (um), 0 = none (scalar path only)
+  double psf_sigma_sensor = 0;  ///< Gaussian PSF at the sensor (um), 0 = none (packets: PsfDraws)
   int nx = 0, ny = 0;
 
   /// This optics with every plane moved by `defocus` (um).

@@ -155,7 +155,7 @@ class Simulator {
 
   /// The stages this tracer runs, e.g. {"source:cone", "refraction", "partial_reflection:..."},
   /// and last whether the SIMD packet path takes the scene: "simd_packets", or
-  /// "scalar_only:<reason>" (point_source, ray_list_source, spatial_map, camera_psf, ...).
+  /// "scalar_only:<reason>" (point_source, ray_list_source, spatial_map, ...).
   std::vector<std::string> Effects() const;
   const Scene& scene() const { return scene_; }
   double source_plane_z_um() const;

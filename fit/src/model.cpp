@@ -62,18 +62,29 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
 
   // The parameter box's corners (or, for many parameters, its axis end points): the region the
   // objects can occupy and the largest automatic source field.
+  // Keys that neither move objects nor widen the field (the light field's edge beyond the NA,
+  // the camera PSF) stay at their start: 2^8 corners of a sphere calibration would be 2^5.
   std::vector<std::vector<double>> probes;
   std::vector<double> start;
-  for (const Parameter& p : spec.parameters) start.push_back(p.start);
+  std::vector<size_t> moving;
+  for (size_t i = 0; i < P; ++i) {
+    start.push_back(spec.parameters[i].start);
+    const std::string& k = spec.parameters[i].key;
+    if (!(k.starts_with("light_field_edge.") || k == "camera.psf_sigma_um")) moving.push_back(i);
+  }
   probes.push_back(start);
-  if (P <= 10) {
-    for (uint32_t c = 0; c < (1u << P); ++c) {
-      std::vector<double> th(P);
-      for (size_t i = 0; i < P; ++i) th[i] = (c >> i) & 1 ? spec.parameters[i].upper : spec.parameters[i].lower;
+  const size_t M = moving.size();
+  if (M <= 10) {
+    for (uint32_t c = 0; c < (1u << M); ++c) {
+      std::vector<double> th = start;
+      for (size_t j = 0; j < M; ++j) {
+        const Parameter& q = spec.parameters[moving[j]];
+        th[moving[j]] = (c >> j) & 1 ? q.upper : q.lower;
+      }
       probes.push_back(th);
     }
   } else {
-    for (size_t i = 0; i < P; ++i)
+    for (size_t i : moving)
       for (double v : {spec.parameters[i].lower, spec.parameters[i].upper}) {
         std::vector<double> th = start;
         th[i] = v;

@@ -1,4 +1,5 @@
 #include "raymatch/pipeline/pipeline.h"
+#include "raymatch/pipeline/sphere_calibration.h"
 
 #include <algorithm>
 #include <chrono>
@@ -52,6 +53,11 @@ PipelineFile ReadPipelineFile(const std::string& path) {
   c.extrapolate_to_deg = cal.InRange("extrapolate_to_deg", 0, 89, 0);
   c.zones = int(cal.Integer("zones", 9, 1, 64));
   c.smoothness = cal.Number("smoothness", 0);
+  if (cal.Has("sphere")) c.sphere = rel(cal, "sphere");
+  if (cal.Has("sphere_planes_um")) {
+    if (!cal.Has("sphere")) cal.Fail("sphere_planes_um", "needs 'sphere' (the drop's focus-scan folder)");
+    c.sphere_planes_um = cal.Numbers("sphere_planes_um", 1, 64);
+  }
   cal.Finish();
   TomlReader ex = r.Table("experiment");
   c.experiment = rel(ex, "scan");
@@ -281,15 +287,19 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   const std::string cal_inputs =
       FolderStamp(cfg.lightfield) + "|" + FolderStamp(cfg.flatfield) + "|" +
       (lf_in.flat.empty() ? "" : FileChecksum(lf_in.flat)) + "|" + std::to_string(cfg.extrapolate_to_deg) +
-      "|" + std::to_string(cfg.zones) + "|" + std::to_string(cfg.smoothness);
+      "|" + std::to_string(cfg.zones) + "|" + std::to_string(cfg.smoothness) + "|" +
+      (cfg.sphere.empty() ? "" : FolderStamp(cfg.sphere));
+  std::string sphere_stamp;
+  for (double d : cfg.sphere_planes_um) sphere_stamp += std::to_string(d) + ",";
   const fs::path cal_report = out / "calibration_report.json";
-  std::string lf_report, co_report;
+  std::string lf_report, co_report, sp_report;
   CalibrationData cal;
-  if (!opt.force && Reusable(out / ".calibration.stamp", cal_inputs, {cal_file, cal_report})) {
+  if (!opt.force && Reusable(out / ".calibration.stamp", cal_inputs + "|" + sphere_stamp, {cal_file, cal_report})) {
     say("calibration inputs unchanged: reusing " + cal_file.string());
     cal = ReadCalibrationFile(cal_file.string());
     lf_report = ReportField(cal_report, "light_field");
     co_report = ReportField(cal_report, "corrector");
+    if (!cfg.sphere.empty()) sp_report = ReportField(cal_report, "sphere");
     sum.reused.push_back("calibrate");
   } else {
     // A step's stamp goes before it rewrites its outputs and comes back after the last one, so an
@@ -308,12 +318,35 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
           calibrate::CalibrateCorrector(ff_in, copt, &lf.data);
       for (const auto& w : lf.warnings) std::cerr << "raymatch run: warning: " << w << "\n";
       for (const auto& w : co.warnings) std::cerr << "raymatch run: warning: " << w << "\n";
-      WriteCalibrationFile(cal_file.string(), co.data);
       lf_report = lf.BriefReport();
       co_report = co.BriefReport();
-      WriteTextFileAtomic(cal_report, nlohmann::json{{"light_field", lf_report}, {"corrector", co_report}}.dump(2) + "\n");
-      WriteTextFileAtomic(out / ".calibration.stamp", cal_inputs);
       cal = co.data;
+      if (cfg.sphere.empty()) {
+        WriteCalibrationFile(cal_file.string(), co.data);
+      } else {
+        // The light field and corrector go to calibration_base.toml; the sphere calibration
+        // adds the edge beyond the NA and the PSF and writes calibration.toml.
+        const fs::path base_file = out / "calibration_base.toml";
+        WriteCalibrationFile(base_file.string(), co.data);
+        say("calibrating with the drop of " + cfg.sphere + " (light field beyond the NA, PSF)");
+        SphereCalibrationOptions so;
+        so.scan_folder = cfg.sphere;
+        so.base = base_file.string();
+        so.output = cal_file.string();
+        so.work_dir = (out / "sphere_calibration").string();
+        so.planes_um = cfg.sphere_planes_um;
+        so.threads = opt.threads;
+        so.progress = opt.progress;
+        so.say = say;
+        const SphereCalibrationResult sr = CalibrateSphere(so);
+        sp_report = sr.Brief();
+        if (sr.mismatch) std::cerr << "raymatch run: warning: the sphere calibration reports a model mismatch\n";
+        cal = ReadCalibrationFile(cal_file.string());
+      }
+      nlohmann::json rep{{"light_field", lf_report}, {"corrector", co_report}};
+      if (!sp_report.empty()) rep["sphere"] = sp_report;
+      WriteTextFileAtomic(cal_report, rep.dump(2) + "\n");
+      WriteTextFileAtomic(out / ".calibration.stamp", cal_inputs + "|" + sphere_stamp);
     });
   }
   sum.cone_half_angle_deg = cal.cone_half_angle_deg;
@@ -552,7 +585,11 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     << "; radial profile: azimuthal means in rings of one map pixel, error bars one standard error "
        "of each ring's mean.</p>"
     << spatial_html
-    << "<h2>Corrector</h2><pre>" << co_report << "</pre>" << Img((fig / "transmissions.png").string(), "corrector transmissions")
+    << "<h2>Corrector</h2><pre>" << co_report << "</pre>"
+    << (sp_report.empty() ? std::string()
+                          : "<h2>Sphere calibration</h2><p>The light field beyond the NA and the PSF from the drop of " +
+                                HtmlEscape(cfg.sphere) + " (<a href='sphere_calibration/report.html'>fit report</a>)</p><pre>" +
+                                HtmlEscape(sp_report) + "</pre>") << Img((fig / "transmissions.png").string(), "corrector transmissions")
     << "<p>Error bars: one standard deviation from the fit's covariance.</p>"
     << "<h2>Experiment (top) and simulation (bottom)</h2><p>Exposure recovered from the "
        "background: " << sum.photons_per_pixel << " photons per pixel; simulated with ray fraction "

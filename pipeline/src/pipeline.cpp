@@ -288,13 +288,15 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
       FolderStamp(cfg.lightfield) + "|" + FolderStamp(cfg.flatfield) + "|" +
       (lf_in.flat.empty() ? "" : FileChecksum(lf_in.flat)) + "|" + std::to_string(cfg.extrapolate_to_deg) +
       "|" + std::to_string(cfg.zones) + "|" + std::to_string(cfg.smoothness) + "|" +
-      (cfg.sphere.empty() ? "" : FolderStamp(cfg.sphere));
-  std::string sphere_stamp;
-  for (double d : cfg.sphere_planes_um) sphere_stamp += std::to_string(d) + ",";
+      (cfg.sphere.empty() ? "" : FolderStamp(cfg.sphere)) + [&] {
+        std::string planes;
+        for (double d : cfg.sphere_planes_um) planes += "|" + std::to_string(d);
+        return planes;
+      }();
   const fs::path cal_report = out / "calibration_report.json";
   std::string lf_report, co_report, sp_report;
   CalibrationData cal;
-  if (!opt.force && Reusable(out / ".calibration.stamp", cal_inputs + "|" + sphere_stamp, {cal_file, cal_report})) {
+  if (!opt.force && Reusable(out / ".calibration.stamp", cal_inputs, {cal_file, cal_report})) {
     say("calibration inputs unchanged: reusing " + cal_file.string());
     cal = ReadCalibrationFile(cal_file.string());
     lf_report = ReportField(cal_report, "light_field");
@@ -346,7 +348,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
       nlohmann::json rep{{"light_field", lf_report}, {"corrector", co_report}};
       if (!sp_report.empty()) rep["sphere"] = sp_report;
       WriteTextFileAtomic(cal_report, rep.dump(2) + "\n");
-      WriteTextFileAtomic(out / ".calibration.stamp", cal_inputs + "|" + sphere_stamp);
+      WriteTextFileAtomic(out / ".calibration.stamp", cal_inputs);
     });
   }
   sum.cone_half_angle_deg = cal.cone_half_angle_deg;

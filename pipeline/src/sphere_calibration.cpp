@@ -29,9 +29,9 @@ constexpr double kDeg = M_PI / 180.0;
 
 std::string Q(const std::string& s) { return nlohmann::json(s).dump(); }  // a TOML basic string
 
-struct Free {
+struct Free {  // a fitted key: its start value is the scene's
   std::string key;
-  double start, lower, upper, step;
+  double lower, upper, step;
 };
 
 }  // namespace
@@ -88,15 +88,15 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
                                      base.wavelength_um)
           .n;
   const double na_deg = std::asin(base.na_limit) / kDeg;
-  const double psf0 = 0.21 * base.wavelength_um / base.na;
-  std::vector<Free> free{{"object.drop.center_um[0]", 0, -radius / 4, radius / 4, 0.2},
-                         {"object.drop.center_um[1]", 0, -radius / 4, radius / 4, 0.2},
-                         {"object.drop.center_um[2]", 0, -radius / 4, radius / 4, 0.4},
-                         {"object.drop.radius_um", radius, 0.9 * radius, 1.1 * radius, 0.2},
-                         {"object.drop.index", n_water, n_water - 0.03, n_water + 0.03, 0.002},
-                         {"light_field_edge.half_angle_deg", na_deg + 1, na_deg - 2, na_deg + 8, 0.2}};
-  if (o.fit_width) free.push_back({"light_field_edge.width_deg", 1.0, 0.2, 4, 0.2});
-  if (o.fit_psf) free.push_back({"camera.psf_sigma_um", psf0, 0, 4 * psf0, 0.05});
+  const double psf0 = 0.21 * base.wavelength_um / base.na, edge0 = na_deg + 1, width0 = 1.0;
+  std::vector<Free> free{{"object.drop.center_um[0]", -radius / 4, radius / 4, 0.2},
+                         {"object.drop.center_um[1]", -radius / 4, radius / 4, 0.2},
+                         {"object.drop.center_um[2]", -radius / 4, radius / 4, 0.4},
+                         {"object.drop.radius_um", 0.9 * radius, 1.1 * radius, 0.2},
+                         {"object.drop.index", n_water - 0.03, n_water + 0.03, 0.002},
+                         {"light_field_edge.half_angle_deg", na_deg - 2, na_deg + 8, 0.2}};
+  if (o.fit_width) free.push_back({"light_field_edge.width_deg", 0.2, 4, 0.2});
+  if (o.fit_psf) free.push_back({"camera.psf_sigma_um", 0, 4 * psf0, 0.05});
 
   const fs::path work = o.work_dir.empty()
                             ? fs::path(o.output).parent_path() / (fs::path(o.output).stem().string() + "_sphere")
@@ -109,7 +109,7 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
         << Q(fs::absolute(o.base).string()) << "\n\n[[object]]\nname = \"drop\"\ntype = \"sphere\"\n"
         << "center_um = [0, 0, 0]\nradius_um = " << radius << "\nindex = " << n_water
         << "   # water, IAPWS R9-97 at " << ex.temperature_K << " K\n\n[light_field_edge]\nhalf_angle_deg = "
-        << na_deg + 1 << "\nwidth_deg = 1\n\n[camera]\npixels = [" << scan.images[0].width << ", "
+        << edge0 << "\nwidth_deg = " << width0 << "\n\n[camera]\npixels = [" << scan.images[0].width << ", "
         << scan.images[0].height << "]\npsf_sigma_um = " << psf0
         << "\n\n[trace]\npartial_reflection = \"unpolarized\"\n";
   WriteTextFileAtomic(work / "scene.toml", scene.str());
@@ -153,7 +153,7 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
     if (p.key == "light_field_edge.width_deg") res.edge_width_deg = p.best;
     if (p.key == "camera.psf_sigma_um") res.psf_sigma_um = p.best;
   }
-  if (!o.fit_width) res.edge_width_deg = 1.0;
+  if (!o.fit_width) res.edge_width_deg = width0;
   if (!o.fit_psf) res.psf_sigma_um = psf0;
 
   CalibrationData out = base;

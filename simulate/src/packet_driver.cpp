@@ -77,14 +77,17 @@ PacketPlan MakePacketPlan(const Simulator::Impl& im, const Scene& scene, Partial
   return plan;
 }
 
-/// The corrector's uniform (Rays::u) for the lanes still open (out 0): the word `skip` past the
-/// lane's cursor. A lane whose words ran out goes back to the scalar path from its stream.
-void CorrectorDraws(packet::Rays& r, size_t n, int skip) {
+namespace {
+
+/// f(lane, k) for each lane still open (out 0) whose `words` words from `skip` past its cursor
+/// (k the first) are in the batch; the others go back to the scalar path from their stream.
+template <class F>
+void DrawForOpenLanes(packet::Rays& r, size_t n, int skip, int words, F&& f) {
   for (size_t i = 0; i < n; ++i) {
     if (r.out[i] != 0) continue;
     const int64_t k = r.cursor[i] + skip;
-    if (k < packet::kWords) {
-      r.u[i] = r.words[k][i] * 0x1p-32;
+    if (k + words - 1 < packet::kWords) {
+      f(i, k);
     } else {
       r.out[i] = packet::kScalar;
       r.cursor[i] = -1;
@@ -92,23 +95,24 @@ void CorrectorDraws(packet::Rays& r, size_t n, int skip) {
   }
 }
 
+}  // namespace
+
+/// The corrector's uniform (Rays::u) for the lanes still open (out 0): the word `skip` past the
+/// lane's cursor. A lane whose words ran out goes back to the scalar path from its stream.
+void CorrectorDraws(packet::Rays& r, size_t n, int skip) {
+  DrawForOpenLanes(r, n, skip, 1, [&](size_t i, int64_t k) { r.u[i] = r.words[k][i] * 0x1p-32; });
+}
+
 /// The camera PSF's offsets (Rays::psf_du, psf_dv) for the lanes still open: two words from
 /// `skip` past the cursor, through TraceRay's Box-Muller expression (the same operations in the
 /// same order, so that both paths put a ray on the same pixel).
 void PsfDraws(packet::Rays& r, size_t n, int skip, double sigma) {
-  for (size_t i = 0; i < n; ++i) {
-    if (r.out[i] != 0) continue;
-    const int64_t k = r.cursor[i] + skip;
-    if (k + 1 < packet::kWords) {
-      const double rad = sigma * std::sqrt(-2 * std::log(1 - r.words[k][i] * 0x1p-32));
-      const double phi = 2 * M_PI * (r.words[k + 1][i] * 0x1p-32);
-      r.psf_du[i] = rad * std::cos(phi);
-      r.psf_dv[i] = rad * std::sin(phi);
-    } else {
-      r.out[i] = packet::kScalar;
-      r.cursor[i] = -1;
-    }
-  }
+  DrawForOpenLanes(r, n, skip, 2, [&](size_t i, int64_t k) {
+    const double rad = sigma * std::sqrt(-2 * std::log(1 - r.words[k][i] * 0x1p-32));
+    const double phi = 2 * M_PI * (r.words[k + 1][i] * 0x1p-32);
+    r.psf_du[i] = rad * std::cos(phi);
+    r.psf_dv[i] = rad * std::sin(phi);
+  });
 }
 
 /// A batch's outcomes after NearTestAndOptics or OpticsAfterObjects into the image and the fate

@@ -85,7 +85,7 @@ void RegisterCalibrate(CLI::App& app, int* exit_code) {
       "sphere",
       "Fit the focus scan of a spherical drop (several planes jointly) for its five parameters and\n"
       "the nuisances no image through the objective shows: the light field's soft edge beyond the\n"
-      "NA (half-angle and width, deg) and the camera PSF (Gaussian sigma at the object plane, um).\n"
+      "NA (half-angle, width and axis tilt [x, y], deg) and the camera PSF (Gaussian sigma at the object plane, um).\n"
       "Writes --base plus these into a new calibration file (docs/calibration.md, \"Sphere\n"
       "calibration\"); the fit's files and report go to <output stem>_sphere/.");
   sc->add_option("folder", sp->scan_folder, "Experiment folder: metadata.toml with the scan CSV, dark frame, nominal diameter")
@@ -103,6 +103,7 @@ void RegisterCalibrate(CLI::App& app, int* exit_code) {
   sc->add_option("--work-dir", sp->work_dir, "Folder for the fit file, scene and report (default: <output stem>_sphere/)");
   sc->add_flag("!--fixed-width", sp->fit_width, "Keep the edge width at 1 deg instead of fitting it");
   sc->add_flag("!--fixed-psf", sp->fit_psf, "Keep the PSF at the diffraction-limited 0.21 lambda/NA instead of fitting it");
+  sc->add_flag("!--fixed-tilt", sp->fit_tilt, "Keep the edge's axis on the optical axis instead of fitting its tilt");
   sc->add_option("--threads", sp->threads, "Threads (0 = all cores)")->capture_default_str();
   sc->callback([sp, exit_code] {
     *exit_code = RunGuarded([&] {

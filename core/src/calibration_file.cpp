@@ -76,7 +76,8 @@ void WriteCalibrationFile(const std::string& path, const CalibrationData& d) {
       if (d.edge_half_angle_deg > 0)
         os << "edge_half_angle_deg = " << d.edge_half_angle_deg << "   # beyond na_limit: soft edge, "
            << "half radiance here (calibrate sphere)\nedge_width_deg = " << d.edge_width_deg
-           << "   # (1 - tanh((theta - edge) / width)) / 2\n";
+           << "   # (1 - tanh((theta - edge) / width)) / 2\nedge_tilt_deg = [" << d.edge_tilt_deg[0]
+           << ", " << d.edge_tilt_deg[1] << "]   # the edge's axis: direction cosines (sin x, sin y)\n";
       if (!d.spatial_map.empty()) {
         const std::string sp = sidecar(".spatial.tif", d.spatial_map,
                                        "raymatch calibration: relative irradiance at the object plane");
@@ -150,6 +151,12 @@ CalibrationData ReadCalibrationFile(const std::string& path) {
       d.edge_width_deg = l.InRange("edge_width_deg", 0.01, 20, 0, true, true);
       if (!l.Has("edge_width_deg")) l.Fail("edge_width_deg", "required with edge_half_angle_deg");
       if (!l.Has("edge_half_angle_deg")) l.Fail("edge_half_angle_deg", "required with edge_width_deg");
+      if (l.Has("edge_tilt_deg")) {
+        const auto t = l.Numbers("edge_tilt_deg", 2, 2);
+        if (!(std::abs(t[0]) <= 10 && std::abs(t[1]) <= 10))
+          l.Fail("edge_tilt_deg", "expected [x, y] in degrees, each within 10");
+        d.edge_tilt_deg = {t[0], t[1]};
+      }
     }
     if (l.Has("spatial_map") || l.Has("field_size_um")) {
       const std::string sp = (fs::path(path).parent_path() / l.String("spatial_map")).string();

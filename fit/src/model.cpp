@@ -12,6 +12,10 @@ namespace raymatch::fit {
 
 namespace {
 
+/// Ray streams of the light field's part beyond the NA (a fit with the edge's keys): the plane
+/// index plus this, independent of every plane's own streams.
+constexpr uint32_t kBeyondStreams = 1u << 30;
+
 double Seconds(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
@@ -56,9 +60,20 @@ double PoissonDeviance(const Image& e, const Image& mu) {
 FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const std::string&)> say)
     : spec_(spec), threads_(threads), say_(std::move(say)) {
   const size_t P = spec.parameters.size();
-  for (const Parameter& p : spec.parameters)
-    if (!(p.key.starts_with("object") || p.key.starts_with("image"))) split_allowed_ = false;
+  bool edge_keys = false, psf_key = false;
+  double psf_max = 0;
+  for (const Parameter& p : spec.parameters) {
+    if (p.key.starts_with("light_field_edge.")) {
+      edge_keys = true;
+    } else if (p.key == "camera.psf_sigma_um") {
+      psf_key = true;
+      psf_max = std::max({psf_max, p.upper, p.start});
+    } else if (!(p.key.starts_with("object") || p.key.starts_with("image"))) {
+      split_allowed_ = false;
+    }
+  }
   split_allowed_ = split_allowed_ && spec.rays.reuse_background;
+  edge_split_ = split_allowed_ && edge_keys;
 
   // The parameter box's corners (or, for many parameters, its axis end points): the region the
   // objects can occupy and the largest automatic source field.
@@ -73,6 +88,13 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
     if (!(k.starts_with("light_field_edge.") || k == "camera.psf_sigma_um")) moving.push_back(i);
   }
   probes.push_back(start);
+  object_pixel_um_ = simulate::Simulator(SceneAt(start)).object_pixel_um();
+  if (split_allowed_ && psf_key) {
+    // The PSF on a 4x finer grid: a ray's position within its fine pixel is taken as uniform,
+    // an error below a quarter pixel's scale; the margin holds the rays the PSF brings in.
+    psf_os_ = 4;
+    psf_margin_ = int(std::ceil(5 * psf_max / (object_pixel_um_ / psf_os_))) + 2;
+  }
   const size_t M = moving.size();
   if (M <= 10) {
     for (uint32_t c = 0; c < (1u << M); ++c) {
@@ -94,7 +116,7 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
   std::vector<std::pair<Vec3, double>> bounds;
   double max_field = 0;
   for (const auto& th : probes) {
-    const simulate::Simulator sim(SceneAt(th));
+    const simulate::Simulator sim(TracedScene(SceneAt(th), simulate::SourceSpec::EdgePart::kAll));
     for (const auto& b : sim.ObjectBounds()) bounds.push_back(b);
     max_field = std::max(max_field, sim.field_radius_um());
   }
@@ -130,6 +152,13 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
     say_("background of the first image: " + std::to_string(ppp) + " photons per pixel");
   }
   photon_matched_rays_ = ppp > 0 ? simulate::Simulator(s0).RaysForPhotonTarget(ppp) : s0.trace.rays;
+  if (edge_split_) {
+    using Part = simulate::SourceSpec::EdgePart;
+    const double all = simulate::Simulator(TracedScene(s0, Part::kAll)).source_weight();
+    const double in = simulate::Simulator(TracedScene(s0, Part::kInside)).source_weight();
+    if (!(all > 0 && in > 0)) throw raymatch::Error(FileLocation{spec.file}, "light_field_edge keys need a light field");
+    inside_share_ = in / all;
+  }
   for (const FitImage& f : spec.images)
     for (float v : f.photons.pixels) data_range_ = std::max(data_range_, double(v));
 }
@@ -203,13 +232,69 @@ const Image* FitModel::BackgroundAt(const simulate::Simulator& sim, size_t i, ui
   return &bg.image;
 }
 
+simulate::Scene FitModel::TracedScene(simulate::Scene s, simulate::SourceSpec::EdgePart part) const {
+  s.source.edge_part = part;
+  if (psf_os_ > 1) {
+    s.camera.psf_sigma_um = 0;
+    s.camera.nx = s.camera.nx * psf_os_ + 2 * psf_margin_;
+    s.camera.ny = s.camera.ny * psf_os_ + 2 * psf_margin_;
+    s.camera.pixel_pitch_um /= psf_os_;
+  }
+  return s;
+}
+
+Image FitModel::ApplyPsf(const Image& fine, double sigma_um, double object_pixel_um) const {
+  const int os = psf_os_, m = psf_margin_;
+  const int nx = (fine.width - 2 * m) / os, ny = (fine.height - 2 * m) / os;
+  // A ray uniform within its fine pixel and offset by the Gaussian (sigma s in fine pixels)
+  // lands k pixels away with K[k] = F(k+1) - 2F(k) + F(k-1), F(t) = t Phi(t/s) + s phi(t/s)
+  // (the Gaussian's overlap with the difference of two boxes); s = 0 gives K = delta.
+  const double sg = sigma_um / (object_pixel_um / os);
+  const int r = std::min(m, int(std::ceil(5 * sg)) + 1);
+  std::vector<double> k(2 * r + 1, 0.0);
+  auto F = [&](double t) {
+    if (sg <= 0) return std::max(t, 0.0);
+    const double z = t / sg;
+    return t * 0.5 * std::erfc(-z / std::sqrt(2.0)) + sg * std::exp(-0.5 * z * z) / std::sqrt(2 * M_PI);
+  };
+  for (int j = -r; j <= r; ++j) k[j + r] = std::max(0.0, F(j + 1) - 2 * F(j) + F(j - 1));
+  // Rows, then columns, each only where a camera pixel needs it.
+  const int x0 = m, x1 = m + nx * os, y0 = m, y1 = m + ny * os;
+  std::vector<double> h(size_t(fine.height) * (x1 - x0), 0.0);
+  for (int y = 0; y < fine.height; ++y)
+    for (int x = x0; x < x1; ++x) {
+      double a = 0;
+      for (int j = -r; j <= r; ++j) a += k[j + r] * fine.at(x - j, y);  // from x - j to x
+      h[size_t(y) * (x1 - x0) + (x - x0)] = a;
+    }
+  Image out(nx, ny);
+  for (int y = y0; y < y1; ++y)
+    for (int x = x0; x < x1; ++x) {
+      double a = 0;
+      for (int j = -r; j <= r; ++j) a += k[j + r] * h[size_t(y - j) * (x1 - x0) + (x - x0)];
+      out.at((x - x0) / os, (y - y0) / os) += static_cast<float>(a);
+    }
+  return out;
+}
+
 Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, uint64_t seed,
                              uint64_t* rays_traced) {
-  simulate::Scene scene = SceneAt(theta);
+  using Part = simulate::SourceSpec::EdgePart;
+  const simulate::Scene full = SceneAt(theta);
+  simulate::Scene scene = TracedScene(full, edge_split_ ? Part::kInside : Part::kAll);
   scene.trace.seed = seed;
   const simulate::Simulator sim(scene);
-  const uint64_t n = RaysAt(fraction);
+  uint64_t n = RaysAt(fraction), beyond_rays = 0;
   const double scale = ScaleAt(fraction);
+  // The rays beyond the NA: their own population and streams, in proportion to their weight.
+  std::unique_ptr<simulate::Simulator> beyond;
+  if (edge_split_) {
+    simulate::Scene b = TracedScene(full, Part::kBeyond);
+    b.trace.seed = seed;
+    beyond = std::make_unique<simulate::Simulator>(b);
+    n = std::max<uint64_t>(1, std::llround(double(n) * inside_share_));
+    beyond_rays = std::llround(double(n) * beyond->source_weight() / sim.source_weight());
+  }
   simulate::RunControl rc;
   rc.threads = threads_;
   bool inside = split_allowed_;
@@ -235,6 +320,12 @@ Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, 
       counts = sim.TracePlane(dz, plane, n, rc).counts;
       if (rays_traced) *rays_traced += n;
     }
+    if (beyond_rays > 0) {
+      const Image b = beyond->TracePlane(dz, plane + kBeyondStreams, beyond_rays, rc).counts;
+      for (size_t p = 0; p < counts.size(); ++p) counts.pixels[p] += b.pixels[p];
+      if (rays_traced) *rays_traced += beyond_rays;
+    }
+    if (psf_os_ > 1) counts = ApplyPsf(counts, full.camera.psf_sigma_um, object_pixel_um_);
     double s = scale;
     if (spec_.rays.fit_exposure) {
       // The exposure is a nuisance parameter: its maximum-likelihood value for Poisson counts

@@ -89,6 +89,21 @@ class FitModel {
   int threads_;
   std::function<void(const std::string&)> say_;
   bool split_allowed_ = true;
+  // Nuisance keys that keep the near/far split (docs/fit.md, "Nuisances"): with the light
+  // field's edge fitted, the parts inside and beyond the NA are separate ray populations (the
+  // inside rays do not depend on the edge; `inside_share_` of the rays at the start); with the
+  // PSF fitted, the rays are traced without it onto a camera `psf_os_` times finer with
+  // `psf_margin_` fine pixels beyond each side, and the PSF is applied to the expected image.
+  bool edge_split_ = false;
+  double inside_share_ = 1;
+  int psf_os_ = 1, psf_margin_ = 0;
+  double object_pixel_um_ = 0;  // the camera's pixel at the object plane (at the start)
+  /// The scene the rays are traced in: `s` with the population `part` of its light field and,
+  /// with psf_os_ > 1, the finer camera without the PSF.
+  simulate::Scene TracedScene(simulate::Scene s, simulate::SourceSpec::EdgePart part) const;
+  /// With psf_os_ > 1: the fine image of TracedScene with the PSF sigma (um at the object
+  /// plane) applied, summed to the camera's pixels.
+  Image ApplyPsf(const Image& fine, double sigma_um, double object_pixel_um) const;
   double field_radius_ = 0;   // fixed source field radius (0: the scene's own)
   Vec3 region_center_;
   double region_radius_ = 0;

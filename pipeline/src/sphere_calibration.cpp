@@ -97,6 +97,9 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
                          {"light_field_edge.half_angle_deg", na_deg - 2, na_deg + 8, 0.2}};
   if (o.fit_width) free.push_back({"light_field_edge.width_deg", 0.2, 4, 0.2});
   if (o.fit_psf) free.push_back({"camera.psf_sigma_um", 0, 4 * psf0, 0.05});
+  if (o.fit_tilt)
+    for (int a = 0; a < 2; ++a)
+      free.push_back({"light_field_edge.tilt_deg[" + std::to_string(a) + "]", -3, 3, 0.2});
 
   const fs::path work = o.work_dir.empty()
                             ? fs::path(o.output).parent_path() / (fs::path(o.output).stem().string() + "_sphere")
@@ -109,7 +112,7 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
         << Q(fs::absolute(o.base).string()) << "\n\n[[object]]\nname = \"drop\"\ntype = \"sphere\"\n"
         << "center_um = [0, 0, 0]\nradius_um = " << radius << "\nindex = " << n_water
         << "   # water, IAPWS R9-97 at " << ex.temperature_K << " K\n\n[light_field_edge]\nhalf_angle_deg = "
-        << edge0 << "\nwidth_deg = " << width0 << "\n\n[camera]\npixels = [" << scan.images[0].width << ", "
+        << edge0 << "\nwidth_deg = " << width0 << "\ntilt_deg = [0, 0]\n\n[camera]\npixels = [" << scan.images[0].width << ", "
         << scan.images[0].height << "]\npsf_sigma_um = " << psf0
         << "\n\n[trace]\npartial_reflection = \"unpolarized\"\n";
   WriteTextFileAtomic(work / "scene.toml", scene.str());
@@ -152,6 +155,8 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
     if (p.key == "light_field_edge.half_angle_deg") res.edge_half_angle_deg = p.best;
     if (p.key == "light_field_edge.width_deg") res.edge_width_deg = p.best;
     if (p.key == "camera.psf_sigma_um") res.psf_sigma_um = p.best;
+    for (int a = 0; a < 2; ++a)
+      if (p.key == "light_field_edge.tilt_deg[" + std::to_string(a) + "]") res.edge_tilt_deg[a] = p.best;
   }
   if (!o.fit_width) res.edge_width_deg = width0;
   if (!o.fit_psf) res.psf_sigma_um = psf0;
@@ -160,6 +165,7 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
   out.edge_half_angle_deg = res.edge_half_angle_deg;
   out.edge_width_deg = res.edge_width_deg;
   out.psf_sigma_um = res.psf_sigma_um;
+  out.edge_tilt_deg = {res.edge_tilt_deg[0], res.edge_tilt_deg[1]};
   out.provenance = ProvenanceJson();
   for (auto& [k, v] : base.provenance.items())
     if (!out.provenance.contains(k)) out.provenance[k] = v;

@@ -434,6 +434,7 @@ SourceSpec CalibratedSource(const CalibrationData& c, const std::string& file) {
   s.map_na_limit = c.na_limit;
   s.edge_half_angle_deg = c.edge_half_angle_deg;
   s.edge_width_deg = c.edge_width_deg;
+  s.edge_tilt_deg = c.edge_tilt_deg;
   if (!c.spatial_map.empty()) {
     s.field_shape = FieldShape::kRect;
     s.field_size_um = {c.field_size_um[0], c.field_size_um[1]};
@@ -490,6 +491,12 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
       e.Fail(e.Has("half_angle_deg") ? "width_deg" : "half_angle_deg",
              "required: half_angle_deg (degrees, within 10 of the NA's " + std::to_string(na_deg) +
                  ") and width_deg (degrees, 0.05-5)");
+    if (e.Has("tilt_deg")) {
+      const auto t = e.Numbers("tilt_deg", 2, 2);
+      if (!(std::abs(t[0]) <= 10 && std::abs(t[1]) <= 10))
+        e.Fail("tilt_deg", "expected [x, y] in degrees, each within 10 (the edge's axis)");
+      s.source.edge_tilt_deg = {t[0], t[1]};
+    }
     e.Finish();
   }
   if (cal && cal->psf_sigma_um > 0) s.camera.psf_sigma_um = cal->psf_sigma_um;

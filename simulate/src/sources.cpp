@@ -38,15 +38,14 @@ Field MakeField(const Scene& s, double auto_radius) {
   return f;
 }
 
-namespace {
-
 /// The calibrated map continued beyond its NA cut (SourceSpec::edge_half_angle_deg): on a grid
 /// 4x finer than the map's and aligned with it, padded out to 15 deg beyond the cut. Inside
 /// the cut a fine cell takes its map pixel's value (the same distribution as the map); beyond
-/// it, the map's value just inside the cut at the same azimuth times E(theta) / E(theta_cut),
-/// E the soft edge, averaged over 2x2 points per cell so the image moves smoothly with the
-/// edge's parameters. Map pixels on the cut left at zero by the calibration (centre outside the
-/// NA) are filled like the continuation.
+/// it, the map's value just inside the cut at the same azimuth times E / E(cut at that azimuth),
+/// E the soft edge about the (tilted) edge axis, averaged over 2x2 points per cell so the image
+/// moves smoothly with the edge's parameters. Map pixels on the cut left at zero by the
+/// calibration (centre outside the NA) are filled like the continuation. SourceSpec::edge_part
+/// keeps only the part inside or beyond the cut (the two add up to the whole, point by point).
 Image ContinuedMap(const SourceSpec& ss, double* extent) {
   const Image& m = ss.angular_map;
   const double ext = ss.angular_extent, s_na = ss.map_na_limit;
@@ -58,11 +57,14 @@ Image ContinuedMap(const SourceSpec& ss, double* extent) {
   const int nf = f * n + 2 * pad;
   *extent = ext + pad * cell;
   const double edge = ss.edge_half_angle_deg, width = ss.edge_width_deg;
-  auto E = [&](double s) {
+  const double tu = std::sin(ss.edge_tilt_deg[0] * kDeg), tv = std::sin(ss.edge_tilt_deg[1] * kDeg);
+  auto E = [&](double u, double v) {  // the soft edge about the axis (tu, tv)
+    const double s = std::hypot(u - tu, v - tv);
     if (s >= 1) return 0.0;
     return 0.5 * (1 - std::tanh((std::asin(s) / kDeg - edge) / width));
   };
-  const double e_na = E(s_na);
+  const bool keep_in = ss.edge_part != SourceSpec::EdgePart::kBeyond;
+  const bool keep_out = ss.edge_part != SourceSpec::EdgePart::kInside;
   const double inner = s_na - 1.5 * pu;  // a measured ring just inside the cut
   auto map_at = [&](double u, double v) {  // nearest map pixel, 0 outside the map
     const int x = int(std::floor((u + ext) / pu)), y = int(std::floor((ext - v) / pu));
@@ -77,7 +79,7 @@ Image ContinuedMap(const SourceSpec& ss, double* extent) {
       const bool in_map = mx >= 0 && my >= 0 && mx < f * n && my < f * n;
       const double mv = in_map ? double(m.at(mx / f, my / f)) : 0.0;
       if (sc + 0.75 * cell < s_na && (mv > 0 || sc < inner)) {
-        out.at(x, y) = float(mv);  // wholly inside the cut: the measurement
+        out.at(x, y) = keep_in ? float(mv) : 0.0f;  // wholly inside the cut: the measurement
         continue;
       }
       double sum = 0;
@@ -86,19 +88,21 @@ Image ContinuedMap(const SourceSpec& ss, double* extent) {
           const double u = uc + (a - 0.5) * 0.5 * cell, v = vc + (b - 0.5) * 0.5 * cell;
           const double s = std::hypot(u, v);
           if (s < s_na && mv > 0) {
-            sum += mv;
+            if (keep_in) sum += mv;
           } else {
-            const double phi = std::atan2(v, u);
-            const double ring = map_at(inner * std::cos(phi), inner * std::sin(phi));
-            sum += ring * (s < s_na ? 1.0 : E(s) / std::max(e_na, 1e-300));
+            const double c = std::cos(std::atan2(v, u)), sn = std::sin(std::atan2(v, u));
+            const double ring = map_at(inner * c, inner * sn);
+            if (s < s_na) {
+              if (keep_in) sum += ring;
+            } else if (keep_out) {
+              sum += ring * E(u, v) / std::max(E(s_na * c, s_na * sn), 1e-300);
+            }
           }
         }
       out.at(x, y) = float(sum / 4);
     }
   return out;
 }
-
-}  // namespace
 
 /// The light field's angular table, flattened for packet::Tabulated.
 packet::Table2D PacketTable(const LightFieldSource& lf) {
@@ -134,9 +138,11 @@ SourceVariant MakeSource(const Scene& own, double auto_radius, packet::Table2D* 
     case SourceType::kLightField: {
       double extent = ss.angular_extent;
       const bool edge = ss.edge_half_angle_deg > 0 && ss.map_na_limit > 0;
-      LightFieldSource lf{MakeField(own, auto_radius),
-                          Distribution2D(edge ? ContinuedMap(ss, &extent) : ss.angular_map), 0};
-      lf.extent = extent;
+      const Image map = edge ? ContinuedMap(ss, &extent) : ss.angular_map;
+      LightFieldSource lf{MakeField(own, auto_radius), Distribution2D(map), extent};
+      double sum = 0;
+      for (float v : map.pixels) sum += v;
+      lf.weight = map.width > 0 ? sum * std::pow(2 * extent / map.width, 2) : 0;
       *angular_table = PacketTable(lf);
       return lf;
     }

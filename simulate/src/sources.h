@@ -95,6 +95,9 @@ struct LightFieldSource {
   Field field;
   Distribution2D angular;
   double extent;
+  /// The map's radiance integrated over direction cosines (sum x cell area): the populations
+  /// of one continued light field (SourceSpec::edge_part) get rays in proportion to it.
+  double weight = 0;
   bool Sample(RayRng& rng, Vec3* p, Vec3* d) const {
     *p = field.Sample(rng);
     // Two statements: the order in which a call's arguments are evaluated is unspecified, and
@@ -135,6 +138,12 @@ using SourceVariant =
 /// The source field for a scene (auto_radius: the automatic disc radius, also how far a
 /// measured spatial map is continued).
 Field MakeField(const Scene& s, double auto_radius);
+/// A calibrated light field cut at its NA, continued beyond it under the soft edge
+/// (SourceSpec::edge_*; only the part SourceSpec::edge_part names), on a grid 4x finer than the
+/// map's: the angular map the source samples; `*extent` receives its half-width (direction
+/// cosines).
+Image ContinuedMap(const SourceSpec& ss, double* extent);
+
 /// The scene's source; `angular_table` receives a light field's table for the packet path.
 /// `own` must outlive the source (a ray list is not copied).
 SourceVariant MakeSource(const Scene& own, double auto_radius, packet::Table2D* angular_table);

@@ -117,6 +117,11 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
 Simulator::~Simulator() = default;
 
 double Simulator::source_plane_z_um() const { return impl_->source_z; }
+
+double Simulator::source_weight() const {
+  const auto* lf = std::get_if<LightFieldSource>(&impl_->source);
+  return lf ? lf->weight : 0;
+}
 double Simulator::object_pixel_um() const {
   return scene_.camera.pixel_pitch_um / std::abs(Magnification(scene_.optics));
 }

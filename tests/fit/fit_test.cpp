@@ -7,6 +7,8 @@
 #include <fstream>
 #include <sstream>
 
+#include "model.h"
+#include "raymatch/core/calibration_file.h"
 #include "raymatch/core/error.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/toml_reader.h"
@@ -324,6 +326,83 @@ TEST_F(FitFile, ModelWithoutThePsfRaisesTheMismatchWarningAndInflatesSigmas) {
     ASSERT_GT(p.sigma_statistical, 0) << p.key;
     EXPECT_NEAR(p.sigma / p.sigma_statistical, g.sigma_inflation, 1e-9) << p.key;
   }
+}
+
+// A fit that frees the light field's edge (half-angle, width, tilt) and the PSF keeps the
+// near/far split: the rays inside and beyond the NA are separate populations (the inside ones
+// do not depend on the edge) and the PSF is applied to an expected image traced 4x finer
+// (fit/src/model.cpp). Its expected image must be the tracer's own (per-ray PSF draws, one
+// population) in distribution: the mean over pixels of (a - b)^2 / (a + b) is 1 for two
+// independent Poisson images of one mean and below 1 when one is smoothed by the PSF
+// convolution; tolerance 4 standard deviations of that mean, sqrt(2 / pixels). Without the
+// PSF or without the rays beyond the NA the drop's rim differs by tens of sd.
+TEST(FitModelNuisances, EdgeAndPsfAsKeysGiveTheTracersOwnExpectedImage) {
+  testing::TempDir dir;
+  CalibrationData c;
+  const int n = 64;
+  c.angular_map = Image(n, n);
+  c.angular_extent = 0.5;
+  c.na_limit = 0.42;
+  for (int y = 0; y < n; ++y)
+    for (int x = 0; x < n; ++x) {
+      const double u = (2 * (x + 0.5) / n - 1) * 0.5, v = (1 - 2 * (y + 0.5) / n) * 0.5;
+      c.angular_map.at(x, y) = std::hypot(u, v) < c.na_limit ? float(1 + 0.3 * u) : 0.f;
+    }
+  c.objective_focal_mm = 10, c.working_distance_mm = 20, c.na = 0.42, c.tube_focal_mm = 200;
+  c.pixel_pitch_um = 20, c.wavelength_um = 0.462;
+  WriteCalibrationFile(dir / "cal.toml", c);
+  const double ppp = 2000 * kPhotonScale;
+  std::ostringstream scene;
+  scene << "calibration = \"cal.toml\"\n[light_field_edge]\nhalf_angle_deg = 27\nwidth_deg = 1.5\n"
+        << "tilt_deg = [0.8, -0.5]\n[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = [1, 0, 0]\n"
+        << "radius_um = 14\nindex = 1.36\n[camera]\npixels = [48, 40]\npsf_sigma_um = 1.2\n"
+        << "[trace]\nphotons_per_pixel = " << ppp << "\n";
+  dir.Write("model.toml", scene.str());
+  // An experiment is needed by the fit file only (fit_exposure = false: no profiling).
+  Image flat(48, 40);
+  for (size_t p = 0; p < flat.size(); ++p) flat.pixels[p] = float(ppp + double(p % 7));
+  WriteFloatImage(dir / "exp.tif", flat, "flat, a little structure (not a saturated constant)");
+  const std::string fit = dir.Write(
+      "fit.toml",
+      "scene = \"model.toml\"\n[rays]\nfit_exposure = false\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = -6\n"
+      "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
+      "[[parameter]]\nkey = \"light_field_edge.half_angle_deg\"\nlower = 24\nupper = 30\nstep = 0.2\n"
+      "[[parameter]]\nkey = \"light_field_edge.tilt_deg[1]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
+      "[[parameter]]\nkey = \"camera.psf_sigma_um\"\nlower = 0\nupper = 1.5\nstep = 0.05\n");
+  const FitSpec spec = LoadFitSpec(fit);
+  FitModel model(spec, 0, nullptr);
+  const std::vector<double> start{1, 27, -0.5, 1.2};
+  const Simulated got = model.Expected(start, 1.0, 11, nullptr);
+  // The tracer's own: the same scene, one population, per-ray PSF, other streams.
+  const simulate::Scene s = model.SceneAt(start);
+  ASSERT_EQ(s.camera.psf_sigma_um, 1.2);
+  const simulate::Simulator sim(s);
+  const uint64_t rays = model.RaysAt(1.0);
+  const Image ref = sim.TracePlane(-6, 3, rays).counts;
+  auto statistic = [&](const Image& a, double wa) {
+    double sum = 0;
+    for (size_t p = 0; p < a.size(); ++p) {
+      const double x = a.pixels[p] * wa, y = ref.pixels[p] * model.ScaleAt(1.0);
+      sum += x + y > 0 ? (x - y) * (x - y) / (x + y) : 0;
+    }
+    return sum / double(a.size()) / model.ScaleAt(1.0);  // per-ray units: Poisson variance = mean
+  };
+  ASSERT_EQ(got.photons[0].width, 48);
+  ASSERT_EQ(got.photons[0].height, 40);
+  const double tol = 4 * std::sqrt(2.0 / (48 * 40));
+  EXPECT_LT(statistic(got.photons[0], 1.0), 1 + tol);
+  EXPECT_GT(statistic(got.photons[0], 1.0), 0.5 - tol);  // not so smooth that it cannot be Poisson
+  // Against the tracer's image without the PSF the comparison must fail (the test can tell; a
+  // model without the rays beyond the NA gives 2.5, with 1.5x the PSF 1.5).
+  simulate::Scene sharp = s;
+  sharp.camera.psf_sigma_um = 0;
+  const Image ref_sharp = simulate::Simulator(sharp).TracePlane(-6, 3, rays).counts;
+  double chi = 0;
+  for (size_t p = 0; p < ref_sharp.size(); ++p) {
+    const double x = got.photons[0].pixels[p] / model.ScaleAt(1.0), y = ref_sharp.pixels[p];
+    chi += x + y > 0 ? (x - y) * (x - y) / (x + y) : 0;
+  }
+  EXPECT_GT(chi / double(ref_sharp.size()), 1 + 3 * tol) << "the PSF test cannot tell";
 }
 
 // The score of the Poisson deviance, sum_q G_q (1 - e_q / T_q), must vanish on average at the

@@ -2,6 +2,7 @@
 // The calibration file: one human-readable TOML file plus binary sidecars (a float32 TIFF of
 // the angular light-field map), written by `raymatch calibrate` and read by the simulator
 // (docs/calibration-format.md). Either the light field or the corrector may be absent.
+#include <array>
 #include <string>
 #include <vector>
 
@@ -33,6 +34,8 @@ struct CalibrationData {
   // outermost measured ring (docs/calibration-format.md). 0 = none (the map as it is), set by
   // `raymatch calibrate sphere` from a drop of known shape.
   double edge_half_angle_deg = 0, edge_width_deg = 0;
+  /// The edge's axis tilted from the optical axis, [x, y] degrees (direction cosines sin x, sin y).
+  std::array<double, 2> edge_tilt_deg{0, 0};
   // Camera: the Gaussian PSF's sigma at the object plane (um), 0 = none/not calibrated.
   double psf_sigma_um = 0;
   // Corrector: central disc + rings (empty when not calibrated).

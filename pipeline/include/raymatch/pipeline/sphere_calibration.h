@@ -3,7 +3,7 @@
 // paper's use of drops). Fits planes of its focus scan jointly for the drop's five parameters
 // (x, y, z, radius, index) and the microscope's nuisances that no image through the objective
 // shows directly: the illumination beyond the objective's NA (the light field's soft edge:
-// half-angle and width) and the camera's Gaussian PSF, with the exposure profiled per image.
+// half-angle, width and the tilt of its axis) and the camera's Gaussian PSF, with the exposure profiled per image.
 // Writes them into a copy of the calibration file, which the simulator and fits then use
 // (docs/calibration.md, "Sphere calibration").
 #include <functional>
@@ -25,6 +25,7 @@ struct SphereCalibrationOptions {
   double ray_factor = 1;
   bool fit_width = true;            ///< free the edge width (else fixed at its start, 1 deg)
   bool fit_psf = true;              ///< free the PSF sigma (else fixed at 0.21 lambda / NA)
+  bool fit_tilt = true;             ///< free the edge axis' tilt [x, y] (else fixed at 0)
   uint64_t seed = 5;
   int threads = 0;
   bool progress = false;
@@ -40,6 +41,7 @@ struct SphereCalibrationValue {
 struct SphereCalibrationResult {
   std::vector<SphereCalibrationValue> values;  ///< the fit's parameters, in fit-file order
   double edge_half_angle_deg = 0, edge_width_deg = 0, psf_sigma_um = 0;
+  double edge_tilt_deg[2] = {0, 0};
   std::string status, goodness;               ///< the fit's status and goodness-of-fit verdict
   bool mismatch = false;
   std::string report;                         ///< the fit's report.html

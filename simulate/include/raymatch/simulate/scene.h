@@ -57,6 +57,15 @@ struct SourceSpec {
   /// E at the cut (scene table [light_field_edge], calibration [light_field] edge_*).
   double map_na_limit = 0;
   double edge_half_angle_deg = 0, edge_width_deg = 0;
+  /// The edge's axis tilted from the optical axis, [x, y] in degrees: theta above is measured
+  /// from the axis with direction cosines (sin x, sin y) (light_field_edge.tilt_deg,
+  /// calibration edge_tilt_deg). The map inside the cut is the measurement either way.
+  std::array<double, 2> edge_tilt_deg{0, 0};
+  /// Which part of a continued light field the source emits: all, only inside the NA cut (the
+  /// measurement) or only beyond it. Fits trace the two parts as separate ray populations, so
+  /// the edge's keys leave the inside rays' paths unchanged (Simulator::source_weight()).
+  enum class EdgePart { kAll, kInside, kBeyond };
+  EdgePart edge_part = EdgePart::kAll;
 };
 
 enum class ShapeType { kSphere, kEllipsoid, kBox, kMesh };

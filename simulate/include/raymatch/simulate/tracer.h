@@ -161,6 +161,10 @@ class Simulator {
   double source_plane_z_um() const;
   double object_pixel_um() const;   ///< pixel pitch referred to the object plane
   double field_radius_um() const;   ///< the source field radius in use (given or automatic)
+  /// A light field's radiance integrated over direction cosines (map units; 0 for other
+  /// sources): a continued light field's parts inside and beyond the NA (SourceSpec::edge_part)
+  /// need rays in the ratio of their weights.
+  double source_weight() const;
   /// A bounding sphere (centre, radius; micrometres) of each object, in scene order.
   std::vector<std::pair<Vec3, double>> ObjectBounds() const;
   bool has_mesh_bvh() const;        ///< an Embree BVH was built

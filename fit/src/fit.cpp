@@ -706,19 +706,28 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
         res.parameters[i].sigma = std::sqrt(cov[i][i] * (1 + 1 / k));
       }
       res.correlation = Correlation(cov);
-    } else {
+    }
+    const Matrix crb =
+        spec.cramer_rao || cov.empty() ? InverseSpd(FisherInformation(d.mu.photons, d.dmu, d2.dmu)) : Matrix();
+    if (!crb.empty()) {
+      for (size_t i = 0; i < P; ++i) {
+        res.parameters[i].sigma_cramer_rao = std::sqrt(crb[i][i]);
+        res.parameters[i].sigma_expected = std::sqrt(crb[i][i] * (1 + 1 / k));
+      }
+      res.crb_correlation = Correlation(crb);
+    }
+    if (cov.empty() && !crb.empty()) {
+      // The deviance's curvature from two noisy halves can be indefinite along a weakly
+      // determined direction (many nuisances, e.g. a sphere calibration's edge, width and tilt)
+      // while the expected (Fisher) information is not: the sigmas are the Cramer-Rao bound's
+      // with the template's noise, as the curvature's would be for a correct model.
+      for (size_t i = 0; i < P; ++i) res.parameters[i].sigma = res.parameters[i].sigma_expected;
+      res.correlation = res.crb_correlation;
+      res.message += "; the deviance's curvature is not positive definite (noise along a weakly "
+                     "determined direction): sigmas from the expected (Fisher) information";
+    } else if (cov.empty()) {
       res.message += "; the curvature does not determine every parameter (information matrix not "
                      "positive definite): their uncertainties are not reported";
-    }
-    if (spec.cramer_rao) {
-      const Matrix crb = InverseSpd(FisherInformation(d.mu.photons, d.dmu, d2.dmu));
-      if (!crb.empty()) {
-        for (size_t i = 0; i < P; ++i) {
-          res.parameters[i].sigma_cramer_rao = std::sqrt(crb[i][i]);
-          res.parameters[i].sigma_expected = std::sqrt(crb[i][i] * (1 + 1 / k));
-        }
-        res.crb_correlation = Correlation(crb);
-      }
     }
     // Repeated fits with independent ray streams, from the optimum, at the final fraction.
     if (spec.repeat_seeds >= 2) {

@@ -101,7 +101,8 @@ void RegisterCalibrate(CLI::App& app, int* exit_code) {
   sc->add_option("--fractions", sp->fractions, "Ray fractions of the fit's levels (of the photon-matched rays)")
       ->capture_default_str();
   sc->add_option("--work-dir", sp->work_dir, "Folder for the fit file, scene and report (default: <output stem>_sphere/)");
-  sc->add_flag("!--fixed-width", sp->fit_width, "Keep the edge width at 1 deg instead of fitting it");
+  sc->add_flag("--fit-width", sp->fit_width,
+               "Also fit the edge width (default: fixed at 1 deg; with two planes it is hardly separable from the half-angle and tilt)");
   sc->add_flag("!--fixed-psf", sp->fit_psf, "Keep the PSF at the diffraction-limited 0.21 lambda/NA instead of fitting it");
   sc->add_flag("!--fixed-tilt", sp->fit_tilt, "Keep the edge's axis on the optical axis instead of fitting its tilt");
   sc->add_option("--threads", sp->threads, "Threads (0 = all cores)")->capture_default_str();
@@ -112,6 +113,13 @@ void RegisterCalibrate(CLI::App& app, int* exit_code) {
       const pipeline::SphereCalibrationResult r = pipeline::CalibrateSphere(*sp);
       std::cout << r.Brief() << "report: " << r.report << "\nwrote " << sp->output << "\n";
       if (r.mismatch) std::cerr << "warning: the fit reports a model mismatch; the calibration may be biased\n";
+      for (const auto& v : r.values)
+        if (!(v.sigma > 0)) {
+          std::cerr << "warning: no uncertainty for " << v.key << " (the information matrix is not positive "
+                       "definite: too few rays for this many parameters; more rays (--fractions) or fewer "
+                       "free nuisances)\n";
+          break;
+        }
       return 0;
     });
   });

@@ -23,7 +23,12 @@ struct SphereCalibrationOptions {
   std::vector<double> planes_um;
   std::vector<double> fractions{0.0625, 0.25};  ///< ray fractions of the fit's levels
   double ray_factor = 1;
-  bool fit_width = true;            ///< free the edge width (else fixed at its start, 1 deg)
+  /// Free the edge width (default: fixed at its start, 1 deg). On the sample, width, half-angle
+  /// and tilt are one weakly determined direction from two planes: with the width free, two
+  /// runs differing only in their template noise ended 0.9 deg apart in width (20 Cramer-Rao
+  /// bounds) and 0.6 deg in half-angle, the drop's index 2 sigma off; fixed, every drop
+  /// parameter within 1 sigma (docs/calibration.md, "Sphere calibration").
+  bool fit_width = false;
   bool fit_psf = true;              ///< free the PSF sigma (else fixed at 0.21 lambda / NA)
   bool fit_tilt = true;             ///< free the edge axis' tilt [x, y] (else fixed at 0)
   uint64_t seed = 5;

@@ -329,14 +329,21 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     if (!keys.insert(q.key).second) p.Fail("key", "parameter '" + q.key + "' is given twice");
     double current = 0;
     if (q.key.starts_with("image")) {
-      // image[i].defocus_um: the defocus of one of this file's images.
+      // image[i].defocus_um: the defocus of one of this file's images; image[i].background_*:
+      // an additive background of its expected image (photons per pixel; slopes per pixel).
       const auto segs = SplitKey(q.key);
-      if (segs.size() != 2 || !segs[0].index || segs[0].name != "image" || segs[1].name != "defocus_um" ||
-          segs[1].index || *segs[0].index >= f.images.size())
-        p.Fail("key", "image keys are image[i].defocus_um with i < " + std::to_string(f.images.size()));
-      current = f.images[*segs[0].index].defocus_um;
-      if (!(std::abs(p.Number("lower")) <= kMaxDefocusUm && std::abs(p.Number("upper")) <= kMaxDefocusUm))
-        p.Fail("lower", "focus positions lie within +-1e5 um (10 cm)");
+      const std::string field = segs.size() == 2 ? segs[1].name : "";
+      const bool known = field == "defocus_um" || field == "background_photons" ||
+                         field == "background_slope_x" || field == "background_slope_y";
+      if (segs.size() != 2 || !segs[0].index || segs[0].name != "image" || !known || segs[1].index ||
+          *segs[0].index >= f.images.size())
+        p.Fail("key", "image keys are image[i].defocus_um, image[i].background_photons, "
+                      "image[i].background_slope_x or _y with i < " + std::to_string(f.images.size()));
+      if (field == "defocus_um") {
+        current = f.images[*segs[0].index].defocus_um;
+        if (!(std::abs(p.Number("lower")) <= kMaxDefocusUm && std::abs(p.Number("upper")) <= kMaxDefocusUm))
+          p.Fail("lower", "focus positions lie within +-1e5 um (10 cm)");
+      }
     } else {
       try {
         current = SceneValue(f.scene, q.key, f.scene_file);

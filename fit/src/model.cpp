@@ -210,9 +210,28 @@ std::vector<double> FitModel::DefocusAt(const std::vector<double>& theta) const 
   for (const FitImage& f : spec_.images) d.push_back(f.defocus_um);
   for (size_t i = 0; i < theta.size(); ++i) {
     const std::string& k = spec_.parameters[i].key;
-    if (k.starts_with("image[")) d[std::stoul(k.substr(6))] = theta[i];
+    if (k.starts_with("image[") && k.ends_with("].defocus_um")) d[std::stoul(k.substr(6))] = theta[i];
   }
   return d;
+}
+
+Image FitModel::BackgroundOf(const std::vector<double>& theta, size_t i, int width, int height) const {
+  double level = 0, gx = 0, gy = 0;
+  bool any = false;
+  const std::string prefix = "image[" + std::to_string(i) + "].background_";
+  for (size_t k = 0; k < theta.size(); ++k) {
+    const std::string& key = spec_.parameters[k].key;
+    if (!key.starts_with(prefix)) continue;
+    any = true;
+    const std::string f = key.substr(prefix.size());
+    (f == "photons" ? level : f == "slope_x" ? gx : gy) = theta[k];
+  }
+  if (!any) return Image();
+  Image b(width, height);
+  for (int y = 0; y < height; ++y)
+    for (int x = 0; x < width; ++x)
+      b.at(x, y) = static_cast<float>(level + gx * (x - 0.5 * (width - 1)) + gy * (y - 0.5 * (height - 1)));
+  return b;
 }
 
 uint64_t FitModel::RaysAt(double fraction) const {
@@ -361,6 +380,13 @@ Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, 
       if (rays_traced) *rays_traced += beyond_rays;
     }
     if (psf_os_ > 1) counts = ApplyPsf(counts, full.camera.psf_sigma_um, object_pixel_um_, seed, plane);
+    // The image's additive background (image[i].background_* keys): photons per pixel, a
+    // level and slopes per pixel about the image centre, added to the expected image after the
+    // exposure. The exposure profile matches the totals of the rest, which the joint optimum
+    // of a Poisson model with a free level and scale satisfies exactly.
+    const Image bg_image = BackgroundOf(theta, i, counts.width, counts.height);
+    double bg_sum = 0;
+    for (float v : bg_image.pixels) bg_sum += v;
     double s = scale;
     if (spec_.rays.fit_exposure) {
       // The exposure is a nuisance parameter: its maximum-likelihood value for Poisson counts
@@ -370,9 +396,11 @@ Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, 
       // leaves the aperture.
       double se = 0, sm = 0;
       for (size_t p = 0; p < counts.size(); ++p) se += std::max(0.0f, spec_.images[i].photons.pixels[p]), sm += counts.pixels[p];
-      if (sm > 0 && se > 0) s = se / sm;
+      if (sm > 0 && se - bg_sum > 0) s = (se - bg_sum) / sm;
     }
     for (float& v : counts.pixels) v = static_cast<float>(v * s);
+    if (!bg_image.pixels.empty())
+      for (size_t p = 0; p < counts.size(); ++p) counts.pixels[p] = std::max(0.0f, counts.pixels[p] + bg_image.pixels[p]);
     out.photons.push_back(std::move(counts));
     out.photons_per_ray.push_back(s);
   }

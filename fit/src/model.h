@@ -69,6 +69,11 @@ class FitModel {
   /// experiment's photons per pixel, so its shot noise does not dominate the error).
   int BinAt(size_t level) const;
 
+  /// The additive background of image i at `theta` (its image[i].background_* keys: level in
+  /// photons per pixel, slopes in photons per pixel per pixel about the centre, +y = down the
+  /// rows); empty when the image has none.
+  Image BackgroundOf(const std::vector<double>& theta, size_t i, int width, int height) const;
+
   /// Rays per image at `fraction` (ray_factor x photon-matched x fraction).
   uint64_t RaysAt(double fraction) const;
   /// Counts -> photons scale at `fraction`.

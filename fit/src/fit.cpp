@@ -777,10 +777,11 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
   for (size_t k = 0; k < res.best_images.size(); ++k) {
     const Image& mu = res.best_images[k];
     const Image& ex = spec.images[k].photons;
+    const double read2 = spec.images[k].read_noise_e * spec.images[k].read_noise_e;
     Image r(mu.width, mu.height);
     for (size_t q = 0; q < mu.size(); ++q) {
       const double var = std::max(1.0, double(mu.pixels[q])) *
-                         (1 + 1 / (spec.rays.ray_factor * spec.rays.fractions.back()));
+                             (1 + 1 / (spec.rays.ray_factor * spec.rays.fractions.back())) + read2;
       r.pixels[q] = static_cast<float>((double(mu.pixels[q]) - ex.pixels[q]) / std::sqrt(var));
     }
     res.residuals.push_back(std::move(r));

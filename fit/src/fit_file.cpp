@@ -296,6 +296,7 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
       im.Fail("defocus_um", "expected a focus position within +-1e5 um (10 cm)");
     if (im.Has("dark")) fi.dark_file = ResolvePath(path, im.String("dark"));
     fi.gain_e_per_dn = im.Positive("gain_e_per_dn", 1.0);
+    fi.read_noise_e = im.InRange("read_noise_e", 0, 1e4, 0);
     im.Finish();
     Image raw, dark;
     try {

@@ -430,7 +430,12 @@ const std::vector<Image>& FitModel::Experiment(int bin) const {
   std::lock_guard<std::mutex> lk(binned_mutex_);
   auto& v = binned_experiment_[bin];
   if (v.empty())
-    for (const FitImage& f : spec_.images) v.push_back(BinImage(f.photons, bin));
+    for (size_t i = 0; i < spec_.images.size(); ++i) {
+      v.push_back(BinImage(spec_.images[i].photons, bin));
+      const double shift = ReadShift(i, bin);  // e + r^2: the shifted-Poisson count
+      if (shift > 0)
+        for (float& x : v.back().pixels) x = std::max(0.0f, x + static_cast<float>(shift));
+    }
   return v;
 }
 
@@ -441,16 +446,22 @@ std::string Fmt(double v, int prec) {
   return os.str();
 }
 
-namespace {
 /// The template of image i of `sim`, given its binned counts: each count plus one ray
-/// (TemplateMean), the mean every Poisson measure below compares the experiment with.
-std::vector<double> TemplateOf(const Image& binned, const Simulated& sim, size_t i) {
+/// (TemplateMean), plus the image's read-noise shift (ReadShift), the mean every Poisson
+/// measure below compares the (equally shifted) experiment with.
+std::vector<double> FitModel::TemplateOf(const Image& binned, const Simulated& sim, size_t i, int bin) const {
   std::vector<double> t(binned.size());
+  const double shift = ReadShift(i, bin);
   for (size_t p = 0; p < binned.size(); ++p)
-    t[p] = TemplateMean(binned.pixels[p], sim.photons_per_ray[i], sim.finite_ray_correction);
+    t[p] = TemplateMean(binned.pixels[p], sim.photons_per_ray[i], sim.finite_ray_correction) + shift;
   return t;
 }
-}  // namespace
+
+double FitModel::ReadShift(size_t i, int bin) const {
+  if (spec_.error != ErrorFunction::kPoisson) return 0;
+  const double r = spec_.images[i].read_noise_e;
+  return r * r * bin * bin;  // a binned pixel sums bin^2 independent read-outs
+}
 
 double FitModel::Error(const Simulated& sim, int bin) const {
   const std::vector<Image>& exp = Experiment(bin);
@@ -462,7 +473,7 @@ double FitModel::Error(const Simulated& sim, int bin) const {
     const Image& e = exp[i];
     switch (spec_.error) {
       case ErrorFunction::kPoisson: {
-        const std::vector<double> t = TemplateOf(mu[i], sim, i);
+        const std::vector<double> t = TemplateOf(mu[i], sim, i, bin);
         for (size_t p = 0; p < e.size(); ++p) {
           const double r = DevianceResidual(e.pixels[p], t[p]);
           s += r * r;
@@ -508,7 +519,7 @@ void FitModel::DevianceResiduals(const Simulated& sim, int bin, double* out) con
   const std::vector<Image>& exp = Experiment(bin);
   for (size_t i = 0; i < sim.photons.size(); ++i) {
     const Image& e = exp[i];
-    const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i);
+    const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin);
     for (size_t p = 0; p < e.size(); ++p) *out++ = DevianceResidual(e.pixels[p], t[p]);
   }
 }
@@ -522,7 +533,7 @@ void FitModel::Score(const Simulated& sim, const std::vector<std::vector<Image>>
   std::vector<double> d(P);
   for (size_t i = 0; i < sim.photons.size(); ++i) {
     const Image& e = exp[i];
-    const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i);
+    const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin);
     std::vector<Image> g;
     for (size_t j = 0; j < P; ++j) g.push_back(BinImage(dmu[i][j], bin));
     for (size_t p = 0; p < e.size(); ++p) {
@@ -544,9 +555,12 @@ std::pair<double, double> FitModel::ExpectedDeviance(const Simulated& sim, int b
   double mean = 0, var = 0, units = 0, pixels = 0;
   for (size_t i = 0; i < sim.photons.size(); ++i) {
     const double w = sim.photons_per_ray[i];
-    for (const double t : TemplateOf(BinImage(sim.photons[i], bin), sim, i)) {
-      const double g = ExpectedPixelDeviance(t) * (1 + w);
-      mean += g, var += 2 * g * g, units += 1 + w, pixels += 1;
+    const double shift = ReadShift(i, bin);
+    for (const double t : TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin)) {
+      // The template's own noise is that of its photons, not of the read-noise shift.
+      const double u = 1 + w * std::max(0.0, t - shift) / std::max(t, 1e-12);
+      const double g = ExpectedPixelDeviance(t) * u;
+      mean += g, var += 2 * g * g, units += u, pixels += 1;
     }
   }
   if (pixels > 0) mean -= double(parameters) * units / pixels, var *= std::max(0.0, 1 - double(parameters) / pixels);
@@ -564,13 +578,14 @@ GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameter
   size_t pairs = 0;
   for (size_t i = 0; i < sim.photons.size(); ++i) {
     const Image& e = exp[i];
-    const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i);
-    const double w = sim.photons_per_ray[i];
+    const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin);
+    const double w = sim.photons_per_ray[i], shift = ReadShift(i, bin);
     g.pixels += e.size();
-    // Pearson residuals with the variance of e - template: mu (1 + w).
+    // Pearson residuals with the variance of e - template: mu + read noise + w mu.
     Image r(e.width, e.height);
+    auto variance = [&](double tp) { return tp + w * std::max(0.0, tp - shift); };
     for (size_t p = 0; p < e.size(); ++p)
-      r.pixels[p] = static_cast<float>((std::max(0.0f, e.pixels[p]) - t[p]) / std::sqrt(t[p] * (1 + w)));
+      r.pixels[p] = static_cast<float>((std::max(0.0f, e.pixels[p]) - t[p]) / std::sqrt(variance(t[p])));
     for (int y = 0; y < r.height; ++y)
       for (int x = 0; x < r.width; ++x) {
         const double a = r.at(x, y);
@@ -586,7 +601,7 @@ GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameter
         for (int y = by; y < by + B; ++y)
           for (int x = bx; x < bx + B; ++x) {
             const double mu = t[size_t(y) * size_t(e.width) + size_t(x)];
-            d += std::max(0.0f, e.at(x, y)) - mu, v += mu * (1 + w);
+            d += std::max(0.0f, e.at(x, y)) - mu, v += variance(mu);
           }
         if (v > 0) g.block_chi2 += d * d / v, ++g.blocks;
       }

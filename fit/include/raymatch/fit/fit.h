@@ -33,6 +33,10 @@ struct FitImage {
   double defocus_um = 0;
   std::string dark_file;      ///< subtracted in code values when given
   double gain_e_per_dn = 1;   ///< photons per code value after dark subtraction
+  /// The camera's read noise (electrons rms, of the dark-subtracted image): the Poisson
+  /// likelihood uses the shifted-Poisson approximation, e + r^2 ~ Poisson(mu + r^2), which
+  /// matches the Poisson-Gaussian mean and variance (docs/fit.md, "Camera noise"). 0 = none.
+  double read_noise_e = 0;
   Image photons;              ///< prepared image (filled by LoadFitSpec)
   FileLocation where;
 };

@@ -63,6 +63,7 @@ struct ExperimentMetadata {
   double diameter_um = 0;         ///< nominal diameter
   double temperature_K = 293.15;
   double gain = 1;                ///< photons per code value after dark subtraction
+  double read_noise_e = 0;        ///< [camera] read_noise_e (0 when not given)
 };
 ExperimentMetadata ReadExperimentMetadata(const std::string& folder);
 

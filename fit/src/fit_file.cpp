@@ -297,6 +297,7 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     if (im.Has("dark")) fi.dark_file = ResolvePath(path, im.String("dark"));
     fi.gain_e_per_dn = im.Positive("gain_e_per_dn", 1.0);
     fi.read_noise_e = im.InRange("read_noise_e", 0, 1e4, 0);
+    fi.saturation_dn = im.InRange("saturation_dn", 0, 1e9, 0);
     im.Finish();
     Image raw, dark;
     try {
@@ -313,6 +314,17 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     } catch (const Error& err) {  // e.g. a dark frame of another size: name both files
       throw Error(fi.where, "image " + fi.file + (fi.dark_file.empty() ? "" : " with dark frame " + fi.dark_file) +
                                 ": " + err.message());
+    }
+    // Saturated pixels (at or above saturation_dn) and, with a dark frame (an offset above 0),
+    // pixels clipped at 0 carry no count the Poisson model can describe: left out.
+    if (fi.saturation_dn > 0 || !dark.empty()) {
+      fi.usable = Image(raw.width, raw.height, 1.0f);
+      for (size_t p = 0; p < raw.size(); ++p)
+        if ((fi.saturation_dn > 0 && raw.pixels[p] >= fi.saturation_dn) || (!dark.empty() && raw.pixels[p] <= 0)) {
+          fi.usable.pixels[p] = 0;
+          ++fi.excluded_pixels;
+        }
+      if (fi.excluded_pixels == 0) fi.usable = Image();
     }
     if (fi.photons.width != scene.camera.nx || fi.photons.height != scene.camera.ny)
       throw Error(fi.where, "image " + fi.file + " is " + std::to_string(fi.photons.width) + " x " +

@@ -385,8 +385,10 @@ Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, 
     // exposure. The exposure profile matches the totals of the rest, which the joint optimum
     // of a Poisson model with a free level and scale satisfies exactly.
     const Image bg_image = BackgroundOf(theta, i, counts.width, counts.height);
+    const Image& usable = spec_.images[i].usable;
     double bg_sum = 0;
-    for (float v : bg_image.pixels) bg_sum += v;
+    for (size_t p = 0; p < bg_image.size(); ++p)
+      if (usable.pixels.empty() || usable.pixels[p] > 0) bg_sum += bg_image.pixels[p];
     double s = scale;
     if (spec_.rays.fit_exposure) {
       // The exposure is a nuisance parameter: its maximum-likelihood value for Poisson counts
@@ -395,7 +397,9 @@ Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, 
       // photon-target pilot) into a shift of z, radius and index, which change how much light
       // leaves the aperture.
       double se = 0, sm = 0;
-      for (size_t p = 0; p < counts.size(); ++p) se += std::max(0.0f, spec_.images[i].photons.pixels[p]), sm += counts.pixels[p];
+      for (size_t p = 0; p < counts.size(); ++p)
+        if (usable.pixels.empty() || usable.pixels[p] > 0)
+          se += std::max(0.0f, spec_.images[i].photons.pixels[p]), sm += counts.pixels[p];
       if (sm > 0 && se - bg_sum > 0) s = (se - bg_sum) / sm;
     }
     for (float& v : counts.pixels) v = static_cast<float>(v * s);
@@ -457,6 +461,22 @@ std::vector<double> FitModel::TemplateOf(const Image& binned, const Simulated& s
   return t;
 }
 
+const std::vector<Image>& FitModel::Usable(int bin) const {
+  std::lock_guard<std::mutex> lk(binned_mutex_);
+  auto& v = binned_usable_[bin];
+  if (v.empty())
+    for (const FitImage& f : spec_.images) {
+      if (f.usable.pixels.empty()) {
+        v.push_back(Image());
+        continue;
+      }
+      Image b = BinImage(f.usable, bin);  // a binned pixel is usable when all of its pixels are
+      for (float& x : b.pixels) x = x >= float(bin * bin) - 0.5f ? 1.0f : 0.0f;
+      v.push_back(std::move(b));
+    }
+  return v;
+}
+
 double FitModel::ReadShift(size_t i, int bin) const {
   if (spec_.error != ErrorFunction::kPoisson) return 0;
   const double r = spec_.images[i].read_noise_e;
@@ -464,6 +484,7 @@ double FitModel::ReadShift(size_t i, int bin) const {
 }
 
 double FitModel::Error(const Simulated& sim, int bin) const {
+  const std::vector<Image>& use = Usable(bin);  // pixels left out: saturated, clipped
   const std::vector<Image>& exp = Experiment(bin);
   std::vector<Image> mu;
   for (const Image& m : sim.photons) mu.push_back(BinImage(m, bin));
@@ -475,6 +496,7 @@ double FitModel::Error(const Simulated& sim, int bin) const {
       case ErrorFunction::kPoisson: {
         const std::vector<double> t = TemplateOf(mu[i], sim, i, bin);
         for (size_t p = 0; p < e.size(); ++p) {
+          if (!(use[i].pixels.empty() || use[i].pixels[p] > 0)) continue;
           const double r = DevianceResidual(e.pixels[p], t[p]);
           s += r * r;
         }
@@ -516,16 +538,18 @@ size_t FitModel::num_residuals(int bin) const {
 }
 
 void FitModel::DevianceResiduals(const Simulated& sim, int bin, double* out) const {
+  const std::vector<Image>& use = Usable(bin);  // pixels left out: saturated, clipped
   const std::vector<Image>& exp = Experiment(bin);
   for (size_t i = 0; i < sim.photons.size(); ++i) {
     const Image& e = exp[i];
     const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin);
-    for (size_t p = 0; p < e.size(); ++p) *out++ = DevianceResidual(e.pixels[p], t[p]);
+    for (size_t p = 0; p < e.size(); ++p) *out++ = (use[i].pixels.empty() || use[i].pixels[p] > 0) ? DevianceResidual(e.pixels[p], t[p]) : 0.0;
   }
 }
 
 void FitModel::Score(const Simulated& sim, const std::vector<std::vector<Image>>& dmu, int bin,
                      std::vector<double>* score, std::vector<double>* information) const {
+  const std::vector<Image>& use = Usable(bin);
   const std::vector<Image>& exp = Experiment(bin);
   const size_t P = dmu.empty() ? 0 : dmu[0].size();
   score->assign(P, 0.0);
@@ -537,6 +561,7 @@ void FitModel::Score(const Simulated& sim, const std::vector<std::vector<Image>>
     std::vector<Image> g;
     for (size_t j = 0; j < P; ++j) g.push_back(BinImage(dmu[i][j], bin));
     for (size_t p = 0; p < e.size(); ++p) {
+      if (!(use[i].pixels.empty() || use[i].pixels[p] > 0)) continue;
       const double T = std::max(t[p], 1e-6);
       const double f = std::max(double(e.pixels[p]), 0.0) / T - 1;
       for (size_t a = 0; a < P; ++a) d[a] = g[a].pixels[p];
@@ -549,6 +574,7 @@ void FitModel::Score(const Simulated& sim, const std::vector<std::vector<Image>>
 }
 
 std::pair<double, double> FitModel::ExpectedDeviance(const Simulated& sim, int bin, size_t parameters) const {
+  const std::vector<Image>& use = Usable(bin);  // pixels left out: saturated, clipped
   // A pixel's deviance for a correct model: the Poisson part of the experiment (exact for low
   // counts) times 1 + w for the template's own Poisson noise (w photons per ray: variance
   // mu (1 + 1/k) about the mean); each fitted parameter removes about one such unit.
@@ -556,7 +582,10 @@ std::pair<double, double> FitModel::ExpectedDeviance(const Simulated& sim, int b
   for (size_t i = 0; i < sim.photons.size(); ++i) {
     const double w = sim.photons_per_ray[i];
     const double shift = ReadShift(i, bin);
-    for (const double t : TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin)) {
+    const std::vector<double> ts = TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin);
+    for (size_t p = 0; p < ts.size(); ++p) {
+      if (!(use[i].pixels.empty() || use[i].pixels[p] > 0)) continue;
+      const double t = ts[p];
       // The template's own noise is that of its photons, not of the read-noise shift.
       const double u = 1 + w * std::max(0.0, t - shift) / std::max(t, 1e-12);
       const double g = ExpectedPixelDeviance(t) * u;
@@ -568,6 +597,7 @@ std::pair<double, double> FitModel::ExpectedDeviance(const Simulated& sim, int b
 }
 
 GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameters) const {
+  const std::vector<Image>& use = Usable(bin);  // pixels left out: saturated, clipped
   GoodnessOfFit g;
   g.deviance = Error(sim, bin);
   std::tie(g.expected, g.sd) = ExpectedDeviance(sim, bin, parameters);
@@ -580,12 +610,15 @@ GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameter
     const Image& e = exp[i];
     const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin);
     const double w = sim.photons_per_ray[i], shift = ReadShift(i, bin);
-    g.pixels += e.size();
-    // Pearson residuals with the variance of e - template: mu + read noise + w mu.
+    // Pearson residuals with the variance of e - template: mu + read noise + w mu (0 where a
+    // pixel is left out).
     Image r(e.width, e.height);
     auto variance = [&](double tp) { return tp + w * std::max(0.0, tp - shift); };
     for (size_t p = 0; p < e.size(); ++p)
-      r.pixels[p] = static_cast<float>((std::max(0.0f, e.pixels[p]) - t[p]) / std::sqrt(variance(t[p])));
+      if ((use[i].pixels.empty() || use[i].pixels[p] > 0)) {
+        r.pixels[p] = static_cast<float>((std::max(0.0f, e.pixels[p]) - t[p]) / std::sqrt(variance(t[p])));
+        ++g.pixels;
+      }
     for (int y = 0; y < r.height; ++y)
       for (int x = 0; x < r.width; ++x) {
         const double a = r.at(x, y);
@@ -600,7 +633,9 @@ GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameter
         double d = 0, v = 0;
         for (int y = by; y < by + B; ++y)
           for (int x = bx; x < bx + B; ++x) {
-            const double mu = t[size_t(y) * size_t(e.width) + size_t(x)];
+            const size_t q = size_t(y) * size_t(e.width) + size_t(x);
+            if (!(use[i].pixels.empty() || use[i].pixels[q] > 0)) continue;
+            const double mu = t[q];
             d += std::max(0.0f, e.at(x, y)) - mu, v += variance(mu);
           }
         if (v > 0) g.block_chi2 += d * d / v, ++g.blocks;

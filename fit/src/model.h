@@ -137,12 +137,15 @@ class FitModel {
   std::map<std::tuple<size_t, uint64_t>, NearRays> near_;
   std::map<std::tuple<size_t, uint64_t, double>, Background> background_;
   mutable std::map<int, std::vector<Image>> binned_experiment_;
+  mutable std::map<int, std::vector<Image>> binned_usable_;
   mutable std::mutex binned_mutex_;
   /// The experiment binned `bin` x `bin`, shifted by the read noise for the Poisson error.
   const std::vector<Image>& Experiment(int bin) const;
   /// Photons added to image i's binned pixels for the shifted-Poisson approximation of read
   /// noise (r^2 per read-out; 0 without read noise or for the non-Poisson errors).
   double ReadShift(size_t i, int bin) const;
+  /// Image i's pixels that enter the likelihood, binned (empty images: all of them).
+  const std::vector<Image>& Usable(int bin) const;
   std::vector<double> TemplateOf(const Image& binned, const Simulated& sim, size_t i, int bin) const;
 };
 

@@ -116,7 +116,9 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
                {"retraced_ray_fraction", J(res.near_ray_fraction)}};
   for (const FitImage& im : spec.images)
     j["images"].push_back({{"file", im.file}, {"defocus_um", im.defocus_um}, {"dark", im.dark_file},
-                           {"gain_e_per_dn", im.gain_e_per_dn}});
+                           {"gain_e_per_dn", im.gain_e_per_dn}, {"read_noise_e", im.read_noise_e},
+                           {"saturation_dn", im.saturation_dn},
+                           {"excluded_pixels", im.excluded_pixels}});  // saturated or clipped: not in the likelihood
   for (const ParameterResult& p : res.parameters)
     j["parameters"].push_back({{"key", p.key},
                                {"unit", p.unit},

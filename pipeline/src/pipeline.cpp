@@ -90,12 +90,14 @@ namespace {
 /// code value) and the read noise (electrons rms, for fits' likelihood) are used; the other
 /// datasheet values are accepted, and the optics are informational (the calibration's optics
 /// are used).
-double ReadCameraGain(TomlReader& r, double* read_noise_e = nullptr) {
+double ReadCameraGain(TomlReader& r, double* read_noise_e = nullptr, int* bit_depth = nullptr) {
   TomlReader cam = r.Table("camera");
   const double gain = cam.Positive("gain_e_per_dn", 1.0);
-  cam.Positive("pixel_pitch_um", 1), cam.Integer("bit_depth", 16, 1, 32), cam.Number("well_capacity_e", 0);
+  cam.Positive("pixel_pitch_um", 1), cam.Number("well_capacity_e", 0);
+  const int bits = static_cast<int>(cam.Integer("bit_depth", 16, 1, 32));
   const double read = cam.InRange("read_noise_e", 0, 1e4, 0);
   if (read_noise_e) *read_noise_e = read;
+  if (bit_depth) *bit_depth = bits;
   cam.Finish();
   r.Table("optics");
   return gain;
@@ -132,7 +134,7 @@ ExperimentMetadata ReadExperimentMetadata(const std::string& folder) {
   r.String("object", "");
   e.diameter_um = r.Positive("nominal_diameter_um");
   e.temperature_K = r.InRange("temperature_K", 261.15, 773.15, 293.15);
-  e.gain = ReadCameraGain(r, &e.read_noise_e);
+  e.gain = ReadCameraGain(r, &e.read_noise_e, &e.bit_depth);
   r.Finish();
   return e;
 }

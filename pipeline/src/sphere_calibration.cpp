@@ -123,7 +123,8 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
       << "scene = \"scene.toml\"\nmethod = \"lm\"\nerror = \"poisson\"\nseed = " << o.seed << "\n";
   for (size_t i : planes) {
     fit << "\n[[image]]\nfile = " << Q(fs::absolute(scan.files[i]).string()) << "\ndefocus_um = " << scan.defocus_um[i]
-        << "\ngain_e_per_dn = " << ex.gain << "\nread_noise_e = " << ex.read_noise_e << "\n";
+        << "\ngain_e_per_dn = " << ex.gain << "\nread_noise_e = " << ex.read_noise_e
+        << "\nsaturation_dn = " << std::ldexp(1.0, ex.bit_depth) - 1 << "\n";
     if (!ex.dark.empty()) fit << "dark = " << Q(fs::absolute(ex.dark).string()) << "\n";
   }
   for (const Free& f : free)

@@ -2,6 +2,7 @@
 // fits of synthetic images with known truth (tolerances from the fit's own uncertainties).
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -483,6 +484,43 @@ TEST_F(FitFile, ReadNoiseEntersTheLikelihood) {
     EXPECT_NEAR(p.best, want[i], 3 * p.sigma) << p.key;
     EXPECT_GT(p.sigma_statistical, 1.1 * without.parameters[i].sigma_statistical) << p.key;
   }
+}
+
+// Saturated pixels: a patch of the experiment (a stray reflection's bloom, 8 x 6 pixels on the
+// drop's rim) sits at the camera's largest value. With [[image]] saturation_dn at that value the
+// patch is left out of the likelihood (counted in the spec, and the goodness of fit counts the
+// rest): the model is consistent with the remaining pixels and the drop within 3 sigma; read as
+// counts, the patch is a mismatch. (The patch does not depend on the noise: pixels that reach
+// the clip by their own noise are censored, not missing, docs/fit.md.)
+TEST_F(FitFile, SaturatedPixelsAreLeftOut) {
+  const std::string tif = MakeExperiment(dir_, "clean", SceneText(0.4, 0, 0, 23, 1.335, 400 * kPhotonScale, 9), -10);
+  Image e = ReadImage(tif);
+  const float clip = 4095;
+  size_t clipped = 0;
+  for (int y = 24; y < 30; ++y)
+    for (int x = 6; x < 14; ++x) e.at(x, y) = clip, ++clipped;
+  WriteFloatImage(dir_ / "exp.tif", e, "drop with a saturated patch");
+  dir_.Write("model.toml", SceneText(0, 0, 0, 23, 1.335, 400 * kPhotonScale, 1));
+  const std::string params =
+      "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
+      "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\nstep = 0.2\n";
+  const std::string extra = "seed = 3\n[rays]\nray_factor = 4\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n";
+  auto spec = [&](const std::string& image_keys) {
+    return LoadFitSpec(dir_.Write("fit.toml", "scene = \"model.toml\"\n" + extra +
+                                                  "[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n" + image_keys + params));
+  };
+  const FitSpec with_spec = spec("saturation_dn = 4095\n");
+  EXPECT_EQ(with_spec.images[0].excluded_pixels, clipped);
+  const FitResult with = RunFit(with_spec);
+  EXPECT_FALSE(with.goodness.mismatch) << with.goodness.verdict;
+  EXPECT_EQ(with.goodness.pixels + clipped, size_t(e.width) * size_t(e.height));
+  const double want[2] = {0.4, 23};
+  for (int i = 0; i < 2; ++i) {
+    ASSERT_GT(with.parameters[i].sigma, 0);
+    EXPECT_NEAR(with.parameters[i].best, want[i], 3 * with.parameters[i].sigma) << with.parameters[i].key;
+  }
+  const FitResult without = RunFit(spec(""));
+  EXPECT_TRUE(without.goodness.mismatch) << without.goodness.verdict;
 }
 
 // The score of the Poisson deviance, sum_q G_q (1 - e_q / T_q), must vanish on average at the

@@ -37,6 +37,12 @@ struct FitImage {
   /// likelihood uses the shifted-Poisson approximation, e + r^2 ~ Poisson(mu + r^2), which
   /// matches the Poisson-Gaussian mean and variance (docs/fit.md, "Camera noise"). 0 = none.
   double read_noise_e = 0;
+  /// Raw code values at or above this are saturated (0 = no check; `calibrate sphere` gives
+  /// 2^bit_depth - 1). Saturated pixels, and with a dark frame pixels clipped at 0, are left
+  /// out of the likelihood (their count is in fit.json).
+  double saturation_dn = 0;
+  Image usable;               ///< 1 where a pixel enters the likelihood, 0 where left out; empty: all
+  size_t excluded_pixels = 0;
   Image photons;              ///< prepared image (filled by LoadFitSpec)
   FileLocation where;
 };

@@ -64,6 +64,7 @@ struct ExperimentMetadata {
   double temperature_K = 293.15;
   double gain = 1;                ///< photons per code value after dark subtraction
   double read_noise_e = 0;        ///< [camera] read_noise_e (0 when not given)
+  int bit_depth = 16;             ///< [camera] bit_depth: saturation at 2^bits - 1
 };
 ExperimentMetadata ReadExperimentMetadata(const std::string& folder);
 

@@ -41,7 +41,7 @@ Field MakeField(const Scene& s, double auto_radius) {
 /// The calibrated map continued beyond its NA cut (SourceSpec::edge_half_angle_deg): on a grid
 /// 4x finer than the map's and aligned with it, padded out to 15 deg beyond the cut. Inside
 /// the cut a fine cell takes its map pixel's value (the same distribution as the map); beyond
-/// it, the map's value just inside the cut at the same azimuth times E / E(cut at that azimuth),
+/// it, the map's value on a ring just inside the cut at the same azimuth times E / E(that ring),
 /// E the soft edge about the (tilted) edge axis, averaged over 2x2 points per cell so the image
 /// moves smoothly with the edge's parameters. Map pixels on the cut left at zero by the
 /// calibration (centre outside the NA) are filled like the continuation. SourceSpec::edge_part
@@ -95,7 +95,10 @@ Image ContinuedMap(const SourceSpec& ss, double* extent) {
             if (s < s_na) {
               if (keep_in) sum += ring;
             } else if (keep_out) {
-              sum += ring * E(u, v) / std::max(E(s_na * c, s_na * sn), 1e-300);
+              // The ring's value holds the edge's fall-off at the ring: A(phi) E(ring), so the
+              // continuation is ring x E / E(ring), not / E(cut) (which made it brighter by
+              // E(ring) / E(cut): 20 % on the sample, and its single-plane index 9 sigma high).
+              sum += ring * E(u, v) / std::max(E(inner * c, inner * sn), 1e-300);
             }
           }
         }

@@ -160,9 +160,10 @@ TEST(SceneFile, CalibrationFileSuppliesSourceCorrectorAndOptics) {
 }
 
 // [light_field_edge] continues a calibrated map beyond its NA cut under the soft edge
-// E(theta) = (1 - tanh((theta - edge) / width)) / 2 relative to E at the cut. Known answer: a map
-// uniform inside the cut sends the fraction A_out / (A_in + A_out) of its rays beyond the NA, with
-// A_in = pi s_na^2 and A_out = int_{s_na}^1 2 pi s E(asin s) / E(asin s_na) ds in direction
+// E(theta) = (1 - tanh((theta - edge) / width)) / 2 relative to E on the continued ring (1.5 map
+// pixels inside the cut, s_r). Known answer: a map uniform inside the cut sends the fraction
+// A_out / (A_in + A_out) of its rays beyond the NA, with
+// A_in = pi s_na^2 and A_out = int_{s_na}^1 2 pi s E(asin s) / E(asin s_r) ds in direction
 // cosines (midpoint rule, 2e5 steps). Those rays end as outside_na; the tolerance is 4 binomial
 // standard deviations.
 TEST(SceneFile, LightFieldEdgeSendsTheSoftEdgesShareOfRaysBeyondTheNa) {
@@ -185,9 +186,10 @@ TEST(SceneFile, LightFieldEdgeSendsTheSoftEdgesShareOfRaysBeyondTheNa) {
     auto E = [&](double s) { return 0.5 * (1 - std::tanh((std::asin(s) * 180 / kPi - edge) / width)); };
     double a_out = 0;
     const int steps = 200000;
+    const double ring = c.na_limit - 1.5 * (2 * c.angular_extent / n);  // the continued ring
     for (int i = 0; i < steps; ++i) {
       const double s = c.na_limit + (1 - c.na_limit) * (i + 0.5) / steps;
-      a_out += 2 * kPi * s * E(s) / E(c.na_limit) * (1 - c.na_limit) / steps;
+      a_out += 2 * kPi * s * E(s) / E(ring) * (1 - c.na_limit) / steps;
     }
     const double p = a_out / (kPi * c.na_limit * c.na_limit + a_out);
     const Scene s = LoadScene(dir.Write("s.toml", "calibration = \"cal.toml\"\n[light_field_edge]\nhalf_angle_deg = " +
@@ -210,7 +212,8 @@ TEST(SceneFile, LightFieldEdgeSendsTheSoftEdgesShareOfRaysBeyondTheNa) {
 }
 
 // The edge's axis tilted by t = (sin tx, sin ty) in direction cosines: beyond the cut the map
-// is its ring value times E(|w - t|) / E(|s_na e_phi - t|) at each azimuth phi. Known answer for
+// is its ring value times E(|w - t|) / E(|s_r e_phi - t|) at each azimuth phi (s_r the ring
+// 1.5 map pixels inside the cut). Known answer for
 // a map uniform inside the cut: the continuation's weight on either side of u = 0, integrated
 // in polar coordinates (midpoint rule, 2000 x 4000 steps; the map's 2x2 points per fine cell of
 // 1/256 of the extent agree to 0.5 %). A tilt towards +u moves the edge outwards there: the
@@ -231,6 +234,7 @@ TEST(SceneFile, LightFieldEdgeTiltMovesTheEdgeAndThePartsAddUp) {
   ss.edge_half_angle_deg = 26, ss.edge_width_deg = 1.0, ss.edge_tilt_deg = {1.2, -0.4};
   const double kPi = 3.14159265358979323846, deg = kPi / 180;
   const double tu = std::sin(1.2 * deg), tv = std::sin(-0.4 * deg), s_na = 0.42;
+  const double s_r = s_na - 1.5 * (2 * ss.angular_extent / n);  // the continued ring
   auto E = [&](double u, double v) {
     return 0.5 * (1 - std::tanh((std::asin(std::hypot(u - tu, v - tv)) / deg - 26) / 1.0));
   };
@@ -240,7 +244,7 @@ TEST(SceneFile, LightFieldEdgeTiltMovesTheEdgeAndThePartsAddUp) {
     const double s = s_na + (0.62 - s_na) * (i + 0.5) / ns, ds = (0.62 - s_na) / ns;
     for (int j = 0; j < na; ++j) {
       const double phi = 2 * kPi * (j + 0.5) / na, c = std::cos(phi), sn = std::sin(phi);
-      want[c > 0] += E(s * c, s * sn) / E(s_na * c, s_na * sn) * s * ds * 2 * kPi / na;
+      want[c > 0] += E(s * c, s * sn) / E(s_r * c, s_r * sn) * s * ds * 2 * kPi / na;
     }
   }
   double extent = 0;

@@ -54,7 +54,8 @@ struct SourceSpec {
   /// that cut (0 = not cut), and the illumination beyond it when edge_half_angle_deg > 0: the
   /// map's outermost measured ring continued outwards under the soft edge
   /// E(theta) = (1 - tanh((theta - edge_half_angle_deg) / edge_width_deg)) / 2, relative to
-  /// E at the cut (scene table [light_field_edge], calibration [light_field] edge_*).
+  /// E at that ring (1.5 map pixels inside the cut; scene table [light_field_edge], calibration
+  /// [light_field] edge_*).
   double map_na_limit = 0;
   double edge_half_angle_deg = 0, edge_width_deg = 0;
   /// The edge's axis tilted from the optical axis, [x, y] in degrees: theta above is measured

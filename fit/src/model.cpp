@@ -46,6 +46,9 @@ double NormalFromWord(uint32_t w) {
   return table[size_t(k)] + f * (table[size_t(k) + 1] - table[size_t(k)]);
 }
 
+/// Whether pixel p enters the likelihood under a FitImage::usable mask (empty: every pixel).
+inline bool Uses(const Image& mask, size_t p) { return mask.pixels.empty() || mask.pixels[p] > 0; }
+
 double Seconds(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
@@ -292,8 +295,7 @@ simulate::Scene FitModel::TracedScene(simulate::Scene s, simulate::SourceSpec::E
   return s;
 }
 
-Image FitModel::ApplyPsf(const Image& fine, double sigma_um, double object_pixel_um, uint64_t seed,
-                         uint32_t plane) const {
+Image FitModel::ApplyPsf(const Image& fine, double sigma_um, uint64_t seed, uint32_t plane) const {
   const int os = psf_os_, m = psf_margin_;
   const int nx = (fine.width - 2 * m) / os, ny = (fine.height - 2 * m) / os;
   // Each ray of a fine pixel lands at a point uniform within it plus a Gaussian offset (sigma
@@ -301,7 +303,7 @@ Image FitModel::ApplyPsf(const Image& fine, double sigma_um, double object_pixel
   // stays a Poisson sample whatever the PSF (a smoothing convolution would shrink its noise as
   // sigma grows, and the deviance would favour wide PSFs), and the draws are common random
   // numbers across evaluations, so the image changes smoothly with sigma.
-  const double sg = sigma_um / (object_pixel_um / os);
+  const double sg = sigma_um / (object_pixel_um_ / os);
   const int rows = fine.height;
   const int workers = std::max(1, std::min(threads_ > 0 ? threads_ : int(std::thread::hardware_concurrency()), rows));
   std::vector<Image> part(size_t(workers), Image(nx, ny));
@@ -379,7 +381,7 @@ Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, 
       for (size_t p = 0; p < counts.size(); ++p) counts.pixels[p] += b.pixels[p];
       if (rays_traced) *rays_traced += beyond_rays;
     }
-    if (psf_os_ > 1) counts = ApplyPsf(counts, full.camera.psf_sigma_um, object_pixel_um_, seed, plane);
+    if (psf_os_ > 1) counts = ApplyPsf(counts, full.camera.psf_sigma_um, seed, plane);
     // The image's additive background (image[i].background_* keys): photons per pixel, a
     // level and slopes per pixel about the image centre, added to the expected image after the
     // exposure. The exposure profile matches the totals of the rest, which the joint optimum
@@ -388,7 +390,7 @@ Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, 
     const Image& usable = spec_.images[i].usable;
     double bg_sum = 0;
     for (size_t p = 0; p < bg_image.size(); ++p)
-      if (usable.pixels.empty() || usable.pixels[p] > 0) bg_sum += bg_image.pixels[p];
+      if (Uses(usable, p)) bg_sum += bg_image.pixels[p];
     double s = scale;
     if (spec_.rays.fit_exposure) {
       // The exposure is a nuisance parameter: its maximum-likelihood value for Poisson counts
@@ -398,7 +400,7 @@ Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, 
       // leaves the aperture.
       double se = 0, sm = 0;
       for (size_t p = 0; p < counts.size(); ++p)
-        if (usable.pixels.empty() || usable.pixels[p] > 0)
+        if (Uses(usable, p))
           se += std::max(0.0f, spec_.images[i].photons.pixels[p]), sm += counts.pixels[p];
       if (sm > 0 && se - bg_sum > 0) s = (se - bg_sum) / sm;
     }
@@ -496,7 +498,7 @@ double FitModel::Error(const Simulated& sim, int bin) const {
       case ErrorFunction::kPoisson: {
         const std::vector<double> t = TemplateOf(mu[i], sim, i, bin);
         for (size_t p = 0; p < e.size(); ++p) {
-          if (!(use[i].pixels.empty() || use[i].pixels[p] > 0)) continue;
+          if (!Uses(use[i], p)) continue;
           const double r = DevianceResidual(e.pixels[p], t[p]);
           s += r * r;
         }
@@ -543,7 +545,7 @@ void FitModel::DevianceResiduals(const Simulated& sim, int bin, double* out) con
   for (size_t i = 0; i < sim.photons.size(); ++i) {
     const Image& e = exp[i];
     const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin);
-    for (size_t p = 0; p < e.size(); ++p) *out++ = (use[i].pixels.empty() || use[i].pixels[p] > 0) ? DevianceResidual(e.pixels[p], t[p]) : 0.0;
+    for (size_t p = 0; p < e.size(); ++p) *out++ = Uses(use[i], p) ? DevianceResidual(e.pixels[p], t[p]) : 0.0;
   }
 }
 
@@ -561,7 +563,7 @@ void FitModel::Score(const Simulated& sim, const std::vector<std::vector<Image>>
     std::vector<Image> g;
     for (size_t j = 0; j < P; ++j) g.push_back(BinImage(dmu[i][j], bin));
     for (size_t p = 0; p < e.size(); ++p) {
-      if (!(use[i].pixels.empty() || use[i].pixels[p] > 0)) continue;
+      if (!Uses(use[i], p)) continue;
       const double T = std::max(t[p], 1e-6);
       const double f = std::max(double(e.pixels[p]), 0.0) / T - 1;
       for (size_t a = 0; a < P; ++a) d[a] = g[a].pixels[p];
@@ -584,7 +586,7 @@ std::pair<double, double> FitModel::ExpectedDeviance(const Simulated& sim, int b
     const double shift = ReadShift(i, bin);
     const std::vector<double> ts = TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin);
     for (size_t p = 0; p < ts.size(); ++p) {
-      if (!(use[i].pixels.empty() || use[i].pixels[p] > 0)) continue;
+      if (!Uses(use[i], p)) continue;
       const double t = ts[p];
       // The template's own noise is that of its photons, not of the read-noise shift.
       const double u = 1 + w * std::max(0.0, t - shift) / std::max(t, 1e-12);
@@ -615,7 +617,7 @@ GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameter
     Image r(e.width, e.height);
     auto variance = [&](double tp) { return tp + w * std::max(0.0, tp - shift); };
     for (size_t p = 0; p < e.size(); ++p)
-      if ((use[i].pixels.empty() || use[i].pixels[p] > 0)) {
+      if (Uses(use[i], p)) {
         r.pixels[p] = static_cast<float>((std::max(0.0f, e.pixels[p]) - t[p]) / std::sqrt(variance(t[p])));
         ++g.pixels;
       }
@@ -634,7 +636,7 @@ GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameter
         for (int y = by; y < by + B; ++y)
           for (int x = bx; x < bx + B; ++x) {
             const size_t q = size_t(y) * size_t(e.width) + size_t(x);
-            if (!(use[i].pixels.empty() || use[i].pixels[q] > 0)) continue;
+            if (!Uses(use[i], q)) continue;
             const double mu = t[q];
             d += std::max(0.0f, e.at(x, y)) - mu, v += variance(mu);
           }

@@ -94,9 +94,10 @@ class FitModel {
   int threads_;
   std::function<void(const std::string&)> say_;
   bool split_allowed_ = true;
-  // Nuisance keys that keep the near/far split (docs/fit.md, "Nuisances"): with the light
-  // field's edge fitted, the parts inside and beyond the NA are separate ray populations (the
-  // inside rays do not depend on the edge; `inside_share_` of the rays at the start); with the
+  // Nuisance keys that keep the near/far split (docs/fit.md, "Speed", "Nuisances that keep the
+  // split"): with the light field's edge fitted, the parts inside and beyond the NA are separate
+  // ray populations (the inside rays do not depend on the edge; `inside_share_` of the rays at
+  // the start); with the
   // PSF fitted, the rays are traced without it onto a camera `psf_os_` times finer with
   // `psf_margin_` fine pixels beyond each side, and each ray's PSF offset is drawn there.
   bool edge_split_ = false;
@@ -108,8 +109,7 @@ class FitModel {
   simulate::Scene TracedScene(simulate::Scene s, simulate::SourceSpec::EdgePart part) const;
   /// With psf_os_ > 1: the fine image of TracedScene with the PSF sigma (um at the object
   /// plane) applied ray by ray (streams from `seed` and `plane`), summed to the camera's pixels.
-  Image ApplyPsf(const Image& fine, double sigma_um, double object_pixel_um, uint64_t seed,
-                 uint32_t plane) const;
+  Image ApplyPsf(const Image& fine, double sigma_um, uint64_t seed, uint32_t plane) const;
   double field_radius_ = 0;   // fixed source field radius (0: the scene's own)
   Vec3 region_center_;
   double region_radius_ = 0;

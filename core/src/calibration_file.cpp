@@ -110,6 +110,13 @@ void WriteCalibrationFile(const std::string& path, const CalibrationData& d) {
   }
 }
 
+std::array<double, 2> ReadEdgeTiltDeg(TomlReader& table, const std::string& key) {
+  const std::vector<double> t = table.Numbers(key, 2, 2);
+  if (!(std::abs(t[0]) <= 10 && std::abs(t[1]) <= 10))
+    table.Fail(key, "expected [x, y] in degrees, each within 10 (the tilt of the edge's axis)");
+  return {t[0], t[1]};
+}
+
 CalibrationData ReadCalibrationFile(const std::string& path) {
   const toml::table t = ParseTomlFile(path);
   TomlReader r(t, path, "");
@@ -151,12 +158,7 @@ CalibrationData ReadCalibrationFile(const std::string& path) {
       d.edge_width_deg = l.InRange("edge_width_deg", 0.01, 20, 0, true, true);
       if (!l.Has("edge_width_deg")) l.Fail("edge_width_deg", "required with edge_half_angle_deg");
       if (!l.Has("edge_half_angle_deg")) l.Fail("edge_half_angle_deg", "required with edge_width_deg");
-      if (l.Has("edge_tilt_deg")) {
-        const auto t = l.Numbers("edge_tilt_deg", 2, 2);
-        if (!(std::abs(t[0]) <= 10 && std::abs(t[1]) <= 10))
-          l.Fail("edge_tilt_deg", "expected [x, y] in degrees, each within 10");
-        d.edge_tilt_deg = {t[0], t[1]};
-      }
+      if (l.Has("edge_tilt_deg")) d.edge_tilt_deg = ReadEdgeTiltDeg(l, "edge_tilt_deg");
     }
     if (l.Has("spatial_map") || l.Has("field_size_um")) {
       const std::string sp = (fs::path(path).parent_path() / l.String("spatial_map")).string();

@@ -491,12 +491,7 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
       e.Fail(e.Has("half_angle_deg") ? "width_deg" : "half_angle_deg",
              "required: half_angle_deg (degrees, within 10 of the NA's " + std::to_string(na_deg) +
                  ") and width_deg (degrees, 0.05-5)");
-    if (e.Has("tilt_deg")) {
-      const auto t = e.Numbers("tilt_deg", 2, 2);
-      if (!(std::abs(t[0]) <= 10 && std::abs(t[1]) <= 10))
-        e.Fail("tilt_deg", "expected [x, y] in degrees, each within 10 (the edge's axis)");
-      s.source.edge_tilt_deg = {t[0], t[1]};
-    }
+    if (e.Has("tilt_deg")) s.source.edge_tilt_deg = ReadEdgeTiltDeg(e, "tilt_deg");
     e.Finish();
   }
   if (cal && cal->psf_sigma_um > 0) s.camera.psf_sigma_um = cal->psf_sigma_um;

@@ -19,6 +19,8 @@ CalibrationData Sample() {
   d.angular_extent = 0.5;
   d.na_limit = 0.42;
   d.cone_half_angle_deg = 24.1;
+  d.edge_half_angle_deg = 25.7, d.edge_width_deg = 1.2, d.edge_tilt_deg = {-0.4, 0.7};
+  d.psf_sigma_um = 0.23;
   d.light_field_note = "measured \"up to\" NA";
   d.ring_outer_mm = {1, 2, 3};
   d.transmissions = {1, 0.97, 0.9};
@@ -40,6 +42,10 @@ TEST(CalibrationFile, RoundTrip) {
   EXPECT_EQ(b.angular_extent, a.angular_extent);
   EXPECT_EQ(b.na_limit, a.na_limit);
   EXPECT_EQ(b.light_field_note, a.light_field_note);
+  EXPECT_EQ(b.edge_half_angle_deg, a.edge_half_angle_deg);
+  EXPECT_EQ(b.edge_width_deg, a.edge_width_deg);
+  EXPECT_EQ(b.edge_tilt_deg, a.edge_tilt_deg);
+  EXPECT_EQ(b.psf_sigma_um, a.psf_sigma_um);
   EXPECT_EQ(b.transmissions, a.transmissions);
   EXPECT_EQ(b.transmission_sigma, a.transmission_sigma);
   EXPECT_EQ(b.ring_outer_mm, a.ring_outer_mm);
@@ -61,6 +67,19 @@ TEST(CalibrationFile, StrictReader) {
     FAIL();
   } catch (const Error& e) {
     EXPECT_NE(std::string(e.what()).find("'optics.na': expected a number in (0, 1)"), std::string::npos) << e.what();
+  }
+  // The edge's tilt: two angles, each within 10 degrees.
+  text = ss.str();
+  const size_t at = text.find("edge_tilt_deg = [");
+  ASSERT_NE(at, std::string::npos) << text;
+  text.replace(at, text.find(']', at) - at + 1, "edge_tilt_deg = [12, 0]");
+  dir.Write("bad.toml", text);
+  try {
+    ReadCalibrationFile(dir / "bad.toml");
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("'light_field.edge_tilt_deg': expected [x, y] in degrees, each within 10"),
+              std::string::npos) << e.what();
   }
   std::filesystem::remove(dir / "cal.angular.tif");
   EXPECT_THROW(ReadCalibrationFile(dir / "cal.toml"), Error);

@@ -54,6 +54,11 @@ struct CalibrationData {
 /// with its sidecars, which are resolved relative to the file.
 CalibrationData ReadCalibrationFile(const std::string& path);
 
+class TomlReader;
+/// The light field edge's tilt [x, y] in degrees (each within 10) from `key` of a calibration
+/// file or a scene's [light_field_edge] table; a bad value is a "file:line:col" error of `key`.
+std::array<double, 2> ReadEdgeTiltDeg(TomlReader& table, const std::string& key);
+
 /// Writes the TOML file and its sidecars (<stem>.angular.tif, <stem>.spatial.tif): all go to
 /// temporaries and are renamed into place only when all are complete (nothing half-written).
 void WriteCalibrationFile(const std::string& path, const CalibrationData& data);

@@ -617,6 +617,9 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
   // stops short (issue 26 item 2: z 0.2 um short, 7 CRB, from starts 1.8 um off).
   Differences half_a, half_b;  // averages of the even and the odd sets (the first is the main streams)
   Simulated final_sim;
+  // The noise of the derivatives in the final steps' score, as a Gram matrix in the residuals'
+  // metric (empty when no scoring steps ran): the uncertainties add its effect.
+  Eigen::MatrixXd score_derivative_noise;
   for (int round = 0; round < 3 && res.status != "flat" && spec.uncertainties && (round == 0 || run.Budget());
        ++round) {
     const size_t S = size_t(std::max(2, spec.rays.jacobian_seeds));
@@ -630,8 +633,24 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
     // Fisher scoring (the Poisson score and expected information, linear in the counts) with
     // derivative images from the other streams only: the main streams' differences count the
     // same rays as their template, and that correlation would bias the score by O(1/k).
-    const std::vector<std::vector<Image>> dmu = AverageSets(sets, 1, 1).dmu;
+    const Differences others = AverageSets(sets, 1, 1);
+    const std::vector<std::vector<Image>>& dmu = others.dmu;
     const int bin = model.BinAt(final_level);
+    // The root of the score J~^T W (e - mu) = 0 with a noisy J~ = J + dJ moves by
+    // F^-1 dJ^T W (e - mu): zero on average, but with variance F^-1 N F^-1 (1 + 1/k), N the
+    // noise Gram matrix of the mean of the S - 1 sets, estimated by their scatter (Jacobians of
+    // the deviance residuals, whose Gram matrix is the information). Measured: a single set's
+    // index column has a cosine of 0.62 with the exact derivative, so with three sets this adds
+    // about half the information's size along the valley (docs/fit.md, "Finite rays").
+    {
+      const double m = double(S - 1);
+      Eigen::MatrixXd gram = Eigen::MatrixXd::Zero(Eigen::Index(P), Eigen::Index(P));
+      for (size_t s = 1; s < S; ++s) {
+        const Eigen::MatrixXd dev = sets[s].jacobian - others.jacobian;
+        gram += dev.transpose() * dev;
+      }
+      score_derivative_noise = gram / ((m - 1) * m);
+    }
     std::vector<double> x = best, sc, info;
     model.Score(sets[0].mu, dmu, bin, &sc, &info);  // the main ray streams, as in the search
     // The information for the steps from the cross product of the two halves (unbiased, as for
@@ -700,12 +719,30 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
       for (size_t j = 0; j < P; ++j) H[i][j] = JtJ(i, j);
     const Matrix cov = InverseSpd(H);
     const double k = spec.rays.ray_factor * spec.rays.fractions.back();
-    if (!cov.empty()) {
+    // The estimate's covariance: C (1 + 1/k) from the experiment's and the template's noise,
+    // plus C N C (1 + 1/k) from the noise N of the derivatives that the final steps' score used.
+    auto Total = [&](const Matrix& c) {
+      Matrix t = c;
+      if (score_derivative_noise.size() == 0) return t;
+      Eigen::MatrixXd cm(static_cast<Eigen::Index>(P), static_cast<Eigen::Index>(P));
+      for (size_t i = 0; i < P; ++i)
+        for (size_t j = 0; j < P; ++j) cm(Eigen::Index(i), Eigen::Index(j)) = c[i][j];
+      const Eigen::MatrixXd extra = cm * score_derivative_noise * cm;
+      for (size_t i = 0; i < P; ++i)
+        for (size_t j = 0; j < P; ++j) t[i][j] += extra(Eigen::Index(i), Eigen::Index(j));
+      return t;
+    };
+    auto SetSigmas = [&](const Matrix& c) {
+      const Matrix t = Total(c);
       for (size_t i = 0; i < P; ++i) {
-        res.parameters[i].sigma_curvature = std::sqrt(cov[i][i]);
-        res.parameters[i].sigma = std::sqrt(cov[i][i] * (1 + 1 / k));
+        res.parameters[i].sigma = std::sqrt(t[i][i] * (1 + 1 / k));
+        res.parameters[i].sigma_derivatives = std::sqrt(std::max(0.0, t[i][i] - c[i][i]) * (1 + 1 / k));
       }
-      res.correlation = Correlation(cov);
+      res.correlation = Correlation(t);
+    };
+    if (!cov.empty()) {
+      for (size_t i = 0; i < P; ++i) res.parameters[i].sigma_curvature = std::sqrt(cov[i][i]);
+      SetSigmas(cov);
     }
     const Matrix crb =
         spec.cramer_rao || cov.empty() ? InverseSpd(FisherInformation(d.mu.photons, d.dmu, d2.dmu)) : Matrix();
@@ -720,9 +757,9 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
       // The deviance's curvature from two noisy halves can be indefinite along a weakly
       // determined direction (many nuisances, e.g. a sphere calibration's edge, width and tilt)
       // while the expected (Fisher) information is not: the sigmas are the Cramer-Rao bound's
-      // with the template's noise, as the curvature's would be for a correct model.
-      for (size_t i = 0; i < P; ++i) res.parameters[i].sigma = res.parameters[i].sigma_expected;
-      res.correlation = res.crb_correlation;
+      // with the template's and the derivatives' noise, as the curvature's would be for a
+      // correct model.
+      SetSigmas(crb);
       res.message += "; the deviance's curvature is not positive definite (noise along a weakly "
                      "determined direction): sigmas from the expected (Fisher) information";
     } else if (cov.empty()) {

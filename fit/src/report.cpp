@@ -130,6 +130,7 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
                                {"sigma", J(p.sigma)},
                                {"sigma_statistical", J(p.sigma_statistical)},
                                {"sigma_curvature", J(p.sigma_curvature)},
+                               {"sigma_derivatives", J(p.sigma_derivatives)},
                                {"sigma_repeat_seeds", J(p.sigma_repeat)},
                                {"sigma_cramer_rao", J(p.sigma_cramer_rao)},
                                {"sigma_expected_with_simulation_noise", J(p.sigma_expected)},

@@ -163,6 +163,7 @@ void BindFit(py::module_& m) {
           d["sigma"] = p.sigma;
           d["sigma_statistical"] = p.sigma_statistical;
           d["sigma_curvature"] = p.sigma_curvature;
+          d["sigma_derivatives"] = p.sigma_derivatives;
           d["sigma_repeat"] = p.sigma_repeat;
           d["sigma_cramer_rao"] = p.sigma_cramer_rao;
           d["sigma_expected"] = p.sigma_expected;

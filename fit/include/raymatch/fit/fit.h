@@ -133,7 +133,12 @@ struct ParameterResult {
   /// The reported uncertainty: sigma_curvature x sqrt(1 + 1/(ray_factor x final fraction)),
   /// since the simulation's own shot noise (variance mu / (ray_factor x fraction)) adds to the
   /// experiment's in the fitted values.
+  /// With final Fisher-scoring steps it also holds sigma_derivatives in quadrature.
   double sigma = 0;
+  /// The part of sigma from the Monte Carlo noise of the derivative images that the final steps'
+  /// score used (their scatter between independent ray-stream sets): a noisy derivative turns
+  /// the residuals' noise into a scatter of the root of the score equation.
+  double sigma_derivatives = 0;
   /// sigma before the model-mismatch inflation (equal to sigma when the fit is consistent).
   double sigma_statistical = 0;
   double sigma_repeat = 0;     ///< scatter of repeated fits with independent simulation seeds

@@ -17,6 +17,7 @@
 #include "raymatch/fit/fit.h"
 #include "raymatch/simulate/scene.h"
 #include "raymatch/simulate/tracer.h"
+#include "angular_map.h"
 #include "temp_dir.h"
 
 namespace raymatch::fit {
@@ -107,6 +108,26 @@ class FitFile : public ::testing::Test {
     return dir_.Write("fit.toml", "scene = \"model.toml\"\n" + extra + "[[image]]\nfile = \"exp.tif\"\n"
                                   "defocus_um = -10\n" + params);
   }
+  /// The camera-noise tests' drop (x 0.4 um, 400 photons per pixel at -10 um): the clean
+  /// experiment's image, which the test then spoils, and the model scene at x = 0.
+  Image NoiseTestExperiment() {
+    const std::string tif =
+        MakeExperiment(dir_, "clean", SceneText(0.4, 0, 0, 23, 1.335, 400 * kPhotonScale, 9), -10);
+    dir_.Write("model.toml", SceneText(0, 0, 0, 23, 1.335, 400 * kPhotonScale, 1));
+    return ReadImage(tif);
+  }
+  /// Its fit of x and radius (ray factor 4) with the [[image]] keys given, and the truth.
+  std::string NoiseTestFit(const std::string& image_keys, const std::string& more_params = "") {
+    return dir_.Write("fit.toml", "scene = \"model.toml\"\n" + std::string(kNoiseTestRays) +
+                                      "[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n" + image_keys +
+                                      kNoiseTestDrop + more_params);
+  }
+  static constexpr const char* kNoiseTestDrop =
+      "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
+      "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\nstep = 0.2\n";
+  static constexpr const char* kNoiseTestRays =
+      "seed = 3\n[rays]\nray_factor = 4\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n";
+  static constexpr double kNoiseTestTruth[2] = {0.4, 23};
   std::string ErrorOf(const std::string& path) {
     try {
       LoadFitSpec(path);
@@ -343,14 +364,10 @@ TEST(FitModelNuisances, EdgeAndPsfAsKeysGiveTheTracersOwnExpectedImage) {
   testing::TempDir dir;
   CalibrationData c;
   const int n = 64;
-  c.angular_map = Image(n, n);
   c.angular_extent = 0.5;
   c.na_limit = 0.42;
-  for (int y = 0; y < n; ++y)
-    for (int x = 0; x < n; ++x) {
-      const double u = (2 * (x + 0.5) / n - 1) * 0.5, v = (1 - 2 * (y + 0.5) / n) * 0.5;
-      c.angular_map.at(x, y) = std::hypot(u, v) < c.na_limit ? float(1 + 0.3 * u) : 0.f;
-    }
+  c.angular_map = testing::NaCutAngularMap(n, c.angular_extent, c.na_limit,
+                                           [](double u, double) { return 1 + 0.3 * u; });
   c.objective_focal_mm = 10, c.working_distance_mm = 20, c.na = 0.42, c.tube_focal_mm = 200;
   c.pixel_pitch_um = 20, c.wavelength_um = 0.462;
   WriteCalibrationFile(dir / "cal.toml", c);
@@ -413,8 +430,7 @@ TEST(FitModelNuisances, EdgeAndPsfAsKeysGiveTheTracersOwnExpectedImage) {
 // drop too, and the model without the background keys is flagged as a mismatch (the test can
 // tell).
 TEST_F(FitFile, AdditiveBackgroundLevelAndSlopeAreRecovered) {
-  const std::string tif = MakeExperiment(dir_, "clean", SceneText(0.4, 0, 0, 23, 1.335, 400 * kPhotonScale, 9), -10);
-  Image e = ReadImage(tif);
+  Image e = NoiseTestExperiment();
   std::mt19937_64 rng(17);
   const double level = 60 * kPhotonScale, slope = 0.5 * kPhotonScale;
   for (int y = 0; y < e.height; ++y)
@@ -423,24 +439,19 @@ TEST_F(FitFile, AdditiveBackgroundLevelAndSlopeAreRecovered) {
       e.at(x, y) += float(extra(rng));
     }
   WriteFloatImage(dir_ / "exp.tif", e, "drop plus a sloped background");
-  dir_.Write("model.toml", SceneText(0, 0, 0, 23, 1.335, 400 * kPhotonScale, 1));
-  const std::string drop =
-      "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
-      "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\nstep = 0.2\n";
   const std::string bg =
       "[[parameter]]\nkey = \"image[0].background_photons\"\nlower = 0\nupper = 200\nstep = 5\n"
       "[[parameter]]\nkey = \"image[0].background_slope_x\"\nlower = -3\nupper = 3\nstep = 0.1\n";
-  const std::string extra = "seed = 3\n[rays]\nray_factor = 4\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n";
-  const FitResult r = RunFit(LoadFitSpec(Fit(drop + bg, extra)));
+  const FitResult r = RunFit(LoadFitSpec(NoiseTestFit("", bg)));
   ASSERT_EQ(r.parameters.size(), 4u);
-  const double want[4] = {0.4, 23, level, slope};
+  const double want[4] = {kNoiseTestTruth[0], kNoiseTestTruth[1], level, slope};
   for (int i = 0; i < 4; ++i) {
     const ParameterResult& p = r.parameters[i];
     ASSERT_GT(p.sigma, 0) << p.key;
     EXPECT_NEAR(p.best, want[i], 3 * p.sigma) << p.key << " sigma " << p.sigma;
   }
   EXPECT_FALSE(r.goodness.mismatch) << r.goodness.verdict;
-  const FitResult without = RunFit(LoadFitSpec(Fit(drop, extra)));
+  const FitResult without = RunFit(LoadFitSpec(NoiseTestFit("")));
   EXPECT_TRUE(without.goodness.mismatch) << without.goodness.verdict;
   // Keys of images that do not exist, or fields an image has not, are refused by name.
   EXPECT_NE(ErrorOf(Fit("[[parameter]]\nkey = \"image[0].background\"\nlower = 0\nupper = 1\nstep = 0.1\n"))
@@ -455,33 +466,21 @@ TEST_F(FitFile, AdditiveBackgroundLevelAndSlopeAreRecovered) {
 // and the drop within 3 sigma; without it the same model is flagged as a mismatch, and the
 // sigma with read noise is larger (the information per pixel is mu'^2 / (mu + r^2)).
 TEST_F(FitFile, ReadNoiseEntersTheLikelihood) {
-  const std::string tif = MakeExperiment(dir_, "clean", SceneText(0.4, 0, 0, 23, 1.335, 400 * kPhotonScale, 9), -10);
-  Image e = ReadImage(tif);
+  Image e = NoiseTestExperiment();
   std::mt19937_64 rng(23);
   const double read = 20 * std::sqrt(kPhotonScale);
   std::normal_distribution<double> noise(0, read);
   for (float& v : e.pixels) v = float(v + noise(rng));
   WriteFloatImage(dir_ / "exp.tif", e, "drop plus read noise");
-  dir_.Write("model.toml", SceneText(0, 0, 0, 23, 1.335, 400 * kPhotonScale, 1));
-  const std::string params =
-      "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
-      "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\nstep = 0.2\n";
-  const std::string extra = "seed = 3\n[rays]\nray_factor = 4\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n";
-  auto fit = [&](const std::string& image_keys) {
-    return RunFit(LoadFitSpec(dir_.Write("fit.toml", "scene = \"model.toml\"\n" + extra +
-                                                         "[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n" +
-                                                         image_keys + params)));
-  };
-  const FitResult with = fit("read_noise_e = " + std::to_string(read) + "\n");
-  const FitResult without = fit("");
+  const FitResult with = RunFit(LoadFitSpec(NoiseTestFit("read_noise_e = " + std::to_string(read) + "\n")));
+  const FitResult without = RunFit(LoadFitSpec(NoiseTestFit("")));
   EXPECT_FALSE(with.goodness.mismatch) << with.goodness.verdict;
   EXPECT_LT(std::abs(with.goodness.z), 3) << with.goodness.verdict;
   EXPECT_TRUE(without.goodness.mismatch) << without.goodness.verdict;
-  const double want[2] = {0.4, 23};
   for (int i = 0; i < 2; ++i) {
     const ParameterResult& p = with.parameters[i];
     ASSERT_GT(p.sigma, 0) << p.key;
-    EXPECT_NEAR(p.best, want[i], 3 * p.sigma) << p.key;
+    EXPECT_NEAR(p.best, kNoiseTestTruth[i], 3 * p.sigma) << p.key;
     EXPECT_GT(p.sigma_statistical, 1.1 * without.parameters[i].sigma_statistical) << p.key;
   }
 }
@@ -493,33 +492,22 @@ TEST_F(FitFile, ReadNoiseEntersTheLikelihood) {
 // counts, the patch is a mismatch. (The patch does not depend on the noise: pixels that reach
 // the clip by their own noise are censored, not missing, docs/fit.md.)
 TEST_F(FitFile, SaturatedPixelsAreLeftOut) {
-  const std::string tif = MakeExperiment(dir_, "clean", SceneText(0.4, 0, 0, 23, 1.335, 400 * kPhotonScale, 9), -10);
-  Image e = ReadImage(tif);
+  Image e = NoiseTestExperiment();
   const float clip = 4095;
   size_t clipped = 0;
   for (int y = 24; y < 30; ++y)
     for (int x = 6; x < 14; ++x) e.at(x, y) = clip, ++clipped;
   WriteFloatImage(dir_ / "exp.tif", e, "drop with a saturated patch");
-  dir_.Write("model.toml", SceneText(0, 0, 0, 23, 1.335, 400 * kPhotonScale, 1));
-  const std::string params =
-      "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
-      "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\nstep = 0.2\n";
-  const std::string extra = "seed = 3\n[rays]\nray_factor = 4\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n";
-  auto spec = [&](const std::string& image_keys) {
-    return LoadFitSpec(dir_.Write("fit.toml", "scene = \"model.toml\"\n" + extra +
-                                                  "[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n" + image_keys + params));
-  };
-  const FitSpec with_spec = spec("saturation_dn = 4095\n");
+  const FitSpec with_spec = LoadFitSpec(NoiseTestFit("saturation_dn = 4095\n"));
   EXPECT_EQ(with_spec.images[0].excluded_pixels, clipped);
   const FitResult with = RunFit(with_spec);
   EXPECT_FALSE(with.goodness.mismatch) << with.goodness.verdict;
   EXPECT_EQ(with.goodness.pixels + clipped, size_t(e.width) * size_t(e.height));
-  const double want[2] = {0.4, 23};
   for (int i = 0; i < 2; ++i) {
     ASSERT_GT(with.parameters[i].sigma, 0);
-    EXPECT_NEAR(with.parameters[i].best, want[i], 3 * with.parameters[i].sigma) << with.parameters[i].key;
+    EXPECT_NEAR(with.parameters[i].best, kNoiseTestTruth[i], 3 * with.parameters[i].sigma) << with.parameters[i].key;
   }
-  const FitResult without = RunFit(spec(""));
+  const FitResult without = RunFit(LoadFitSpec(NoiseTestFit("")));
   EXPECT_TRUE(without.goodness.mismatch) << without.goodness.verdict;
 }
 

@@ -12,6 +12,7 @@
 #include "raymatch/simulate/tracer.h"
 #include "sources.h"
 #include "stats.h"
+#include "angular_map.h"
 #include "temp_dir.h"
 
 namespace raymatch::simulate {
@@ -170,14 +171,10 @@ TEST(SceneFile, LightFieldEdgeSendsTheSoftEdgesShareOfRaysBeyondTheNa) {
   testing::TempDir dir;
   CalibrationData c;
   const int n = 64;
-  c.angular_map = Image(n, n);
   c.angular_extent = 0.5;
   c.na_limit = 0.42;
-  for (int y = 0; y < n; ++y)
-    for (int x = 0; x < n; ++x) {
-      const double u = (2 * (x + 0.5) / n - 1) * 0.5, v = (1 - 2 * (y + 0.5) / n) * 0.5;
-      c.angular_map.at(x, y) = std::hypot(u, v) < c.na_limit ? 1.f : 0.f;  // as calibrate cuts it
-    }
+  c.angular_map =
+      testing::NaCutAngularMap(n, c.angular_extent, c.na_limit, [](double, double) { return 1.0; });
   c.objective_focal_mm = 10, c.working_distance_mm = 20, c.na = 0.42, c.tube_focal_mm = 200;
   c.pixel_pitch_um = 10, c.wavelength_um = 0.462;
   WriteCalibrationFile(dir / "cal.toml", c);
@@ -223,14 +220,10 @@ TEST(SceneFile, LightFieldEdgeTiltMovesTheEdgeAndThePartsAddUp) {
   SourceSpec ss;
   const int n = 64;
   ss.type = SourceType::kLightField;
-  ss.angular_map = Image(n, n);
   ss.angular_extent = 0.5;
   ss.map_na_limit = 0.42;
-  for (int y = 0; y < n; ++y)
-    for (int x = 0; x < n; ++x) {
-      const double u = (2 * (x + 0.5) / n - 1) * 0.5, v = (1 - 2 * (y + 0.5) / n) * 0.5;
-      ss.angular_map.at(x, y) = std::hypot(u, v) < ss.map_na_limit ? 1.f : 0.f;
-    }
+  ss.angular_map =
+      testing::NaCutAngularMap(n, ss.angular_extent, ss.map_na_limit, [](double, double) { return 1.0; });
   ss.edge_half_angle_deg = 26, ss.edge_width_deg = 1.0, ss.edge_tilt_deg = {1.2, -0.4};
   const double kPi = 3.14159265358979323846, deg = kPi / 180;
   const double tu = std::sin(1.2 * deg), tv = std::sin(-0.4 * deg), s_na = 0.42;

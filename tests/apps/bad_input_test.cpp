@@ -213,8 +213,11 @@ TEST(BadInputCli, RunChecksEveryInputBeforeMakingItsFolder) {
   std::stringstream ss;
   ss << in.rdbuf();
   std::string fit = ss.str();
-  fit.replace(fit.find("../drop46/drop_z-10um.tif"), 25, "../drop46/black.tif");
-  fit.replace(fit.find("dark = \"../drop46/dark.tif\"\n"), 28, "");
+  const std::string first_image = "../drop46/drop_z-05um.tif", first_dark = "dark = \"../drop46/dark.tif\"\n";
+  ASSERT_NE(fit.find(first_image), std::string::npos) << fit;  // the sample's fit's first image
+  fit.replace(fit.find(first_image), first_image.size(), "../drop46/black.tif");
+  ASSERT_NE(fit.find(first_dark), std::string::npos) << fit;
+  fit.replace(fit.find(first_dark), first_dark.size(), "");
   dir.Write("fit/sphere.toml", fit);
   r = Raymatch("run " + pipeline + " -q -o " + (dir / "out/run"), dir);
   EXPECT_EQ(r.code, 1) << r.err;

@@ -34,6 +34,19 @@ std::string Scene(double x, double y, double z, double r, double n, int seed) {
   return s.str();
 }
 
+/// A sphere (x, y, z, radius, index in t) under a cone of `cone_deg`, 1000 photons per pixel,
+/// with bench/fit_accuracy.py's optics (20x: camera pitch `pitch_um` / 20 at the object).
+std::string BenchScene(const double* t, int seed, double cone_deg, int nx, int ny, double pitch_um) {
+  std::ostringstream s;
+  s << "name = \"drop\"\nseed = " << seed << "\n[source]\ntype = \"cone\"\nhalf_angle_deg = " << cone_deg
+    << "\n[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = [" << t[0] << ", " << t[1] << ", "
+    << t[2] << "]\nradius_um = " << t[3] << "\nindex = " << t[4]
+    << "\n[objective]\nfocal_length_mm = 10\nna = 0.42\nworking_distance_mm = 20\n[tube_lens]\n"
+    << "focal_length_mm = 200\n[camera]\npixels = [" << nx << ", " << ny << "]\npixel_pitch_um = " << pitch_um
+    << "\n[trace]\nphotons_per_pixel = 1000\npartial_reflection = \"unpolarized\"\n";
+  return s.str();
+}
+
 /// The fit file's five [[parameter]] tables: x, y, z of the drop's centre (+-3, +-3, +-4 um)
 /// and its radius and index within the given bounds.
 std::string FiveParameters(const std::string& r_lo, const std::string& r_hi, const std::string& n_lo,
@@ -110,16 +123,7 @@ TEST(FitStatistics, FiveParameterSphereAtTheSamplePhotonCount) {
 TEST(FitStatistics, SteepDropAtPhotonMatchedRaysIsUnbiased) {
   const double truth[5] = {0.3, -0.2, 0.4, 13, 1.39};
   const double offset[5] = {0.4, 0.4, 1.8, 0.6, 0.005};
-  auto scene = [](const double* t, int seed) {
-    std::ostringstream s;
-    s << "name = \"drop\"\nseed = " << seed << "\n[source]\ntype = \"cone\"\nhalf_angle_deg = 20\n"
-      << "[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = [" << t[0] << ", " << t[1] << ", "
-      << t[2] << "]\nradius_um = " << t[3] << "\nindex = " << t[4]
-      << "\n[objective]\nfocal_length_mm = 10\nna = 0.42\nworking_distance_mm = 20\n[tube_lens]\n"
-      << "focal_length_mm = 200\n[camera]\npixels = [96, 96]\npixel_pitch_um = 10\n[trace]\n"
-      << "photons_per_pixel = 1000\npartial_reflection = \"unpolarized\"\n";
-    return s.str();
-  };
+  auto scene = [](const double* t, int seed) { return BenchScene(t, seed, 20, 96, 96, 10); };
   const int kRealisations = 6;
   std::vector<double> mean(5, 0.0);
   double rms = 0;
@@ -166,16 +170,7 @@ TEST(FitStatistics, SteepDropAtPhotonMatchedRaysIsUnbiased) {
 // bounds; bench/fit_accuracy.py measured RMS errors of 2.3-2.6 bounds for the index).
 TEST(FitStatistics, ScatterOverRayStreamsMatchesTheSimulationShareOfSigma) {
   const double truth[5] = {0.6, -0.4, 0.5, 15.5, 1.3371};
-  auto scene = [](const double* t, int seed) {
-    std::ostringstream s;
-    s << "name = \"drop\"\nseed = " << seed << "\n[source]\ntype = \"cone\"\nhalf_angle_deg = 27\n"
-      << "[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = [" << t[0] << ", " << t[1] << ", "
-      << t[2] << "]\nradius_um = " << t[3] << "\nindex = " << t[4]
-      << "\n[objective]\nfocal_length_mm = 10\nna = 0.42\nworking_distance_mm = 20\n[tube_lens]\n"
-      << "focal_length_mm = 200\n[camera]\npixels = [120, 100]\npixel_pitch_um = 20\n[trace]\n"
-      << "photons_per_pixel = 1000\npartial_reflection = \"unpolarized\"\n";
-    return s.str();
-  };
+  auto scene = [](const double* t, int seed) { return BenchScene(t, seed, 27, 120, 100, 20); };
   testing::TempDir dir;
   const simulate::Scene s = simulate::LoadScene(dir.Write("truth.toml", scene(truth, 100)));
   const simulate::Simulator sim(s);

@@ -97,9 +97,9 @@ class FitModel {
   // Nuisance keys that keep the near/far split (docs/fit.md, "Speed", "Nuisances that keep the
   // split"): with the light field's edge fitted, the parts inside and beyond the NA are separate
   // ray populations (the inside rays do not depend on the edge; `inside_share_` of the rays at
-  // the start); with the
-  // PSF fitted, the rays are traced without it onto a camera `psf_os_` times finer with
-  // `psf_margin_` fine pixels beyond each side, and each ray's PSF offset is drawn there.
+  // the start); with the PSF fitted, the rays are traced without it onto a camera `psf_os_`
+  // times finer with `psf_margin_` fine pixels beyond each side, and each ray's PSF offset is
+  // drawn there.
   bool edge_split_ = false;
   double inside_share_ = 1;
   int psf_os_ = 1, psf_margin_ = 0;

@@ -242,6 +242,9 @@ std::vector<double> Pattern(Runner& run, const FitSpec& spec, FitResult* res) {
 /// evaluations); one-sided at a bound. Step: half the parameter's `step` (twice that half-width
 /// on the final sets gave case A's radius an RMS error of 2.9 Cramer-Rao bounds instead of 1.8:
 /// the truncation error costs more than the Monte Carlo noise it saves, docs/performance.md).
+/// `with_center` false (central differences only): the image at theta is not traced, and `mu`
+/// and `residuals` stay empty (the extra derivative sets at the optimum use only the
+/// differences: one image fewer per set).
 struct Differences {
   Simulated mu;                           // at theta
   std::vector<std::vector<Image>> dmu;    // [image][parameter] d mu / d theta_i
@@ -251,17 +254,20 @@ struct Differences {
 };
 
 Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<double>& th,
-                          size_t level, uint64_t seed, const std::string& stage, bool central) {
+                          size_t level, uint64_t seed, const std::string& stage, bool central,
+                          bool with_center = true) {
   FitModel& m = run.model();
   const int bin = m.BinAt(level);
   const size_t P = th.size(), R = m.num_residuals(bin);
   Differences d;
   double e = 0;
-  d.mu = run.Images(th, level, seed, stage, &e);
-  d.residuals.resize(R);
-  m.DevianceResiduals(d.mu, bin, d.residuals.data());
+  if (with_center || !central) {
+    d.mu = run.Images(th, level, seed, stage, &e);
+    d.residuals.resize(R);
+    m.DevianceResiduals(d.mu, bin, d.residuals.data());
+  }
   d.jacobian.resize(R, P);
-  d.dmu.assign(d.mu.photons.size(), std::vector<Image>(P));
+  d.dmu.assign(spec.images.size(), std::vector<Image>(P));
   d.flat.assign(P, false);
   Eigen::VectorXd rp(R), rm(R);
   for (size_t i = 0; i < P; ++i) {
@@ -287,7 +293,7 @@ Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<do
     const double span = a[i] - b[i];
     d.jacobian.col(i) = (rp - rm) / span;
     bool same = true;
-    for (size_t k = 0; k < d.mu.photons.size(); ++k) {
+    for (size_t k = 0; k < mu_a.photons.size(); ++k) {
       const Image& ia = mu_a.photons[k];
       const Image& ib = mu_b.photons[k];
       d.dmu[k][i] = Image(ia.width, ia.height);
@@ -395,6 +401,13 @@ class StallCallback : public ceres::IterationCallback {
   int failures_ = 0;
 };
 
+/// Whether the fit ends with Fisher-scoring steps at the optimum (the Poisson error with
+/// Levenberg-Marquardt and more than the two derivative sets the uncertainties need).
+bool FinalStepsRun(const FitSpec& spec) {
+  return spec.uncertainties && spec.method == Method::kLevenbergMarquardt &&
+         spec.error == ErrorFunction::kPoisson && spec.rays.jacobian_seeds > 2;
+}
+
 /// Levenberg-Marquardt on signed Poisson deviance residuals (sum of squares = deviance, so the
 /// least-squares optimum is the maximum-likelihood one), coarse-to-fine over the ray fractions.
 std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResult* res,
@@ -455,7 +468,10 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
   // It ends when the predicted decrease of the deviance is below kPolishTolerance, i.e. the
   // remaining step is a fraction of the statistical uncertainty, confirmed with a Jacobian at
   // that point (which the uncertainties then reuse).
-  if (!levels.empty() && std::none_of(flat.begin(), flat.end(), [](bool b) { return b; })) {
+  // Skipped in the main search when the final Fisher-scoring rounds follow (`[rays] polish`):
+  // they start from the coarse optimum and cross the valley with averaged derivatives.
+  const bool polish = !record || spec.rays.polish || !FinalStepsRun(spec);
+  if (polish && !levels.empty() && std::none_of(flat.begin(), flat.end(), [](bool b) { return b; })) {
     const size_t L = levels.back();
     const int bin = run.model().BinAt(L);
     const std::string stage = record ? "polish" : "repeat";
@@ -627,10 +643,10 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
     const size_t S = size_t(std::max(2, spec.rays.jacobian_seeds));
     std::vector<Differences> sets;
     for (size_t s = 0; s < S; ++s)
-      sets.push_back(Differentiate(run, spec, best, final_level, spec.seed + 7777777ull * s, "fisher", true));
+      sets.push_back(
+          Differentiate(run, spec, best, final_level, spec.seed + 7777777ull * s, "fisher", true, s == 0));
     half_a = AverageSets(sets, 0, 2), half_b = AverageSets(sets, 1, 2);
-    if (!(spec.method == Method::kLevenbergMarquardt && spec.error == ErrorFunction::kPoisson && S > 2) ||
-        !run.Budget())
+    if (!FinalStepsRun(spec) || !run.Budget())
       break;  // (the sets are always taken: the uncertainties need them, as before the steps)
     // Fisher scoring (the Poisson score and expected information, linear in the counts) with
     // derivative images from the other streams only: the main streams' differences count the

@@ -412,6 +412,7 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     f.rays.fit_exposure = ry.Bool("fit_exposure", true);
     f.rays.finite_ray_correction = ry.Bool("finite_ray_correction", true);
     f.rays.smooth_polish = ry.Bool("smooth_polish", true);
+    f.rays.polish = ry.Bool("polish", false);
     f.rays.jacobian_seeds = int(ry.Integer("jacobian_seeds", 4, 2, 64));
     if (ry.Has("binning")) {
       for (double b : ry.Numbers("binning", f.rays.fractions.size(), f.rays.fractions.size())) {

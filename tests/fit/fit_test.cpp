@@ -7,6 +7,7 @@
 #include <filesystem>
 #include <fstream>
 #include <random>
+#include <set>
 #include <sstream>
 
 #include "model.h"
@@ -509,6 +510,32 @@ TEST_F(FitFile, SaturatedPixelsAreLeftOut) {
   }
   const FitResult without = RunFit(LoadFitSpec(NoiseTestFit("")));
   EXPECT_TRUE(without.goodness.mismatch) << without.goodness.verdict;
+}
+
+// The final fraction is fitted either by the Fisher-scoring rounds (the default: no polish
+// before them) or, where none follow (`jacobian_seeds = 2`), by the Gauss-Newton polish; with
+// `polish = true` both run. Each way ends at the drop within 3 sigma.
+TEST_F(FitFile, PolishRunsOnlyWhereNoFinalStepsFollow) {
+  WriteFloatImage(dir_ / "exp.tif", NoiseTestExperiment(), "drop");
+  auto stages = [](const FitResult& r) {
+    std::set<std::string> s;
+    for (const Evaluation& e : r.evaluations) s.insert(e.stage);
+    return s;
+  };
+  for (const std::string rays : {"", "jacobian_seeds = 2\n", "polish = true\n"}) {
+    std::string head = kNoiseTestRays;
+    head.insert(head.find("[uncertainty]"), rays);
+    const FitSpec spec = LoadFitSpec(dir_.Write(
+        "fit.toml", "scene = \"model.toml\"\n" + head + "[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n" +
+                        kNoiseTestDrop));
+    const FitResult r = RunFit(spec);
+    EXPECT_EQ(stages(r).count("polish"), rays.empty() ? 0u : 1u) << rays;
+    EXPECT_EQ(spec.rays.polish, rays == "polish = true\n");
+    for (int i = 0; i < 2; ++i) {
+      ASSERT_GT(r.parameters[i].sigma, 0) << rays;
+      EXPECT_NEAR(r.parameters[i].best, kNoiseTestTruth[i], 3 * r.parameters[i].sigma) << r.parameters[i].key << " " << rays;
+    }
+  }
 }
 
 // The score of the Poisson deviance, sum_q G_q (1 - e_q / T_q), must vanish on average at the

@@ -76,6 +76,10 @@ struct RaySchedule {
   /// score with a smooth chord Jacobian) instead of only those that lower the rough deviance
   /// of fixed ray streams (false: descents only, which stop short in a local dip).
   bool smooth_polish = true;
+  /// Gauss-Newton polish at the final fraction after the coarse levels' search. false: when the
+  /// final Fisher-scoring rounds follow (jacobian_seeds > 2, Poisson error), they start from the
+  /// coarse optimum instead (docs/fit.md, "Finite rays"); otherwise the polish runs anyway.
+  bool polish = false;
   /// Independent ray-stream sets whose central differences are averaged at the optimum, for
   /// the final Gauss-Newton steps and the uncertainties (2: the two sets the uncertainties
   /// need, no final steps). docs/fit.md, "Finite rays".
@@ -123,7 +127,7 @@ struct Evaluation {
   uint64_t rays = 0;          ///< rays traced in this evaluation (all images)
   uint64_t seed = 0;
   double seconds = 0;
-  std::string stage;          ///< "grid", "poll", "lm", "jacobian", "repeat", "fisher", "slice"
+  std::string stage;          ///< "grid", "poll", "lm", "polish", "fisher", "final", "repeat", "slice"
 };
 
 struct ParameterResult {

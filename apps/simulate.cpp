@@ -65,7 +65,8 @@ void RegisterSimulate(CLI::App& app, int* exit_code) {
       "simulate",
       "Trace a scene (TOML, see docs/scene-format.md) into photon-count images, one per focus\n"
       "plane. Writes <name>_z<defocus>um.tif (float32 counts), .png preview and .json sidecar,\n"
-      "plus <name>_scan.json/.csv. Lengths in micrometres.");
+      "plus <name>_scan.json/.csv; with [camera.readout] also <stem>_dn.tif, the camera's 16-bit\n"
+      "code values (read noise, gain, dark level, full well, bit depth). Lengths in micrometres.");
   sub->add_option("scene", opt->scene_file, "Scene file (.toml)")->required()->check(CLI::ExistingFile);
   sub->add_option("-o,--output", opt->output_dir, "Output directory (created if missing)")
       ->capture_default_str();

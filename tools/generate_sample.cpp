@@ -16,10 +16,10 @@
 #include <sstream>
 
 #include "raymatch/core/atomic_file.h"
+#include "raymatch/core/camera_readout.h"
 #include "raymatch/core/error.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/provenance.h"
-#include "raymatch/core/rng.h"
 #include "raymatch/simulate/shapes.h"
 #include "raymatch/simulate/tracer.h"
 #include "raymatch/simulate/water.h"
@@ -112,14 +112,10 @@ Scene BaseScene(const Truth& t, double iris_deg, bool corrector) {
 
 /// Photon counts -> camera code values: read noise (electrons), gain, dark offset, 12 bits.
 Image Expose(const Truth& t, const Image& photons, uint64_t seed, uint32_t stream) {
-  Image dn(photons.width, photons.height);
-  for (size_t i = 0; i < photons.size(); ++i) {
-    RayRng rng(seed, stream, i);
-    const double g = std::sqrt(-2 * std::log(1 - rng.Uniform())) * std::cos(2 * M_PI * rng.Uniform());
-    const double e = std::min(double(photons.pixels[i]), t.well_e) + t.read_noise_e * g;
-    dn.pixels[i] = float(std::clamp(std::round(e / t.gain_e_per_dn + t.dark_dn), 0.0, 4095.0));
-  }
-  return dn;
+  CameraReadout cam;
+  cam.gain_e_per_dn = t.gain_e_per_dn, cam.dark_dn = t.dark_dn, cam.read_noise_e = t.read_noise_e;
+  cam.well_capacity_e = t.well_e, cam.bit_depth = 12;
+  return ToCodeValues(photons, cam, seed, stream);
 }
 
 class Writer {

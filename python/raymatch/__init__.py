@@ -70,6 +70,9 @@ class SimulationResult:
     rays_per_image: int
     hits_per_pixel_per_ray: float  # from the photon-target pilot run, 0 when not used
     effects: list[str] = field(default_factory=list)
+    # With the scene's [camera.readout]: each plane as the camera's code values (float32 holding
+    # integers, as `simulate` writes <stem>_dn.tif); empty otherwise.
+    code_values: list[np.ndarray] = field(default_factory=list)
 
     def stack(self) -> np.ndarray:
         """All planes as one (planes, rows, columns) array (a copy)."""
@@ -91,10 +94,10 @@ def simulate(scene: Any, rays: int | None = None, defocus_um: Sequence[float] | 
     s = load_scene(scene, base_dir)
     for w in s.warnings:
         warnings.warn(w, RaymatchWarning, stacklevel=2)
-    images, z, sidecars, rays_per_image, hits, effects = _raymatch._simulate(
+    images, z, sidecars, rays_per_image, hits, effects, code_values = _raymatch._simulate(
         s, rays=rays, defocus_um=None if defocus_um is None else [float(v) for v in defocus_um],
         seed=seed, photons_per_pixel=photons_per_pixel, threads=threads, progress=progress)
-    return SimulationResult(images, z, sidecars, rays_per_image, hits, effects)
+    return SimulationResult(images, z, sidecars, rays_per_image, hits, effects, code_values)
 
 
 @dataclass

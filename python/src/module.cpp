@@ -153,7 +153,7 @@ py::tuple Simulate(const PyScene& ps, std::optional<uint64_t> rays, std::optiona
     else if (scene.trace.rays > 0) rays_per_image = scene.trace.rays;
     else rays_per_image = sim->RaysForPhotonTarget(scene.trace.photons_per_pixel, &hits_per_ray);
   }
-  py::list images, sidecars;
+  py::list images, sidecars, code_values;
   for (size_t i = 0; i < scene.defocus_um.size(); ++i) {
     const double dz = scene.defocus_um[i];
     simulate::RunControl ctl;
@@ -169,12 +169,18 @@ py::tuple Simulate(const PyScene& ps, std::optional<uint64_t> rays, std::optiona
       meta = simulate::PlaneMetadata(*sim, r, static_cast<uint32_t>(i));
     }
     if (!ps.from_file) meta["scene_file"] = source;
+    Image dn;
+    nlohmann::json readout;
+    if (simulate::CodeValues(scene, r.counts, static_cast<uint32_t>(i), &dn, &readout)) {
+      meta["code_values"] = readout;
+      code_values.append(ToArray(std::move(dn)));
+    }
     images.append(ToArray(std::move(r.counts)));
     sidecars.append(ToPython(meta));
     if (PyErr_CheckSignals() != 0) throw py::error_already_set();  // Ctrl-C between planes
   }
   return py::make_tuple(images, py::cast(scene.defocus_um), sidecars, rays_per_image,
-                        hits_per_ray, py::cast(sim->Effects()));
+                        hits_per_ray, py::cast(sim->Effects()), code_values);
 }
 
 }  // namespace

@@ -47,6 +47,22 @@ def test_images_bit_identical_to_cli(exe, tiny_scene_file, tmp_path):
     assert text.sidecars[0]["scene_checksum_fnv1a64"] == ""
 
 
+def test_camera_code_values_bit_identical_to_cli(exe, tmp_path):
+    # [camera.readout]: the code values (<stem>_dn.tif) come back as arrays, equal to the CLI's.
+    text = TINY_SCENE.replace("[trace]", "[camera.readout]\ngain_e_per_dn = 2\ndark_dn = 50\n"
+                              "read_noise_e = 5\nbit_depth = 10\n\n[trace]")
+    scene_file = tmp_path / "tiny.toml"
+    scene_file.write_text(text)
+    index, _, cli_sidecars = cli_scan(exe, scene_file, tmp_path / "cli", "--defocus-um", "0")
+    r = raymatch.simulate(raymatch.Scene.from_file(scene_file), defocus_um=[0])
+    assert len(r.code_values) == 1
+    cli_dn = tifffile.imread(tmp_path / "cli" / index["planes"][0]["code_values"])
+    assert cli_dn.dtype == np.uint16 and cli_dn.max() <= 1023
+    np.testing.assert_array_equal(r.code_values[0], cli_dn.astype(np.float32))
+    assert r.sidecars[0]["code_values"]["read_noise_e"] == cli_sidecars[0]["code_values"]["read_noise_e"] == 5
+    assert raymatch.simulate(raymatch.Scene.from_toml(TINY_SCENE), defocus_um=[0]).code_values == []
+
+
 def test_scene_defaults_match_cli(exe, tiny_scene_file, tmp_path):
     """No overrides: the scene's own seed, rays and planes, as the CLI without options."""
     _, cli_images, _ = cli_scan(exe, tiny_scene_file, tmp_path / "cli")

@@ -133,6 +133,24 @@ void CheckPlanePositions(const Scene& scene) {
                       " um is listed twice in defocus_um; each plane needs its own position");
 }
 
+bool CodeValues(const Scene& scene, const Image& counts, uint32_t plane_index, Image* code_values,
+                nlohmann::json* entry) {
+  if (!scene.camera.readout) return false;
+  const CameraReadout& c = *scene.camera.readout;
+  ReadoutCounts n;
+  *code_values = ToCodeValues(counts, c, scene.trace.seed, kReadoutStream + plane_index, &n);
+  *entry = {{"gain_e_per_dn", c.gain_e_per_dn},
+            {"dark_dn", c.dark_dn},
+            {"read_noise_e", c.read_noise_e},
+            {"well_capacity_e", c.well_capacity_e},
+            {"bit_depth", c.bit_depth},
+            {"saturated_pixels", n.saturated},
+            {"clipped_low_pixels", n.clipped_low},
+            {"model", "counts as photoelectrons, clipped at the full well, + Gaussian read noise, / gain + "
+                      "dark level, rounded, clipped to [0, 2^bits - 1]"}};
+  return true;
+}
+
 ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
   const auto t0 = std::chrono::steady_clock::now();
   CheckPlanePositions(scene);
@@ -168,13 +186,21 @@ ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
                   scene.defocus_um.size(), dz);
     ctl.label = label;
     const PlaneResult r = sim.TracePlane(dz, static_cast<uint32_t>(i), sum.rays_per_image, ctl);
-    const nlohmann::json meta = PlaneMetadata(sim, r, static_cast<uint32_t>(i));
+    nlohmann::json meta = PlaneMetadata(sim, r, static_cast<uint32_t>(i));
     const std::string stem = PlaneStem(scene.name, dz);
     ScanPlaneOutput out;
     out.defocus_um = dz;
     out.image = (fs::path(opt.output_dir) / (stem + ".tif")).string();
     out.sidecar = (fs::path(opt.output_dir) / (stem + ".json")).string();
+    Image code_values;
+    nlohmann::json readout;
+    if (CodeValues(scene, r.counts, static_cast<uint32_t>(i), &code_values, &readout)) {
+      out.code_values = (fs::path(opt.output_dir) / (stem + "_dn.tif")).string();
+      readout["image"] = fs::path(out.code_values).filename().string();
+      meta["code_values"] = readout;
+    }
     WriteFloatImage(out.image, r.counts, meta.dump());
+    if (!out.code_values.empty()) WriteUint16Image(out.code_values, code_values, meta.dump());
     WriteTextFileAtomic(out.sidecar, meta.dump(2) + "\n");
     if (opt.write_png) {
       out.png = (fs::path(opt.output_dir) / (stem + ".png")).string();
@@ -187,7 +213,8 @@ ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
     planes.push_back({{"defocus_um", dz},
                       {"image", fs::path(out.image).filename().string()},
                       {"png", out.png.empty() ? "" : fs::path(out.png).filename().string()},
-                      {"sidecar", fs::path(out.sidecar).filename().string()}});
+                      {"sidecar", fs::path(out.sidecar).filename().string()},
+                      {"code_values", out.code_values.empty() ? "" : fs::path(out.code_values).filename().string()}});
     csv << FormatDefocus(dz) << "," << fs::path(out.image).filename().string() << ","
         << (out.png.empty() ? "" : fs::path(out.png).filename().string()) << ","
         << fs::path(out.sidecar).filename().string() << "," << r.rays << ","

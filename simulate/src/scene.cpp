@@ -535,6 +535,17 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
   s.camera.sensor_shift_mm = cam.Number("sensor_shift_mm", 0);
   s.camera.flip = cam.Bool("flip", true);
   s.camera.psf_sigma_um = cam.InRange("psf_sigma_um", 0, 100, s.camera.psf_sigma_um);
+  if (cam.Has("readout")) {
+    TomlReader ro = cam.Table("readout");
+    CameraReadout c;
+    c.gain_e_per_dn = ro.Positive("gain_e_per_dn");
+    c.bit_depth = static_cast<int>(ro.Integer("bit_depth", 12, 1, 16));
+    c.dark_dn = ro.InRange("dark_dn", 0, c.max_code(), 0);
+    c.read_noise_e = ro.InRange("read_noise_e", 0, 1e6, 0);
+    c.well_capacity_e = ro.InRange("well_capacity_e", 0, 1e12, 0);
+    ro.Finish();
+    s.camera.readout = c;
+  }
   cam.Finish();
 
   if (r.Has("trace")) {

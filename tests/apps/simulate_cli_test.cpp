@@ -2,6 +2,7 @@
 #include <gtest/gtest.h>
 #include <sys/wait.h>
 
+#include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <set>
@@ -151,6 +152,50 @@ TEST(SimulateCli, SidecarRecordsNaDensityAndPathClasses) {
   EXPECT_GT(j["path_classes"]["p1"].get<uint64_t>(), 0u);
   EXPECT_LE(classes, j["counters"]["rays_hitting_objects"].get<uint64_t>());
   EXPECT_GT(classes, 0u);
+}
+
+// Issue 22 item 3: with [camera.readout] a plane is also written as the camera's code values
+// (uint16), the raw frame a camera would store: per pixel DN = round((counts + read noise) /
+// gain + dark). Checked against the counts of the same plane: the mean of DN - counts / gain -
+// dark is 0 and its variance (read / gain)^2 + 1/12 (quantisation), within 5 standard errors
+// over the 1200 pixels; the sidecar records the model and the clipped pixels.
+TEST(SimulateCli, ReadoutWritesCodeValuesLikeARawFrame) {
+  testing::TempDir dir;
+  std::string text = kScene;
+  text.replace(text.find("[trace]"), 7,
+               "[camera.readout]\ngain_e_per_dn = 2\ndark_dn = 100\nread_noise_e = 6\nbit_depth = 12\n"
+               "well_capacity_e = 1e6\n[trace]");
+  const std::string scene = dir.Write("tiny.toml", text);
+  ASSERT_EQ(Raymatch("simulate " + scene + " -q --no-png --defocus-um 0 -o " + (dir / "out"), dir).code, 0);
+  const std::string stem = dir / "out/tiny_z+000.00um";
+  ImageFileInfo info;
+  const Image dn = ReadImage(stem + "_dn.tif", &info);
+  EXPECT_EQ(info.pixel_type, "uint16");
+  const Image counts = ReadImage(stem + ".tif");
+  ASSERT_EQ(dn.size(), counts.size());
+  double m = 0, v = 0;
+  for (size_t i = 0; i < dn.size(); ++i) m += dn.pixels[i] - counts.pixels[i] / 2.0 - 100;
+  m /= double(dn.size());
+  for (size_t i = 0; i < dn.size(); ++i) {
+    const double d = dn.pixels[i] - counts.pixels[i] / 2.0 - 100 - m;
+    v += d * d;
+  }
+  v /= double(dn.size() - 1);
+  const double var = 9 + 1.0 / 12, n = double(dn.size());
+  EXPECT_NEAR(m, 0, 5 * std::sqrt(var / n));
+  EXPECT_NEAR(v, var, 5 * var * std::sqrt(2 / (n - 1)));
+  std::ifstream js(stem + ".json");
+  const auto j = nlohmann::json::parse(js)["code_values"];
+  EXPECT_EQ(j["image"], "tiny_z+000.00um_dn.tif");
+  EXPECT_EQ(j["bit_depth"], 12);
+  EXPECT_EQ(j["saturated_pixels"], 0);
+  EXPECT_EQ(j["clipped_low_pixels"], 0);
+  std::ifstream idx(dir / "out/tiny_scan.json");
+  EXPECT_EQ(nlohmann::json::parse(idx)["planes"][0]["code_values"], "tiny_z+000.00um_dn.tif");
+  // Without [camera.readout], photon counts only.
+  ASSERT_EQ(Raymatch("simulate " + dir.Write("plain.toml", kScene) + " -q --no-png --defocus-um 0 -o " +
+                         (dir / "plain"), dir).code, 0);
+  EXPECT_FALSE(fs::exists(dir / "plain/tiny_z+000.00um_dn.tif"));
 }
 
 TEST(SimulateCli, SampleSceneIsValid) {

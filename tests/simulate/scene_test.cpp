@@ -102,6 +102,26 @@ TEST(SceneFile, ErrorsSayWhereAndWhat) {
 
 // Issue 15 defect 3: NA = n sin(theta) with n the medium (a water-dipping NA 1.0 objective is
 // valid in water, not in air); the acceptance sine is NA / n.
+TEST(SceneFile, CameraReadoutIsReadWithKeyedErrors) {
+  testing::TempDir dir;
+  const std::string readout = "pixel_pitch_um = 20\n[camera.readout]\ngain_e_per_dn = 1.1\ndark_dn = 64\n";
+  const Scene s = LoadScene(dir.Write("scene.toml", Replace(kGood, "pixel_pitch_um = 20\n", readout)));
+  ASSERT_TRUE(s.camera.readout.has_value());
+  EXPECT_EQ(s.camera.readout->gain_e_per_dn, 1.1);
+  EXPECT_EQ(s.camera.readout->dark_dn, 64);
+  EXPECT_EQ(s.camera.readout->bit_depth, 12);  // default
+  EXPECT_FALSE(LoadScene(dir.Write("plain.toml", kGood)).camera.readout.has_value());
+  EXPECT_NE(LoadError(Replace(kGood, "pixel_pitch_um = 20\n", readout + "bit_depth = 17\n"))
+                .find("'camera.readout.bit_depth'"),
+            std::string::npos);
+  EXPECT_NE(LoadError(Replace(kGood, "pixel_pitch_um = 20\n", "pixel_pitch_um = 20\n[camera.readout]\ndark_dn = 1\n"))
+                .find("'camera.readout.gain_e_per_dn'"),
+            std::string::npos);
+  EXPECT_NE(LoadError(Replace(kGood, "pixel_pitch_um = 20\n", readout + "offset = 3\n"))
+                .find("'camera.readout.offset'"),
+            std::string::npos);
+}
+
 TEST(SceneFile, NaIsQuotedInTheMedium) {
   testing::TempDir dir;
   const Scene s = LoadScene(dir.Write(

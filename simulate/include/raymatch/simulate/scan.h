@@ -24,9 +24,14 @@ struct ScanOptions {
 struct ScanPlaneOutput {
   double defocus_um = 0;
   std::string image, png, sidecar;    ///< paths written
+  std::string code_values;            ///< <stem>_dn.tif with [camera.readout], else empty
   double mean_counts = 0;
   double seconds = 0;
 };
+
+/// The counter-based streams of the camera's read noise start here (plus the plane index),
+/// apart from the rays' streams (the plane index itself).
+inline constexpr uint32_t kReadoutStream = 0x80000000u;
 
 struct ScanSummary {
   uint64_t rays_per_image = 0;
@@ -36,6 +41,12 @@ struct ScanSummary {
   double seconds = 0;
   std::vector<std::string> effects;
 };
+
+/// With the scene's [camera.readout]: a plane's code values (read noise from the counter-based
+/// streams (seed, kReadoutStream + plane index, pixel)) and the sidecar entry `code_values`
+/// describing them (camera values, saturated and zero pixels); false without a read-out.
+bool CodeValues(const Scene& scene, const Image& counts, uint32_t plane_index, Image* code_values,
+                nlohmann::json* entry);
 
 /// Runs the scene's focus scan and writes all outputs. Throws Error on failure (a focus position
 /// listed twice fails before anything is written); files already

@@ -13,6 +13,7 @@
 
 #include <toml++/toml.h>
 
+#include "raymatch/core/camera_readout.h"
 #include "raymatch/core/error.h"
 #include "raymatch/core/image.h"
 #include "raymatch/core/vec.h"
@@ -129,6 +130,9 @@ struct CameraSpec {
   /// Gaussian point-spread function (sigma, at the object plane) applied to each detected ray:
   /// a convolution of the photon distribution that keeps exact Poisson statistics. 0 = none.
   double psf_sigma_um = 0;
+  /// [camera.readout]: also write the frame as the camera's code values (read noise, gain, dark
+  /// level, full well, converter bits), like a raw frame. Empty: photon counts only.
+  std::optional<CameraReadout> readout;
 };
 
 enum class PartialReflection { kOff, kUnpolarized, kPolarized };

@@ -23,7 +23,7 @@ int RunFitCommand(const FitCliOptions& o) {
   fo.progress = !o.quiet;
   const fit::FitResult r = fit::RunFit(spec, fo);
   const std::string report = fit::WriteFitOutputs(spec, r, RankOutput(o.output));
-  std::cout << "fit " << r.status << ": " << r.message << "\n";
+  std::cout << "fit " << fit::StatusName(r.status) << ": " << r.message << "\n";
   for (const auto& p : r.parameters)
     std::cout << "  " << p.key << " = " << p.best << (p.unit.empty() ? "" : " " + p.unit)
               << "  +- " << p.sigma << "  (Cramer-Rao bound " << p.sigma_cramer_rao
@@ -31,7 +31,7 @@ int RunFitCommand(const FitCliOptions& o) {
   if (r.goodness.pixels > 0)
     std::cout << (r.goodness.mismatch ? "WARNING: " : "goodness of fit: ") << r.goodness.verdict << "\n";
   std::cout << r.evaluations.size() << " evaluations, " << r.total_seconds << " s; report: " << report << "\n";
-  if (r.status == "flat") {
+  if (r.status == fit::FitStatus::kFlat) {
     std::cerr << "raymatch fit: error: " << r.message << "\n";
     return 3;
   }

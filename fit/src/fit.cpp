@@ -1,138 +1,22 @@
 // The fit: grid scan, generalised pattern search and Levenberg-Marquardt (Ceres) over
-// simulated images with common random numbers, then uncertainties (curvature of the Poisson
-// likelihood, repeated fits with independent simulation seeds, Cramer-Rao bound).
+// simulated images with common random numbers; the final steps and the uncertainties are in
+// uncertainty.cpp.
 #include <ceres/ceres.h>
 
 #include <Eigen/Dense>
 #include <algorithm>
-#include <chrono>
 #include <cmath>
 #include <cstdio>
-#include <deque>
 #include <iostream>
 #include <sstream>
 
 #include <unistd.h>
 
-#include "model.h"
-#include "raymatch/fit/fit.h"
+#include "runner.h"
 
 namespace raymatch::fit {
 
-namespace {
-
-using Clock = std::chrono::steady_clock;
-double Since(Clock::time_point t0) { return std::chrono::duration<double>(Clock::now() - t0).count(); }
-
-using Matrix = std::vector<std::vector<double>>;
-
-Matrix Correlation(const Matrix& cov) {
-  Matrix c = cov;
-  for (size_t i = 0; i < cov.size(); ++i)
-    for (size_t j = 0; j < cov.size(); ++j) {
-      const double d = std::sqrt(cov[i][i] * cov[j][j]);
-      c[i][j] = d > 0 ? cov[i][j] / d : 0;
-    }
-  return c;
-}
-
-/// Evaluations with bookkeeping: the record of every evaluation, the best so far, progress.
-class Runner {
- public:
-  Runner(const FitSpec& spec, const FitOptions& opt, FitResult* res)
-      : spec_(spec), opt_(opt), res_(res), t0_(Clock::now()),
-        model_(spec, opt.threads > 0 ? opt.threads : spec.threads,
-               [&](const std::string& m) { Say(m); }) {}
-
-  FitModel& model() { return model_; }
-
-  void Say(const std::string& m) {
-    if (!opt_.progress) return;
-    std::fprintf(stderr, "%sraymatch fit: %s\n", isatty(2) ? "\r\033[K" : "", m.c_str());
-  }
-
-  /// Expected images at `th` with the ray fraction and binning of schedule level `level`.
-  Simulated Images(const std::vector<double>& th, size_t level, uint64_t seed,
-                   const std::string& stage, double* error) {
-    // With fixed ray streams an image is a function of (theta, level, seed): the searches come
-    // back to points they have traced (Ceres evaluates the Jacobian where it accepted a step;
-    // the uncertainties start from where the polish ended), so recent images are kept.
-    for (const Cached& c : cache_)
-      if (c.level == level && c.seed == seed && c.theta == th) {
-        if (error) *error = c.error;
-        return c.images;
-      }
-    const auto t0 = Clock::now();
-    const double fraction = spec_.rays.fractions[level];
-    Evaluation ev;
-    ev.theta = th;
-    ev.ray_fraction = fraction;
-    ev.seed = seed;
-    ev.stage = stage;
-    Simulated mu = model_.Expected(th, fraction, seed, &ev.rays);
-    ev.bin = model_.BinAt(level);
-    ev.error = model_.Error(mu, ev.bin);
-    ev.seconds = Since(t0);
-    if (error) *error = ev.error;
-    res_->evaluations.push_back(ev);
-    if (cache_.size() >= 2 * th.size() + 6) cache_.pop_front();  // a polish iteration's images
-    cache_.push_back({th, level, seed, ev.error, mu});
-    if (stage != "fisher" && stage != "repeat" && stage != "slice" &&
-        (best_error_ < 0 || fraction > best_fraction_ || (fraction == best_fraction_ && ev.error < best_error_))) {
-      best_error_ = ev.error, best_fraction_ = fraction;
-    }
-    // Progress: a rewritten line on a terminal (at most twice a second), else a line every 10 s.
-    const double now = Since(t0_);
-    if (opt_.progress && now - last_progress_ >= (tty_ ? 0.5 : 10.0)) {
-      last_progress_ = now;
-      std::fprintf(stderr, "%sraymatch fit: %-8s eval %4zu of at most %d  error %-12s best %-12s "
-                   "ray fraction %-6s  %.0f s%s",
-                   tty_ ? "\r\033[K" : "", stage.c_str(), res_->evaluations.size(),
-                   spec_.max_evaluations, Fmt(ev.error).c_str(), Fmt(best_error_).c_str(),
-                   Fmt(fraction, 3).c_str(), now, tty_ ? "" : "\n");
-      std::fflush(stderr);
-    }
-    return mu;
-  }
-
-  double Eval(const std::vector<double>& th, size_t level, uint64_t seed, const std::string& stage) {
-    double e = 0;
-    Images(th, level, seed, stage, &e);
-    return e;
-  }
-
-  bool Budget() const { return int(res_->evaluations.size()) < spec_.max_evaluations; }
-  size_t Count() const { return res_->evaluations.size(); }
-
-  /// The seed of the streams used at every evaluation of the main fit (common random numbers),
-  /// or a fresh one per evaluation when they are switched off.
-  uint64_t Seed() { return spec_.rays.common_random_numbers ? spec_.seed : spec_.seed + 7919 * ++fresh_; }
-
- private:
-  const FitSpec& spec_;
-  const FitOptions& opt_;
-  FitResult* res_;
-  Clock::time_point t0_;
-  FitModel model_;
-  double best_error_ = -1, best_fraction_ = 0;
-  bool tty_ = isatty(2) != 0;
-  double last_progress_ = -1e9;
-  uint64_t fresh_ = 0;
-  struct Cached {
-    std::vector<double> theta;
-    size_t level;
-    uint64_t seed;
-    double error;
-    Simulated images;
-  };
-  std::deque<Cached> cache_;
-};
-
-std::vector<double> Clip(std::vector<double> th, const FitSpec& spec) {
-  for (size_t i = 0; i < th.size(); ++i)
-    th[i] = std::clamp(th[i], spec.parameters[i].lower, spec.parameters[i].upper);
-  return th;
-}
+namespace internal {
 
 // ------------------------------------------------------------------------------------ grid
 
@@ -156,16 +40,16 @@ std::vector<double> Grid(Runner& run, const FitSpec& spec, FitResult* res) {
       th[i] = res->grid_axes[i][r % res->grid_axes[i].size()];
       r /= res->grid_axes[i].size();
     }
-    const double e = run.Eval(th, level, run.Seed(), "grid");
+    const double e = run.Eval(th, level, run.Seed(), Stage::kGrid);
     res->grid_errors.push_back(e);
     if (best.empty() || e < best_e) best = th, best_e = e;
   }
   const auto [mn, mx] = std::minmax_element(res->grid_errors.begin(), res->grid_errors.end());
   if (*mn == *mx) {
-    res->status = "flat";
+    res->status = FitStatus::kFlat;
     res->message = "the error function has the same value at every grid point: the parameters do not change the image";
   } else {
-    res->status = "converged";
+    res->status = FitStatus::kConverged;
     res->converged = true;
     res->message = "grid minimum of " + std::to_string(total) + " points";
   }
@@ -179,7 +63,7 @@ std::vector<double> Grid(Runner& run, const FitSpec& spec, FitResult* res) {
 /// Marks in *moved the parameters whose polls changed the error. False when the evaluation
 /// budget ran out.
 bool Compass(Runner& run, const FitSpec& spec, size_t level, const std::function<uint64_t()>& seed,
-             const std::string& stage, std::vector<double>* x, double* delta, double delta_min,
+             Stage stage, std::vector<double>* x, double* delta, double delta_min,
              std::vector<bool>* moved) {
   double fx = run.Eval(*x, level, seed(), stage);
   while (*delta >= delta_min) {
@@ -218,16 +102,16 @@ std::vector<double> Pattern(Runner& run, const FitSpec& spec, FitResult* res) {
   for (size_t l = 0; l < L && budget; ++l) {
     const double delta_min = std::pow(4.0, double(L - 1 - l)) / 64;
     delta = std::max(delta, 2 * delta_min);
-    budget = Compass(run, spec, l, [&] { return run.Seed(); }, "poll", &x, &delta, delta_min, &moved);
+    budget = Compass(run, spec, l, [&] { return run.Seed(); }, Stage::kPoll, &x, &delta, delta_min, &moved);
   }
   if (std::none_of(moved.begin(), moved.end(), [](bool b) { return b; })) {
-    res->status = "flat";
+    res->status = FitStatus::kFlat;
     res->message = "the error function did not change for any polled step: the parameters do not change the image";
   } else if (!budget) {
-    res->status = "max_evaluations";
+    res->status = FitStatus::kMaxEvaluations;
     res->message = "stopped after max_evaluations = " + std::to_string(spec.max_evaluations);
   } else {
-    res->status = "converged";
+    res->status = FitStatus::kConverged;
     res->converged = true;
     res->message = "pattern mesh below step/64";
   }
@@ -236,26 +120,9 @@ std::vector<double> Pattern(Runner& run, const FitSpec& spec, FitResult* res) {
 
 // --------------------------------------------------------------- Levenberg-Marquardt (Ceres)
 
-/// Differences of the expected images and of the deviance residuals with common random numbers
-/// (the same ray streams on both sides): central (for the Fisher information and the reported
-/// curvature) or forward (for Levenberg-Marquardt's search directions: P instead of 2P
-/// evaluations); one-sided at a bound. Step: half the parameter's `step` (twice that half-width
-/// on the final sets gave case A's radius an RMS error of 2.9 Cramer-Rao bounds instead of 1.8:
-/// the truncation error costs more than the Monte Carlo noise it saves, docs/performance.md).
-/// `with_center` false (central differences only): the image at theta is not traced, and `mu`
-/// and `residuals` stay empty (the extra derivative sets at the optimum use only the
-/// differences: one image fewer per set).
-struct Differences {
-  Simulated mu;                           // at theta
-  std::vector<std::vector<Image>> dmu;    // [image][parameter] d mu / d theta_i
-  Eigen::MatrixXd jacobian;               // residuals x parameters
-  Eigen::VectorXd residuals;
-  std::vector<bool> flat;                 // parameter leaves every pixel unchanged
-};
-
 Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<double>& th,
-                          size_t level, uint64_t seed, const std::string& stage, bool central,
-                          bool with_center = true) {
+                          size_t level, uint64_t seed, Stage stage, bool central,
+                          bool with_center) {
   FitModel& m = run.model();
   const int bin = m.BinAt(level);
   const size_t P = th.size(), R = m.num_residuals(bin);
@@ -307,9 +174,6 @@ Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<do
   return d;
 }
 
-/// The mean of sets[first], sets[first + stride], ...: Jacobian and derivative images averaged
-/// (mu, residuals and flags of the first). Derivatives from independent ray streams average
-/// their counting noise down; disjoint halves give the unbiased cross products.
 Differences AverageSets(const std::vector<Differences>& sets, size_t first, size_t stride) {
   Differences a = sets.at(first);
   size_t n = 1;
@@ -340,7 +204,7 @@ class ImageCost : public ceres::CostFunction {
     const std::vector<double> th = Clip(std::vector<double>(params[0], params[0] + P), spec_);
     if (!run_.Budget()) return false;
     if (jacobians && jacobians[0]) {
-      const Differences d = Differentiate(run_, spec_, th, level_, seed_, "lm", true);
+      const Differences d = Differentiate(run_, spec_, th, level_, seed_, Stage::kLm, true);
       std::copy(d.residuals.data(), d.residuals.data() + d.residuals.size(), residuals);
       // Ceres wants row-major residuals x parameters.
       Eigen::Map<Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>> J(
@@ -349,7 +213,7 @@ class ImageCost : public ceres::CostFunction {
       *flat_ = d.flat;
     } else {
       double e = 0;
-      const Simulated mu = run_.Images(th, level_, seed_, "lm", &e);
+      const Simulated mu = run_.Images(th, level_, seed_, Stage::kLm, &e);
       run_.model().DevianceResiduals(mu, run_.model().BinAt(level_), residuals);
     }
     return true;
@@ -363,11 +227,6 @@ class ImageCost : public ceres::CostFunction {
   std::vector<bool>* flat_;
 };
 
-/// The polish and the final steps end when the Gauss-Newton decrease of the deviance they
-/// predict is below this: the remaining step is a fraction (0.22) of one sigma. A deviance change
-/// of 1 is one standard deviation along the least determined direction: a polish that stopped
-/// there would end up to 1 sigma short of the optimum, on the side it came from.
-constexpr double kPolishTolerance = 0.05;
 
 /// Stops a level once the search stalls at the resolution the ray streams allow: a successful
 /// step that lowered the deviance by less than 1 or moved every parameter by less than 1/32 of
@@ -401,11 +260,74 @@ class StallCallback : public ceres::IterationCallback {
   int failures_ = 0;
 };
 
-/// Whether the fit ends with Fisher-scoring steps at the optimum (the Poisson error with
-/// Levenberg-Marquardt and more than the two derivative sets the uncertainties need).
-bool FinalStepsRun(const FitSpec& spec) {
-  return spec.uncertainties && spec.method == Method::kLevenbergMarquardt &&
-         spec.error == ErrorFunction::kPoisson && spec.rays.jacobian_seeds > 2;
+/// Gauss-Newton polish at schedule level L from `start`. Levenberg-Marquardt's damping crawls
+/// along a weakly determined valley (z, radius and index of a defocused sphere), and its
+/// shrinking trust region ends on the staircase that fixed ray streams make at small steps.
+/// Undamped steps from central differences at half the parameter steps cross the valley; a step
+/// is kept when it lowers the deviance (by more than kPolishTolerance / 2), halving it up to 3
+/// times. The polish moves by far less than the difference steps, so the Jacobian is kept (a
+/// chord method: one image per iteration instead of 2P + 2) while the point stays inside the
+/// neighbourhood of the stencil it came from (within 2h = step of each parameter, h = step/2).
+/// It ends when the predicted decrease of the deviance is below kPolishTolerance, i.e. the
+/// remaining step is a fraction of the statistical uncertainty, confirmed with a Jacobian at
+/// that point (which the uncertainties then reuse).
+std::vector<double> Polish(Runner& run, const FitSpec& spec, const std::vector<double>& start, size_t L,
+                           uint64_t seed, Stage stage) {
+  const size_t P = spec.parameters.size();
+  const int bin = run.model().BinAt(L);
+  // kPolishTolerance: with fixed ray streams the deviance differences between nearby points
+  // are deterministic, so steps much smaller than one sigma still count.
+  std::vector<double> x = Clip(start, spec);
+  Eigen::MatrixXd J;
+  Eigen::VectorXd r;
+  std::vector<double> x_jacobian;
+  for (int it = 0; it < 12 && run.Budget(); ++it) {
+    bool fresh = J.size() == 0;
+    for (size_t i = 0; i < P && !fresh; ++i)
+      fresh = std::abs(x[i] - x_jacobian[i]) > spec.parameters[i].step;
+    if (fresh) {
+      const Differences d = Differentiate(run, spec, x, L, seed, stage, true);
+      J = d.jacobian, r = d.residuals, x_jacobian = x;
+    }
+    const double dev = r.squaredNorm();
+    Eigen::MatrixXd A = J.transpose() * J;
+    A.diagonal() *= 1 + 1e-9;
+    const Eigen::VectorXd step = A.ldlt().solve(-J.transpose() * r);
+    if (!step.allFinite()) break;
+    const double predicted = step.dot(A * step);  // Gauss-Newton's decrease of the deviance
+    if (predicted < kPolishTolerance) {
+      if (fresh) break;
+      J.resize(0, 0);  // confirm with the Jacobian at this point before stopping
+      continue;
+    }
+    bool accepted = false;
+    for (double scale = 1; scale >= 0.125 && !accepted && run.Budget(); scale *= 0.5) {
+      std::vector<double> y = x;
+      for (size_t i = 0; i < P; ++i) y[i] += scale * step(i);
+      y = Clip(y, spec);
+      double e = 0;
+      const Simulated mu = run.Images(y, L, seed, stage, &e);
+      Eigen::VectorXd ry(r.size());
+      run.model().DevianceResiduals(mu, bin, ry.data());
+      // Kept when it lowers the deviance, or when it lowers the Gauss-Newton decrease still
+      // predicted (the estimating equation J^T r = 0 with this smooth chord Jacobian). With
+      // fixed ray streams the deviance is rough at scales below one sigma (rays cross pixel
+      // edges one by one: jumps of a few units within +-1 sigma of the index, docs/fit.md
+      // "Finite rays"), and a search that keeps only its descents ends in whichever local dip
+      // of that roughness it meets first, up to several sigma from the smooth optimum; the
+      // predicted decrease is linear in the counts and not rough at that scale.
+      const Eigen::VectorXd gy = J.transpose() * ry;
+      const double predicted_y = gy.dot(A.ldlt().solve(gy));
+      if (ry.squaredNorm() < dev - 0.5 * kPolishTolerance ||
+          (spec.rays.smooth_polish && predicted_y < 0.5 * predicted))
+        x = y, r = ry, accepted = true;
+    }
+    if (!accepted) {
+      if (fresh) break;
+      J.resize(0, 0);  // a stale Jacobian may have pointed the wrong way: renew it once
+    }
+  }
+  return x;
 }
 
 /// Levenberg-Marquardt on signed Poisson deviance residuals (sum of squares = deviance, so the
@@ -457,90 +379,25 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
     ok = ok && sum.IsSolutionUsable();
     if (record && std::all_of(flat.begin(), flat.end(), [](bool b) { return b; })) break;
   }
-  // Gauss-Newton polish at the final level. Levenberg-Marquardt's damping crawls along a weakly
-  // determined valley (z, radius and index of a defocused sphere), and its shrinking trust
-  // region ends on the staircase that fixed ray streams make at small steps. Undamped steps from
-  // central differences at half the parameter steps cross the valley; a step is kept when it
-  // lowers the deviance (by more than kPolishTolerance / 2), halving it up to 3 times.
-  // The polish moves by far less than the difference steps, so the Jacobian is kept (a chord
-  // method: one image per iteration instead of 2P + 2) while the point stays inside the
-  // neighbourhood of the stencil it came from (within 2h = step of each parameter, h = step/2).
-  // It ends when the predicted decrease of the deviance is below kPolishTolerance, i.e. the
-  // remaining step is a fraction of the statistical uncertainty, confirmed with a Jacobian at
-  // that point (which the uncertainties then reuse).
-  // Skipped in the main search when the final Fisher-scoring rounds follow (`[rays] polish`):
-  // they start from the coarse optimum and cross the valley with averaged derivatives.
+  // Then the Gauss-Newton polish at the final level (Polish). Skipped in the main search when
+  // the final Fisher-scoring rounds follow (`[rays] polish`): they start from the coarse
+  // optimum and cross the valley with averaged derivatives.
   const bool polish = !record || spec.rays.polish || !FinalStepsRun(spec);
-  if (polish && !levels.empty() && std::none_of(flat.begin(), flat.end(), [](bool b) { return b; })) {
-    const size_t L = levels.back();
-    const int bin = run.model().BinAt(L);
-    const std::string stage = record ? "polish" : "repeat";
-    // kPolishTolerance: with fixed ray streams the deviance differences between nearby points
-    // are deterministic, so steps much smaller than one sigma still count.
-    x = Clip(x, spec);
-    Eigen::MatrixXd J;
-    Eigen::VectorXd r;
-    std::vector<double> x_jacobian;
-    for (int it = 0; it < 12 && run.Budget(); ++it) {
-      bool fresh = J.size() == 0;
-      for (size_t i = 0; i < P && !fresh; ++i)
-        fresh = std::abs(x[i] - x_jacobian[i]) > spec.parameters[i].step;
-      if (fresh) {
-        const Differences d = Differentiate(run, spec, x, L, seed, stage, true);
-        J = d.jacobian, r = d.residuals, x_jacobian = x;
-      }
-      const double dev = r.squaredNorm();
-      Eigen::MatrixXd A = J.transpose() * J;
-      A.diagonal() *= 1 + 1e-9;
-      const Eigen::VectorXd step = A.ldlt().solve(-J.transpose() * r);
-      if (!step.allFinite()) break;
-      const double predicted = step.dot(A * step);  // Gauss-Newton's decrease of the deviance
-      if (predicted < kPolishTolerance) {
-        if (fresh) break;
-        J.resize(0, 0);  // confirm with the Jacobian at this point before stopping
-        continue;
-      }
-      bool accepted = false;
-      for (double scale = 1; scale >= 0.125 && !accepted && run.Budget(); scale *= 0.5) {
-        std::vector<double> y = x;
-        for (size_t i = 0; i < P; ++i) y[i] += scale * step(i);
-        y = Clip(y, spec);
-        double e = 0;
-        const Simulated mu = run.Images(y, L, seed, stage, &e);
-        Eigen::VectorXd ry(r.size());
-        run.model().DevianceResiduals(mu, bin, ry.data());
-        // Kept when it lowers the deviance, or when it lowers the Gauss-Newton decrease still
-        // predicted (the estimating equation J^T r = 0 with this smooth chord Jacobian). With
-        // fixed ray streams the deviance is rough at scales below one sigma (rays cross pixel
-        // edges one by one: jumps of a few units within +-1 sigma of the index, docs/fit.md
-        // "Finite rays"), and a search that keeps only its descents ends in whichever local dip
-        // of that roughness it meets first, up to several sigma from the smooth optimum; the
-        // predicted decrease is linear in the counts and not rough at that scale.
-        const Eigen::VectorXd gy = J.transpose() * ry;
-        const double predicted_y = gy.dot(A.ldlt().solve(gy));
-        if (ry.squaredNorm() < dev - 0.5 * kPolishTolerance ||
-            (spec.rays.smooth_polish && predicted_y < 0.5 * predicted))
-          x = y, r = ry, accepted = true;
-      }
-      if (!accepted) {
-        if (fresh) break;
-        J.resize(0, 0);  // a stale Jacobian may have pointed the wrong way: renew it once
-      }
-    }
-  }
+  if (polish && !levels.empty() && std::none_of(flat.begin(), flat.end(), [](bool b) { return b; }))
+    x = Polish(run, spec, x, levels.back(), seed, record ? Stage::kPolish : Stage::kRepeat);
   if (!record) return Clip(x, spec);
   std::string flat_keys;
   for (size_t i = 0; i < P; ++i)
     if (flat[i]) flat_keys += (flat_keys.empty() ? "" : ", ") + spec.parameters[i].key;
   if (!flat_keys.empty()) {
-    res->status = "flat";
+    res->status = FitStatus::kFlat;
     res->message = "the image does not change with " + flat_keys + " (flat error function): the fit cannot move it";
   } else if (!run.Budget()) {
-    res->status = "max_evaluations";
+    res->status = FitStatus::kMaxEvaluations;
     res->message = "stopped after max_evaluations = " + std::to_string(spec.max_evaluations);
   } else {
     res->converged = ok;
-    res->status = ok ? "converged" : "failed";
+    res->status = ok ? FitStatus::kConverged : FitStatus::kFailed;
     res->message = std::string("Levenberg-Marquardt: ") +
                    (term == ceres::CONVERGENCE || term == ceres::USER_SUCCESS
                         ? "converged (steps below what the ray streams resolve)"
@@ -549,7 +406,9 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
   return Clip(x, spec);
 }
 
-}  // namespace
+}  // namespace internal
+
+using namespace internal;
 
 Matrix InverseSpd(const Matrix& m) {
   const size_t n = m.size();
@@ -622,92 +481,8 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
   res.near_ray_fraction = model.near_fraction();
 
   const auto t_unc = Clock::now();
-  // 1b. Derivatives at the optimum from several independent sets of ray streams, and final
-  // Gauss-Newton steps with their average. With fixed ray streams a central difference counts
-  // the rays that cross pixel edges, and at photon-matched rays that counting noise is as large
-  // as the derivative itself for z and the index (measured: the single-stream Jacobian's column
-  // for the index has a cosine of 0.62 with the exact one). The root of J^T r = 0 with such a J
-  // scatters up to 2x the Cramer-Rao bound; averaging `jacobian_seeds` sets divides the noise's
-  // variance by their number (docs/fit.md, "Finite rays"). The sets are the uncertainties' too.
-  // When the steps move the optimum by more than half a step (the stencil's half-width) of any
-  // parameter, or end with a decrease still predicted, the derivatives are taken again there
-  // (at most three rounds): along the curved z-radius-index valley a single linearisation
-  // stops short (issue 26 item 2: z 0.2 um short, 7 CRB, from starts 1.8 um off).
-  Differences half_a, half_b;  // averages of the even and the odd sets (the first is the main streams)
-  Simulated final_sim;
-  // The noise of the derivatives in the final steps' score, as a Gram matrix in the residuals'
-  // metric (empty when no scoring steps ran): the uncertainties add its effect.
-  Eigen::MatrixXd score_derivative_noise;
-  for (int round = 0; round < 3 && res.status != "flat" && spec.uncertainties && (round == 0 || run.Budget());
-       ++round) {
-    const size_t S = size_t(std::max(2, spec.rays.jacobian_seeds));
-    std::vector<Differences> sets;
-    for (size_t s = 0; s < S; ++s)
-      sets.push_back(
-          Differentiate(run, spec, best, final_level, spec.seed + 7777777ull * s, "fisher", true, s == 0));
-    half_a = AverageSets(sets, 0, 2), half_b = AverageSets(sets, 1, 2);
-    if (!FinalStepsRun(spec) || !run.Budget())
-      break;  // (the sets are always taken: the uncertainties need them, as before the steps)
-    // Fisher scoring (the Poisson score and expected information, linear in the counts) with
-    // derivative images from the other streams only: the main streams' differences count the
-    // same rays as their template, and that correlation would bias the score by O(1/k).
-    const Differences others = AverageSets(sets, 1, 1);
-    const std::vector<std::vector<Image>>& dmu = others.dmu;
-    const int bin = model.BinAt(final_level);
-    // The root of the score J~^T W (e - mu) = 0 with a noisy J~ = J + dJ moves by
-    // F^-1 dJ^T W (e - mu): zero on average, but with variance F^-1 N F^-1 (1 + 1/k), N the
-    // noise Gram matrix of the mean of the S - 1 sets, estimated by their scatter (Jacobians of
-    // the deviance residuals, whose Gram matrix is the information). Measured: a single set's
-    // index column has a cosine of 0.62 with the exact derivative, so with three sets this adds
-    // about half the information's size along the valley (docs/fit.md, "Finite rays").
-    {
-      const double m = double(S - 1);
-      Eigen::MatrixXd gram = Eigen::MatrixXd::Zero(Eigen::Index(P), Eigen::Index(P));
-      for (size_t s = 1; s < S; ++s) {
-        const Eigen::MatrixXd dev = sets[s].jacobian - others.jacobian;
-        gram += dev.transpose() * dev;
-      }
-      score_derivative_noise = gram / ((m - 1) * m);
-    }
-    std::vector<double> x = best, sc, info;
-    model.Score(sets[0].mu, dmu, bin, &sc, &info);  // the main ray streams, as in the search
-    // The information for the steps from the cross product of the two halves (unbiased, as for
-    // the uncertainties): sum dmu dmu^T / T with one noisy dmu is inflated by the derivatives'
-    // noise, most along the weakly determined valley, where it shrank every step by half
-    // (measured: z crept 0.025, 0.010, 0.005 um towards a truth 0.1 um away).
-    Eigen::MatrixXd F = Eigen::Map<const Eigen::MatrixXd>(info.data(), P, P);
-    if (bin == 1) {
-      const Matrix cross = FisherInformation(sets[0].mu.photons, half_a.dmu, half_b.dmu);
-      if (!InverseSpd(cross).empty())  // else (rare: noise) the one-sided information
-        for (size_t i = 0; i < P; ++i)
-          for (size_t j = 0; j < P; ++j) F(i, j) = cross[i][j];
-    }
-    const auto solver = F.ldlt();
-    auto Predicted = [&](const std::vector<double>& v) {
-      const Eigen::VectorXd g = Eigen::Map<const Eigen::VectorXd>(v.data(), P);
-      return g.dot(solver.solve(g));
-    };
-    double predicted = Predicted(sc);
-    for (int it = 0; it < 4 && run.Budget() && predicted >= kPolishTolerance; ++it) {
-      const Eigen::VectorXd step = solver.solve(Eigen::Map<const Eigen::VectorXd>(sc.data(), P));
-      if (!step.allFinite()) break;
-      std::vector<double> y = x;
-      for (size_t i = 0; i < P; ++i) y[i] += step(i);
-      y = Clip(y, spec);
-      double e = 0;
-      const Simulated mu_y = run.Images(y, final_level, spec.seed, "final", &e);
-      std::vector<double> sy, unused;
-      model.Score(mu_y, dmu, bin, &sy, &unused);
-      const double predicted_y = Predicted(sy);
-      if (!(predicted_y < predicted)) break;
-      x = y, sc = sy, predicted = predicted_y, final_sim = mu_y;
-    }
-    bool far = false;
-    for (size_t i = 0; i < P; ++i) far = far || std::abs(x[i] - best[i]) > 0.5 * spec.parameters[i].step;
-    const bool moved = x != best;
-    best = x;
-    if ((!far && predicted < kPolishTolerance) || !moved) break;
-  }
+  // 1b. Derivative sets at the optimum and the final Fisher-scoring steps (uncertainty.cpp).
+  const OptimumDerivatives od = FinalSteps(run, spec, &best, res);
 
   for (size_t i = 0; i < P; ++i) {
     const Parameter& p = spec.parameters[i];
@@ -721,112 +496,11 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
 
   // 2. Uncertainties at the optimum (skipped for a flat problem: there is no curvature).
   Simulated best_sim;
-  if (res.status != "flat" && spec.uncertainties) {
-    // The information from two independent halves of the derivative sets. The noise of a Monte
-    // Carlo difference adds a positive bias to any sum of squared derivatives (J^T J, Fisher),
-    // which would make the information look larger than it is; the cross product of two
-    // independent estimates is free of it (its noise averages out instead of adding up).
-    const Differences& d = half_a;
-    const Differences& d2 = half_b;
-    best_sim = final_sim.photons.empty() ? d.mu : final_sim;
-    res.best_images = best_sim.photons;
-    const Eigen::MatrixXd JtJ =
-        0.5 * (d.jacobian.transpose() * d2.jacobian + d2.jacobian.transpose() * d.jacobian);
-    Matrix H(P, std::vector<double>(P));
-    for (size_t i = 0; i < P; ++i)
-      for (size_t j = 0; j < P; ++j) H[i][j] = JtJ(i, j);
-    const Matrix cov = InverseSpd(H);
-    const double k = spec.rays.ray_factor * spec.rays.fractions.back();
-    // The estimate's covariance: C (1 + 1/k) from the experiment's and the template's noise,
-    // plus C N C (1 + 1/k) from the noise N of the derivatives that the final steps' score used.
-    auto Total = [&](const Matrix& c) {
-      Matrix t = c;
-      if (score_derivative_noise.size() == 0) return t;
-      Eigen::MatrixXd cm(static_cast<Eigen::Index>(P), static_cast<Eigen::Index>(P));
-      for (size_t i = 0; i < P; ++i)
-        for (size_t j = 0; j < P; ++j) cm(Eigen::Index(i), Eigen::Index(j)) = c[i][j];
-      const Eigen::MatrixXd extra = cm * score_derivative_noise * cm;
-      for (size_t i = 0; i < P; ++i)
-        for (size_t j = 0; j < P; ++j) t[i][j] += extra(Eigen::Index(i), Eigen::Index(j));
-      return t;
-    };
-    auto SetSigmas = [&](const Matrix& c) {
-      const Matrix t = Total(c);
-      for (size_t i = 0; i < P; ++i) {
-        res.parameters[i].sigma = std::sqrt(t[i][i] * (1 + 1 / k));
-        res.parameters[i].sigma_derivatives = std::sqrt(std::max(0.0, t[i][i] - c[i][i]) * (1 + 1 / k));
-      }
-      res.correlation = Correlation(t);
-    };
-    if (!cov.empty()) {
-      for (size_t i = 0; i < P; ++i) res.parameters[i].sigma_curvature = std::sqrt(cov[i][i]);
-      SetSigmas(cov);
-    }
-    const Matrix crb =
-        spec.cramer_rao || cov.empty() ? InverseSpd(FisherInformation(d.mu.photons, d.dmu, d2.dmu)) : Matrix();
-    if (!crb.empty()) {
-      for (size_t i = 0; i < P; ++i) {
-        res.parameters[i].sigma_cramer_rao = std::sqrt(crb[i][i]);
-        res.parameters[i].sigma_expected = std::sqrt(crb[i][i] * (1 + 1 / k));
-      }
-      res.crb_correlation = Correlation(crb);
-    }
-    if (cov.empty() && !crb.empty()) {
-      // The deviance's curvature from two noisy halves can be indefinite along a weakly
-      // determined direction (many nuisances, e.g. a sphere calibration's edge, width and tilt)
-      // while the expected (Fisher) information is not: the sigmas are the Cramer-Rao bound's
-      // with the template's and the derivatives' noise, as the curvature's would be for a
-      // correct model.
-      SetSigmas(crb);
-      res.message += "; the deviance's curvature is not positive definite (noise along a weakly "
-                     "determined direction): sigmas from the expected (Fisher) information";
-    } else if (cov.empty()) {
-      res.message += "; the curvature does not determine every parameter (information matrix not "
-                     "positive definite): their uncertainties are not reported";
-    }
-    // Repeated fits with independent ray streams, from the optimum, at the final fraction.
-    if (spec.repeat_seeds >= 2) {
-      std::vector<std::vector<double>> reps;
-      for (int k = 1; k <= spec.repeat_seeds && run.Budget(); ++k) {
-        const uint64_t seed = spec.seed + 1000003ull * k;
-        if (spec.method == Method::kLevenbergMarquardt || spec.method == Method::kGrid) {
-          FitResult scratch;
-          reps.push_back(LevenbergMarquardt(run, spec, &scratch, best, seed, {final_level}, false));
-        } else {
-          // Pattern: a compass search at the final fraction with this seed, from the optimum.
-          std::vector<double> x = best;
-          std::vector<bool> moved(P, false);
-          double delta = 0.25;
-          Compass(run, spec, final_level, [&] { return seed; }, "repeat", &x, &delta, 1.0 / 64, &moved);
-          reps.push_back(x);
-        }
-      }
-      if (reps.size() >= 2)
-        for (size_t i = 0; i < P; ++i) {
-          double m = 0, v = 0;
-          for (const auto& r : reps) m += r[i];
-          m /= double(reps.size());
-          for (const auto& r : reps) v += (r[i] - m) * (r[i] - m);
-          res.parameters[i].sigma_repeat = std::sqrt(v / double(reps.size() - 1));
-        }
-    }
-    // Error-function slices through the optimum: +-3 sigma (curvature), at least +-step/2.
-    if (spec.slice_points >= 3) {
-      for (size_t i = 0; i < P; ++i) {
-        ParameterResult& pr = res.parameters[i];
-        const double half = std::max(3 * pr.sigma_curvature, 0.5 * spec.parameters[i].step);
-        for (int k = 0; k < spec.slice_points && run.Budget(); ++k) {
-          std::vector<double> th = best;
-          th[i] = best[i] - half + 2 * half * k / (spec.slice_points - 1);
-          if (th[i] < pr.lower || th[i] > pr.upper) continue;
-          pr.slice_x.push_back(th[i]);
-          pr.slice_error.push_back(run.Eval(th, final_level, spec.seed, "slice"));
-        }
-      }
-    }
+  if (res.status != FitStatus::kFlat && spec.uncertainties) {
+    best_sim = EstimateUncertainties(run, spec, best, od, &res);
   } else {
     double e = 0;
-    best_sim = run.Images(best, final_level, spec.seed, "best", &e);
+    best_sim = run.Images(best, final_level, spec.seed, Stage::kBest, &e);
     res.best_images = best_sim.photons;
   }
   for (size_t k = 0; k < res.best_images.size(); ++k) {
@@ -863,7 +537,7 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
   res.total_seconds = Since(t_start);
   if (options.progress && isatty(2)) std::fprintf(stderr, "\r\033[K");
   for (const ParameterResult& p : res.parameters)
-    if (p.at_bound && res.status == "converged")
+    if (p.at_bound && res.status == FitStatus::kConverged)
       res.message += "; " + p.key + " ended at a bound: widen [lower, upper]";
   return res;
 }

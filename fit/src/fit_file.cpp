@@ -27,6 +27,16 @@ const char* MethodName(Method m) {
   return n[int(m)];
 }
 
+const char* StageName(Stage s) {
+  static const char* n[] = {"grid", "poll", "lm", "polish", "fisher", "final", "repeat", "slice", "best"};
+  return n[int(s)];
+}
+
+const char* StatusName(FitStatus s) {
+  static const char* n[] = {"", "converged", "failed", "max_evaluations", "flat"};
+  return n[int(s)];
+}
+
 namespace {
 
 struct Segment {

@@ -83,7 +83,7 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
   j["method"] = MethodName(spec.method);
   j["error_function"] = ErrorFunctionName(spec.error);
   j["seed"] = spec.seed;
-  j["status"] = res.status;
+  j["status"] = StatusName(res.status);
   j["converged"] = res.converged;
   j["message"] = res.message;
   j["best_error"] = J(res.best_error);
@@ -147,10 +147,10 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
   csv << ",ray_fraction,bin,rays,seed,error,seconds\n";
   size_t idx = 0;
   for (const Evaluation& e : res.evaluations) {
-    nlohmann::json ev = {{"stage", e.stage}, {"theta", e.theta}, {"ray_fraction", e.ray_fraction},
+    nlohmann::json ev = {{"stage", StageName(e.stage)}, {"theta", e.theta}, {"ray_fraction", e.ray_fraction},
                          {"bin", e.bin}, {"rays", e.rays}, {"seed", e.seed}, {"error", J(e.error)}, {"seconds", e.seconds}};
     j["evaluations"].push_back(ev);
-    csv << idx++ << "," << e.stage;
+    csv << idx++ << "," << StageName(e.stage);
     for (double v : e.theta) csv << "," << v;
     csv << "," << e.ray_fraction << "," << e.bin << "," << e.rays << "," << e.seed << "," << e.error << "," << e.seconds << "\n";
   }
@@ -233,7 +233,7 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
        "td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}img{image-rendering:pixelated;"
        "max-width:100%}</style></head><body>\n<h1>raymatch fit</h1>\n<p>"
     << Esc(spec.file) << ": " << MethodName(spec.method) << " on " << ErrorFunctionName(spec.error)
-    << ", status <b>" << Esc(res.status) << "</b>: " << Esc(res.message) << ". " << res.evaluations.size()
+    << ", status <b>" << Esc(StatusName(res.status)) << "</b>: " << Esc(res.message) << ". " << res.evaluations.size()
     << " evaluations in " << Num(res.total_seconds, 3) << " s; best error " << Num(res.best_error) << ".</p>\n"
     << GoodnessHtml(res.goodness) << "<h2>Parameters</h2><table><tr><th>key</th><th>unit</th><th>start</th><th>best</th>"
        "<th>sigma (reported)</th><th>curvature only</th><th>repeat seeds (simulation noise)</th>"

@@ -471,7 +471,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
       std::ostringstream hh;
       hh.precision(6);
       hh << "<h3><a href='fit/" << stem << "/report.html'>" << stem << "</a>: " << fit::MethodName(spec.method)
-         << " on " << fit::ErrorFunctionName(spec.error) << ", " << fr2.status << " (" << fr2.evaluations.size()
+         << " on " << fit::ErrorFunctionName(spec.error) << ", " << fit::StatusName(fr2.status) << " (" << fr2.evaluations.size()
          << " evaluations, " << fr2.total_seconds << " s)</h3><table><tr><th>parameter</th><th>best</th>"
             "<th>sigma</th><th>Cramer-Rao bound</th></tr>";
       for (const auto& p : fr2.parameters)
@@ -482,7 +482,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
         hh << "<p style='padding:4px;border:2px solid " << (fr2.goodness.mismatch ? "#c00" : "#6a6")
            << "'>Goodness of fit: " << fr2.goodness.verdict << "</p>";
       fit_html += hh.str();
-      sum.fits.push_back({stem, fr2.status});
+      sum.fits.push_back({stem, fit::StatusName(fr2.status)});
     });
   }
   if (!fit_html.empty()) fit_html = "<h2>Fits: 3D properties from the images</h2>" + fit_html;

@@ -148,7 +148,7 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
 
   SphereCalibrationResult res;
   res.report = fit::WriteFitOutputs(spec, fr, work.string());
-  res.status = fr.status;
+  res.status = fit::StatusName(fr.status);
   res.goodness = fr.goodness.verdict;
   res.mismatch = fr.goodness.mismatch;
   for (const auto& p : fr.parameters) {
@@ -174,7 +174,7 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
   rec.precision(6);
   rec << "fit of " << fs::absolute(o.scan_folder).string() << " planes";
   for (size_t i : planes) rec << " " << scan.defocus_um[i];
-  rec << " um: " << fr.status << "; " << fr.goodness.verdict << ";";
+  rec << " um: " << fit::StatusName(fr.status) << "; " << fr.goodness.verdict << ";";
   for (const auto& v : res.values) rec << " " << v.key << " = " << v.value << " +- " << v.sigma << ";";
   out.provenance["sphere_calibration"] = rec.str();
   out.provenance["sphere_calibration_base"] = fs::absolute(o.base).string();

@@ -182,7 +182,7 @@ void BindFit(py::module_& m) {
           d["rays"] = e.rays;
           d["seed"] = e.seed;
           d["seconds"] = e.seconds;
-          d["stage"] = e.stage;
+          d["stage"] = fit::StageName(e.stage);
           evals.append(d);
         }
         py::list best, resid;
@@ -192,7 +192,7 @@ void BindFit(py::module_& m) {
         for (const auto& [k, v] : r.seconds) seconds[py::str(k)] = v;
         py::dict d;
         d["converged"] = r.converged;
-        d["status"] = r.status;
+        d["status"] = fit::StatusName(r.status);
         d["message"] = r.message;
         d["parameters"] = params;
         d["correlation"] = ToMatrix(r.correlation);

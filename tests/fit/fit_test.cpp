@@ -247,7 +247,7 @@ TEST_F(FitFile, ParameterThatDoesNotChangeTheImageIsReportedFlat) {
     FitSpec s = spec;
     s.method = m;
     const FitResult r = RunFit(s);
-    EXPECT_EQ(r.status, "flat") << MethodName(m);
+    EXPECT_EQ(r.status, FitStatus::kFlat) << MethodName(m);
     EXPECT_FALSE(r.converged);
     EXPECT_NE(r.message.find("do"), std::string::npos);
   }
@@ -301,7 +301,7 @@ TEST_F(FitFile, FiveParameterSphereRecoversTheTruth) {
   // pattern pulled the index several sigma away).
   const FitSpec spec = LoadFitSpec(Fit(params, "seed = 3\n[rays]\nray_factor = 4\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n"));
   const FitResult r = RunFit(spec);
-  ASSERT_TRUE(r.converged) << r.status << ": " << r.message;
+  ASSERT_TRUE(r.converged) << StatusName(r.status) << ": " << r.message;
   for (int i = 0; i < 5; ++i) {
     const ParameterResult& p = r.parameters[i];
     EXPECT_GT(p.sigma, 0) << p.key;
@@ -518,7 +518,7 @@ TEST_F(FitFile, SaturatedPixelsAreLeftOut) {
 TEST_F(FitFile, PolishRunsOnlyWhereNoFinalStepsFollow) {
   WriteFloatImage(dir_ / "exp.tif", NoiseTestExperiment(), "drop");
   auto stages = [](const FitResult& r) {
-    std::set<std::string> s;
+    std::set<Stage> s;
     for (const Evaluation& e : r.evaluations) s.insert(e.stage);
     return s;
   };
@@ -529,7 +529,7 @@ TEST_F(FitFile, PolishRunsOnlyWhereNoFinalStepsFollow) {
         "fit.toml", "scene = \"model.toml\"\n" + head + "[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n" +
                         kNoiseTestDrop));
     const FitResult r = RunFit(spec);
-    EXPECT_EQ(stages(r).count("polish"), rays.empty() ? 0u : 1u) << rays;
+    EXPECT_EQ(stages(r).count(Stage::kPolish), rays.empty() ? 0u : 1u) << rays;
     EXPECT_EQ(spec.rays.polish, rays == "polish = true\n");
     for (int i = 0; i < 2; ++i) {
       ASSERT_GT(r.parameters[i].sigma, 0) << rays;

@@ -27,6 +27,17 @@ const char* ErrorFunctionName(ErrorFunction e);  ///< "poisson", "mse", "1-ssim"
 enum class Method { kGrid, kPattern, kLevenbergMarquardt };
 const char* MethodName(Method m);  ///< "grid", "pattern", "lm"
 
+/// How a fit ended. kFlat: a parameter leaves every pixel unchanged (the fit cannot move it);
+/// kMaxEvaluations: the evaluation budget ran out; kFailed: the solver gave no usable solution.
+enum class FitStatus { kNone, kConverged, kFailed, kMaxEvaluations, kFlat };
+const char* StatusName(FitStatus s);  ///< "", "converged", "failed", "max_evaluations", "flat"
+
+/// The step of a fit an evaluation belongs to: the search (grid points, pattern polls, LM
+/// levels, the Gauss-Newton polish), the derivative sets and final steps at the optimum, the
+/// repeated fits, the error-function slices, the images at a grid or pattern optimum.
+enum class Stage { kGrid, kPoll, kLm, kPolish, kFisher, kFinal, kRepeat, kSlice, kBest };
+const char* StageName(Stage s);  ///< "grid", "poll", "lm", "polish", "fisher", "final", ...
+
 /// One experimental image (photon counts after dark subtraction and gain).
 struct FitImage {
   std::string file;
@@ -127,7 +138,7 @@ struct Evaluation {
   uint64_t rays = 0;          ///< rays traced in this evaluation (all images)
   uint64_t seed = 0;
   double seconds = 0;
-  std::string stage;          ///< "grid", "poll", "lm", "polish", "fisher", "final", "repeat", "slice"
+  Stage stage = Stage::kLm;   ///< which step of the fit asked for it (StageName() in fit.json)
 };
 
 struct ParameterResult {
@@ -195,7 +206,7 @@ struct GoodnessOfFit {
 
 struct FitResult {
   bool converged = false;
-  std::string status;          ///< "converged", "max_evaluations", "flat", ...
+  FitStatus status = FitStatus::kNone;  ///< StatusName() in fit.json, the terminal and the report
   std::string message;
   std::vector<ParameterResult> parameters;
   std::vector<std::vector<double>> correlation;     ///< from the curvature covariance

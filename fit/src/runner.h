@@ -1,0 +1,209 @@
+#pragma once
+// The fit's internals shared by the search (fit.cpp) and the uncertainties (uncertainty.cpp):
+// the evaluation runner, finite differences over ray-stream sets and the searches the repeated
+// fits reuse. Not installed.
+#include <unistd.h>
+
+#include <Eigen/Dense>
+#include <chrono>
+#include <cstdio>
+#include <deque>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "model.h"
+#include "raymatch/fit/fit.h"
+
+namespace raymatch::fit::internal {
+
+using Clock = std::chrono::steady_clock;
+/// Seed offsets of the ray streams beside the main ones (spec.seed): derivative set s at the
+/// optimum uses seed + s kDerivativeSetSeedStride, repeated fit k seed + k kRepeatSeedStride,
+/// and evaluation n without common random numbers seed + n kFreshSeedStride. Distinct strides
+/// keep the streams of the three apart for any practical count.
+inline constexpr uint64_t kDerivativeSetSeedStride = 7777777;
+inline constexpr uint64_t kRepeatSeedStride = 1000003;
+inline constexpr uint64_t kFreshSeedStride = 7919;
+
+inline double Since(Clock::time_point t0) {
+  return std::chrono::duration<double>(Clock::now() - t0).count();
+}
+
+using Matrix = std::vector<std::vector<double>>;
+
+/// Evaluations with bookkeeping: the record of every evaluation, the best so far, progress.
+class Runner {
+ public:
+  Runner(const FitSpec& spec, const FitOptions& opt, FitResult* res)
+      : spec_(spec),
+        opt_(opt),
+        res_(res),
+        t0_(Clock::now()),
+        model_(spec, opt.threads > 0 ? opt.threads : spec.threads,
+               [&](const std::string& m) { Say(m); }) {}
+
+  FitModel& model() { return model_; }
+
+  void Say(const std::string& m) {
+    if (!opt_.progress) return;
+    std::fprintf(stderr, "%sraymatch fit: %s\n", isatty(2) ? "\r\033[K" : "", m.c_str());
+  }
+
+  /// Expected images at `th` with the ray fraction and binning of schedule level `level`.
+  Simulated Images(const std::vector<double>& th, size_t level, uint64_t seed, Stage stage,
+                   double* error) {
+    // With fixed ray streams an image is a function of (theta, level, seed): the searches come
+    // back to points they have traced (Ceres evaluates the Jacobian where it accepted a step;
+    // the uncertainties start from where the polish ended), so recent images are kept.
+    for (const Cached& c : cache_)
+      if (c.level == level && c.seed == seed && c.theta == th) {
+        if (error) *error = c.error;
+        return c.images;
+      }
+    const auto t0 = Clock::now();
+    const double fraction = spec_.rays.fractions[level];
+    Evaluation ev;
+    ev.theta = th;
+    ev.ray_fraction = fraction;
+    ev.seed = seed;
+    ev.stage = stage;
+    Simulated mu = model_.Expected(th, fraction, seed, &ev.rays);
+    ev.bin = model_.BinAt(level);
+    ev.error = model_.Error(mu, ev.bin);
+    ev.seconds = Since(t0);
+    if (error) *error = ev.error;
+    res_->evaluations.push_back(ev);
+    if (cache_.size() >= 2 * th.size() + 6) cache_.pop_front();  // a polish iteration's images
+    cache_.push_back({th, level, seed, ev.error, mu});
+    if (stage != Stage::kFisher && stage != Stage::kRepeat && stage != Stage::kSlice &&
+        (best_error_ < 0 || fraction > best_fraction_ ||
+         (fraction == best_fraction_ && ev.error < best_error_))) {
+      best_error_ = ev.error, best_fraction_ = fraction;
+    }
+    // Progress: a rewritten line on a terminal (at most twice a second), else a line every 10 s.
+    const double now = Since(t0_);
+    if (opt_.progress && now - last_progress_ >= (tty_ ? 0.5 : 10.0)) {
+      last_progress_ = now;
+      std::fprintf(stderr,
+                   "%sraymatch fit: %-8s eval %4zu of at most %d  error %-12s best %-12s "
+                   "ray fraction %-6s  %.0f s%s",
+                   tty_ ? "\r\033[K" : "", StageName(stage), res_->evaluations.size(),
+                   spec_.max_evaluations, Fmt(ev.error).c_str(), Fmt(best_error_).c_str(),
+                   Fmt(fraction, 3).c_str(), now, tty_ ? "" : "\n");
+      std::fflush(stderr);
+    }
+    return mu;
+  }
+
+  double Eval(const std::vector<double>& th, size_t level, uint64_t seed, Stage stage) {
+    double e = 0;
+    Images(th, level, seed, stage, &e);
+    return e;
+  }
+
+  bool Budget() const { return int(res_->evaluations.size()) < spec_.max_evaluations; }
+  size_t Count() const { return res_->evaluations.size(); }
+
+  /// The seed of the streams used at every evaluation of the main fit (common random numbers),
+  /// or a fresh one per evaluation when they are switched off.
+  uint64_t Seed() {
+    return spec_.rays.common_random_numbers ? spec_.seed : spec_.seed + kFreshSeedStride * ++fresh_;
+  }
+
+ private:
+  const FitSpec& spec_;
+  const FitOptions& opt_;
+  FitResult* res_;
+  Clock::time_point t0_;
+  FitModel model_;
+  double best_error_ = -1, best_fraction_ = 0;
+  bool tty_ = isatty(2) != 0;
+  double last_progress_ = -1e9;
+  uint64_t fresh_ = 0;
+  struct Cached {
+    std::vector<double> theta;
+    size_t level;
+    uint64_t seed;
+    double error;
+    Simulated images;
+  };
+  std::deque<Cached> cache_;
+};
+
+inline std::vector<double> Clip(std::vector<double> th, const FitSpec& spec) {
+  for (size_t i = 0; i < th.size(); ++i)
+    th[i] = std::clamp(th[i], spec.parameters[i].lower, spec.parameters[i].upper);
+  return th;
+}
+
+/// Differences of the expected images and of the deviance residuals with common random numbers
+/// (the same ray streams on both sides): central (for the Fisher information and the reported
+/// curvature) or forward (for Levenberg-Marquardt's search directions: P instead of 2P
+/// evaluations); one-sided at a bound. Step: half the parameter's `step` (twice that half-width
+/// on the final sets gave case A's radius an RMS error of 2.9 Cramer-Rao bounds instead of 1.8:
+/// the truncation error costs more than the Monte Carlo noise it saves, docs/performance.md).
+/// `with_center` false (central differences only): the image at theta is not traced, and `mu`
+/// and `residuals` stay empty (the extra derivative sets at the optimum use only the
+/// differences: one image fewer per set).
+struct Differences {
+  Simulated mu;                         // at theta
+  std::vector<std::vector<Image>> dmu;  // [image][parameter] d mu / d theta_i
+  Eigen::MatrixXd jacobian;             // residuals x parameters
+  Eigen::VectorXd residuals;
+  std::vector<bool> flat;  // parameter leaves every pixel unchanged
+};
+
+Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<double>& th,
+                          size_t level, uint64_t seed, Stage stage, bool central,
+                          bool with_center = true);
+
+/// The mean of sets[first], sets[first + stride], ...: Jacobian and derivative images averaged
+/// (mu, residuals and flags of the first). Derivatives from independent ray streams average
+/// their counting noise down; disjoint halves give the unbiased cross products.
+Differences AverageSets(const std::vector<Differences>& sets, size_t first, size_t stride);
+
+/// The polish and the final steps end when the Gauss-Newton decrease of the deviance they
+/// predict is below this: the remaining step is a fraction (0.22) of one sigma. A deviance change
+/// of 1 is one standard deviation along the least determined direction: a polish that stopped
+/// there would end up to 1 sigma short of the optimum, on the side it came from.
+inline constexpr double kPolishTolerance = 0.05;
+
+/// Whether the fit ends with Fisher-scoring steps at the optimum (the Poisson error with
+/// Levenberg-Marquardt and more than the two derivative sets the uncertainties need).
+inline bool FinalStepsRun(const FitSpec& spec) {
+  return spec.uncertainties && spec.method == Method::kLevenbergMarquardt &&
+         spec.error == ErrorFunction::kPoisson && spec.rays.jacobian_seeds > 2;
+}
+
+/// One compass search at schedule level `level` from *x (fit.cpp).
+bool Compass(Runner& run, const FitSpec& spec, size_t level, const std::function<uint64_t()>& seed,
+             Stage stage, std::vector<double>* x, double* delta, double delta_min,
+             std::vector<bool>* moved);
+
+/// Levenberg-Marquardt over the levels, then the polish (fit.cpp); `record` false: a repeat.
+std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResult* res,
+                                       const std::vector<double>& start, uint64_t seed,
+                                       const std::vector<size_t>& levels, bool record);
+
+/// The derivative sets at the optimum and what the final steps leave for the uncertainties.
+struct OptimumDerivatives {
+  Differences half_a,
+      half_b;           // averages of the even and the odd sets (the first is the main streams)
+  Simulated final_sim;  // the main streams' images at the last accepted step (empty: none)
+  // The noise of the derivatives in the final steps' score, as a Gram matrix in the residuals'
+  // metric (empty when no scoring steps ran): the uncertainties add its effect.
+  Eigen::MatrixXd score_derivative_noise;
+};
+
+/// Derivative sets at the optimum and the final Fisher-scoring steps, which move *best
+/// (uncertainty.cpp).
+OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<double>* best,
+                              const FitResult& res);
+
+/// Sigmas, correlations, Cramer-Rao bounds, repeated fits and slices at the optimum into
+/// res->parameters; returns the expected images there (uncertainty.cpp).
+Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vector<double>& best,
+                                const OptimumDerivatives& od, FitResult* res);
+
+}  // namespace raymatch::fit::internal

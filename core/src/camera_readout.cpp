@@ -7,8 +7,8 @@
 
 namespace raymatch {
 
-Image ToCodeValues(const Image& electrons, const CameraReadout& camera, uint64_t seed, uint32_t stream,
-                   ReadoutCounts* counts) {
+Image ToCodeValues(const Image& electrons, const CameraReadout& camera, uint64_t seed,
+                   uint32_t stream, ReadoutCounts* counts) {
   Image dn(electrons.width, electrons.height);
   const double top = camera.max_code();
   const double well = camera.well_capacity_e > 0 ? camera.well_capacity_e : HUGE_VAL;

@@ -65,7 +65,7 @@ Image ContinuedMap(const SourceSpec& ss, double* extent) {
   };
   const bool keep_in = ss.edge_part != SourceSpec::EdgePart::kBeyond;
   const bool keep_out = ss.edge_part != SourceSpec::EdgePart::kInside;
-  const double inner = s_na - 1.5 * pu;  // a measured ring just inside the cut
+  const double inner = s_na - 1.5 * pu;    // a measured ring just inside the cut
   auto map_at = [&](double u, double v) {  // nearest map pixel, 0 outside the map
     const int x = int(std::floor((u + ext) / pu)), y = int(std::floor((ext - v) / pu));
     return (x < 0 || y < 0 || x >= n || y >= n) ? 0.0 : double(m.at(x, y));

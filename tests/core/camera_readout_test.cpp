@@ -12,7 +12,8 @@ namespace {
 
 CameraReadout Camera(double gain, double dark, double read, double well, int bits) {
   CameraReadout c;
-  c.gain_e_per_dn = gain, c.dark_dn = dark, c.read_noise_e = read, c.well_capacity_e = well, c.bit_depth = bits;
+  c.gain_e_per_dn = gain, c.dark_dn = dark, c.read_noise_e = read, c.well_capacity_e = well,
+  c.bit_depth = bits;
   return c;
 }
 

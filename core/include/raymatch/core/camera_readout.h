@@ -13,11 +13,11 @@ namespace raymatch {
 /// Detected photons are taken as photoelectrons (quantum efficiency 1: the simulated counts are
 /// already the detected photons).
 struct CameraReadout {
-  double gain_e_per_dn = 1;      ///< electrons per code value
-  double dark_dn = 0;            ///< offset (dark level) in code values
-  double read_noise_e = 0;       ///< rms read noise, electrons
-  double well_capacity_e = 0;    ///< full-well capacity, electrons (0: no limit)
-  int bit_depth = 16;            ///< converter bits: code values 0 .. 2^bits - 1
+  double gain_e_per_dn = 1;    ///< electrons per code value
+  double dark_dn = 0;          ///< offset (dark level) in code values
+  double read_noise_e = 0;     ///< rms read noise, electrons
+  double well_capacity_e = 0;  ///< full-well capacity, electrons (0: no limit)
+  int bit_depth = 16;          ///< converter bits: code values 0 .. 2^bits - 1
   double max_code() const { return double((uint64_t(1) << bit_depth) - 1); }
 };
 
@@ -31,7 +31,7 @@ struct ReadoutCounts {
 
 /// Code values of a frame of photoelectron counts. The read noise of pixel i is drawn from the
 /// counter-based stream (seed, stream, i), so the frame does not depend on thread counts.
-Image ToCodeValues(const Image& electrons, const CameraReadout& camera, uint64_t seed, uint32_t stream,
-                   ReadoutCounts* counts = nullptr);
+Image ToCodeValues(const Image& electrons, const CameraReadout& camera, uint64_t seed,
+                   uint32_t stream, ReadoutCounts* counts = nullptr);
 
 }  // namespace raymatch

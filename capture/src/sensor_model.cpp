@@ -5,7 +5,7 @@
 #include <string>
 
 #include "raymatch/core/error.h"
-#include "raymatch/core/rng.h"
+#include "raymatch/core/camera_readout.h"
 
 namespace raymatch::capture {
 
@@ -22,16 +22,11 @@ void SensorModel::Validate() const {
 
 Image ExposeSensor(const SensorModel& m, const Image& electrons, double analogue_gain,
                    uint64_t seed, uint32_t stream) {
-  Image dn(electrons.width, electrons.height);
-  const double scale = analogue_gain / m.gain_e_per_dn, top = m.max_dn();
-  for (size_t i = 0; i < electrons.size(); ++i) {
-    RayRng rng(seed, stream, i);
-    // Box-Muller; 1 - U is in (0, 1], so the log is finite.
-    const double g = std::sqrt(-2 * std::log(1 - rng.Uniform())) * std::cos(2 * M_PI * rng.Uniform());
-    const double e = std::min(double(electrons.pixels[i]), m.well_capacity_e) + m.read_noise_e * g;
-    dn.pixels[i] = float(std::clamp(std::round(e * scale + m.black_level_dn), 0.0, top));
-  }
-  return dn;
+  // The read-out chain is core's (camera_readout.h); analogue gain divides the electrons per DN.
+  CameraReadout c;
+  c.gain_e_per_dn = m.gain_e_per_dn / analogue_gain, c.dark_dn = m.black_level_dn;
+  c.read_noise_e = m.read_noise_e, c.well_capacity_e = m.well_capacity_e, c.bit_depth = m.bit_depth;
+  return ToCodeValues(electrons, c, seed, stream);
 }
 
 }  // namespace raymatch::capture

@@ -431,13 +431,13 @@ Matrix FisherInformation(const std::vector<Image>& mu, const std::vector<std::ve
 }
 
 Matrix FisherInformation(const std::vector<Image>& mu, const std::vector<std::vector<Image>>& dmu_a,
-                         const std::vector<std::vector<Image>>& dmu_b) {
+                         const std::vector<std::vector<Image>>& dmu_b, const std::vector<double>& read_variance) {
   const size_t P = dmu_a.empty() ? 0 : dmu_a[0].size();
   Matrix F(P, std::vector<double>(P, 0.0));
   for (size_t k = 0; k < mu.size(); ++k)
     for (size_t q = 0; q < mu[k].size(); ++q) {
-      const double m = mu[k].pixels[q];
-      if (!(m > 0)) continue;
+      if (!(mu[k].pixels[q] > 0)) continue;
+      const double m = mu[k].pixels[q] + (k < read_variance.size() ? read_variance[k] : 0.0);
       for (size_t i = 0; i < P; ++i)
         for (size_t j = 0; j < P; ++j)
           F[i][j] += 0.5 * (double(dmu_a[k][i].pixels[q]) * dmu_b[k][j].pixels[q] +

@@ -26,6 +26,13 @@ inline constexpr uint64_t kDerivativeSetSeedStride = 7777777;
 inline constexpr uint64_t kRepeatSeedStride = 1000003;
 inline constexpr uint64_t kFreshSeedStride = 7919;
 
+/// Per image, the read noise variance in photons^2 (FisherInformation's read_variance).
+inline std::vector<double> ReadVariance(const FitSpec& spec) {
+  std::vector<double> v;
+  for (const FitImage& im : spec.images) v.push_back(im.read_noise_e * im.read_noise_e);
+  return v;
+}
+
 inline double Since(Clock::time_point t0) {
   return std::chrono::duration<double>(Clock::now() - t0).count();
 }

@@ -66,16 +66,23 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     const int bin = model.BinAt(final_level);
     // The root of the score J~^T W (e - mu) = 0 with a noisy J~ = J + dJ moves by
     // F^-1 dJ^T W (e - mu): zero on average, but with variance F^-1 N F^-1 (1 + 1/k), N the
-    // noise Gram matrix of the mean of the S - 1 sets, estimated by their scatter (Jacobians of
-    // the deviance residuals, whose Gram matrix is the information). Measured: a single set's
-    // index column has a cosine of 0.62 with the exact derivative, so with three sets this adds
-    // about half the information's size along the valley (docs/fit.md, "Finite rays").
+    // noise Gram matrix of the mean of the S - 1 sets, estimated by their scatter: the Gram
+    // matrix of the derivative images' deviations in the score's metric W = 1/(mu + r^2). (Not
+    // the deviance residuals' Jacobians: at a few photons per pixel their noise also carries the
+    // residuals' curvature in e, which overstated N 2-3x on a 20-photon image.) Measured: a
+    // single set's index column has a cosine of 0.62 with the exact derivative, so with three
+    // sets this adds about half the information's size along the valley (docs/fit.md).
     {
       const double m = double(S - 1);
       Eigen::MatrixXd gram = Eigen::MatrixXd::Zero(Eigen::Index(P), Eigen::Index(P));
       for (size_t s = 1; s < S; ++s) {
-        const Eigen::MatrixXd dev = sets[s].jacobian - others.jacobian;
-        gram += dev.transpose() * dev;
+        std::vector<std::vector<Image>> dev = sets[s].dmu;
+        for (size_t k = 0; k < dev.size(); ++k)
+          for (size_t i = 0; i < P; ++i)
+            for (size_t q = 0; q < dev[k][i].size(); ++q) dev[k][i].pixels[q] -= others.dmu[k][i].pixels[q];
+        const Matrix g = FisherInformation(sets[0].mu.photons, dev, dev, ReadVariance(spec));
+        for (size_t i = 0; i < P; ++i)
+          for (size_t j = 0; j < P; ++j) gram(Eigen::Index(i), Eigen::Index(j)) += g[i][j];
       }
       score_derivative_noise = gram / ((m - 1) * m);
     }
@@ -87,7 +94,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     // (measured: z crept 0.025, 0.010, 0.005 um towards a truth 0.1 um away).
     Eigen::MatrixXd F = Eigen::Map<const Eigen::MatrixXd>(info.data(), P, P);
     if (bin == 1) {
-      const Matrix cross = FisherInformation(sets[0].mu.photons, half_a.dmu, half_b.dmu);
+      const Matrix cross = FisherInformation(sets[0].mu.photons, half_a.dmu, half_b.dmu, ReadVariance(spec));
       if (!InverseSpd(cross).empty())  // else (rare: noise) the one-sided information
         for (size_t i = 0; i < P; ++i)
           for (size_t j = 0; j < P; ++j) F(i, j) = cross[i][j];
@@ -174,7 +181,7 @@ Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vec
     SetSigmas(cov);
   }
   const Matrix crb = spec.cramer_rao || cov.empty()
-                         ? InverseSpd(FisherInformation(d.mu.photons, d.dmu, d2.dmu))
+                         ? InverseSpd(FisherInformation(d.mu.photons, d.dmu, d2.dmu, ReadVariance(spec)))
                          : Matrix();
   if (!crb.empty()) {
     for (size_t i = 0; i < P; ++i) {

@@ -21,7 +21,8 @@ struct SensorModel {
 /// Photo-electrons per pixel (e.g. ray hits, already Poisson) -> code values:
 ///   dn = clamp(round((min(e, well) + read_noise N(0,1)) x gain / gain_e_per_dn + black), 0, max)
 /// with N(0,1) from the counter-based RNG stream (seed, stream, pixel index): the same inputs
-/// always give the same frame.
+/// always give the same frame. The chain is core's ToCodeValues (camera_readout.h), which
+/// `simulate` and the sample's generator use too.
 Image ExposeSensor(const SensorModel& m, const Image& electrons, double analogue_gain,
                    uint64_t seed, uint32_t stream);
 

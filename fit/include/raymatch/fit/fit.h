@@ -276,11 +276,14 @@ std::vector<std::vector<double>> FisherInformation(const std::vector<Image>& mu,
                                                    const std::vector<std::vector<Image>>& dmu);
 
 /// The same from two independent Monte Carlo estimates of the derivatives:
-/// sum (dmu_a_i dmu_b_j + dmu_b_i dmu_a_j) / (2 mu). Unlike the square of one noisy estimate,
-/// whose noise adds a positive bias (information that is not there), it is unbiased.
+/// sum (dmu_a_i dmu_b_j + dmu_b_i dmu_a_j) / (2 (mu + r_k^2)). Unlike the square of one noisy
+/// estimate, whose noise adds a positive bias (information that is not there), it is unbiased.
+/// `read_variance` (empty: none): per image k the read noise variance r_k^2 in photons^2 that
+/// each pixel's variance carries besides mu (the shifted-Poisson likelihood, docs/fit.md).
 std::vector<std::vector<double>> FisherInformation(const std::vector<Image>& mu,
                                                    const std::vector<std::vector<Image>>& dmu_a,
-                                                   const std::vector<std::vector<Image>>& dmu_b);
+                                                   const std::vector<std::vector<Image>>& dmu_b,
+                                                   const std::vector<double>& read_variance = {});
 
 /// Inverse of a symmetric positive definite matrix (Eigen LDLT); empty when singular.
 std::vector<std::vector<double>> InverseSpd(const std::vector<std::vector<double>>& m);

@@ -412,18 +412,11 @@ using namespace internal;
 
 Matrix InverseSpd(const Matrix& m) {
   const size_t n = m.size();
-  Eigen::MatrixXd a(n, n);
-  for (size_t i = 0; i < n; ++i)
-    for (size_t j = 0; j < n; ++j) a(i, j) = m[i][j];
-  Eigen::LDLT<Eigen::MatrixXd> ldlt(a);
+  Eigen::LDLT<Eigen::MatrixXd> ldlt(ToEigen(m));
   if (ldlt.info() != Eigen::Success || !ldlt.isPositive()) return {};
   for (int i = 0; i < ldlt.vectorD().size(); ++i)
     if (!(ldlt.vectorD()(i) > 1e-300)) return {};
-  const Eigen::MatrixXd inv = ldlt.solve(Eigen::MatrixXd::Identity(n, n));
-  Matrix out(n, std::vector<double>(n));
-  for (size_t i = 0; i < n; ++i)
-    for (size_t j = 0; j < n; ++j) out[i][j] = inv(i, j);
-  return out;
+  return FromEigen(ldlt.solve(Eigen::MatrixXd::Identity(n, n)));
 }
 
 Matrix FisherInformation(const std::vector<Image>& mu, const std::vector<std::vector<Image>>& dmu) {

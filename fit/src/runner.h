@@ -39,6 +39,21 @@ inline double Since(Clock::time_point t0) {
 
 using Matrix = std::vector<std::vector<double>>;
 
+/// The public API's row-major nested vectors <-> Eigen (element copies, nothing else).
+inline Eigen::MatrixXd ToEigen(const Matrix& m) {
+  const auto n = static_cast<Eigen::Index>(m.size());
+  Eigen::MatrixXd a(n, n);
+  for (Eigen::Index i = 0; i < n; ++i)
+    for (Eigen::Index j = 0; j < n; ++j) a(i, j) = m[size_t(i)][size_t(j)];
+  return a;
+}
+inline Matrix FromEigen(const Eigen::MatrixXd& a) {
+  Matrix m(size_t(a.rows()), std::vector<double>(size_t(a.cols())));
+  for (Eigen::Index i = 0; i < a.rows(); ++i)
+    for (Eigen::Index j = 0; j < a.cols(); ++j) m[size_t(i)][size_t(j)] = a(i, j);
+  return m;
+}
+
 /// Evaluations with bookkeeping: the record of every evaluation, the best so far, progress.
 class Runner {
  public:

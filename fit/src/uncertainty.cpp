@@ -46,6 +46,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
   Differences& half_b = od.half_b;
   Simulated& final_sim = od.final_sim;
   Eigen::MatrixXd& score_derivative_noise = od.score_derivative_noise;
+  const std::vector<double> read_variance = ReadVariance(spec);
   for (int round = 0; round < 3 && res.status != FitStatus::kFlat && spec.uncertainties &&
                       (round == 0 || run.Budget());
        ++round) {
@@ -79,10 +80,9 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
         std::vector<std::vector<Image>> dev = sets[s].dmu;
         for (size_t k = 0; k < dev.size(); ++k)
           for (size_t i = 0; i < P; ++i)
-            for (size_t q = 0; q < dev[k][i].size(); ++q) dev[k][i].pixels[q] -= others.dmu[k][i].pixels[q];
-        const Matrix g = FisherInformation(sets[0].mu.photons, dev, dev, ReadVariance(spec));
-        for (size_t i = 0; i < P; ++i)
-          for (size_t j = 0; j < P; ++j) gram(Eigen::Index(i), Eigen::Index(j)) += g[i][j];
+            for (size_t q = 0; q < dev[k][i].size(); ++q)
+              dev[k][i].pixels[q] -= others.dmu[k][i].pixels[q];
+        gram += ToEigen(FisherInformation(sets[0].mu.photons, dev, dev, read_variance));
       }
       score_derivative_noise = gram / ((m - 1) * m);
     }
@@ -94,10 +94,9 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     // (measured: z crept 0.025, 0.010, 0.005 um towards a truth 0.1 um away).
     Eigen::MatrixXd F = Eigen::Map<const Eigen::MatrixXd>(info.data(), P, P);
     if (bin == 1) {
-      const Matrix cross = FisherInformation(sets[0].mu.photons, half_a.dmu, half_b.dmu, ReadVariance(spec));
-      if (!InverseSpd(cross).empty())  // else (rare: noise) the one-sided information
-        for (size_t i = 0; i < P; ++i)
-          for (size_t j = 0; j < P; ++j) F(i, j) = cross[i][j];
+      const Matrix cross =
+          FisherInformation(sets[0].mu.photons, half_a.dmu, half_b.dmu, read_variance);
+      if (!InverseSpd(cross).empty()) F = ToEigen(cross);  // else (rare: noise) the one-sided one
     }
     const auto solver = F.ldlt();
     auto Predicted = [&](const std::vector<double>& v) {
@@ -149,23 +148,14 @@ Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vec
   res.best_images = best_sim.photons;
   const Eigen::MatrixXd JtJ =
       0.5 * (d.jacobian.transpose() * d2.jacobian + d2.jacobian.transpose() * d.jacobian);
-  Matrix H(P, std::vector<double>(P));
-  for (size_t i = 0; i < P; ++i)
-    for (size_t j = 0; j < P; ++j) H[i][j] = JtJ(i, j);
-  const Matrix cov = InverseSpd(H);
+  const Matrix cov = InverseSpd(FromEigen(JtJ));
   const double k = spec.rays.ray_factor * spec.rays.fractions.back();
   // The estimate's covariance: C (1 + 1/k) from the experiment's and the template's noise,
   // plus C N C (1 + 1/k) from the noise N of the derivatives that the final steps' score used.
   auto Total = [&](const Matrix& c) {
-    Matrix t = c;
-    if (score_derivative_noise.size() == 0) return t;
-    Eigen::MatrixXd cm(static_cast<Eigen::Index>(P), static_cast<Eigen::Index>(P));
-    for (size_t i = 0; i < P; ++i)
-      for (size_t j = 0; j < P; ++j) cm(Eigen::Index(i), Eigen::Index(j)) = c[i][j];
-    const Eigen::MatrixXd extra = cm * score_derivative_noise * cm;
-    for (size_t i = 0; i < P; ++i)
-      for (size_t j = 0; j < P; ++j) t[i][j] += extra(Eigen::Index(i), Eigen::Index(j));
-    return t;
+    if (score_derivative_noise.size() == 0) return c;
+    const Eigen::MatrixXd cm = ToEigen(c);
+    return FromEigen(cm + cm * score_derivative_noise * cm);
   };
   auto SetSigmas = [&](const Matrix& c) {
     const Matrix t = Total(c);
@@ -180,9 +170,10 @@ Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vec
     for (size_t i = 0; i < P; ++i) res.parameters[i].sigma_curvature = std::sqrt(cov[i][i]);
     SetSigmas(cov);
   }
-  const Matrix crb = spec.cramer_rao || cov.empty()
-                         ? InverseSpd(FisherInformation(d.mu.photons, d.dmu, d2.dmu, ReadVariance(spec)))
-                         : Matrix();
+  const Matrix crb =
+      spec.cramer_rao || cov.empty()
+          ? InverseSpd(FisherInformation(d.mu.photons, d.dmu, d2.dmu, ReadVariance(spec)))
+          : Matrix();
   if (!crb.empty()) {
     for (size_t i = 0; i < P; ++i) {
       res.parameters[i].sigma_cramer_rao = std::sqrt(crb[i][i]);

@@ -199,8 +199,9 @@ ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
       readout["image"] = fs::path(out.code_values).filename().string();
       meta["code_values"] = readout;
     }
-    WriteFloatImage(out.image, r.counts, meta.dump());
-    if (!out.code_values.empty()) WriteUint16Image(out.code_values, code_values, meta.dump());
+    const std::string description = meta.dump();  // the TIFFs' ImageDescription
+    WriteFloatImage(out.image, r.counts, description);
+    if (!out.code_values.empty()) WriteUint16Image(out.code_values, code_values, description);
     WriteTextFileAtomic(out.sidecar, meta.dump(2) + "\n");
     if (opt.write_png) {
       out.png = (fs::path(opt.output_dir) / (stem + ".png")).string();

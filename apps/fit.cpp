@@ -28,6 +28,12 @@ int RunFitCommand(const FitCliOptions& o) {
     std::cout << "  " << p.key << " = " << p.best << (p.unit.empty() ? "" : " " + p.unit)
               << "  +- " << p.sigma << "  (Cramer-Rao bound " << p.sigma_cramer_rao
               << ", repeat-seed scatter " << p.sigma_repeat << ")" << (p.at_bound ? "  AT BOUND" : "") << "\n";
+  for (const auto& p : r.parameters)
+    if (!p.profile_t.empty())
+      std::cout << "  profile-likelihood 68 % interval of " << p.key << ": ["
+                << (p.profile_lower_open ? "<= " : "") << p.profile_lower << ", "
+                << (p.profile_upper_open ? ">= " : "") << p.profile_upper << "] ("
+                << p.profile_reason << ")\n";
   if (r.goodness.pixels > 0)
     std::cout << (r.goodness.mismatch ? "WARNING: " : "goodness of fit: ") << r.goodness.verdict << "\n";
   std::cout << r.evaluations.size() << " evaluations, " << r.total_seconds << " s; report: " << report << "\n";

@@ -12,6 +12,7 @@ PACKAGES=(
   libopencv-dev  # also: OpenImageIO's CMake config names OpenCV's headers
   libopenvdb-dev  # iso-surfaces of volume-fraction grids
   libceres-dev  # calibration fits
+  libboost-dev  # Boost.Math's monotone interpolation (fit's profile likelihood)
   libmrcal-dev  # light field from mrcal .cameramodel files (optional in CMake)
   libopenmpi-dev openmpi-bin  # MPI across machines (optional in CMake: RAYMATCH_MPI)
   libcamera-dev  # capture from libcamera cameras (optional in CMake: RAYMATCH_WITH_LIBCAMERA)

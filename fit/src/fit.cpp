@@ -12,6 +12,7 @@
 
 #include <unistd.h>
 
+#include "profile.h"
 #include "runner.h"
 
 namespace raymatch::fit {
@@ -521,12 +522,13 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
       res.message += "; " + res.goodness.verdict;
     }
   }
+  ProfileValues(&res);  // the profile intervals' ends with the final sigmas
   const double unc_s = Since(t_unc);
   const double bg_total = model.background_seconds();
   res.seconds = {{"setup (region, source field, photon target)", setup_s},
                  {"background rays (traced once per image and ray count)", bg_total},
                  {"search evaluations", search_s - bg_search},
-                 {"derivatives, final steps and uncertainties (repeats, slices)", unc_s - (bg_total - bg_search)}};
+                 {"derivatives, final steps and uncertainties (repeats, slices, profiles)", unc_s - (bg_total - bg_search)}};
   res.total_seconds = Since(t_start);
   if (options.progress && isatty(2)) std::fprintf(stderr, "\r\033[K");
   for (const ParameterResult& p : res.parameters)

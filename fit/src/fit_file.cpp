@@ -28,7 +28,7 @@ const char* MethodName(Method m) {
 }
 
 const char* StageName(Stage s) {
-  static const char* n[] = {"grid", "poll", "lm", "polish", "fisher", "final", "repeat", "slice", "best"};
+  static const char* n[] = {"grid", "poll", "lm", "polish", "fisher", "final", "repeat", "slice", "best", "profile"};
   return n[int(s)];
 }
 
@@ -439,6 +439,11 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     if (f.repeat_seeds == 1) u.Fail("repeat_seeds", "0 (none) or at least 2 repeated fits");
     f.cramer_rao = u.Bool("cramer_rao", true);
     f.slice_points = static_cast<int>(u.Integer("slice_points", 7, 0, 1001));
+    const std::string profile = u.Choice("profile", {"auto", "always", "never"}, "auto");
+    f.profile = profile == "always"  ? ProfileMode::kAlways
+                : profile == "never" ? ProfileMode::kNever
+                                     : ProfileMode::kAuto;
+    f.profile_correlation = u.InRange("profile_correlation", 0, 1, 0.9);
     u.Finish();
   }
   r.Finish();

@@ -119,6 +119,18 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
                            {"gain_e_per_dn", im.gain_e_per_dn}, {"read_noise_e", im.read_noise_e},
                            {"saturation_dn", im.saturation_dn},
                            {"excluded_pixels", im.excluded_pixels}});  // saturated or clipped: not in the likelihood
+  auto Profile = [](const ParameterResult& p) -> nlohmann::json {
+    if (p.profile_reason.empty() || p.profile_t.empty()) return nullptr;
+    return {{"reason", p.profile_reason},
+            {"lower", J(p.profile_lower)},
+            {"upper", J(p.profile_upper)},
+            {"lower_sigmas", J(p.profile_lower_sigmas)},
+            {"upper_sigmas", J(p.profile_upper_sigmas)},
+            {"lower_open", p.profile_lower_open},
+            {"upper_open", p.profile_upper_open},
+            {"t_sigma", p.profile_t},
+            {"delta_deviance", p.profile_delta}};
+  };
   for (const ParameterResult& p : res.parameters)
     j["parameters"].push_back({{"key", p.key},
                                {"unit", p.unit},
@@ -134,7 +146,8 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
                                {"sigma_repeat_seeds", J(p.sigma_repeat)},
                                {"sigma_cramer_rao", J(p.sigma_cramer_rao)},
                                {"sigma_expected_with_simulation_noise", J(p.sigma_expected)},
-                               {"slice", {{"x", p.slice_x}, {"error", p.slice_error}}}});
+                               {"slice", {{"x", p.slice_x}, {"error", p.slice_error}}},
+                               {"profile_likelihood", Profile(p)}});
   j["correlation_curvature"] = Matrix(res.correlation);
   j["correlation_cramer_rao"] = Matrix(res.crb_correlation);
   if (!res.grid_axes.empty()) j["grid"] = {{"axes", res.grid_axes}, {"errors", res.grid_errors}};
@@ -237,13 +250,19 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
     << " evaluations in " << Num(res.total_seconds, 3) << " s; best error " << Num(res.best_error) << ".</p>\n"
     << GoodnessHtml(res.goodness) << "<h2>Parameters</h2><table><tr><th>key</th><th>unit</th><th>start</th><th>best</th>"
        "<th>sigma (reported)</th><th>curvature only</th><th>repeat seeds (simulation noise)</th>"
-       "<th>Cramer-Rao bound</th><th>CRB incl. simulation noise</th><th>bounds</th></tr>\n";
+       "<th>Cramer-Rao bound</th><th>CRB incl. simulation noise</th><th>profile-likelihood 68 % "
+       "interval</th><th>bounds</th></tr>\n";
   for (const ParameterResult& p : res.parameters)
     h << "<tr><td style=\"text-align:left\">" << Esc(p.key) << "</td><td>" << p.unit << "</td><td>"
       << Num(p.start) << "</td><td>" << Num(p.best, 8) << (p.at_bound ? " (at bound)" : "") << "</td><td>"
       << Num(p.sigma, 3) << "</td><td>" << Num(p.sigma_curvature, 3) << "</td><td>" << Num(p.sigma_repeat, 3) << "</td><td>"
-      << Num(p.sigma_cramer_rao, 3) << "</td><td>" << Num(p.sigma_expected, 3) << "</td><td>["
-      << Num(p.lower) << ", " << Num(p.upper) << "]</td></tr>\n";
+      << Num(p.sigma_cramer_rao, 3) << "</td><td>" << Num(p.sigma_expected, 3) << "</td><td"
+      << (p.profile_t.empty() ? ">not needed" : " title=\"" + Esc(p.profile_reason) + "\">[" +
+                                                    (p.profile_lower_open ? "&le; " : "") +
+                                                    Num(p.profile_lower, 8) + ", " +
+                                                    (p.profile_upper_open ? "&ge; " : "") +
+                                                    Num(p.profile_upper, 8) + "]")
+      << "</td><td>[" << Num(p.lower) << ", " << Num(p.upper) << "]</td></tr>\n";
   h << "</table>\n";
   if (!res.correlation.empty()) {
     h << "<h2>Correlations (curvature covariance)</h2><table><tr><th></th>";

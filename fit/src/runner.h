@@ -99,6 +99,7 @@ class Runner {
     if (cache_.size() >= 2 * th.size() + 6) cache_.pop_front();  // a polish iteration's images
     cache_.push_back({th, level, seed, ev.error, mu});
     if (stage != Stage::kFisher && stage != Stage::kRepeat && stage != Stage::kSlice &&
+        stage != Stage::kProfile &&
         (best_error_ < 0 || fraction > best_fraction_ ||
          (fraction == best_fraction_ && ev.error < best_error_))) {
       best_error_ = ev.error, best_fraction_ = fraction;
@@ -213,6 +214,9 @@ struct OptimumDerivatives {
   Differences half_a,
       half_b;           // averages of the even and the odd sets (the first is the main streams)
   Simulated final_sim;  // the main streams' images at the last accepted step (empty: none)
+  // The derivative images of the sets other than the main streams' (averaged): the score at a
+  // point traced with the main streams uses them (independent of that point's counts).
+  std::vector<std::vector<Image>> score_dmu;
   // The noise of the derivatives in the final steps' score, as a Gram matrix in the residuals'
   // metric (empty when no scoring steps ran): the uncertainties add its effect.
   Eigen::MatrixXd score_derivative_noise;

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 
+#include "profile.h"
 #include "runner.h"
 
 namespace raymatch::fit::internal {
@@ -57,12 +58,13 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
                                    spec.seed + kDerivativeSetSeedStride * s, Stage::kFisher, true,
                                    s == 0));
     half_a = AverageSets(sets, 0, 2), half_b = AverageSets(sets, 1, 2);
-    if (!FinalStepsRun(spec) || !run.Budget())
-      break;  // (the sets are always taken: the uncertainties need them, as before the steps)
     // Fisher scoring (the Poisson score and expected information, linear in the counts) with
     // derivative images from the other streams only: the main streams' differences count the
     // same rays as their template, and that correlation would bias the score by O(1/k).
     const Differences others = AverageSets(sets, 1, 1);
+    od.score_dmu = others.dmu;  // (also for the profile-likelihood paths)
+    if (!FinalStepsRun(spec) || !run.Budget())
+      break;  // (the sets are always taken: the uncertainties need them, as before the steps)
     const std::vector<std::vector<Image>>& dmu = others.dmu;
     const int bin = model.BinAt(final_level);
     // The root of the score J~^T W (e - mu) = 0 with a noisy J~ = J + dJ moves by
@@ -238,6 +240,8 @@ Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vec
       }
     }
   }
+  // Profile-likelihood intervals where the curvature interval may not be trustworthy.
+  ProfileIntervals(run, spec, best, od, &res);
   return best_sim;
 }
 

@@ -170,6 +170,19 @@ void BindFit(py::module_& m) {
           d["at_bound"] = p.at_bound;
           d["slice_x"] = p.slice_x;
           d["slice_error"] = p.slice_error;
+          if (!p.profile_t.empty()) {
+            py::dict pl;
+            pl["reason"] = p.profile_reason;
+            pl["lower"] = p.profile_lower;
+            pl["upper"] = p.profile_upper;
+            pl["lower_open"] = p.profile_lower_open;
+            pl["upper_open"] = p.profile_upper_open;
+            pl["t_sigma"] = p.profile_t;
+            pl["delta_deviance"] = p.profile_delta;
+            d["profile_likelihood"] = pl;
+          } else {
+            d["profile_likelihood"] = py::none();
+          }
           params.append(d);
         }
         py::list evals;

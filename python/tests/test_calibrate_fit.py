@@ -66,7 +66,7 @@ def test_fit_recovers_a_radius_like_the_cli(exe, tmp_path):
         '[[image]]\nfile = "exp.tif"\ndefocus_um = -6\n'
         '[[parameter]]\nkey = "object.drop.radius_um"\nlower = 8\nupper = 12\npoints = 5\n'
         '[rays]\nfractions = [1]\nphotons_per_pixel = 60\n'
-        '[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\ncramer_rao = false\n')
+        '[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\ncramer_rao = false\nprofile = "always"\n')
     run_cli(exe, "fit", tmp_path / "fit.toml", "-o", tmp_path / "cli", "-q", check=False)
     cli = read_json(tmp_path / "cli" / "fit.json")
     r = raymatch.fit(tmp_path / "fit.toml", output=tmp_path / "py")
@@ -78,5 +78,9 @@ def test_fit_recovers_a_radius_like_the_cli(exe, tmp_path):
     assert len(r["evaluations"]) >= 5
     cli_best = [q["best"] for q in cli["parameters"]]
     assert [q["best"] for q in r["parameters"]] == cli_best
+    prof, cli_prof = p["profile_likelihood"], cli["parameters"][0]["profile_likelihood"]
+    assert prof["reason"] == cli_prof["reason"] == 'requested (profile = "always")'
+    assert [prof["lower"], prof["upper"]] == [cli_prof["lower"], cli_prof["upper"]]
+    assert prof["lower"] < prof["upper"] and len(prof["t_sigma"]) == len(prof["delta_deviance"])
     with pytest.raises(raymatch.Error, match=r"model\.toml:1:1: error: missing required key 'scene'"):
         raymatch.fit(tmp_path / "model.toml")  # a scene, not a fit file

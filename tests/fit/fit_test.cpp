@@ -11,6 +11,7 @@
 #include <sstream>
 
 #include "model.h"
+#include "profile.h"
 #include "raymatch/core/calibration_file.h"
 #include "raymatch/core/error.h"
 #include "raymatch/core/image_io.h"
@@ -536,6 +537,83 @@ TEST_F(FitFile, PolishRunsOnlyWhereNoFinalStepsFollow) {
       EXPECT_NEAR(r.parameters[i].best, kNoiseTestTruth[i], 3 * r.parameters[i].sigma) << r.parameters[i].key << " " << rays;
     }
   }
+}
+
+// Profile-likelihood intervals (fit/src/profile.cpp) from the profile deviance's slope. Known
+// answer: the amplitude A of a Poisson count N (mean A M), whose profile deviance is
+// Delta(A) = 2 [N ln(A^/A) - N + A M] with A^ = N / M and sigma = sqrt(N) / M. With N = 10 its
+// 68 % interval (Delta = 1) is A^ + [-0.8975, +1.1081] sigma (bisection on the closed form), far
+// from the curvature's +-1. In units t = (A - A^) / sigma the slope is
+// g(t) = (1/2) dDelta/dt = sigma (M - N / (A^ + t sigma)). From samples at t = -2..2 the
+// monotone cubic interpolation of g must give the ends within 0.01 sigma (scipy's PCHIP: 0.003;
+// quadratics through three samples per side are 0.09 off, and fail); a quadratic deviance (g = t) gives
+// +-1 exactly, and a slope that stops rising leaves that side open.
+TEST(ProfileLikelihood, PoissonAmplitudeIntervalMatchesTheClosedForm) {
+  const double N = 10, M = 1, a_hat = N / M, sigma = std::sqrt(N) / M;
+  std::vector<double> t{-2, -1, 0, 1, 2}, g;
+  for (double tk : t) g.push_back(sigma * (M - N / (a_hat + tk * sigma)));
+  const internal::ProfileCurve c = internal::ProfileFromScores(t, g);
+  EXPECT_NEAR(c.lower_t, -0.8975, 0.01);
+  EXPECT_NEAR(c.upper_t, 1.1081, 0.01);
+  EXPECT_FALSE(c.lower_open || c.upper_open);
+  EXPECT_NEAR(c.min_t, 0, 0.01);
+  for (size_t k = 0; k < t.size(); ++k) {
+    const double a = a_hat + t[k] * sigma;
+    const double exact = 2 * (N * std::log(a_hat / a) - N + a * M);
+    EXPECT_NEAR(c.delta[k], exact, 0.02 + 0.1 * exact) << t[k];  // (at t = -2: 7.87 for 7.37)
+  }
+  const internal::ProfileCurve q = internal::ProfileFromScores(t, t);
+  EXPECT_NEAR(q.lower_t, -1, 1e-3);
+  EXPECT_NEAR(q.upper_t, 1, 1e-3);
+  EXPECT_NEAR(q.delta[4], 4, 1e-3);
+  // A flat side (a parameter the image stops constraining): Delta stays below 1 there.
+  const internal::ProfileCurve open = internal::ProfileFromScores(t, {-2, -1, 0, 0.05, 0.05});
+  EXPECT_TRUE(open.upper_open);
+  EXPECT_FALSE(open.lower_open);
+  EXPECT_NEAR(open.lower_t, -1, 0.1);  // (the cubic flattens towards the flat side: -1.07)
+}
+
+// In a fit: "always" profiles every parameter, "auto" only where the curvature interval may not
+// be trustworthy (here made to trigger with a correlation threshold below the pair's), "never"
+// none. The drop's x and radius at 400 photons per pixel have sigmas of a few nanometres, over
+// which the image is linear: the profile interval must be best +- sigma within the noise of the
+// score along the path (the ray streams' staircase projected on the averaged derivatives;
+// measured 0.03 here, up to 0.17 sigma for z and the index of the benchmark's case B), tolerance 0.1.
+TEST_F(FitFile, ProfileLikelihoodIntervalsWhereAsked) {
+  WriteFloatImage(dir_ / "exp.tif", NoiseTestExperiment(), "drop");
+  for (const std::string mode : {"always", "auto", "never"}) {
+    std::string rays = kNoiseTestRays;
+    rays += "profile = \"" + mode + "\"\n" + (mode == "auto" ? "profile_correlation = 1e-6\n" : "");
+    const FitSpec spec = LoadFitSpec(dir_.Write(
+        "fit.toml", "scene = \"model.toml\"\n" + rays +
+                        "[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n" + kNoiseTestDrop));
+    const FitResult r = RunFit(spec);
+    size_t profiles = 0;
+    for (const Evaluation& e : r.evaluations) profiles += e.stage == Stage::kProfile;
+    for (const ParameterResult& p : r.parameters) {
+      if (mode == "never") {
+        EXPECT_TRUE(p.profile_reason.empty() && p.profile_t.empty()) << p.key;
+        continue;
+      }
+      EXPECT_NE(p.profile_reason.find(mode == "auto" ? "correlation" : "requested"), std::string::npos)
+          << p.profile_reason;
+      ASSERT_EQ(p.profile_t.size(), 5u) << p.key;
+      EXPECT_NEAR(p.profile_lower_sigmas, -1, 0.1) << p.key << " " << mode;
+      EXPECT_NEAR(p.profile_upper_sigmas, 1, 0.1) << p.key << " " << mode;
+      EXPECT_NEAR(p.profile_lower, p.best + p.profile_lower_sigmas * p.sigma, 1e-12);
+      EXPECT_NEAR(p.profile_upper, p.best + p.profile_upper_sigmas * p.sigma, 1e-12);
+      EXPECT_NEAR(p.profile_delta[0], 4, 1.2) << p.key;  // 2 sigma below: 4 for a parabola
+      EXPECT_NEAR(p.profile_delta[4], 4, 1.2) << p.key;
+      EXPECT_FALSE(p.profile_lower_open || p.profile_upper_open);
+    }
+    EXPECT_EQ(profiles, mode == "never" ? 0u : 8u) << mode;  // 4 points per parameter
+  }
+  // Where nothing is suspect (a correlation far below 0.9, sigma far below the step), "auto"
+  // computes none.
+  const FitSpec spec = LoadFitSpec(NoiseTestFit(""));
+  EXPECT_EQ(spec.profile, ProfileMode::kAuto);
+  const FitResult r = RunFit(spec);
+  for (const ParameterResult& p : r.parameters) EXPECT_TRUE(p.profile_t.empty()) << p.profile_reason;
 }
 
 // The score of the Poisson deviance, sum_q G_q (1 - e_q / T_q), must vanish on average at the

@@ -34,8 +34,9 @@ const char* StatusName(FitStatus s);  ///< "", "converged", "failed", "max_evalu
 
 /// The step of a fit an evaluation belongs to: the search (grid points, pattern polls, LM
 /// levels, the Gauss-Newton polish), the derivative sets and final steps at the optimum, the
-/// repeated fits, the error-function slices, the images at a grid or pattern optimum.
-enum class Stage { kGrid, kPoll, kLm, kPolish, kFisher, kFinal, kRepeat, kSlice, kBest };
+/// repeated fits, the error-function slices, the images at a grid or pattern optimum, the
+/// points of the profile-likelihood paths.
+enum class Stage { kGrid, kPoll, kLm, kPolish, kFisher, kFinal, kRepeat, kSlice, kBest, kProfile };
 const char* StageName(Stage s);  ///< "grid", "poll", "lm", "polish", "fisher", "final", ...
 
 /// One experimental image (photon counts after dark subtraction and gain).
@@ -99,6 +100,9 @@ struct RaySchedule {
   std::vector<int> binning;
 };
 
+/// When the fit computes profile-likelihood intervals (docs/fit.md).
+enum class ProfileMode { kAuto, kAlways, kNever };
+
 struct FitSpec {
   std::string file;                          ///< the fit file
   std::string scene_file;
@@ -114,6 +118,11 @@ struct FitSpec {
   int repeat_seeds = 3;                      ///< repeated final fits with independent seeds
   bool cramer_rao = true;
   int slice_points = 7;                      ///< error-function slices per parameter (0: none)
+  /// Profile-likelihood intervals: kAuto where the curvature interval may not be trustworthy
+  /// (a correlation above `profile_correlation`, a curvature that is not positive definite, a
+  /// sigma above a quarter of the parameter's step), kAlways for every parameter, kNever.
+  ProfileMode profile = ProfileMode::kAuto;
+  double profile_correlation = 0.9;
   bool uncertainties = true;                 ///< false: search only (benchmarks)
   int threads = 0;
 };
@@ -163,6 +172,19 @@ struct ParameterResult {
   double sigma_expected = 0;
   bool at_bound = false;
   std::vector<double> slice_x, slice_error;  ///< error along this axis through the optimum
+  /// Profile-likelihood interval (68 %), computed where the curvature interval may not be
+  /// trustworthy; `profile_reason` says why (empty: not computed). The profile deviance is
+  /// followed along the linearised profile path over +-2 sigma (the reported sigma, simulation
+  /// noise included) and scaled to that sigma, so for a quadratic likelihood the interval is
+  /// best +- sigma; the ends are where it is 1 above its minimum. An open end (no such rise
+  /// within the range followed, or a bound) is reported at that range's end and flagged.
+  std::string profile_reason;
+  double profile_lower = 0, profile_upper = 0;
+  double profile_lower_sigmas = 0, profile_upper_sigmas = 0;  ///< (end - best) / sigma
+  bool profile_lower_open = false, profile_upper_open = false;
+  /// The profile curve: offsets in units of sigma and the scaled deviance above the profile's
+  /// minimum there.
+  std::vector<double> profile_t, profile_delta;  ///< error along this axis through the optimum
 };
 
 /// Does the model describe the image? Computed at the optimum on the final level's pixels.

@@ -108,9 +108,10 @@ std::string ProfileReason(const FitSpec& spec, const FitResult& res, size_t i) {
   const ParameterResult& p = res.parameters[i];
   char buf[200];
   if (p.sigma_curvature <= 0) return "the deviance's curvature is not positive definite";
-  if (p.sigma > 0.25 * spec.parameters[i].step) {
+  if (p.sigma > spec.parameters[i].step) {
     std::snprintf(buf, sizeof buf,
-                  "sigma is %.2f of the step (the image may not be linear over the interval)",
+                  "sigma is %.2f steps: the derivatives (+-step/2) saw the image over less than "
+                  "the interval",
                   p.sigma / spec.parameters[i].step);
     return buf;
   }

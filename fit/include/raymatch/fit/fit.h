@@ -120,7 +120,7 @@ struct FitSpec {
   int slice_points = 7;                      ///< error-function slices per parameter (0: none)
   /// Profile-likelihood intervals: kAuto where the curvature interval may not be trustworthy
   /// (a correlation above `profile_correlation`, a curvature that is not positive definite, a
-  /// sigma above a quarter of the parameter's step), kAlways for every parameter, kNever.
+  /// sigma above the parameter's step), kAlways for every parameter, kNever.
   ProfileMode profile = ProfileMode::kAuto;
   double profile_correlation = 0.9;
   bool uncertainties = true;                 ///< false: search only (benchmarks)

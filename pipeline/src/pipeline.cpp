@@ -1,24 +1,23 @@
 #include "raymatch/pipeline/pipeline.h"
-#include "raymatch/pipeline/sphere_calibration.h"
+
+#include <unistd.h>
 
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <exception>
 #include <filesystem>
-#include <unistd.h>
 #include <fstream>
+#include <functional>
 #include <iostream>
+#include <nlohmann/json.hpp>
 #include <optional>
 #include <sstream>
 
-#include <nlohmann/json.hpp>
-
-#include "raymatch/compare/plot.h"
-#include "raymatch/fit/fit.h"
 #include "raymatch/calibrate/corrector.h"
 #include "raymatch/calibrate/lightfield.h"
 #include "raymatch/compare/focus_scan.h"
+#include "raymatch/compare/plot.h"
 #include "raymatch/core/atomic_file.h"
 #include "raymatch/core/calibration_file.h"
 #include "raymatch/core/error.h"
@@ -26,15 +25,16 @@
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/provenance.h"
 #include "raymatch/core/toml_reader.h"
+#include "raymatch/fit/fit.h"
+#include "raymatch/pipeline/sphere_calibration.h"
 #include "raymatch/simulate/geometry.h"
 #include "raymatch/simulate/scan.h"
 #include "raymatch/simulate/scene.h"
+#include "run_report.h"
 
 namespace fs = std::filesystem;
 
 namespace raymatch::pipeline {
-using compare::Series;
-using compare::WritePlot;
 
 PipelineFile ReadPipelineFile(const std::string& path) {
   const toml::table t = ParseTomlFile(path);
@@ -55,7 +55,8 @@ PipelineFile ReadPipelineFile(const std::string& path) {
   c.smoothness = cal.Number("smoothness", 0);
   if (cal.Has("sphere")) c.sphere = rel(cal, "sphere");
   if (cal.Has("sphere_planes_um")) {
-    if (!cal.Has("sphere")) cal.Fail("sphere_planes_um", "needs 'sphere' (the drop's focus-scan folder)");
+    if (!cal.Has("sphere"))
+      cal.Fail("sphere_planes_um", "needs 'sphere' (the drop's focus-scan folder)");
     c.sphere_planes_um = cal.Numbers("sphere_planes_um", 1, 64);
   }
   cal.Finish();
@@ -67,7 +68,8 @@ PipelineFile ReadPipelineFile(const std::string& path) {
     TomlReader s = r.Table("simulation");
     c.ray_fraction = s.InRange("ray_fraction", 0, 100, 1, true, false);
     c.seed = uint64_t(s.Integer("seed", 1, 0, INT64_MAX));
-    c.partial_reflection = s.Choice("partial_reflection", {"off", "unpolarized", "polarized"}, "unpolarized");
+    c.partial_reflection =
+        s.Choice("partial_reflection", {"off", "unpolarized", "polarized"}, "unpolarized");
     s.Finish();
   }
   if (r.Has("fit")) {
@@ -118,7 +120,8 @@ Image Prepared(const Image& raw, const compare::PrepareOptions& p, const std::st
   try {
     return compare::PrepareExperiment(raw, p, dark.empty() ? nullptr : &dark, nullptr);
   } catch (const Error& e) {  // e.g. a dark frame of another size: name both files
-    throw Error(FileLocation{file}, (p.dark_file.empty() ? "" : "with dark frame " + p.dark_file + ": ") + e.message());
+    throw Error(FileLocation{file},
+                (p.dark_file.empty() ? "" : "with dark frame " + p.dark_file + ": ") + e.message());
   }
 }
 
@@ -168,7 +171,8 @@ std::string FolderStamp(const std::string& folder) {
 }
 
 /// A step is reused when its stamp file holds the same input description and its outputs exist.
-bool Reusable(const fs::path& stamp, const std::string& inputs, const std::vector<fs::path>& outputs) {
+bool Reusable(const fs::path& stamp, const std::string& inputs,
+              const std::vector<fs::path>& outputs) {
   std::ifstream in(stamp);
   std::stringstream ss;
   ss << in.rdbuf();
@@ -177,8 +181,6 @@ bool Reusable(const fs::path& stamp, const std::string& inputs, const std::vecto
     if (!fs::exists(o)) return false;
   return true;
 }
-
-std::string Img(const std::string& png, const std::string& alt = "") { return EmbeddedPng(png, alt); }
 
 /// The mesh object's mesh, read and checked as the simulation will use it (closed, finite,
 /// usable triangles), before anything is written.
@@ -206,8 +208,8 @@ void CheckFitFiles(const std::vector<std::string>& fits, const calibrate::LightF
   d.angular_map = Image(8, 8, 1.f);
   d.angular_extent = std::clamp(lf.optics.acceptance_sin(), 0.05, 0.95);
   std::error_code ec;
-  const fs::path scratch = fs::temp_directory_path(ec) /
-                           ("raymatch-run-check-" + std::to_string(::getpid()));
+  const fs::path scratch =
+      fs::temp_directory_path(ec) / ("raymatch-run-check-" + std::to_string(::getpid()));
   fs::create_directories(scratch, ec);
   if (ec) return;  // no scratch space: the fits are checked when they run
   struct Cleanup {
@@ -230,37 +232,246 @@ std::string ReportField(const fs::path& file, const std::string& field) {
   try {
     j = nlohmann::json::parse(in);
   } catch (const std::exception& e) {
-    throw Error(FileLocation{file.string()}, std::string("not valid JSON (") + e.what() +
-                                                 "); delete it or run with --force to recompute the step");
+    throw Error(FileLocation{file.string()},
+                std::string("not valid JSON (") + e.what() +
+                    "); delete it or run with --force to recompute the step");
   }
   if (!j.is_object() || !j.contains(field) || !j[field].is_string())
-    throw Error(FileLocation{file.string()}, "field '" + field + "' is missing or not a string; delete the "
-                                             "file or run with --force to recompute the step");
+    throw Error(FileLocation{file.string()}, "field '" + field +
+                                                 "' is missing or not a string; delete the "
+                                                 "file or run with --force to recompute the step");
   return j[field].get<std::string>();
 }
 
 }  // namespace
 
-PipelineSummary RunPipeline(const PipelineOptions& opt) {
-  using clock = std::chrono::steady_clock;
-  const PipelineFile cfg = ReadPipelineFile(opt.pipeline_file);
-  const fs::path out = opt.output_dir.empty() ? fs::path(cfg.output) : fs::path(opt.output_dir);
-  // Every input is read and checked before the output folder is made (issue 25): a refused
-  // input leaves no folder and no file.
-  const calibrate::LightFieldInput lf_in = calibrate::ReadLightFieldInput(cfg.lightfield);
-  const calibrate::FlatFieldInput ff_in = calibrate::ReadFlatFieldInput(cfg.flatfield);
-  const ExperimentMetadata ex = ReadExperimentMetadata(cfg.experiment);
-  const compare::Stack exp = compare::ReadStack(ex.scan_csv);
-  const compare::PrepareOptions prep = Preparation(ex.dark, ex.gain);
-  const Image mid = Prepared(exp.images[exp.images.size() / 2], prep, exp.files[exp.files.size() / 2]);
-  std::optional<MeshObjectMetadata> mesh_meta;
+namespace {
+
+/// Every input of a run, read and checked before the output folder is made (issue 25): a
+/// refused input leaves no folder and no file.
+struct RunInputs {
+  PipelineFile cfg;
+  calibrate::LightFieldInput lf;
+  calibrate::FlatFieldInput ff;
+  ExperimentMetadata ex;
+  compare::Stack exp;
+  compare::PrepareOptions prep;
+  Image mid;  ///< the middle plane, prepared (its border gives the exposure)
+  std::optional<MeshObjectMetadata> mesh;
   Image mesh_image;
-  if (!cfg.merging.empty()) {
-    mesh_meta = ReadMeshObjectMetadata(cfg.merging);
-    mesh_image = Prepared(ReadImage(mesh_meta->image), Preparation(mesh_meta->dark, mesh_meta->gain), mesh_meta->image);
-    CheckMeshFile(*mesh_meta, cfg.merging);
+};
+
+RunInputs ReadRunInputs(const PipelineOptions& opt) {
+  RunInputs in;
+  in.cfg = ReadPipelineFile(opt.pipeline_file);
+  in.lf = calibrate::ReadLightFieldInput(in.cfg.lightfield);
+  in.ff = calibrate::ReadFlatFieldInput(in.cfg.flatfield);
+  in.ex = ReadExperimentMetadata(in.cfg.experiment);
+  in.exp = compare::ReadStack(in.ex.scan_csv);
+  in.prep = Preparation(in.ex.dark, in.ex.gain);
+  const size_t m = in.exp.images.size() / 2;
+  in.mid = Prepared(in.exp.images[m], in.prep, in.exp.files[m]);
+  if (!in.cfg.merging.empty()) {
+    in.mesh = ReadMeshObjectMetadata(in.cfg.merging);
+    in.mesh_image = Prepared(ReadImage(in.mesh->image), Preparation(in.mesh->dark, in.mesh->gain),
+                             in.mesh->image);
+    CheckMeshFile(*in.mesh, in.cfg.merging);
   }
-  CheckFitFiles(cfg.fits, lf_in);
+  CheckFitFiles(in.cfg.fits, in.lf);
+  return in;
+}
+
+/// One step of the main job. With a stamp it is reused when its inputs (the stamp's content)
+/// are unchanged and its outputs exist; otherwise it runs and is timed.
+struct Step {
+  std::string name;               ///< in the timing table and PipelineSummary::reused
+  std::string stamp;              ///< file under the output folder (empty: always runs)
+  std::string inputs;             ///< the stamp's content
+  std::vector<fs::path> outputs;  ///< must exist for a reuse
+  std::string reuse_message;
+  std::function<void()> run, reuse;  ///< reuse: read back what the step would have made
+};
+
+class StepRunner {
+ public:
+  StepRunner(fs::path out, const PipelineOptions& opt, PipelineSummary* sum)
+      : out_(std::move(out)), opt_(opt), sum_(sum) {}
+
+  void Say(const std::string& m) const {
+    if (opt_.steps) std::cerr << "raymatch run: " << m << std::endl;
+  }
+
+  void Run(const Step& s) {
+    if (!s.stamp.empty() && !opt_.force && Reusable(out_ / s.stamp, s.inputs, s.outputs)) {
+      Say(s.reuse_message);
+      if (s.reuse) s.reuse();
+      sum_->reused.push_back(s.name);
+      return;
+    }
+    // A step's stamp goes before it rewrites its outputs and comes back after the last one, so
+    // an interrupted step is never taken for finished (and reused) by the next run.
+    if (!s.stamp.empty()) RemoveStaleOutput(out_ / s.stamp);
+    const auto t0 = std::chrono::steady_clock::now();
+    s.run();
+    sum_->step_seconds.push_back(
+        {s.name, std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count()});
+    if (!s.stamp.empty()) WriteTextFileAtomic(out_ / s.stamp, s.inputs);
+  }
+
+ private:
+  fs::path out_;
+  const PipelineOptions& opt_;
+  PipelineSummary* sum_;
+};
+
+/// The calibration step's results (made or read back).
+struct Calibration {
+  CalibrationData data;
+  std::string lf_report, co_report, sp_report;
+};
+
+std::string CalibrationInputs(const RunInputs& in) {
+  const PipelineFile& cfg = in.cfg;
+  std::string s = FolderStamp(cfg.lightfield) + "|" + FolderStamp(cfg.flatfield) + "|" +
+                  (in.lf.flat.empty() ? "" : FileChecksum(in.lf.flat)) + "|" +
+                  std::to_string(cfg.extrapolate_to_deg) + "|" + std::to_string(cfg.zones) + "|" +
+                  std::to_string(cfg.smoothness) + "|" +
+                  (cfg.sphere.empty() ? "" : FolderStamp(cfg.sphere));
+  for (double d : cfg.sphere_planes_um) s += "|" + std::to_string(d);
+  return s;
+}
+
+/// Light field, corrector and (with a sphere folder) the sphere calibration into cal_file and
+/// calibration_report.json.
+void Calibrate(const RunInputs& in, const fs::path& out, const PipelineOptions& opt,
+               const StepRunner& steps, Calibration* c) {
+  const PipelineFile& cfg = in.cfg;
+  const fs::path cal_file = out / "calibration.toml";
+  steps.Say("calibrating the light field (" + cfg.lightfield + ")");
+  calibrate::LightFieldOptions lo;
+  lo.extrapolate_to_deg = cfg.extrapolate_to_deg;
+  const calibrate::LightFieldSummary lf = calibrate::CalibrateLightField(in.lf, lo);
+  steps.Say("fitting the corrector (" + cfg.flatfield + ")");
+  calibrate::CorrectorOptions copt;
+  copt.zones = cfg.zones;
+  copt.smoothness = cfg.smoothness;
+  const calibrate::CorrectorSummary co = calibrate::CalibrateCorrector(in.ff, copt, &lf.data);
+  for (const auto& w : lf.warnings) std::cerr << "raymatch run: warning: " << w << "\n";
+  for (const auto& w : co.warnings) std::cerr << "raymatch run: warning: " << w << "\n";
+  c->lf_report = lf.BriefReport();
+  c->co_report = co.BriefReport();
+  c->data = co.data;
+  if (cfg.sphere.empty()) {
+    WriteCalibrationFile(cal_file.string(), co.data);
+  } else {
+    // The light field and corrector go to calibration_base.toml; the sphere calibration adds
+    // the edge beyond the NA and the PSF and writes calibration.toml.
+    const fs::path base_file = out / "calibration_base.toml";
+    WriteCalibrationFile(base_file.string(), co.data);
+    steps.Say("calibrating with the drop of " + cfg.sphere + " (light field beyond the NA, PSF)");
+    SphereCalibrationOptions so;
+    so.scan_folder = cfg.sphere;
+    so.base = base_file.string();
+    so.output = cal_file.string();
+    so.work_dir = (out / "sphere_calibration").string();
+    so.planes_um = cfg.sphere_planes_um;
+    so.threads = opt.threads;
+    so.progress = opt.progress;
+    so.say = [&](const std::string& m) { steps.Say(m); };
+    const SphereCalibrationResult sr = CalibrateSphere(so);
+    c->sp_report = sr.Brief();
+    if (sr.mismatch)
+      std::cerr << "raymatch run: warning: the sphere calibration reports a model mismatch\n";
+    c->data = ReadCalibrationFile(cal_file.string());
+  }
+  nlohmann::json rep{{"light_field", c->lf_report}, {"corrector", c->co_report}};
+  if (!c->sp_report.empty()) rep["sphere"] = c->sp_report;
+  WriteTextFileAtomic(out / "calibration_report.json", rep.dump(2) + "\n");
+}
+
+/// A value as the scene files have always carried it: 10 significant digits.
+double Sig10(double v) {
+  std::ostringstream s;
+  s.precision(10);
+  s << v;
+  return std::stod(s.str());
+}
+
+/// A generated scene, written atomically: `comment` lines, then the table.
+void WriteScene(const fs::path& file, const std::string& comment, const toml::table& t) {
+  std::ostringstream s;
+  s << comment << "\n" << t << "\n";
+  WriteTextFileAtomic(file, s.str());
+}
+
+/// The scene of the experiment's focus scan: the nominal drop, the experiment's image size and
+/// planes, the exposure recovered from the middle plane's background times the ray fraction.
+toml::table ExperimentScene(const RunInputs& in, double photons_per_pixel) {
+  toml::array planes;
+  for (double d : in.exp.defocus_um) planes.push_back(d);  // every digit: distinct file names
+  return toml::table{
+      {"name", "sim"},
+      {"calibration", "calibration.toml"},
+      {"seed", int64_t(in.cfg.seed)},
+      {"object", toml::array{toml::table{{"name", "drop"},
+                                         {"type", "sphere"},
+                                         {"radius_um", Sig10(in.ex.diameter_um / 2)},
+                                         {"material", "water"},
+                                         {"temperature_K", Sig10(in.ex.temperature_K)}}}},
+      {"camera",
+       toml::table{{"pixels", toml::array{in.exp.images[0].width, in.exp.images[0].height}}}},
+      {"trace", toml::table{{"photons_per_pixel", Sig10(photons_per_pixel)},
+                            {"partial_reflection", in.cfg.partial_reflection}}},
+      {"scan", toml::table{{"defocus_um", planes}}}};
+}
+
+/// The mesh object (e.g. merging drops), in focus: simulated and compared; its HTML section.
+std::string MeshObject(const RunInputs& in, const fs::path& out, const PipelineOptions& opt,
+                       double photons_per_pixel) {
+  const MeshObjectMetadata& mm = *in.mesh;
+  const Image& e = in.mesh_image;
+  const auto& rot = mm.rotation_deg;
+  const toml::table scene{
+      {"name", "mesh_object"},
+      {"calibration", "calibration.toml"},
+      {"seed", int64_t(in.cfg.seed)},
+      {"object", toml::array{toml::table{
+                     {"type", "mesh"},
+                     {"file", mm.mesh},
+                     {"rotation_deg", toml::array{Sig10(rot[0]), Sig10(rot[1]), Sig10(rot[2])}},
+                     {"material", "water"},
+                     {"temperature_K", Sig10(in.ex.temperature_K)}}}},
+      {"camera", toml::table{{"pixels", toml::array{e.width, e.height}}}},
+      {"trace", toml::table{{"photons_per_pixel", Sig10(photons_per_pixel)}}},
+      {"scan", toml::table{{"defocus_um", toml::array{Sig10(mm.defocus_um)}}}}};
+  WriteScene(out / "mesh_object.toml", "# Written by raymatch run: the mesh object, in focus.",
+             scene);
+  simulate::ScanOptions so;
+  so.output_dir = (out / "mesh_object").string();
+  so.control.threads = opt.threads;
+  const simulate::ScanSummary ss =
+      simulate::RunScan(simulate::LoadScene((out / "mesh_object.toml").string()), so);
+  const compare::Stack es{{mm.defocus_um}, {e}, {mm.image}};
+  const compare::FocusScanResult mr =
+      compare::RunFocusScan(es, compare::ReadStack(ss.index_json), compare::FocusScanOptions{});
+  compare::WriteFocusScanReport(mr, (out / "mesh_object/compare").string(), "mesh object");
+  std::ostringstream hh;
+  hh.precision(4);
+  hh << "<h2>Non-spherical object (mesh), in focus</h2><p>" << mm.image << " vs a simulation of "
+     << mm.mesh << ":";
+  for (const auto& m : mr.measures)
+    hh << " " << compare::MeasureName(m.measure) << " = " << m.matrix[0][0] << ";";
+  hh << "</p>"
+     << internal::Img((out / "mesh_object/compare/montage.png").string(), "mesh object montage");
+  return hh.str();
+}
+
+}  // namespace
+
+PipelineSummary RunPipeline(const PipelineOptions& opt) {
+  const RunInputs in = ReadRunInputs(opt);
+  const PipelineFile& cfg = in.cfg;
+  const fs::path out = opt.output_dir.empty() ? fs::path(cfg.output) : fs::path(opt.output_dir);
   // A run that fails later (an input that only the calibration or the simulation can judge)
   // removes the output folder again when it made it: all in it would be this failed run's.
   struct RemoveIfFailed {
@@ -278,137 +489,72 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   // or failed run leaves no report mixing this run's files with the previous one's.
   sum.report = (out / "index.html").string();
   RemoveStaleOutput(sum.report);
-  auto say = [&](const std::string& m) {
-    if (opt.steps) std::cerr << "raymatch run: " << m << std::endl;
-  };
-  auto timed = [&](const std::string& name, const std::function<void()>& fn) {
-    const auto t0 = clock::now();
-    fn();
-    sum.step_seconds.push_back({name, std::chrono::duration<double>(clock::now() - t0).count()});
-  };
+  StepRunner steps(out, opt, &sum);
 
   // 1. Calibration.
-  const fs::path cal_file = out / "calibration.toml";
-  const std::string cal_inputs =
-      FolderStamp(cfg.lightfield) + "|" + FolderStamp(cfg.flatfield) + "|" +
-      (lf_in.flat.empty() ? "" : FileChecksum(lf_in.flat)) + "|" + std::to_string(cfg.extrapolate_to_deg) +
-      "|" + std::to_string(cfg.zones) + "|" + std::to_string(cfg.smoothness) + "|" +
-      (cfg.sphere.empty() ? "" : FolderStamp(cfg.sphere)) + [&] {
-        std::string planes;
-        for (double d : cfg.sphere_planes_um) planes += "|" + std::to_string(d);
-        return planes;
-      }();
-  const fs::path cal_report = out / "calibration_report.json";
-  std::string lf_report, co_report, sp_report;
-  CalibrationData cal;
-  if (!opt.force && Reusable(out / ".calibration.stamp", cal_inputs, {cal_file, cal_report})) {
-    say("calibration inputs unchanged: reusing " + cal_file.string());
-    cal = ReadCalibrationFile(cal_file.string());
-    lf_report = ReportField(cal_report, "light_field");
-    co_report = ReportField(cal_report, "corrector");
-    if (!cfg.sphere.empty()) sp_report = ReportField(cal_report, "sphere");
-    sum.reused.push_back("calibrate");
-  } else {
-    // A step's stamp goes before it rewrites its outputs and comes back after the last one, so an
-    // interrupted step is never taken for finished (and reused) by the next run.
-    RemoveStaleOutput(out / ".calibration.stamp");
-    timed("calibrate", [&] {
-      say("calibrating the light field (" + cfg.lightfield + ")");
-      calibrate::LightFieldOptions lo;
-      lo.extrapolate_to_deg = cfg.extrapolate_to_deg;
-      const calibrate::LightFieldSummary lf = calibrate::CalibrateLightField(lf_in, lo);
-      say("fitting the corrector (" + cfg.flatfield + ")");
-      calibrate::CorrectorOptions copt;
-      copt.zones = cfg.zones;
-      copt.smoothness = cfg.smoothness;
-      const calibrate::CorrectorSummary co =
-          calibrate::CalibrateCorrector(ff_in, copt, &lf.data);
-      for (const auto& w : lf.warnings) std::cerr << "raymatch run: warning: " << w << "\n";
-      for (const auto& w : co.warnings) std::cerr << "raymatch run: warning: " << w << "\n";
-      lf_report = lf.BriefReport();
-      co_report = co.BriefReport();
-      cal = co.data;
-      if (cfg.sphere.empty()) {
-        WriteCalibrationFile(cal_file.string(), co.data);
-      } else {
-        // The light field and corrector go to calibration_base.toml; the sphere calibration
-        // adds the edge beyond the NA and the PSF and writes calibration.toml.
-        const fs::path base_file = out / "calibration_base.toml";
-        WriteCalibrationFile(base_file.string(), co.data);
-        say("calibrating with the drop of " + cfg.sphere + " (light field beyond the NA, PSF)");
-        SphereCalibrationOptions so;
-        so.scan_folder = cfg.sphere;
-        so.base = base_file.string();
-        so.output = cal_file.string();
-        so.work_dir = (out / "sphere_calibration").string();
-        so.planes_um = cfg.sphere_planes_um;
-        so.threads = opt.threads;
-        so.progress = opt.progress;
-        so.say = say;
-        const SphereCalibrationResult sr = CalibrateSphere(so);
-        sp_report = sr.Brief();
-        if (sr.mismatch) std::cerr << "raymatch run: warning: the sphere calibration reports a model mismatch\n";
-        cal = ReadCalibrationFile(cal_file.string());
-      }
-      nlohmann::json rep{{"light_field", lf_report}, {"corrector", co_report}};
-      if (!sp_report.empty()) rep["sphere"] = sp_report;
-      WriteTextFileAtomic(cal_report, rep.dump(2) + "\n");
-      WriteTextFileAtomic(out / ".calibration.stamp", cal_inputs);
-    });
-  }
-  sum.cone_half_angle_deg = cal.cone_half_angle_deg;
-  sum.transmissions = cal.transmissions;
-  sum.transmission_sigma = cal.transmission_sigma;
+  const fs::path cal_file = out / "calibration.toml", cal_report = out / "calibration_report.json";
+  Calibration cal;
+  steps.Run({"calibrate",
+             ".calibration.stamp",
+             CalibrationInputs(in),
+             {cal_file, cal_report},
+             "calibration inputs unchanged: reusing " + cal_file.string(),
+             [&] { Calibrate(in, out, opt, steps, &cal); },
+             [&] {
+               cal.data = ReadCalibrationFile(cal_file.string());
+               cal.lf_report = ReportField(cal_report, "light_field");
+               cal.co_report = ReportField(cal_report, "corrector");
+               if (!cfg.sphere.empty()) cal.sp_report = ReportField(cal_report, "sphere");
+             }});
+  sum.cone_half_angle_deg = cal.data.cone_half_angle_deg;
+  sum.transmissions = cal.data.transmissions;
+  sum.transmission_sigma = cal.data.transmission_sigma;
 
-  // 2. Scene for the experiment: nominal drop, the experiment's image size and planes, the
-  // exposure recovered from the background of the middle plane.
-  sum.photons_per_pixel = BorderMedian(mid);
+  // 2. Scene for the experiment.
+  sum.photons_per_pixel = BorderMedian(in.mid);
   const double frac = opt.ray_fraction > 0 ? opt.ray_fraction : cfg.ray_fraction;
-  std::ostringstream sc;
-  sc.precision(10);
-  sc << "# Written by raymatch run: the experiment's focus scan, simulated with the calibration.\n"
-     << "name = \"sim\"\ncalibration = \"calibration.toml\"\nseed = " << cfg.seed << "\n\n"
-     << "[[object]]\nname = \"drop\"\ntype = \"sphere\"\nradius_um = " << ex.diameter_um / 2
-     << "\nmaterial = \"water\"\ntemperature_K = " << ex.temperature_K << "\n\n[camera]\npixels = ["
-     << exp.images[0].width << ", " << exp.images[0].height << "]\n\n[trace]\nphotons_per_pixel = "
-     << sum.photons_per_pixel * frac << "   # background photons x ray fraction " << frac
-     << "\npartial_reflection = \"" << cfg.partial_reflection << "\"\n\n[scan]\ndefocus_um = [";
-  sc.precision(17);  // every distinct focus position stays distinct (plane file names)
-  for (size_t i = 0; i < exp.defocus_um.size(); ++i) sc << (i ? ", " : "") << exp.defocus_um[i];
-  sc << "]\n";
   const fs::path scene_file = out / "scene.toml";
-  WriteTextFileAtomic(scene_file, sc.str());
+  WriteScene(scene_file,
+             "# Written by raymatch run: the experiment's focus scan, simulated with the "
+             "calibration.\n# photons_per_pixel: the background's photons x ray fraction " +
+                 std::to_string(frac) + ".",
+             ExperimentScene(in, sum.photons_per_pixel * frac));
 
   // 3. Simulation (reused when scene and calibration are unchanged).
   const fs::path sim_dir = out / "simulation", sim_index = sim_dir / "sim_scan.json";
-  const std::string sim_inputs = ReadFileBytes(scene_file.string()) + "|" + FileChecksum(cal_file.string());
-  if (!opt.force && Reusable(out / ".simulation.stamp", sim_inputs, {sim_index})) {
-    say("simulation unchanged: reusing " + sim_index.string());
-    sum.reused.push_back("simulate");
-  } else {
-    RemoveStaleOutput(out / ".simulation.stamp");
-    timed("simulate", [&] {
-      say("simulating " + std::to_string(exp.defocus_um.size()) + " planes at " +
-          std::to_string(sum.photons_per_pixel * frac) + " photons per pixel");
-      simulate::Scene scene = simulate::LoadScene(scene_file.string());
-      simulate::ScanOptions so;
-      so.output_dir = sim_dir.string();
-      so.control.progress = opt.progress;
-      so.control.threads = opt.threads;
-      simulate::RunScan(scene, so);
-      WriteTextFileAtomic(out / ".simulation.stamp", sim_inputs);
-    });
-  }
+  const std::string sim_inputs =
+      ReadFileBytes(scene_file.string()) + "|" + FileChecksum(cal_file.string());
+  steps.Run({"simulate",
+             ".simulation.stamp",
+             sim_inputs,
+             {sim_index},
+             "simulation unchanged: reusing " + sim_index.string(),
+             [&] {
+               steps.Say("simulating " + std::to_string(in.exp.defocus_um.size()) + " planes at " +
+                         std::to_string(sum.photons_per_pixel * frac) + " photons per pixel");
+               simulate::ScanOptions so;
+               so.output_dir = sim_dir.string();
+               so.control.progress = opt.progress;
+               so.control.threads = opt.threads;
+               simulate::RunScan(simulate::LoadScene(scene_file.string()), so);
+             },
+             nullptr});
 
   // 4. Focus-scan comparison.
   compare::FocusScanResult fr;
-  timed("compare", [&] {
-    say("comparing the focus scans");
-    compare::FocusScanOptions fo;
-    fo.prepare = prep;
-    fr = compare::RunFocusScan(exp, compare::ReadStack(sim_index.string()), fo);
-    compare::WriteFocusScanReport(fr, (out / "compare").string(), "focus-scan test");
-  });
+  steps.Run({"compare",
+             "",
+             "",
+             {},
+             "",
+             [&] {
+               steps.Say("comparing the focus scans");
+               compare::FocusScanOptions fo;
+               fo.prepare = in.prep;
+               fr = compare::RunFocusScan(in.exp, compare::ReadStack(sim_index.string()), fo);
+               compare::WriteFocusScanReport(fr, (out / "compare").string(), "focus-scan test");
+             },
+             nullptr});
   sum.verdict = int(fr.verdict);
   sum.exp_defocus_um = fr.exp_defocus_um;
   for (const auto& m : fr.measures) {
@@ -419,208 +565,54 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   }
 
   // 4b. A non-spherical object (e.g. merging drops given as a mesh), in focus.
-  std::string merging_html;
-  if (!cfg.merging.empty()) {
-    timed("mesh object", [&] {
-      say("simulating the mesh object (" + cfg.merging + ")");
-      const MeshObjectMetadata& mm = *mesh_meta;
-      const std::string& image = mm.image;
-      const std::string& mesh = mm.mesh;
-      const double dz = mm.defocus_um;
-      const auto& rot = mm.rotation_deg;
-      const Image& e = mesh_image;
-      std::ostringstream ms;
-      ms.precision(10);
-      ms << "name = \"mesh_object\"\ncalibration = \"calibration.toml\"\nseed = " << cfg.seed
-         << "\n\n[[object]]\ntype = \"mesh\"\nfile = \"" << mesh << "\"\nrotation_deg = [" << rot[0] << ", "
-         << rot[1] << ", " << rot[2] << "]\nmaterial = \"water\"\ntemperature_K = " << ex.temperature_K
-         << "\n\n[camera]\npixels = [" << e.width << ", " << e.height << "]\n\n[trace]\nphotons_per_pixel = "
-         << sum.photons_per_pixel * frac << "\n\n[scan]\ndefocus_um = [" << dz << "]\n";
-      WriteTextFileAtomic(out / "mesh_object.toml", ms.str());
-      simulate::ScanOptions so;
-      so.output_dir = (out / "mesh_object").string();
-      so.control.threads = opt.threads;
-      const simulate::ScanSummary ss = simulate::RunScan(simulate::LoadScene((out / "mesh_object.toml").string()), so);
-      const compare::Stack es{{dz}, {e}, {image}};
-      const compare::Stack sst = compare::ReadStack(ss.index_json);
-      compare::FocusScanOptions fo;
-      const compare::FocusScanResult mr2 = compare::RunFocusScan(es, sst, fo);
-      compare::WriteFocusScanReport(mr2, (out / "mesh_object/compare").string(), "mesh object");
-      std::ostringstream hh;
-      hh.precision(4);
-      hh << "<h2>Non-spherical object (mesh), in focus</h2><p>" << image << " vs a simulation of "
-         << mesh << ":";
-      for (const auto& m : mr2.measures) hh << " " << compare::MeasureName(m.measure) << " = " << m.matrix[0][0] << ";";
-      hh << "</p>" << Img((out / "mesh_object/compare/montage.png").string(), "mesh object montage");
-      merging_html = hh.str();
-    });
-  }
+  internal::RunReport report;
+  if (in.mesh)
+    steps.Run({"mesh object",
+               "",
+               "",
+               {},
+               "",
+               [&] {
+                 steps.Say("simulating the mesh object (" + cfg.merging + ")");
+                 report.mesh_html = MeshObject(in, out, opt, sum.photons_per_pixel * frac);
+               },
+               nullptr});
 
   // 4c. Fits (docs/fit.md) with this calibration: 3D properties from single images.
-  std::string fit_html;
   for (const std::string& file : cfg.fits) {
     const std::string stem = fs::path(file).stem().string();
-    timed("fit " + stem, [&] {
-      say("fitting " + file);
-      const fit::FitSpec spec = fit::LoadFitSpec(file, "", fs::absolute(cal_file).string());
-      fit::FitOptions fo;
-      fo.threads = opt.threads;
-      fo.progress = opt.progress;
-      const fit::FitResult fr2 = fit::RunFit(spec, fo);
-      const std::string report = fit::WriteFitOutputs(spec, fr2, (out / "fit" / stem).string());
-      std::ostringstream hh;
-      hh.precision(6);
-      hh << "<h3><a href='fit/" << stem << "/report.html'>" << stem << "</a>: " << fit::MethodName(spec.method)
-         << " on " << fit::ErrorFunctionName(spec.error) << ", " << fit::StatusName(fr2.status) << " (" << fr2.evaluations.size()
-         << " evaluations, " << fr2.total_seconds << " s)</h3><table><tr><th>parameter</th><th>best</th>"
-            "<th>sigma</th><th>Cramer-Rao bound</th></tr>";
-      for (const auto& p : fr2.parameters)
-        hh << "<tr><td>" << p.key << "</td><td>" << p.best << " " << p.unit << "</td><td>" << p.sigma
-           << "</td><td>" << p.sigma_cramer_rao << "</td></tr>";
-      hh << "</table>";
-      if (fr2.goodness.pixels > 0)
-        hh << "<p style='padding:4px;border:2px solid " << (fr2.goodness.mismatch ? "#c00" : "#6a6")
-           << "'>Goodness of fit: " << fr2.goodness.verdict << "</p>";
-      fit_html += hh.str();
-      sum.fits.push_back({stem, fit::StatusName(fr2.status)});
-    });
+    steps.Run({"fit " + stem,
+               "",
+               "",
+               {},
+               "",
+               [&] {
+                 steps.Say("fitting " + file);
+                 const fit::FitSpec spec =
+                     fit::LoadFitSpec(file, "", fs::absolute(cal_file).string());
+                 fit::FitOptions fo;
+                 fo.threads = opt.threads;
+                 fo.progress = opt.progress;
+                 const fit::FitResult r = fit::RunFit(spec, fo);
+                 fit::WriteFitOutputs(spec, r, (out / "fit" / stem).string());
+                 report.fit_html += internal::FitSectionHtml(stem, spec, r);
+                 sum.fits.push_back({stem, fit::StatusName(r.status)});
+               },
+               nullptr});
   }
-  if (!fit_html.empty()) fit_html = "<h2>Fits: 3D properties from the images</h2>" + fit_html;
+  if (!report.fit_html.empty())
+    report.fit_html = "<h2>Fits: 3D properties from the images</h2>" + report.fit_html;
 
   // 5. Report.
-  const fs::path fig = out / "figures";
-  EnsureDirectory(fig);
-  {
-    // Angular map over direction cosines (u right, v up), relative to its maximum.
-    compare::MapPlot p;
-    p.image = cal.angular_map;
-    double mx = 0;
-    for (float v : p.image.pixels) mx = std::max(mx, double(v));
-    if (mx > 0)
-      for (float& v : p.image.pixels) v = float(v / mx);
-    p.lo = 0, p.hi = 1;
-    p.x_left = -cal.angular_extent, p.x_right = cal.angular_extent;
-    p.y_top = cal.angular_extent, p.y_bottom = -cal.angular_extent;
-    p.title = "light field: angular radiance";
-    p.xlabel = "direction cosine u (x, right)";
-    p.ylabel = "direction cosine v (y, up)";
-    p.colour_label = "radiance (relative to the maximum)";
-    p.max_side_px = 360;
-    compare::WriteMap((fig / "angular_map.png").string(), p);
-  }
-  std::string spatial_html;
-  if (!cal.spatial_map.empty()) {
-    compare::MapPlot p;
-    p.image = cal.spatial_map;
-    double mx = 0;
-    for (float v : p.image.pixels) mx = std::max(mx, double(v));
-    p.lo = 0, p.hi = mx > 0 ? mx : 1;
-    p.x_left = -0.5 * cal.field_size_um[0], p.x_right = 0.5 * cal.field_size_um[0];
-    p.y_top = 0.5 * cal.field_size_um[1], p.y_bottom = -0.5 * cal.field_size_um[1];
-    p.title = "light field: spatial map at the object plane (from the flat field)";
-    p.xlabel = "x (µm)";
-    p.ylabel = "y (µm)";
-    p.colour_label = "relative irradiance";
-    p.max_side_px = 360;
-    compare::WriteMap((fig / "spatial_map.png").string(), p);
-    spatial_html = "<p>Spatial map: relative irradiance at the object plane from the flat field.</p>" +
-                   Img((fig / "spatial_map.png").string(), "spatial map");
-  }
-  {
-    // Azimuthal mean in rings of one map pixel, with the standard error of each ring's mean.
-    const Image& m = cal.angular_map;
-    const int n = m.width;
-    std::vector<double> sum_r(n / 2, 0), sum2(n / 2, 0), cnt(n / 2, 0);
-    for (int y = 0; y < n; ++y)
-      for (int x = 0; x < n; ++x) {
-        const double u = (2 * (x + 0.5) / n - 1), vv = (1 - 2 * (y + 0.5) / n);
-        const int k = int(std::hypot(u, vv) * n / 2);
-        if (k < n / 2) sum_r[k] += m.at(x, y), sum2[k] += double(m.at(x, y)) * m.at(x, y), cnt[k] += 1;
-      }
-    Series s;
-    s.points = true;
-    s.label = "azimuthal mean ± 1 standard error";
-    double mx = 0;
-    for (int k = 0; k < n / 2; ++k)
-      if (cnt[k] > 0) mx = std::max(mx, sum_r[k] / cnt[k]);
-    for (int k = 0; k < n / 2; ++k)
-      if (cnt[k] > 0) {
-        const double mean = sum_r[k] / cnt[k];
-        const double var = cnt[k] > 1 ? std::max(0.0, (sum2[k] - cnt[k] * mean * mean) / (cnt[k] - 1)) : 0.0;
-        s.x.push_back(std::asin(std::min(1.0, (k + 0.5) / (n / 2) * cal.angular_extent)) * 180 / M_PI);
-        s.y.push_back(mx > 0 ? mean / mx : mean);
-        s.yerr.push_back((mx > 0 ? 1 / mx : 1) * std::sqrt(var / cnt[k]));
-      }
-    compare::PlotPanel p;
-    p.series = {s};
-    p.title = "light field: radial profile (cone edge " + std::to_string(cal.cone_half_angle_deg).substr(0, 5) + "°)";
-    p.xlabel = "angle to the optical axis (degrees)";
-    p.ylabel = "radiance (relative to the maximum)";
-    WritePlot((fig / "radial_profile.png").string(), {p}, 560, 380);
-  }
-  {
-    // Zone transmissions against the zone's radius on the corrector (mid-ring), +-1 sigma.
-    Series s;
-    s.points = true;
-    s.label = "transmission ± 1σ (fit)";
-    const bool radii = cal.ring_outer_mm.size() == cal.transmissions.size();
-    for (size_t j = 0; j < cal.transmissions.size(); ++j) {
-      s.x.push_back(radii ? 0.5 * ((j ? cal.ring_outer_mm[j - 1] : 0.0) + cal.ring_outer_mm[j]) : double(j));
-      s.y.push_back(cal.transmissions[j]);
-      s.yerr.push_back(j < cal.transmission_sigma.size() ? cal.transmission_sigma[j] : 0.0);
-    }
-    compare::PlotPanel p;
-    p.series = {s};
-    p.title = "corrector: zone transmissions";
-    p.xlabel = radii ? "zone mid-radius on the corrector (mm)" : "zone (0 = central disc)";
-    p.ylabel = "transmission T (fraction)";
-    WritePlot((fig / "transmissions.png").string(), {p}, 560, 380);
-  }
-  std::ostringstream h;
-  h.precision(4);
-  h << "<!doctype html><html><head><meta charset='utf-8'><title>raymatch run</title><style>"
-       "body{font-family:sans-serif;margin:2em;max-width:1100px}td,th{border:1px solid #ccc;"
-       "padding:2px 6px;font-size:12px}table{border-collapse:collapse}img{max-width:100%}"
-       ".pass{color:#070}.fail{color:#b00}</style></head><body><h1>raymatch: calibrate, simulate, compare</h1>"
-    << "<p>" << ProvenanceJson()["date_utc"].get<std::string>() << " &mdash; <code>" << CommandLine()
-    << "</code></p><h2>Verdict: <span class='" << (fr.verdict == compare::Verdict::kPass ? "pass'>pass" : "fail'>" + std::string(fr.verdict == compare::Verdict::kWarning ? "warning" : "fail"))
-    << "</span></h2><p>" << fr.message << "</p>"
-    << "<h2>Measured light field</h2><pre>" << lf_report << "</pre>"
-    << Img((fig / "angular_map.png").string(), "angular map") << " "
-    << Img((fig / "radial_profile.png").string(), "light-field radial profile")
-    << "<p>Angular map over direction cosines (u right, v up), +-" << cal.angular_extent
-    << "; radial profile: azimuthal means in rings of one map pixel, error bars one standard error "
-       "of each ring's mean.</p>"
-    << spatial_html
-    << "<h2>Corrector</h2><pre>" << co_report << "</pre>"
-    << (sp_report.empty() ? std::string()
-                          : "<h2>Sphere calibration</h2><p>The light field beyond the NA and the PSF from the drop of " +
-                                HtmlEscape(cfg.sphere) + " (<a href='sphere_calibration/report.html'>fit report</a>)</p><pre>" +
-                                HtmlEscape(sp_report) + "</pre>") << Img((fig / "transmissions.png").string(), "corrector transmissions")
-    << "<p>Error bars: one standard deviation from the fit's covariance.</p>"
-    << "<h2>Experiment (top) and simulation (bottom)</h2><p>Exposure recovered from the "
-       "background: " << sum.photons_per_pixel << " photons per pixel; simulated with ray fraction "
-    << frac << ". " << fr.RegistrationSummary() << ".</p>"
-    << Img((out / "compare/montage.png").string(), "montage")
-    << "<p>Residual maps and radial profiles per plane: <a href='compare/report.html'>compare/report.html</a>.</p>"
-    << "<h2>Focus-scan test</h2><table><tr><th>measure</th><th>verdict</th><th>best simulated z per experimental z (um)</th></tr>";
-  for (size_t i = 0; i < fr.measures.size(); ++i) {
-    h << "<tr><td>" << sum.measures[i] << "</td><td class='" << (fr.measures[i].passes ? "pass'>pass" : "fail'>fail") << "</td><td>";
-    for (double z : sum.best_match_um[i]) h << z << " ";
-    h << "</td></tr>";
-  }
-  h << "</table>";
-  h << merging_html << fit_html;
-  for (const auto& m : fr.measures)
-    h << "<h3>" << compare::MeasureName(m.measure) << "</h3>"
-      << Img((out / ("compare/heatmap_" + std::string(compare::MeasureName(m.measure)) + ".png")).string(),
-             std::string(compare::MeasureName(m.measure)) + " heatmap");
-  h << "<h2>Timing</h2><table>";
-  for (const auto& [name, s] : sum.step_seconds) h << "<tr><td>" << name << "</td><td>" << s << " s</td></tr>";
-  for (const auto& r : sum.reused) h << "<tr><td>" << r << "</td><td>reused (inputs unchanged)</td></tr>";
-  h << "</table><p>Files: <code>calibration.toml</code>, <code>scene.toml</code>, <code>simulation/</code>, "
-       "<code>compare/</code> (report.html, CSV, JSON), <code>figures/</code>.</p></body></html>\n";
-  WriteTextFileAtomic(sum.report, h.str());
+  report.out = out;
+  report.sphere_folder = cfg.sphere;
+  report.cal = &cal.data;
+  report.lf_report = cal.lf_report, report.co_report = cal.co_report,
+  report.sp_report = cal.sp_report;
+  report.scan = &fr;
+  report.sum = &sum;
+  report.ray_fraction = frac;
+  internal::WriteRunReport(report);
   return sum;
 }
 

@@ -1,0 +1,217 @@
+// The main job's report: the calibration's figures and index.html (run_report.h).
+#include "run_report.h"
+
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+
+#include "raymatch/compare/plot.h"
+#include "raymatch/core/atomic_file.h"
+#include "raymatch/core/html.h"
+#include "raymatch/core/image_io.h"
+#include "raymatch/core/provenance.h"
+
+namespace fs = std::filesystem;
+
+namespace raymatch::pipeline::internal {
+using compare::Series;
+using compare::WritePlot;
+
+std::string Img(const std::string& png, const std::string& alt) { return EmbeddedPng(png, alt); }
+
+std::string WriteCalibrationFigures(const CalibrationData& cal, const fs::path& fig) {
+  {
+    // Angular map over direction cosines (u right, v up), relative to its maximum.
+    compare::MapPlot p;
+    p.image = cal.angular_map;
+    double mx = 0;
+    for (float v : p.image.pixels) mx = std::max(mx, double(v));
+    if (mx > 0)
+      for (float& v : p.image.pixels) v = float(v / mx);
+    p.lo = 0, p.hi = 1;
+    p.x_left = -cal.angular_extent, p.x_right = cal.angular_extent;
+    p.y_top = cal.angular_extent, p.y_bottom = -cal.angular_extent;
+    p.title = "light field: angular radiance";
+    p.xlabel = "direction cosine u (x, right)";
+    p.ylabel = "direction cosine v (y, up)";
+    p.colour_label = "radiance (relative to the maximum)";
+    p.max_side_px = 360;
+    compare::WriteMap((fig / "angular_map.png").string(), p);
+  }
+  std::string spatial_html;
+  if (!cal.spatial_map.empty()) {
+    compare::MapPlot p;
+    p.image = cal.spatial_map;
+    double mx = 0;
+    for (float v : p.image.pixels) mx = std::max(mx, double(v));
+    p.lo = 0, p.hi = mx > 0 ? mx : 1;
+    p.x_left = -0.5 * cal.field_size_um[0], p.x_right = 0.5 * cal.field_size_um[0];
+    p.y_top = 0.5 * cal.field_size_um[1], p.y_bottom = -0.5 * cal.field_size_um[1];
+    p.title = "light field: spatial map at the object plane (from the flat field)";
+    p.xlabel = "x (µm)";
+    p.ylabel = "y (µm)";
+    p.colour_label = "relative irradiance";
+    p.max_side_px = 360;
+    compare::WriteMap((fig / "spatial_map.png").string(), p);
+    spatial_html =
+        "<p>Spatial map: relative irradiance at the object plane from the flat field.</p>" +
+        Img((fig / "spatial_map.png").string(), "spatial map");
+  }
+  {
+    // Azimuthal mean in rings of one map pixel, with the standard error of each ring's mean.
+    const Image& m = cal.angular_map;
+    const int n = m.width;
+    std::vector<double> sum_r(n / 2, 0), sum2(n / 2, 0), cnt(n / 2, 0);
+    for (int y = 0; y < n; ++y)
+      for (int x = 0; x < n; ++x) {
+        const double u = (2 * (x + 0.5) / n - 1), vv = (1 - 2 * (y + 0.5) / n);
+        const int k = int(std::hypot(u, vv) * n / 2);
+        if (k < n / 2)
+          sum_r[k] += m.at(x, y), sum2[k] += double(m.at(x, y)) * m.at(x, y), cnt[k] += 1;
+      }
+    Series s;
+    s.points = true;
+    s.label = "azimuthal mean ± 1 standard error";
+    double mx = 0;
+    for (int k = 0; k < n / 2; ++k)
+      if (cnt[k] > 0) mx = std::max(mx, sum_r[k] / cnt[k]);
+    for (int k = 0; k < n / 2; ++k)
+      if (cnt[k] > 0) {
+        const double mean = sum_r[k] / cnt[k];
+        const double var =
+            cnt[k] > 1 ? std::max(0.0, (sum2[k] - cnt[k] * mean * mean) / (cnt[k] - 1)) : 0.0;
+        s.x.push_back(std::asin(std::min(1.0, (k + 0.5) / (n / 2) * cal.angular_extent)) * 180 /
+                      M_PI);
+        s.y.push_back(mx > 0 ? mean / mx : mean);
+        s.yerr.push_back((mx > 0 ? 1 / mx : 1) * std::sqrt(var / cnt[k]));
+      }
+    compare::PlotPanel p;
+    p.series = {s};
+    p.title = "light field: radial profile (cone edge " +
+              std::to_string(cal.cone_half_angle_deg).substr(0, 5) + "°)";
+    p.xlabel = "angle to the optical axis (degrees)";
+    p.ylabel = "radiance (relative to the maximum)";
+    WritePlot((fig / "radial_profile.png").string(), {p}, 560, 380);
+  }
+  {
+    // Zone transmissions against the zone's radius on the corrector (mid-ring), +-1 sigma.
+    Series s;
+    s.points = true;
+    s.label = "transmission ± 1σ (fit)";
+    const bool radii = cal.ring_outer_mm.size() == cal.transmissions.size();
+    for (size_t j = 0; j < cal.transmissions.size(); ++j) {
+      s.x.push_back(radii ? 0.5 * ((j ? cal.ring_outer_mm[j - 1] : 0.0) + cal.ring_outer_mm[j])
+                          : double(j));
+      s.y.push_back(cal.transmissions[j]);
+      s.yerr.push_back(j < cal.transmission_sigma.size() ? cal.transmission_sigma[j] : 0.0);
+    }
+    compare::PlotPanel p;
+    p.series = {s};
+    p.title = "corrector: zone transmissions";
+    p.xlabel = radii ? "zone mid-radius on the corrector (mm)" : "zone (0 = central disc)";
+    p.ylabel = "transmission T (fraction)";
+    WritePlot((fig / "transmissions.png").string(), {p}, 560, 380);
+  }
+  return spatial_html;
+}
+
+void WriteRunReport(const RunReport& r) {
+  const fs::path& out = r.out;
+  const CalibrationData& cal = *r.cal;
+  const compare::FocusScanResult& fr = *r.scan;
+  const PipelineSummary& sum = *r.sum;
+  const fs::path fig = out / "figures";
+  EnsureDirectory(fig);
+  const std::string spatial_html = WriteCalibrationFigures(cal, fig);
+  const std::string &lf_report = r.lf_report, &co_report = r.co_report, &sp_report = r.sp_report;
+  const double frac = r.ray_fraction;
+  std::ostringstream h;
+  h.precision(4);
+  h << "<!doctype html><html><head><meta charset='utf-8'><title>raymatch run</title><style>"
+       "body{font-family:sans-serif;margin:2em;max-width:1100px}td,th{border:1px solid #ccc;"
+       "padding:2px 6px;font-size:12px}table{border-collapse:collapse}img{max-width:100%}"
+       ".pass{color:#070}.fail{color:#b00}</style></head><body><h1>raymatch: calibrate, simulate, "
+       "compare</h1>"
+    << "<p>" << ProvenanceJson()["date_utc"].get<std::string>() << " &mdash; <code>"
+    << CommandLine() << "</code></p><h2>Verdict: <span class='"
+    << (fr.verdict == compare::Verdict::kPass
+            ? "pass'>pass"
+            : "fail'>" + std::string(fr.verdict == compare::Verdict::kWarning ? "warning" : "fail"))
+    << "</span></h2><p>" << fr.message << "</p>"
+    << "<h2>Measured light field</h2><pre>" << lf_report << "</pre>"
+    << Img((fig / "angular_map.png").string(), "angular map") << " "
+    << Img((fig / "radial_profile.png").string(), "light-field radial profile")
+    << "<p>Angular map over direction cosines (u right, v up), +-" << cal.angular_extent
+    << "; radial profile: azimuthal means in rings of one map pixel, error bars one standard error "
+       "of each ring's mean.</p>"
+    << spatial_html << "<h2>Corrector</h2><pre>" << co_report << "</pre>"
+    << (sp_report.empty()
+            ? std::string()
+            : "<h2>Sphere calibration</h2><p>The light field beyond the NA and the PSF from the "
+              "drop of " +
+                  HtmlEscape(r.sphere_folder) +
+                  " (<a href='sphere_calibration/report.html'>fit report</a>)</p><pre>" +
+                  HtmlEscape(sp_report) + "</pre>")
+    << Img((fig / "transmissions.png").string(), "corrector transmissions")
+    << "<p>Error bars: one standard deviation from the fit's covariance.</p>"
+    << "<h2>Experiment (top) and simulation (bottom)</h2><p>Exposure recovered from the "
+       "background: "
+    << sum.photons_per_pixel << " photons per pixel; simulated with ray fraction " << frac << ". "
+    << fr.RegistrationSummary() << ".</p>" << Img((out / "compare/montage.png").string(), "montage")
+    << "<p>Residual maps and radial profiles per plane: <a "
+       "href='compare/report.html'>compare/report.html</a>.</p>"
+    << "<h2>Focus-scan test</h2><table><tr><th>measure</th><th>verdict</th><th>best simulated z "
+       "per experimental z (um)</th></tr>";
+  for (size_t i = 0; i < fr.measures.size(); ++i) {
+    h << "<tr><td>" << sum.measures[i] << "</td><td class='"
+      << (fr.measures[i].passes ? "pass'>pass" : "fail'>fail") << "</td><td>";
+    for (double z : sum.best_match_um[i]) h << z << " ";
+    h << "</td></tr>";
+  }
+  h << "</table>";
+  h << r.mesh_html << r.fit_html;
+  for (const auto& m : fr.measures)
+    h << "<h3>" << compare::MeasureName(m.measure) << "</h3>"
+      << Img((out / ("compare/heatmap_" + std::string(compare::MeasureName(m.measure)) + ".png"))
+                 .string(),
+             std::string(compare::MeasureName(m.measure)) + " heatmap");
+  h << "<h2>Timing</h2><table>";
+  for (const auto& [name, s] : sum.step_seconds)
+    h << "<tr><td>" << name << "</td><td>" << s << " s</td></tr>";
+  for (const auto& step : sum.reused)
+    h << "<tr><td>" << step << "</td><td>reused (inputs unchanged)</td></tr>";
+  h << "</table><p>Files: <code>calibration.toml</code>, <code>scene.toml</code>, "
+       "<code>simulation/</code>, "
+       "<code>compare/</code> (report.html, CSV, JSON), <code>figures/</code>.</p></body></html>\n";
+  WriteTextFileAtomic(sum.report, h.str());
+}
+
+std::string FitSectionHtml(const std::string& stem, const fit::FitSpec& spec,
+                           const fit::FitResult& fr2) {
+  std::ostringstream hh;
+  hh.precision(6);
+  hh << "<h3><a href='fit/" << stem << "/report.html'>" << stem
+     << "</a>: " << fit::MethodName(spec.method) << " on " << fit::ErrorFunctionName(spec.error)
+     << ", " << fit::StatusName(fr2.status) << " (" << fr2.evaluations.size() << " evaluations, "
+     << fr2.total_seconds
+     << " s)</h3><table><tr><th>parameter</th><th>best</th>"
+        "<th>sigma</th><th>Cramer-Rao bound</th><th>profile-likelihood 68 % interval</th></tr>";
+  for (const auto& p : fr2.parameters) {
+    hh << "<tr><td>" << p.key << "</td><td>" << p.best << " " << p.unit << "</td><td>" << p.sigma
+       << "</td><td>" << p.sigma_cramer_rao << "</td><td>";
+    if (p.profile_t.empty())
+      hh << "not needed";
+    else
+      hh << "[" << (p.profile_lower_open ? "&le; " : "") << p.profile_lower << ", "
+         << (p.profile_upper_open ? "&ge; " : "") << p.profile_upper << "] ("
+         << HtmlEscape(p.profile_reason) << ")";
+    hh << "</td></tr>";
+  }
+  hh << "</table>";
+  if (fr2.goodness.pixels > 0)
+    hh << "<p style='padding:4px;border:2px solid " << (fr2.goodness.mismatch ? "#c00" : "#6a6")
+       << "'>Goodness of fit: " << fr2.goodness.verdict << "</p>";
+  return hh.str();
+}
+
+}  // namespace raymatch::pipeline::internal

@@ -11,7 +11,7 @@ if [ ${#files[@]} -eq 0 ]; then
   files=(
     core/include/raymatch/core/progress.h core/src/progress.cpp
     core/include/raymatch/core/camera_readout.h core/src/camera_readout.cpp
-    tests/core/camera_readout_test.cpp fit/src/runner.h fit/src/uncertainty.cpp fit/src/profile.cpp fit/src/profile.h pipeline/src/pipeline.cpp pipeline/src/run_report.cpp pipeline/src/run_report.h
+    tests/core/camera_readout_test.cpp fit/src/runner.h fit/src/uncertainty.cpp fit/src/profile.cpp fit/src/profile.h pipeline/src/pipeline.cpp pipeline/src/run_report.cpp pipeline/src/run_report.h pipeline/src/generated_toml.h pipeline/src/sphere_calibration.cpp
     simulate/src/grin_cells.h simulate/src/objects.h simulate/src/optics.cpp
     simulate/src/packet_driver.cpp simulate/src/packet_driver.h simulate/src/sources.cpp
     simulate/src/sources.h simulate/src/stages-inl.h simulate/src/stages.h

@@ -30,6 +30,7 @@
 #include "raymatch/simulate/geometry.h"
 #include "raymatch/simulate/scan.h"
 #include "raymatch/simulate/scene.h"
+#include "generated_toml.h"
 #include "run_report.h"
 
 namespace fs = std::filesystem;
@@ -389,20 +390,8 @@ void Calibrate(const RunInputs& in, const fs::path& out, const PipelineOptions& 
   WriteTextFileAtomic(out / "calibration_report.json", rep.dump(2) + "\n");
 }
 
-/// A value as the scene files have always carried it: 10 significant digits.
-double Sig10(double v) {
-  std::ostringstream s;
-  s.precision(10);
-  s << v;
-  return std::stod(s.str());
-}
-
-/// A generated scene, written atomically: `comment` lines, then the table.
-void WriteScene(const fs::path& file, const std::string& comment, const toml::table& t) {
-  std::ostringstream s;
-  s << comment << "\n" << t << "\n";
-  WriteTextFileAtomic(file, s.str());
-}
+using internal::Sig10;
+using internal::WriteToml;
 
 /// The scene of the experiment's focus scan: the nominal drop, the experiment's image size and
 /// planes, the exposure recovered from the middle plane's background times the ray fraction.
@@ -444,7 +433,7 @@ std::string MeshObject(const RunInputs& in, const fs::path& out, const PipelineO
       {"camera", toml::table{{"pixels", toml::array{e.width, e.height}}}},
       {"trace", toml::table{{"photons_per_pixel", Sig10(photons_per_pixel)}}},
       {"scan", toml::table{{"defocus_um", toml::array{Sig10(mm.defocus_um)}}}}};
-  WriteScene(out / "mesh_object.toml", "# Written by raymatch run: the mesh object, in focus.",
+  WriteToml(out / "mesh_object.toml", "# Written by raymatch run: the mesh object, in focus.",
              scene);
   simulate::ScanOptions so;
   so.output_dir = (out / "mesh_object").string();
@@ -514,7 +503,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   sum.photons_per_pixel = BorderMedian(in.mid);
   const double frac = opt.ray_fraction > 0 ? opt.ray_fraction : cfg.ray_fraction;
   const fs::path scene_file = out / "scene.toml";
-  WriteScene(scene_file,
+  WriteToml(scene_file,
              "# Written by raymatch run: the experiment's focus scan, simulated with the "
              "calibration.\n# photons_per_pixel: the background's photons x ray fraction " +
                  std::to_string(frac) + ".",

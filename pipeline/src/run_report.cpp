@@ -19,40 +19,40 @@ using compare::WritePlot;
 
 std::string Img(const std::string& png, const std::string& alt) { return EmbeddedPng(png, alt); }
 
+namespace {
+
+/// A map centred on the axis (+-half_x, +-half_y), colours from 0 to its maximum; `relative`:
+/// divided by the maximum first.
+void WriteMapPlot(const fs::path& png, const Image& image, bool relative, double half_x,
+                  double half_y, const std::string& title, const std::string& xlabel,
+                  const std::string& ylabel, const std::string& colour_label) {
+  compare::MapPlot p;
+  p.image = image;
+  double mx = 0;
+  for (float v : p.image.pixels) mx = std::max(mx, double(v));
+  if (relative && mx > 0)
+    for (float& v : p.image.pixels) v = float(v / mx);
+  p.lo = 0, p.hi = relative || !(mx > 0) ? 1 : mx;
+  p.x_left = -half_x, p.x_right = half_x;
+  p.y_top = half_y, p.y_bottom = -half_y;
+  p.title = title, p.xlabel = xlabel, p.ylabel = ylabel, p.colour_label = colour_label;
+  p.max_side_px = 360;
+  compare::WriteMap(png.string(), p);
+}
+
+}  // namespace
+
 std::string WriteCalibrationFigures(const CalibrationData& cal, const fs::path& fig) {
-  {
-    // Angular map over direction cosines (u right, v up), relative to its maximum.
-    compare::MapPlot p;
-    p.image = cal.angular_map;
-    double mx = 0;
-    for (float v : p.image.pixels) mx = std::max(mx, double(v));
-    if (mx > 0)
-      for (float& v : p.image.pixels) v = float(v / mx);
-    p.lo = 0, p.hi = 1;
-    p.x_left = -cal.angular_extent, p.x_right = cal.angular_extent;
-    p.y_top = cal.angular_extent, p.y_bottom = -cal.angular_extent;
-    p.title = "light field: angular radiance";
-    p.xlabel = "direction cosine u (x, right)";
-    p.ylabel = "direction cosine v (y, up)";
-    p.colour_label = "radiance (relative to the maximum)";
-    p.max_side_px = 360;
-    compare::WriteMap((fig / "angular_map.png").string(), p);
-  }
+  // Angular map over direction cosines (u right, v up), relative to its maximum.
+  WriteMapPlot(fig / "angular_map.png", cal.angular_map, true, cal.angular_extent,
+               cal.angular_extent, "light field: angular radiance", "direction cosine u (x, right)",
+               "direction cosine v (y, up)", "radiance (relative to the maximum)");
   std::string spatial_html;
   if (!cal.spatial_map.empty()) {
-    compare::MapPlot p;
-    p.image = cal.spatial_map;
-    double mx = 0;
-    for (float v : p.image.pixels) mx = std::max(mx, double(v));
-    p.lo = 0, p.hi = mx > 0 ? mx : 1;
-    p.x_left = -0.5 * cal.field_size_um[0], p.x_right = 0.5 * cal.field_size_um[0];
-    p.y_top = 0.5 * cal.field_size_um[1], p.y_bottom = -0.5 * cal.field_size_um[1];
-    p.title = "light field: spatial map at the object plane (from the flat field)";
-    p.xlabel = "x (µm)";
-    p.ylabel = "y (µm)";
-    p.colour_label = "relative irradiance";
-    p.max_side_px = 360;
-    compare::WriteMap((fig / "spatial_map.png").string(), p);
+    WriteMapPlot(fig / "spatial_map.png", cal.spatial_map, false, 0.5 * cal.field_size_um[0],
+                 0.5 * cal.field_size_um[1],
+                 "light field: spatial map at the object plane (from the flat field)", "x (µm)",
+                 "y (µm)", "relative irradiance");
     spatial_html =
         "<p>Spatial map: relative irradiance at the object plane from the flat field.</p>" +
         Img((fig / "spatial_map.png").string(), "spatial map");

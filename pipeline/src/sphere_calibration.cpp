@@ -6,10 +6,10 @@
 #include <chrono>
 #include <cmath>
 #include <filesystem>
+#include <nlohmann/json.hpp>
 #include <sstream>
 
-#include <nlohmann/json.hpp>
-
+#include "generated_toml.h"
 #include "raymatch/compare/focus_scan.h"
 #include "raymatch/core/atomic_file.h"
 #include "raymatch/core/calibration_file.h"
@@ -23,11 +23,12 @@ namespace fs = std::filesystem;
 
 namespace raymatch::pipeline {
 
+using internal::Sig10;
+using internal::WriteToml;
+
 namespace {
 
 constexpr double kDeg = M_PI / 180.0;
-
-std::string Q(const std::string& s) { return nlohmann::json(s).dump(); }  // a TOML basic string
 
 struct Free {  // a fitted key: its start value is the scene's
   std::string key;
@@ -41,8 +42,8 @@ std::string SphereCalibrationResult::Brief() const {
   os.precision(6);
   os << "sphere calibration: " << status << " (" << seconds << " s)\n";
   for (const auto& v : values)
-    os << "  " << v.key << " = " << v.value << " +- " << v.sigma << " (Cramer-Rao " << v.cramer_rao << ")"
-       << (v.at_bound ? "  AT BOUND" : "") << "\n";
+    os << "  " << v.key << " = " << v.value << " +- " << v.sigma << " (Cramer-Rao " << v.cramer_rao
+       << ")" << (v.at_bound ? "  AT BOUND" : "") << "\n";
   os << "  goodness of fit: " << goodness << "\n";
   return os.str();
 }
@@ -54,8 +55,9 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
   };
   const CalibrationData base = ReadCalibrationFile(o.base);
   if (!base.has_light_field() || !(base.na_limit > 0))
-    throw Error(FileLocation{o.base}, "calibrate sphere needs a calibration whose light field was measured through "
-                                      "the objective (na_limit > 0): its continuation beyond the NA is what it fits");
+    throw Error(FileLocation{o.base},
+                "calibrate sphere needs a calibration whose light field was measured through "
+                "the objective (na_limit > 0): its continuation beyond the NA is what it fits");
   const ExperimentMetadata ex = ReadExperimentMetadata(o.scan_folder);
   const compare::Stack scan = compare::ReadStack(ex.scan_csv);
   const double radius = ex.diameter_um / 2;
@@ -75,7 +77,8 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
     for (double d : o.planes_um) {
       const size_t i = nearest(d);
       if (std::abs(scan.defocus_um[i] - d) > 1e-6)
-        throw Error(FileLocation{ex.scan_csv}, "no plane at defocus " + std::to_string(d) + " um in the scan");
+        throw Error(FileLocation{ex.scan_csv},
+                    "no plane at defocus " + std::to_string(d) + " um in the scan");
       planes.push_back(i);
     }
   }
@@ -84,8 +87,10 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
   // temperature and the calibration's wavelength, the edge 1 deg beyond the NA and 1 deg wide,
   // a diffraction-limited PSF (Gaussian approximation of the Airy core, sigma = 0.21 lambda/NA).
   const double n_water =
-      simulate::WaterRefractiveIndex(ex.temperature_K, simulate::WaterDensityTanaka(std::clamp(ex.temperature_K, 273.15, 313.15)),
-                                     base.wavelength_um)
+      simulate::WaterRefractiveIndex(
+          ex.temperature_K,
+          simulate::WaterDensityTanaka(std::clamp(ex.temperature_K, 273.15, 313.15)),
+          base.wavelength_um)
           .n;
   const double na_deg = std::asin(base.na_limit) / kDeg;
   const double psf0 = 0.21 * base.wavelength_um / base.na, edge0 = na_deg + 1, width0 = 1.0;
@@ -101,42 +106,65 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
     for (int a = 0; a < 2; ++a)
       free.push_back({"light_field_edge.tilt_deg[" + std::to_string(a) + "]", -3, 3, 0.2});
 
-  const fs::path work = o.work_dir.empty()
-                            ? fs::path(o.output).parent_path() / (fs::path(o.output).stem().string() + "_sphere")
-                            : fs::path(o.work_dir);
+  const fs::path work = o.work_dir.empty() ? fs::path(o.output).parent_path() /
+                                                 (fs::path(o.output).stem().string() + "_sphere")
+                                           : fs::path(o.work_dir);
   EnsureDirectory(work);
-  std::ostringstream scene;
-  scene.precision(10);
-  scene << "# Written by `raymatch calibrate sphere`: the drop of " << Q(fs::absolute(o.scan_folder).string())
-        << " at its start values.\nname = \"sphere_calibration\"\nseed = 1\ncalibration = "
-        << Q(fs::absolute(o.base).string()) << "\n\n[[object]]\nname = \"drop\"\ntype = \"sphere\"\n"
-        << "center_um = [0, 0, 0]\nradius_um = " << radius << "\nindex = " << n_water
-        << "   # water, IAPWS R9-97 at " << ex.temperature_K << " K\n\n[light_field_edge]\nhalf_angle_deg = "
-        << edge0 << "\nwidth_deg = " << width0 << "\ntilt_deg = [0, 0]\n\n[camera]\npixels = [" << scan.images[0].width << ", "
-        << scan.images[0].height << "]\npsf_sigma_um = " << psf0
-        << "\n\n[trace]\npartial_reflection = \"unpolarized\"\n";
-  WriteTextFileAtomic(work / "scene.toml", scene.str());
-  std::ostringstream fit;
-  fit.precision(10);
-  fit << "# Written by `raymatch calibrate sphere` (docs/calibration.md): the drop's five parameters and\n"
-         "# the light field's edge beyond the NA and the PSF, from " << planes.size() << " planes jointly.\n"
-      << "scene = \"scene.toml\"\nmethod = \"lm\"\nerror = \"poisson\"\nseed = " << o.seed << "\n";
+  const toml::table scene{
+      {"name", "sphere_calibration"},
+      {"seed", 1},
+      {"calibration", fs::absolute(o.base).string()},
+      {"object", toml::array{toml::table{{"name", "drop"},
+                                         {"type", "sphere"},
+                                         {"center_um", toml::array{0, 0, 0}},
+                                         {"radius_um", Sig10(radius)},
+                                         {"index", Sig10(n_water)}}}},
+      {"light_field_edge", toml::table{{"half_angle_deg", Sig10(edge0)},
+                                       {"width_deg", Sig10(width0)},
+                                       {"tilt_deg", toml::array{0, 0}}}},
+      {"camera", toml::table{{"pixels", toml::array{scan.images[0].width, scan.images[0].height}},
+                             {"psf_sigma_um", Sig10(psf0)}}},
+      {"trace", toml::table{{"partial_reflection", "unpolarized"}}}};
+  WriteToml(work / "scene.toml",
+            "# Written by `raymatch calibrate sphere`: the drop of " +
+                fs::absolute(o.scan_folder).string() + " at its start values.\n# index: water, " +
+                "IAPWS R9-97 at " + std::to_string(ex.temperature_K) + " K.",
+            scene);
+  toml::array images, parameters;
   for (size_t i : planes) {
-    fit << "\n[[image]]\nfile = " << Q(fs::absolute(scan.files[i]).string()) << "\ndefocus_um = " << scan.defocus_um[i]
-        << "\ngain_e_per_dn = " << ex.gain << "\nread_noise_e = " << ex.read_noise_e
-        << "\nsaturation_dn = " << std::ldexp(1.0, ex.bit_depth) - 1 << "\n";
-    if (!ex.dark.empty()) fit << "dark = " << Q(fs::absolute(ex.dark).string()) << "\n";
+    toml::table im{{"file", fs::absolute(scan.files[i]).string()},
+                   {"defocus_um", Sig10(scan.defocus_um[i])},
+                   {"gain_e_per_dn", Sig10(ex.gain)},
+                   {"read_noise_e", Sig10(ex.read_noise_e)},
+                   {"saturation_dn", std::ldexp(1.0, ex.bit_depth) - 1}};
+    if (!ex.dark.empty()) im.insert("dark", fs::absolute(ex.dark).string());
+    images.push_back(std::move(im));
   }
   for (const Free& f : free)
-    fit << "\n[[parameter]]\nkey = " << Q(f.key) << "\nlower = " << f.lower << "\nupper = " << f.upper
-        << "\nstep = " << f.step << "\n";
-  fit << "\n[rays]\nray_factor = " << o.ray_factor << "\nfractions = [";
-  for (size_t i = 0; i < o.fractions.size(); ++i) fit << (i ? ", " : "") << o.fractions[i];
-  fit << "]\n\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n";
-  WriteTextFileAtomic(work / "fit.toml", fit.str());
+    parameters.push_back(toml::table{{"key", f.key},
+                                     {"lower", Sig10(f.lower)},
+                                     {"upper", Sig10(f.upper)},
+                                     {"step", Sig10(f.step)}});
+  toml::array fractions;
+  for (double f : o.fractions) fractions.push_back(Sig10(f));
+  const toml::table fit{{"scene", "scene.toml"},
+                        {"method", "lm"},
+                        {"error", "poisson"},
+                        {"seed", int64_t(o.seed)},
+                        {"image", std::move(images)},
+                        {"parameter", std::move(parameters)},
+                        {"rays", toml::table{{"ray_factor", Sig10(o.ray_factor)},
+                                             {"fractions", std::move(fractions)}}},
+                        {"uncertainty", toml::table{{"repeat_seeds", 0}, {"slice_points", 0}}}};
+  WriteToml(work / "fit.toml",
+            "# Written by `raymatch calibrate sphere` (docs/calibration.md): the drop's five "
+            "parameters and\n# the light field's edge beyond the NA and the PSF, from " +
+                std::to_string(planes.size()) + " planes jointly.",
+            fit);
 
   std::ostringstream msg;
-  msg << "sphere calibration: " << free.size() << " parameters from " << planes.size() << " planes (";
+  msg << "sphere calibration: " << free.size() << " parameters from " << planes.size()
+      << " planes (";
   for (size_t k = 0; k < planes.size(); ++k) msg << (k ? ", " : "") << scan.defocus_um[planes[k]];
   msg << " um) of " << o.scan_folder;
   say(msg.str());
@@ -157,7 +185,8 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
     if (p.key == "light_field_edge.width_deg") res.edge_width_deg = p.best;
     if (p.key == "camera.psf_sigma_um") res.psf_sigma_um = p.best;
     for (int a = 0; a < 2; ++a)
-      if (p.key == "light_field_edge.tilt_deg[" + std::to_string(a) + "]") res.edge_tilt_deg[a] = p.best;
+      if (p.key == "light_field_edge.tilt_deg[" + std::to_string(a) + "]")
+        res.edge_tilt_deg[a] = p.best;
   }
   if (!o.fit_width) res.edge_width_deg = width0;
   if (!o.fit_psf) res.psf_sigma_um = psf0;
@@ -175,7 +204,8 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
   rec << "fit of " << fs::absolute(o.scan_folder).string() << " planes";
   for (size_t i : planes) rec << " " << scan.defocus_um[i];
   rec << " um: " << fit::StatusName(fr.status) << "; " << fr.goodness.verdict << ";";
-  for (const auto& v : res.values) rec << " " << v.key << " = " << v.value << " +- " << v.sigma << ";";
+  for (const auto& v : res.values)
+    rec << " " << v.key << " = " << v.value << " +- " << v.sigma << ";";
   out.provenance["sphere_calibration"] = rec.str();
   out.provenance["sphere_calibration_base"] = fs::absolute(o.base).string();
   WriteCalibrationFile(o.output, out);

@@ -14,6 +14,7 @@
 #include <optional>
 #include <sstream>
 
+#include "generated_toml.h"
 #include "raymatch/calibrate/corrector.h"
 #include "raymatch/calibrate/lightfield.h"
 #include "raymatch/compare/focus_scan.h"
@@ -30,7 +31,6 @@
 #include "raymatch/simulate/geometry.h"
 #include "raymatch/simulate/scan.h"
 #include "raymatch/simulate/scene.h"
-#include "generated_toml.h"
 #include "run_report.h"
 
 namespace fs = std::filesystem;
@@ -434,7 +434,7 @@ std::string MeshObject(const RunInputs& in, const fs::path& out, const PipelineO
       {"trace", toml::table{{"photons_per_pixel", Sig10(photons_per_pixel)}}},
       {"scan", toml::table{{"defocus_um", toml::array{Sig10(mm.defocus_um)}}}}};
   WriteToml(out / "mesh_object.toml", "# Written by raymatch run: the mesh object, in focus.",
-             scene);
+            scene);
   simulate::ScanOptions so;
   so.output_dir = (out / "mesh_object").string();
   so.control.threads = opt.threads;
@@ -504,10 +504,10 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   const double frac = opt.ray_fraction > 0 ? opt.ray_fraction : cfg.ray_fraction;
   const fs::path scene_file = out / "scene.toml";
   WriteToml(scene_file,
-             "# Written by raymatch run: the experiment's focus scan, simulated with the "
-             "calibration.\n# photons_per_pixel: the background's photons x ray fraction " +
-                 std::to_string(frac) + ".",
-             ExperimentScene(in, sum.photons_per_pixel * frac));
+            "# Written by raymatch run: the experiment's focus scan, simulated with the "
+            "calibration.\n# photons_per_pixel: the background's photons x ray fraction " +
+                std::to_string(frac) + ".",
+            ExperimentScene(in, sum.photons_per_pixel * frac));
 
   // 3. Simulation (reused when scene and calibration are unchanged).
   const fs::path sim_dir = out / "simulation", sim_index = sim_dir / "sim_scan.json";

@@ -3,7 +3,9 @@
 // string is quoted and every key spelled once) and written atomically. Not installed.
 #include <toml++/toml.h>
 
+#include <cctype>
 #include <filesystem>
+#include <locale>
 #include <sstream>
 #include <string>
 
@@ -20,12 +22,60 @@ inline double Sig10(double v) {
   return std::stod(s.str());
 }
 
+/// TOML text with each float written in its shortest form that reads back as the same double
+/// (toml++ as Debian builds it writes 17 digits: 293.14999999999998 for 293.15). Quoted strings
+/// and comments are left alone.
+inline std::string ShortestFloats(const std::string& in) {
+  std::string out;
+  char quote = 0;
+  bool comment = false;
+  for (size_t i = 0; i < in.size(); ++i) {
+    const char c = in[i];
+    if (comment || quote) {
+      out += c;
+      if (c == '\n') comment = false;
+      if (quote && c == quote && in[i - 1] != '\\') quote = 0;
+      continue;
+    }
+    if (c == '#') comment = true;
+    if (c == '"' || c == '\'') quote = c;
+    const bool starts = (c == '-' || std::isdigit(static_cast<unsigned char>(c))) &&
+                        (i == 0 || std::string(" [,=").find(in[i - 1]) != std::string::npos);
+    if (!starts) {
+      out += c;
+      continue;
+    }
+    size_t j = i + 1;
+    while (j < in.size() && std::string("0123456789.eE+-").find(in[j]) != std::string::npos) ++j;
+    const std::string token = in.substr(i, j - i);
+    if (token.find_first_of(".eE") == std::string::npos) {  // an integer: as it is
+      out += token, i = j - 1;
+      continue;
+    }
+    const double v = std::stod(token);
+    std::string best = token;
+    for (int digits = 1; digits <= 17; ++digits) {
+      std::ostringstream s;
+      s.imbue(std::locale::classic());
+      s.precision(digits);
+      s << v;
+      if (std::stod(s.str()) == v) {
+        best = s.str();
+        break;
+      }
+    }
+    if (best.find_first_of(".eEn") == std::string::npos) best += ".0";  // stays a float
+    out += best, i = j - 1;
+  }
+  return out;
+}
+
 /// `comment` (lines starting with #), then the table.
 inline void WriteToml(const std::filesystem::path& file, const std::string& comment,
                       const toml::table& t) {
   std::ostringstream s;
   s << comment << "\n" << t << "\n";
-  WriteTextFileAtomic(file, s.str());
+  WriteTextFileAtomic(file, ShortestFloats(s.str()));
 }
 
 }  // namespace raymatch::pipeline::internal

@@ -11,6 +11,7 @@
 #include "raymatch/core/toml_reader.h"
 
 #include "raymatch/core/calibration_file.h"
+#include "generated_toml.h"
 #include "temp_dir.h"
 
 namespace raymatch {
@@ -44,6 +45,41 @@ void ReplaceInFile(const std::string& path, const std::string& from, const std::
   ASSERT_NE(at, std::string::npos) << path << " no longer holds " << from;
   text.replace(at, from.size(), to);
   std::ofstream(path) << text;
+}
+
+// The scenes and fit files the pipeline writes (pipeline/src/generated_toml.h): every float in
+// its shortest form that reads back as the same double (toml++ as Debian builds it writes 17
+// digits), quoted strings and comments untouched, integers as integers, floats still floats.
+TEST(GeneratedToml, FloatsInTheirShortestFormReadBackExactly) {
+  testing::TempDir dir;
+  const double t_k = 273.15 + 20.0 - 20.0, ppp = 2519.780273 * 1.0, small = 1.0 / 3.0 * 3e-7;
+  const toml::table t{{"temperature_K", t_k},
+                      {"radius_um", 23.0},
+                      {"photons_per_pixel", ppp},
+                      {"small", small},
+                      {"negative", -0.1},
+                      {"pixels", toml::array{160, 120}},
+                      {"file", "/data/x1.50000000000000001/run 2.5.tif"}};
+  const std::string path = dir / "g.toml";
+  pipeline::internal::WriteToml(path, "# 293.14999999999998 in a comment stays", t);
+  std::ifstream in(path);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  const std::string text = ss.str();
+  EXPECT_NE(text.find("temperature_K = 273.15\n"), std::string::npos) << text;
+  EXPECT_NE(text.find("radius_um = 23.0\n"), std::string::npos) << text;
+  EXPECT_NE(text.find("photons_per_pixel = 2519.780273\n"), std::string::npos) << text;
+  EXPECT_NE(text.find("[ 160, 120 ]"), std::string::npos) << text;
+  EXPECT_NE(text.find("x1.50000000000000001/run 2.5.tif"), std::string::npos) << text;
+  EXPECT_NE(text.find("# 293.14999999999998 in a comment stays"), std::string::npos) << text;
+  const toml::table back = toml::parse_file(path);
+  EXPECT_EQ(back["temperature_K"].value<double>(), t_k);
+  EXPECT_EQ(back["radius_um"].value<double>(), 23.0);
+  EXPECT_TRUE(back["radius_um"].is_floating_point());
+  EXPECT_EQ(back["photons_per_pixel"].value<double>(), ppp);
+  EXPECT_EQ(back["small"].value<double>(), small);
+  EXPECT_EQ(back["negative"].value<double>(), -0.1);
+  EXPECT_TRUE(back["pixels"][0].is_integer());
 }
 
 TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {

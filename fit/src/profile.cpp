@@ -144,25 +144,20 @@ void ProfileIntervals(Runner& run, const FitSpec& spec, const std::vector<double
   FitModel& model = run.model();
   const size_t level = spec.rays.fractions.size() - 1;
   const int bin = model.BinAt(level);
-  // C: the inverse of the Poisson information from the two independent halves of the
-  // derivative sets (unbiased), the information the score responds with.
-  auto Score = [&](const std::vector<double>& th, Eigen::VectorXd* sc, Eigen::MatrixXd* info) {
+  // C: the inverse of the information the score responds with (as in the final steps).
+  auto Score = [&](const std::vector<double>& th, Eigen::VectorXd* sc, std::vector<double>* info) {
     double e = 0;
     const Simulated mu = run.Images(th, level, spec.seed, Stage::kProfile, &e);
     std::vector<double> s, f;
     model.Score(mu, od.score_dmu, bin, &s, &f);
     *sc = Eigen::Map<const Eigen::VectorXd>(s.data(), Eigen::Index(P));
-    if (info) *info = Eigen::Map<const Eigen::MatrixXd>(f.data(), Eigen::Index(P), Eigen::Index(P));
+    if (info) *info = std::move(f);
   };
   Eigen::VectorXd sc0;
-  Eigen::MatrixXd F;
-  Score(best, &sc0, &F);
-  if (bin == 1) {
-    const Matrix cross =
-        FisherInformation(od.half_a.mu.photons, od.half_a.dmu, od.half_b.dmu, ReadVariance(spec));
-    if (!InverseSpd(cross).empty()) F = ToEigen(cross);
-  }
-  const Matrix cm = InverseSpd(FromEigen(F));
+  std::vector<double> info;
+  Score(best, &sc0, &info);
+  const Matrix cm =
+      InverseSpd(FromEigen(ScoringInformation(od.half_a, od.half_b, bin, spec, info)));
   if (cm.empty()) return;
   const Eigen::MatrixXd C = ToEigen(cm);
   for (size_t i : which) {
@@ -176,7 +171,7 @@ void ProfileIntervals(Runner& run, const FitSpec& spec, const std::vector<double
     const double r = pr.sigma / sigma_c;
     const Eigen::VectorXd u = C.col(Eigen::Index(i)) / sigma_c;
     auto G = [&](const Eigen::VectorXd& sc) { return -(C * sc)(Eigen::Index(i)) / sigma_c / r; };
-    std::vector<double> ts{0}, gs{G(sc0)};
+    std::vector<std::pair<double, double>> points{{0.0, G(sc0)}};  // (t, g)
     bool lower_at_bound = false, upper_at_bound = false;
     for (double t : {-1.0, -2.0, 1.0, 2.0}) {  // (t may move to a bound below)
       if (!run.Budget() || (t < 0 ? lower_at_bound : upper_at_bound)) continue;
@@ -184,26 +179,20 @@ void ProfileIntervals(Runner& run, const FitSpec& spec, const std::vector<double
       const Parameter& par = spec.parameters[i];
       const double to = best[i] + t * pr.sigma, edge = t < 0 ? par.lower : par.upper;
       if ((t < 0 && to <= par.lower) || (t > 0 && to >= par.upper)) {
-        const double tb = 0.999 * (edge - best[i]) / pr.sigma;
-        if (std::abs(tb) < 0.05) {  // at the bound already
-          (t < 0 ? lower_at_bound : upper_at_bound) = true;
-          continue;
-        }
-        t = tb;
-        (t < 0 ? lower_at_bound : upper_at_bound) = true;
+        (t < 0 ? lower_at_bound : upper_at_bound) = true;  // no point beyond this one
+        t = 0.999 * (edge - best[i]) / pr.sigma;
+        if (std::abs(t) < 0.05) continue;  // at the bound already
       }
       std::vector<double> th = best;
       for (size_t j = 0; j < P; ++j) th[j] += t * r * u(Eigen::Index(j));
       Eigen::VectorXd sc;
       Score(Clip(th, spec), &sc, nullptr);
-      ts.push_back(t), gs.push_back(G(sc));
+      points.push_back({t, G(sc)});
     }
-    if (ts.size() < 2) continue;
-    std::vector<size_t> order(ts.size());
-    for (size_t k = 0; k < order.size(); ++k) order[k] = k;
-    std::sort(order.begin(), order.end(), [&](size_t a, size_t b) { return ts[a] < ts[b]; });
+    if (points.size() < 2) continue;
+    std::sort(points.begin(), points.end());
     std::vector<double> tsorted, gsorted;
-    for (size_t k : order) tsorted.push_back(ts[k]), gsorted.push_back(gs[k]);
+    for (const auto& [t, g] : points) tsorted.push_back(t), gsorted.push_back(g);
     const ProfileCurve c = ProfileFromScores(tsorted, gsorted);
     pr.profile_t = tsorted, pr.profile_delta = c.delta;
     // (A mismatch inflation, applied later, scales the interval with sigma: ProfileValues.)
@@ -216,10 +205,11 @@ void ProfileIntervals(Runner& run, const FitSpec& spec, const std::vector<double
 void ProfileValues(FitResult* res) {
   for (ParameterResult& p : res->parameters) {
     if (p.profile_reason.empty() || p.profile_t.empty()) continue;
-    p.profile_lower = std::max(p.lower, p.best + p.profile_lower_sigmas * p.sigma);
-    p.profile_upper = std::min(p.upper, p.best + p.profile_upper_sigmas * p.sigma);
-    if (p.best + p.profile_lower_sigmas * p.sigma < p.lower) p.profile_lower_open = true;
-    if (p.best + p.profile_upper_sigmas * p.sigma > p.upper) p.profile_upper_open = true;
+    const double lo = p.best + p.profile_lower_sigmas * p.sigma;
+    const double hi = p.best + p.profile_upper_sigmas * p.sigma;
+    p.profile_lower = std::max(p.lower, lo), p.profile_upper = std::min(p.upper, hi);
+    p.profile_lower_open = p.profile_lower_open || lo < p.lower;
+    p.profile_upper_open = p.profile_upper_open || hi > p.upper;
     // Say so where the interval is not best +- sigma: by a quarter sigma or more on a side.
     if (p.profile_lower_open || p.profile_upper_open ||
         std::abs(p.profile_lower_sigmas + 1) > 0.25 || std::abs(p.profile_upper_sigmas - 1) > 0.25)

@@ -199,6 +199,22 @@ inline bool FinalStepsRun(const FitSpec& spec) {
          spec.error == ErrorFunction::kPoisson && spec.rays.jacobian_seeds > 2;
 }
 
+/// The information for Fisher scoring at the optimum: the cross product of the derivative sets'
+/// two halves (unbiased: one noisy dmu squared is inflated by its noise) where the level is
+/// not binned and that product is invertible, else the one-sided `info` (row-major P x P) that
+/// FitModel::Score returned with the binned images.
+inline Eigen::MatrixXd ScoringInformation(const Differences& half_a, const Differences& half_b,
+                                          int bin, const FitSpec& spec,
+                                          const std::vector<double>& info) {
+  const auto P = Eigen::Index(spec.parameters.size());
+  if (bin == 1) {
+    const Matrix cross =
+        FisherInformation(half_a.mu.photons, half_a.dmu, half_b.dmu, ReadVariance(spec));
+    if (!InverseSpd(cross).empty()) return ToEigen(cross);  // else (rare: noise) the one-sided
+  }
+  return Eigen::Map<const Eigen::MatrixXd>(info.data(), P, P);
+}
+
 /// One compass search at schedule level `level` from *x (fit.cpp).
 bool Compass(Runner& run, const FitSpec& spec, size_t level, const std::function<uint64_t()>& seed,
              Stage stage, std::vector<double>* x, double* delta, double delta_min,

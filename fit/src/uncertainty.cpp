@@ -94,12 +94,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     // the uncertainties): sum dmu dmu^T / T with one noisy dmu is inflated by the derivatives'
     // noise, most along the weakly determined valley, where it shrank every step by half
     // (measured: z crept 0.025, 0.010, 0.005 um towards a truth 0.1 um away).
-    Eigen::MatrixXd F = Eigen::Map<const Eigen::MatrixXd>(info.data(), P, P);
-    if (bin == 1) {
-      const Matrix cross =
-          FisherInformation(sets[0].mu.photons, half_a.dmu, half_b.dmu, read_variance);
-      if (!InverseSpd(cross).empty()) F = ToEigen(cross);  // else (rare: noise) the one-sided one
-    }
+    const Eigen::MatrixXd F = ScoringInformation(half_a, half_b, bin, spec, info);
     const auto solver = F.ldlt();
     auto Predicted = [&](const std::vector<double>& v) {
       const Eigen::VectorXd g = Eigen::Map<const Eigen::VectorXd>(v.data(), P);

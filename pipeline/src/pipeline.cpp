@@ -244,10 +244,6 @@ std::string ReportField(const fs::path& file, const std::string& field) {
   return j[field].get<std::string>();
 }
 
-}  // namespace
-
-namespace {
-
 /// Every input of a run, read and checked before the output folder is made (issue 25): a
 /// refused input leaves no folder and no file.
 struct RunInputs {
@@ -282,15 +278,15 @@ RunInputs ReadRunInputs(const PipelineOptions& opt) {
   return in;
 }
 
-/// One step of the main job. With a stamp it is reused when its inputs (the stamp's content)
-/// are unchanged and its outputs exist; otherwise it runs and is timed.
+/// A step of the main job whose outputs are kept between runs: reused when its inputs (the
+/// stamp's content) are unchanged and its outputs exist.
 struct Step {
   std::string name;               ///< in the timing table and PipelineSummary::reused
-  std::string stamp;              ///< file under the output folder (empty: always runs)
+  std::string stamp;              ///< file under the output folder
   std::string inputs;             ///< the stamp's content
   std::vector<fs::path> outputs;  ///< must exist for a reuse
   std::string reuse_message;
-  std::function<void()> run, reuse;  ///< reuse: read back what the step would have made
+  std::function<void()> run, reuse;  ///< reuse (may be empty): read back what run would make
 };
 
 class StepRunner {
@@ -302,8 +298,17 @@ class StepRunner {
     if (opt_.steps) std::cerr << "raymatch run: " << m << std::endl;
   }
 
+  /// A step that runs every time: timed.
+  void Timed(const std::string& name, const std::function<void()>& run) {
+    const auto t0 = std::chrono::steady_clock::now();
+    run();
+    sum_->step_seconds.push_back(
+        {name, std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count()});
+  }
+
+  /// A stamped step: reused, or run (timed) and stamped.
   void Run(const Step& s) {
-    if (!s.stamp.empty() && !opt_.force && Reusable(out_ / s.stamp, s.inputs, s.outputs)) {
+    if (!opt_.force && Reusable(out_ / s.stamp, s.inputs, s.outputs)) {
       Say(s.reuse_message);
       if (s.reuse) s.reuse();
       sum_->reused.push_back(s.name);
@@ -311,12 +316,9 @@ class StepRunner {
     }
     // A step's stamp goes before it rewrites its outputs and comes back after the last one, so
     // an interrupted step is never taken for finished (and reused) by the next run.
-    if (!s.stamp.empty()) RemoveStaleOutput(out_ / s.stamp);
-    const auto t0 = std::chrono::steady_clock::now();
-    s.run();
-    sum_->step_seconds.push_back(
-        {s.name, std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count()});
-    if (!s.stamp.empty()) WriteTextFileAtomic(out_ / s.stamp, s.inputs);
+    RemoveStaleOutput(out_ / s.stamp);
+    Timed(s.name, s.run);
+    WriteTextFileAtomic(out_ / s.stamp, s.inputs);
   }
 
  private:
@@ -343,11 +345,11 @@ std::string CalibrationInputs(const RunInputs& in) {
 }
 
 /// Light field, corrector and (with a sphere folder) the sphere calibration into cal_file and
-/// calibration_report.json.
-void Calibrate(const RunInputs& in, const fs::path& out, const PipelineOptions& opt,
-               const StepRunner& steps, Calibration* c) {
+/// its brief reports into cal_report (JSON); intermediate files go to `out`.
+void Calibrate(const RunInputs& in, const fs::path& out, const fs::path& cal_file,
+               const fs::path& cal_report, const PipelineOptions& opt, const StepRunner& steps,
+               Calibration* c) {
   const PipelineFile& cfg = in.cfg;
-  const fs::path cal_file = out / "calibration.toml";
   steps.Say("calibrating the light field (" + cfg.lightfield + ")");
   calibrate::LightFieldOptions lo;
   lo.extrapolate_to_deg = cfg.extrapolate_to_deg;
@@ -387,7 +389,7 @@ void Calibrate(const RunInputs& in, const fs::path& out, const PipelineOptions& 
   }
   nlohmann::json rep{{"light_field", c->lf_report}, {"corrector", c->co_report}};
   if (!c->sp_report.empty()) rep["sphere"] = c->sp_report;
-  WriteTextFileAtomic(out / "calibration_report.json", rep.dump(2) + "\n");
+  WriteTextFileAtomic(cal_report, rep.dump(2) + "\n");
 }
 
 using internal::Sig10;
@@ -488,7 +490,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
              CalibrationInputs(in),
              {cal_file, cal_report},
              "calibration inputs unchanged: reusing " + cal_file.string(),
-             [&] { Calibrate(in, out, opt, steps, &cal); },
+             [&] { Calibrate(in, out, cal_file, cal_report, opt, steps, &cal); },
              [&] {
                cal.data = ReadCalibrationFile(cal_file.string());
                cal.lf_report = ReportField(cal_report, "light_field");
@@ -527,23 +529,17 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
                so.control.threads = opt.threads;
                simulate::RunScan(simulate::LoadScene(scene_file.string()), so);
              },
-             nullptr});
+             {}});  // (a reuse reads nothing back: compare reads the images)
 
   // 4. Focus-scan comparison.
   compare::FocusScanResult fr;
-  steps.Run({"compare",
-             "",
-             "",
-             {},
-             "",
-             [&] {
-               steps.Say("comparing the focus scans");
-               compare::FocusScanOptions fo;
-               fo.prepare = in.prep;
-               fr = compare::RunFocusScan(in.exp, compare::ReadStack(sim_index.string()), fo);
-               compare::WriteFocusScanReport(fr, (out / "compare").string(), "focus-scan test");
-             },
-             nullptr});
+  steps.Timed("compare", [&] {
+    steps.Say("comparing the focus scans");
+    compare::FocusScanOptions fo;
+    fo.prepare = in.prep;
+    fr = compare::RunFocusScan(in.exp, compare::ReadStack(sim_index.string()), fo);
+    compare::WriteFocusScanReport(fr, (out / "compare").string(), "focus-scan test");
+  });
   sum.verdict = int(fr.verdict);
   sum.exp_defocus_um = fr.exp_defocus_um;
   for (const auto& m : fr.measures) {
@@ -556,38 +552,25 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   // 4b. A non-spherical object (e.g. merging drops given as a mesh), in focus.
   internal::RunReport report;
   if (in.mesh)
-    steps.Run({"mesh object",
-               "",
-               "",
-               {},
-               "",
-               [&] {
-                 steps.Say("simulating the mesh object (" + cfg.merging + ")");
-                 report.mesh_html = MeshObject(in, out, opt, sum.photons_per_pixel * frac);
-               },
-               nullptr});
+    steps.Timed("mesh object", [&] {
+      steps.Say("simulating the mesh object (" + cfg.merging + ")");
+      report.mesh_html = MeshObject(in, out, opt, sum.photons_per_pixel * frac);
+    });
 
   // 4c. Fits (docs/fit.md) with this calibration: 3D properties from single images.
   for (const std::string& file : cfg.fits) {
     const std::string stem = fs::path(file).stem().string();
-    steps.Run({"fit " + stem,
-               "",
-               "",
-               {},
-               "",
-               [&] {
-                 steps.Say("fitting " + file);
-                 const fit::FitSpec spec =
-                     fit::LoadFitSpec(file, "", fs::absolute(cal_file).string());
-                 fit::FitOptions fo;
-                 fo.threads = opt.threads;
-                 fo.progress = opt.progress;
-                 const fit::FitResult r = fit::RunFit(spec, fo);
-                 fit::WriteFitOutputs(spec, r, (out / "fit" / stem).string());
-                 report.fit_html += internal::FitSectionHtml(stem, spec, r);
-                 sum.fits.push_back({stem, fit::StatusName(r.status)});
-               },
-               nullptr});
+    steps.Timed("fit " + stem, [&] {
+      steps.Say("fitting " + file);
+      const fit::FitSpec spec = fit::LoadFitSpec(file, "", fs::absolute(cal_file).string());
+      fit::FitOptions fo;
+      fo.threads = opt.threads;
+      fo.progress = opt.progress;
+      const fit::FitResult r = fit::RunFit(spec, fo);
+      fit::WriteFitOutputs(spec, r, (out / "fit" / stem).string());
+      report.fit_html += internal::FitSectionHtml(stem, spec, r);
+      sum.fits.push_back({stem, fit::StatusName(r.status)});
+    });
   }
   if (!report.fit_html.empty())
     report.fit_html = "<h2>Fits: 3D properties from the images</h2>" + report.fit_html;

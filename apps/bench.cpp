@@ -22,13 +22,17 @@ void RegisterBench(CLI::App& app, int* exit_code) {
       "count; report wall time, rays/s, relative shot noise and MSE/SSIM/MS-SSIM/CW-SSIM/Poisson\n"
       "against a high-ray reference and (with --experiment) the experiment. Writes accuracy.csv,\n"
       "accuracy.json and accuracy.png.");
-  a->add_option("scene", o->scene_file, "Scene (e.g. out/sample/scene.toml from raymatch run)")->required()->check(CLI::ExistingFile);
+  a->add_option("scene", o->scene_file, "Scene (e.g. out/sample/scene.toml from raymatch run)")
+      ->required()
+      ->check(CLI::ExistingFile);
   a->add_option("--experiment", o->experiment_csv, "Experimental stack (defocus_um,file)");
   a->add_option("--dark", o->dark_file, "Experiment dark frame");
   a->add_option("--gain", o->gain_e_per_dn, "Photons per code value")->capture_default_str();
-  a->add_option("--defocus-um", o->defocus_um, "Focal-plane position of the plane studied, um")->capture_default_str();
+  a->add_option("--defocus-um", o->defocus_um, "Focal-plane position of the plane studied, um")
+      ->capture_default_str();
   a->add_option("--max-divisor", o->max_divisor, "Smallest fraction 1/N")->capture_default_str();
-  a->add_option("--reference-factor", o->reference_factor, "Reference rays / photon-matched rays")->capture_default_str();
+  a->add_option("--reference-factor", o->reference_factor, "Reference rays / photon-matched rays")
+      ->capture_default_str();
   a->add_option("--threads", o->threads, "Worker threads");
   a->add_option("-o,--output", o->output_dir, "Output folder")->capture_default_str();
   a->callback([o, exit_code] {
@@ -40,8 +44,9 @@ void RegisterBench(CLI::App& app, int* exit_code) {
       if (!r.rows.empty() && !r.rows[0].vs_experiment.empty()) std::cout << "  MS-SSIM(exp)";
       std::cout << "\n";
       for (const auto& row : r.rows) {
-        std::cout << row.fraction << "  " << row.rays << "  " << row.seconds << "  " << row.rays_per_second
-                  << "  " << row.relative_shot_noise << "  " << row.vs_reference[2];
+        std::cout << row.fraction << "  " << row.rays << "  " << row.seconds << "  "
+                  << row.rays_per_second << "  " << row.relative_shot_noise << "  "
+                  << row.vs_reference[2];
         if (!row.vs_experiment.empty()) std::cout << "  " << row.vs_experiment[2];
         std::cout << "\n";
       }
@@ -62,10 +67,14 @@ void RegisterBench(CLI::App& app, int* exit_code) {
       "The paper's Fig. 9 study: evaluate a grid fit file at each ray fraction with each error\n"
       "function; report evaluations per second and where each optimum lands. Writes\n"
       "OUTPUT/grid_study.csv.");
-  gs->add_option("fit_file", g->fit_file, "Fit file with method = \"grid\" (docs/fit.md)")->required()->check(CLI::ExistingFile);
+  gs->add_option("fit_file", g->fit_file, "Fit file with method = \"grid\" (docs/fit.md)")
+      ->required()
+      ->check(CLI::ExistingFile);
   gs->add_option("--calibration", g->calibration, "Calibration file for the fit's scene");
-  gs->add_option("--fractions", g->fractions, "Ray fractions (of the photon-matched rays)")->delimiter(',');
-  gs->add_option("--errors", g->errors, "Error functions: poisson, mse, ssim, ms-ssim, cw-ssim")->delimiter(',');
+  gs->add_option("--fractions", g->fractions, "Ray fractions (of the photon-matched rays)")
+      ->delimiter(',');
+  gs->add_option("--errors", g->errors, "Error functions: poisson, mse, ssim, ms-ssim, cw-ssim")
+      ->delimiter(',');
   gs->add_option("--threads", g->threads, "Worker threads");
   gs->add_option("-o,--output", g->output, "Output folder")->capture_default_str();
   gs->callback([g, exit_code] {
@@ -74,10 +83,13 @@ void RegisterBench(CLI::App& app, int* exit_code) {
       std::vector<fit::ErrorFunction> errors;
       for (const std::string& e : g->errors) {
         const std::vector<std::pair<std::string, fit::ErrorFunction>> names = {
-            {"poisson", fit::ErrorFunction::kPoisson}, {"mse", fit::ErrorFunction::kMse},
-            {"ssim", fit::ErrorFunction::kSsim}, {"ms-ssim", fit::ErrorFunction::kMsSsim},
+            {"poisson", fit::ErrorFunction::kPoisson},
+            {"mse", fit::ErrorFunction::kMse},
+            {"ssim", fit::ErrorFunction::kSsim},
+            {"ms-ssim", fit::ErrorFunction::kMsSsim},
             {"cw-ssim", fit::ErrorFunction::kCwSsim}};
-        auto it = std::find_if(names.begin(), names.end(), [&](const auto& n) { return n.first == e; });
+        auto it =
+            std::find_if(names.begin(), names.end(), [&](const auto& n) { return n.first == e; });
         if (it == names.end()) throw Error("--errors: unknown error function '" + e + "'");
         errors.push_back(it->second);
       }
@@ -89,8 +101,8 @@ void RegisterBench(CLI::App& app, int* exit_code) {
       for (const auto& p : spec.parameters) csv << "," << p.key;
       csv << "\n";
       for (const auto& r : rows) {
-        csv << r.error << "," << r.fraction << "," << r.bin << "," << r.evaluations << "," << r.seconds << ","
-            << r.evaluations / std::max(r.seconds, 1e-9);
+        csv << r.error << "," << r.fraction << "," << r.bin << "," << r.evaluations << ","
+            << r.seconds << "," << r.evaluations / std::max(r.seconds, 1e-9);
         for (double v : r.best) csv << "," << v;
         csv << "\n";
       }

@@ -26,9 +26,11 @@ inline CLI::Validator DataRangeCheck(bool zero_means_auto) {
         } catch (const std::exception&) {
           used = 0;
         }
-        const bool ok = used == s.size() && std::isfinite(v) && (v > 0 || (zero_means_auto && v == 0));
+        const bool ok =
+            used == s.size() && std::isfinite(v) && (v > 0 || (zero_means_auto && v == 0));
         if (ok) return "";
-        return "the data range L must be a number " + std::string(zero_means_auto ? ">= 0 (0 = automatic)" : "> 0") +
+        return "the data range L must be a number " +
+               std::string(zero_means_auto ? ">= 0 (0 = automatic)" : "> 0") +
                " in pixel units, e.g. 4095 for 12-bit data or 65535 for 16-bit; got '" + s + "'";
       },
       zero_means_auto ? "L >= 0" : "L > 0");
@@ -71,9 +73,12 @@ inline int RunCompareGuarded(const std::function<int()>& fn) {
     RemoveCreatedEmptyDirectories();  // nothing written: no empty report folder either
     std::cerr << "raymatch: " << e.what() << "\n";
     switch (e.kind()) {
-      case compare::FailureKind::kSizeMismatch: return kSizeMismatch;
-      case compare::FailureKind::kFileError: return kFileError;
-      default: return kFail;
+      case compare::FailureKind::kSizeMismatch:
+        return kSizeMismatch;
+      case compare::FailureKind::kFileError:
+        return kFileError;
+      default:
+        return kFail;
     }
   } catch (const Error& e) {
     RemoveCreatedEmptyDirectories();

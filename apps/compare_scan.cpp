@@ -19,7 +19,8 @@ struct ScanCliOptions {
 int RunScanCompare(ScanCliOptions o) {
   if (!o.roi.empty()) {
     if (o.roi.size() != 4)
-      throw compare::CompareError(compare::FailureKind::kInvalidInput, "--roi needs x,y,width,height");
+      throw compare::CompareError(compare::FailureKind::kInvalidInput,
+                                  "--roi needs x,y,width,height");
     o.scan.prepare.roi = std::array<int, 4>{o.roi[0], o.roi[1], o.roi[2], o.roi[3]};
   }
   o.scan.register_shift = !o.no_register;
@@ -50,21 +51,26 @@ void RegisterCompareScan(CLI::App& app, int* exit_code) {
       "Writes JSON, CSV, PNG heatmaps, a montage and report.html.\n"
       "Exit: 0 pass, 1 some primary measures fail, 2 all fail or invalid options/input,\n"
       "3 size mismatch, 4 file error.");
-  sub->add_option("experiment", o->experiment, "Experimental stack index (.csv or .json)")->required();
+  sub->add_option("experiment", o->experiment, "Experimental stack index (.csv or .json)")
+      ->required();
   sub->add_option("simulation", o->simulation, "Simulated stack index (.csv or .json)")->required();
   sub->add_option("-o,--output", o->output, "Output directory")->capture_default_str();
   sub->add_option("--dark", o->scan.prepare.dark_file, "Dark frame subtracted from the experiment");
-  sub->add_option("--flat", o->scan.prepare.flat_file, "Flat field (dark-subtracted) for the experiment");
+  sub->add_option("--flat", o->scan.prepare.flat_file,
+                  "Flat field (dark-subtracted) for the experiment");
   sub->add_option("--gain", o->scan.prepare.gain_e_per_dn, "Photons (electrons) per code value")
       ->capture_default_str();
-  sub->add_option("--roi", o->roi, "Crop x,y,width,height (pixels) before comparing")->delimiter(',');
+  sub->add_option("--roi", o->roi, "Crop x,y,width,height (pixels) before comparing")
+      ->delimiter(',');
   sub->add_option("-L,--data-range", o->scan.data_range,
                   "Dynamic range L in photons (default: the largest pixel of both stacks)")
       ->check(DataRangeCheck(true));
   AddMultiscaleOptions(sub, &o->scan.ms_ssim, &o->scan.cw_ssim);
   sub->add_flag("--no-register", o->no_register, "Skip sub-pixel registration");
-  sub->add_flag("--no-normalize", o->no_normalize, "Do not scale the simulation to the experiment's background");
-  sub->callback([o, exit_code] { *exit_code = RunCompareGuarded([&] { return RunScanCompare(*o); }); });
+  sub->add_flag("--no-normalize", o->no_normalize,
+                "Do not scale the simulation to the experiment's background");
+  sub->callback(
+      [o, exit_code] { *exit_code = RunCompareGuarded([&] { return RunScanCompare(*o); }); });
 }
 
 }  // namespace raymatch::apps

@@ -1,10 +1,11 @@
 // raymatch fit: optimise simulations against experimental images to extract 3D properties.
+#include "raymatch/fit/fit.h"
+
 #include <iostream>
 
 #include "commands.h"
 #include "mpi_session.h"
 #include "raymatch/core/error.h"
-#include "raymatch/fit/fit.h"
 
 namespace raymatch::apps {
 
@@ -25,9 +26,9 @@ int RunFitCommand(const FitCliOptions& o) {
   const std::string report = fit::WriteFitOutputs(spec, r, RankOutput(o.output));
   std::cout << "fit " << fit::StatusName(r.status) << ": " << r.message << "\n";
   for (const auto& p : r.parameters)
-    std::cout << "  " << p.key << " = " << p.best << (p.unit.empty() ? "" : " " + p.unit)
-              << "  +- " << p.sigma << "  (Cramer-Rao bound " << p.sigma_cramer_rao
-              << ", repeat-seed scatter " << p.sigma_repeat << ")" << (p.at_bound ? "  AT BOUND" : "") << "\n";
+    std::cout << "  " << p.key << " = " << p.best << (p.unit.empty() ? "" : " " + p.unit) << "  +- "
+              << p.sigma << "  (Cramer-Rao bound " << p.sigma_cramer_rao << ", repeat-seed scatter "
+              << p.sigma_repeat << ")" << (p.at_bound ? "  AT BOUND" : "") << "\n";
   for (const auto& p : r.parameters)
     if (!p.profile_t.empty())
       std::cout << "  profile-likelihood 68 % interval of " << p.key << ": ["
@@ -35,8 +36,10 @@ int RunFitCommand(const FitCliOptions& o) {
                 << (p.profile_upper_open ? ">= " : "") << p.profile_upper << "] ("
                 << p.profile_reason << ")\n";
   if (r.goodness.pixels > 0)
-    std::cout << (r.goodness.mismatch ? "WARNING: " : "goodness of fit: ") << r.goodness.verdict << "\n";
-  std::cout << r.evaluations.size() << " evaluations, " << r.total_seconds << " s; report: " << report << "\n";
+    std::cout << (r.goodness.mismatch ? "WARNING: " : "goodness of fit: ") << r.goodness.verdict
+              << "\n";
+  std::cout << r.evaluations.size() << " evaluations, " << r.total_seconds
+            << " s; report: " << report << "\n";
   if (r.status == fit::FitStatus::kFlat) {
     std::cerr << "raymatch fit: error: " << r.message << "\n";
     return 3;
@@ -56,13 +59,15 @@ void RegisterFit(CLI::App& app, int* exit_code) {
       "Exit status: 0 converged, 1 bad input or not converged, 2 usage error, 3 the error "
       "function is flat (the parameters do not change the image).");
   c->add_option("fit_file", o->fit_file, "fit file (TOML)")->required()->check(CLI::ExistingFile);
-  c->add_option("-o,--output", o->output, "output folder (created): fit.json, evaluations.csv, images, report.html")
+  c->add_option("-o,--output", o->output,
+                "output folder (created): fit.json, evaluations.csv, images, report.html")
       ->capture_default_str();
   c->add_option("--scene", o->scene, "scene file to use instead of the fit file's `scene`");
   c->add_option("--calibration", o->calibration,
-                 "calibration file (light field, corrector, optics) to use in the scene, e.g. "
-                 "out/sample/calibration.toml from `raymatch run`");
-  c->add_option("-t,--threads", o->threads, "worker threads (0 = the fit file's value, then all cores)")
+                "calibration file (light field, corrector, optics) to use in the scene, e.g. "
+                "out/sample/calibration.toml from `raymatch run`");
+  c->add_option("-t,--threads", o->threads,
+                "worker threads (0 = the fit file's value, then all cores)")
       ->check(CLI::Range(0, 4096));
   c->add_flag("-q,--quiet", o->quiet, "no progress on stderr");
   c->callback([o, exit_code] { *exit_code = RunGuarded([&] { return RunFitCommand(*o); }, 1); });

@@ -51,16 +51,15 @@ int main(int argc, char** argv) {
   std::string backends = "none";
 #ifdef RAYMATCH_HAVE_CAPTURE
   backends.clear();
-  for (const std::string& b : raymatch::capture::CompiledBackends()) backends += (backends.empty() ? "" : ", ") + b;
+  for (const std::string& b : raymatch::capture::CompiledBackends())
+    backends += (backends.empty() ? "" : ", ") + b;
 #endif
-  app.set_version_flag("--version", std::string("raymatch ") + raymatch::kVersion +
-                                        "\ncompiled-in options: MPI " +
-                                        (raymatch::apps::MpiCompiledIn() ? "on" : "off") +
-                                        ", mrcal " + (kMrcal ? "on" : "off") +
-                                        ", Python module " + (kPython ? "on" : "off") +
-                                        "; capture backends: " + backends +
-                                        "\nSIMD tracing: " + raymatch::simulate::SimdTarget() +
-                                        " (Google Highway, chosen at run time)");
+  app.set_version_flag(
+      "--version", std::string("raymatch ") + raymatch::kVersion + "\ncompiled-in options: MPI " +
+                       (raymatch::apps::MpiCompiledIn() ? "on" : "off") + ", mrcal " +
+                       (kMrcal ? "on" : "off") + ", Python module " + (kPython ? "on" : "off") +
+                       "; capture backends: " + backends + "\nSIMD tracing: " +
+                       raymatch::simulate::SimdTarget() + " (Google Highway, chosen at run time)");
   app.require_subcommand(1);
   int exit_code = 0;
   raymatch::apps::RegisterSimulate(app, &exit_code);

@@ -24,8 +24,8 @@ namespace raymatch::apps {
 
 namespace {
 bool g_started = false;
-std::string g_scratch;       // this rank's scratch output folder (ranks > 0)
-int g_saved_stderr = -1;     // ranks > 0: the real stderr, for error messages
+std::string g_scratch;    // this rank's scratch output folder (ranks > 0)
+int g_saved_stderr = -1;  // ranks > 0: the real stderr, for error messages
 
 void RemoveScratch() {
   std::error_code ec;
@@ -100,10 +100,11 @@ std::string RankOutput(const std::string& dir) {
       const char* env = std::getenv("TMPDIR");
       throw Error(FileLocation{env ? env : "/tmp"},
                   "this rank's scratch output folder cannot be made in the temporary folder "
-                  "(TMPDIR): " + ec.message());
+                  "(TMPDIR): " +
+                      ec.message());
     }
-    g_scratch =
-        (tmp / ("raymatch-rank" + std::to_string(c.rank) + "-" + std::to_string(getpid()))).string();
+    g_scratch = (tmp / ("raymatch-rank" + std::to_string(c.rank) + "-" + std::to_string(getpid())))
+                    .string();
   }
   return g_scratch;
 }

@@ -17,7 +17,9 @@ void RegisterRun(CLI::App& app, int* exit_code) {
       "The main job from one pipeline file (docs/pipeline.md): calibrate the light field and the\n"
       "corrector, simulate the experiment's focus scan with that calibration, run the focus-scan\n"
       "test and write index.html. Unchanged steps are reused. Exit: 0 pass, 1 warning, 2 fail.");
-  sub->add_option("pipeline", o->pipeline_file, "Pipeline file (.toml)")->required()->check(CLI::ExistingFile);
+  sub->add_option("pipeline", o->pipeline_file, "Pipeline file (.toml)")
+      ->required()
+      ->check(CLI::ExistingFile);
   sub->add_option("-o,--output", o->output_dir, "Output folder (default: the file's `output`)");
   sub->add_option("--ray-fraction", o->ray_fraction,
                   "Fraction of the photon-matched ray count (e.g. 0.0625 for a quick look)");
@@ -41,8 +43,10 @@ void RegisterRun(CLI::App& app, int* exit_code) {
       if (*quiet) return s.verdict;
       std::cout << "raymatch run: cone half-angle " << s.cone_half_angle_deg << " deg; exposure "
                 << s.photons_per_pixel << " photons/pixel; verdict "
-                << (s.verdict == 0 ? "pass" : s.verdict == 1 ? "warning" : "fail") << "\n  report: "
-                << s.report << "\n";
+                << (s.verdict == 0   ? "pass"
+                    : s.verdict == 1 ? "warning"
+                                     : "fail")
+                << "\n  report: " << s.report << "\n";
       return s.verdict;
     });
   });

@@ -67,14 +67,17 @@ void RegisterSimulate(CLI::App& app, int* exit_code) {
       "plane. Writes <name>_z<defocus>um.tif (float32 counts), .png preview and .json sidecar,\n"
       "plus <name>_scan.json/.csv; with [camera.readout] also <stem>_dn.tif, the camera's 16-bit\n"
       "code values (read noise, gain, dark level, full well, bit depth). Lengths in micrometres.");
-  sub->add_option("scene", opt->scene_file, "Scene file (.toml)")->required()->check(CLI::ExistingFile);
+  sub->add_option("scene", opt->scene_file, "Scene file (.toml)")
+      ->required()
+      ->check(CLI::ExistingFile);
   sub->add_option("-o,--output", opt->output_dir, "Output directory (created if missing)")
       ->capture_default_str();
   sub->add_option("--rays", opt->rays, "Rays per image (overrides the scene)");
   sub->add_option("--photons-per-pixel", opt->photons_per_pixel,
                   "Target mean hits per flat-field pixel = camera signal (0..1) x well capacity "
                   "(e-); the ray count follows from a pilot run");
-  sub->add_option("--seed", opt->seed, "Random seed (same seed -> same image for any thread count)");
+  sub->add_option("--seed", opt->seed,
+                  "Random seed (same seed -> same image for any thread count)");
   sub->add_option("--threads", opt->threads, "Worker threads (default: all cores)");
   sub->add_option("--defocus-um", opt->defocus_um,
                   "Focal-plane positions in um, replacing [scan] (+ = towards the camera)")

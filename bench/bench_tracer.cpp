@@ -50,8 +50,12 @@ void Run(benchmark::State& state, PartialReflection pr, bool drop, bool simd = t
 }
 
 void BM_Drop46_Cone27_PartialOff(benchmark::State& s) { Run(s, PartialReflection::kOff, true); }
-void BM_Drop46_Cone27_Unpolarized(benchmark::State& s) { Run(s, PartialReflection::kUnpolarized, true); }
-void BM_Drop46_Cone27_Polarized(benchmark::State& s) { Run(s, PartialReflection::kPolarized, true); }
+void BM_Drop46_Cone27_Unpolarized(benchmark::State& s) {
+  Run(s, PartialReflection::kUnpolarized, true);
+}
+void BM_Drop46_Cone27_Polarized(benchmark::State& s) {
+  Run(s, PartialReflection::kPolarized, true);
+}
 void BM_FlatField_Cone27(benchmark::State& s) { Run(s, PartialReflection::kOff, false); }
 void BM_Drop46_Cone27_PartialOff_Scalar(benchmark::State& s) {
   Run(s, PartialReflection::kOff, true, false);
@@ -62,7 +66,9 @@ void BM_Drop46_Cone27_Unpolarized_Scalar(benchmark::State& s) {
 void BM_Drop46_Cone27_Polarized_Scalar(benchmark::State& s) {
   Run(s, PartialReflection::kPolarized, true, false);
 }
-void BM_FlatField_Cone27_Scalar(benchmark::State& s) { Run(s, PartialReflection::kOff, false, false); }
+void BM_FlatField_Cone27_Scalar(benchmark::State& s) {
+  Run(s, PartialReflection::kOff, false, false);
+}
 
 BENCHMARK(BM_Drop46_Cone27_PartialOff)->Unit(benchmark::kMillisecond)->UseRealTime();
 BENCHMARK(BM_Drop46_Cone27_PartialOff_Scalar)->Unit(benchmark::kMillisecond)->UseRealTime();

@@ -58,6 +58,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
       raymatch::fuzz::CheckFinite(p.lower + p.upper + p.start + p.step, "parameter bounds");
       if (p.points < 1) raymatch::fuzz::CheckFinite(NAN, "grid points >= 1");
     }
-    for (const auto& im : f.images) raymatch::fuzz::CheckFinite(im.defocus_um * im.gain_e_per_dn, "image numbers");
+    for (const auto& im : f.images)
+      raymatch::fuzz::CheckFinite(im.defocus_um * im.gain_e_per_dn, "image numbers");
   });
 }

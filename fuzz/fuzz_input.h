@@ -22,16 +22,17 @@ namespace raymatch::fuzz {
 /// A per-process scratch file with `extension`, rewritten for every input.
 inline std::string WriteInput(const uint8_t* data, size_t size, const std::string& extension) {
   const std::string path = "/tmp/raymatch-fuzz-" + std::to_string(getpid()) + extension;
-  std::ofstream(path, std::ios::binary).write(reinterpret_cast<const char*>(data),
-                                              static_cast<std::streamsize>(size));
+  std::ofstream(path, std::ios::binary)
+      .write(reinterpret_cast<const char*>(data), static_cast<std::streamsize>(size));
   return path;
 }
 
 /// A per-process scratch folder (created once) for harnesses whose file names other files:
 /// `files` maps names inside it (sub-folders created) to contents; a name ending in '/' is a
 /// folder. Returns the folder's path.
-inline std::string ScratchFolder(const std::string& name,
-                                 const std::initializer_list<std::pair<std::string, std::string>>& files) {
+inline std::string ScratchFolder(
+    const std::string& name,
+    const std::initializer_list<std::pair<std::string, std::string>>& files) {
   const std::filesystem::path dir = std::filesystem::temp_directory_path() /
                                     ("raymatch-fuzz-" + name + "-" + std::to_string(getpid()));
   for (const auto& [f, text] : files) {
@@ -49,8 +50,8 @@ inline std::string ScratchFolder(const std::string& name,
 
 /// Writes one input to `path` (inside a ScratchFolder).
 inline void WriteInputTo(const std::string& path, const uint8_t* data, size_t size) {
-  std::ofstream(path, std::ios::binary).write(reinterpret_cast<const char*>(data),
-                                              static_cast<std::streamsize>(size));
+  std::ofstream(path, std::ios::binary)
+      .write(reinterpret_cast<const char*>(data), static_cast<std::streamsize>(size));
 }
 
 /// Aborts (a finding) when a parsed number that must be finite is not.

@@ -14,8 +14,10 @@
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   static const std::string dir = raymatch::fuzz::ScratchFolder("mesh", {});
   std::string ext = ".obj";
-  if (size >= 3 && std::memcmp(data, "ply", 3) == 0) ext = ".ply";
-  else if ((size >= 5 && std::memcmp(data, "solid", 5) == 0) || std::memchr(data, 0, std::min<size_t>(size, 84)))
+  if (size >= 3 && std::memcmp(data, "ply", 3) == 0)
+    ext = ".ply";
+  else if ((size >= 5 && std::memcmp(data, "solid", 5) == 0) ||
+           std::memchr(data, 0, std::min<size_t>(size, 84)))
     ext = ".stl";
   // A new name per input: the mesh cache (keyed by path, size and modification time, whose
   // clock is coarse) must not answer for an earlier input.

@@ -8,10 +8,17 @@
 #include "raymatch/pipeline/pipeline.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
-  static const std::string dir = raymatch::fuzz::ScratchFolder(
-      "metadata", {{"pinhole.tif", ""}, {"dark.tif", ""}, {"cone_dz20.tif", ""}, {"cone_dz30.tif", ""},
-                   {"flat.tif", ""}, {"flat_iris30deg.tif", ""}, {"cone_iris30deg.tif", ""},
-                   {"scan.csv", ""}, {"merging.tif", ""}, {"merging_drops.obj", ""}});
+  static const std::string dir =
+      raymatch::fuzz::ScratchFolder("metadata", {{"pinhole.tif", ""},
+                                                 {"dark.tif", ""},
+                                                 {"cone_dz20.tif", ""},
+                                                 {"cone_dz30.tif", ""},
+                                                 {"flat.tif", ""},
+                                                 {"flat_iris30deg.tif", ""},
+                                                 {"cone_iris30deg.tif", ""},
+                                                 {"scan.csv", ""},
+                                                 {"merging.tif", ""},
+                                                 {"merging_drops.obj", ""}});
   raymatch::fuzz::WriteInputTo(dir + "/metadata.toml", data, size);
   using raymatch::fuzz::CheckFinite;
   using raymatch::fuzz::Expect;
@@ -22,7 +29,8 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   });
   Expect([&] {
     const auto in = raymatch::calibrate::ReadFlatFieldInput(dir);
-    for (const auto& f : in.flats) CheckFinite(f.cone_dz_um * f.exposure * f.cone_exposure, "flat numbers");
+    for (const auto& f : in.flats)
+      CheckFinite(f.cone_dz_um * f.exposure * f.cone_exposure, "flat numbers");
   });
   Expect([&] {
     const auto e = raymatch::pipeline::ReadExperimentMetadata(dir);
@@ -30,6 +38,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   });
   return Expect([&] {
     const auto m = raymatch::pipeline::ReadMeshObjectMetadata(dir);
-    CheckFinite(m.defocus_um + m.rotation_deg[0] + m.rotation_deg[1] + m.rotation_deg[2], "mesh numbers");
+    CheckFinite(m.defocus_um + m.rotation_deg[0] + m.rotation_deg[1] + m.rotation_deg[2],
+                "mesh numbers");
   });
 }

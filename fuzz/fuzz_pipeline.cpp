@@ -6,9 +6,12 @@
 #include "raymatch/pipeline/pipeline.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
-  static const std::string dir = raymatch::fuzz::ScratchFolder(
-      "pipeline", {{"lightfield/", ""}, {"flatfield/", ""}, {"drop46/", ""}, {"merging/", ""},
-                   {"fit/sphere.toml", "# placeholder\n"}});
+  static const std::string dir =
+      raymatch::fuzz::ScratchFolder("pipeline", {{"lightfield/", ""},
+                                                 {"flatfield/", ""},
+                                                 {"drop46/", ""},
+                                                 {"merging/", ""},
+                                                 {"fit/sphere.toml", "# placeholder\n"}});
   const std::string path = dir + "/pipeline.toml";
   raymatch::fuzz::WriteInputTo(path, data, size);
   return raymatch::fuzz::Expect([&] {

@@ -34,7 +34,8 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   raymatch::fuzz::WriteInputTo(path, data, size);
   return raymatch::fuzz::Expect([&] {
     const raymatch::compare::Stack s = raymatch::compare::ReadStack(path);
-    if (s.defocus_um.size() != s.images.size() || s.files.size() != s.images.size() || s.images.empty())
+    if (s.defocus_um.size() != s.images.size() || s.files.size() != s.images.size() ||
+        s.images.empty())
       raymatch::fuzz::CheckFinite(NAN, "one image per focus position");
     for (double z : s.defocus_um) raymatch::fuzz::CheckFinite(z, "defocus_um");
   });

@@ -21,6 +21,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     CheckFinite(s.data.field_radius_um, "field radius");
   });
   return raymatch::fuzz::Expect([&] {
-    for (double v : raymatch::calibrate::ZemaxRayList(f, nullptr).values) CheckFinite(v, "ray list value");
+    for (double v : raymatch::calibrate::ZemaxRayList(f, nullptr).values)
+      CheckFinite(v, "ray list value");
   });
 }

@@ -13,6 +13,7 @@ PACKAGES=(
   libopenvdb-dev  # iso-surfaces of volume-fraction grids
   libceres-dev  # calibration fits
   libboost-dev  # Boost.Math's monotone interpolation (fit's profile likelihood)
+  clang-format  # the check_format test (Debian 12: clang-format 14)
   libmrcal-dev  # light field from mrcal .cameramodel files (optional in CMake)
   libopenmpi-dev openmpi-bin  # MPI across machines (optional in CMake: RAYMATCH_MPI)
   libcamera-dev  # capture from libcamera cameras (optional in CMake: RAYMATCH_WITH_LIBCAMERA)

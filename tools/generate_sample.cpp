@@ -35,15 +35,15 @@ constexpr double kDeg = M_PI / 180;
 struct Truth {
   // Illumination: radiance vs angle theta from the (tilted) cone axis, in direction cosines.
   double edge_deg = 25.5, edge_width_deg = 1.2;  // soft edge beyond asin(NA) = 24.8 deg
-  double radial_rise = 0.10;                      // L ~ 1 + rise (theta/edge)^2
-  double azimuthal = 0.06, azimuth_deg = 40;      // L ~ 1 + a (sin t / sin edge) cos(phi - az)
+  double radial_rise = 0.10;                     // L ~ 1 + rise (theta/edge)^2
+  double azimuthal = 0.06, azimuth_deg = 40;     // L ~ 1 + a (sin t / sin edge) cos(phi - az)
   double tilt_deg = 0.8, tilt_azimuth_deg = 120;
   std::vector<double> iris_deg = {3, 5, 7, 9, 11, 13, 15, 17, 19, 21, 23, 25, 30};  // flats
   std::vector<double> corrector = {1, 0.998, 0.995, 0.99, 0.982, 0.97, 0.95, 0.92, 0.88};
   // Camera (a 12-bit high-speed camera, 10 um pixels).
   double well_e = 4500, gain_e_per_dn = 4500.0 / 4095, read_noise_e = 6, dark_dn = 64;
-  double signal = 0.56;                           // flat-field exposure (fraction of the well)
-  double psf_sigma_um = 0.21 * 0.462 / 0.42;      // diffraction-limited (Gaussian approx.)
+  double signal = 0.56;                       // flat-field exposure (fraction of the well)
+  double psf_sigma_um = 0.21 * 0.462 / 0.42;  // diffraction-limited (Gaussian approx.)
   int nx = 160, ny = 120;
   double pitch_um = 10;
   // The drop and the merging drops.
@@ -187,7 +187,8 @@ int main(int argc, char** argv) {
     Scene ph = BaseScene(t, 90, false);
     ph.source.field_radius_um = t.pinhole_diameter_um / 2;
     ph.source.field_shape = FieldShape::kDisc;
-    w.Image16("lightfield/pinhole.tif", Trace(ph, 0, uint64_t(3.5e4), plane++), "pinhole in focus");  // ~2500 e- peak
+    w.Image16("lightfield/pinhole.tif", Trace(ph, 0, uint64_t(3.5e4), plane++),
+              "pinhole in focus");  // ~2500 e- peak
     for (double dz : t.cone_dz_um) {
       const double area_px = M_PI * std::pow(dz * std::tan(std::asin(0.42)), 2) / 0.25;
       w.Image16("lightfield/cone_dz" + std::to_string(int(dz)) + ".tif",
@@ -200,14 +201,16 @@ int main(int argc, char** argv) {
         << "pinhole = \"pinhole.tif\"\npinhole_diameter_um = " << t.pinhole_diameter_um
         << "\ndark = \"dark.tif\"\n"
         << "# The illumination is uniform over the view here; a non-uniform one would be measured\n"
-        << "# with a flat field (flat = \"../flatfield/flat_iris30deg.tif\", docs/calibration.md).\n\n"
-        << [&] {
-             std::string s;
-             for (double dz : t.cone_dz_um)
-               s += "[[cone]]\nfile = \"cone_dz" + std::to_string(int(dz)) +
-                    ".tif\"\ndz_um = " + std::to_string(int(dz)) + "   # focus beyond the pinhole\n\n";
-             return s;
-           }()
+        << "# with a flat field (flat = \"../flatfield/flat_iris30deg.tif\", "
+           "docs/calibration.md).\n\n"
+        <<
+        [&] {
+          std::string s;
+          for (double dz : t.cone_dz_um)
+            s += "[[cone]]\nfile = \"cone_dz" + std::to_string(int(dz)) +
+                 ".tif\"\ndz_um = " + std::to_string(int(dz)) + "   # focus beyond the pinhole\n\n";
+          return s;
+        }()
         << kCameraToml;
 
     // --- Flat-field iris series with corrector losses; each iris with its cone image.
@@ -235,13 +238,16 @@ int main(int argc, char** argv) {
       c.source.field_radius_um = t.pinhole_diameter_um / 2;
       const double open_px = M_PI * std::pow(30 * std::tan(24.8 * kDeg), 2) / 0.25;
       const double lit_px =
-          M_PI * std::pow(30 * std::tan(std::min(iris, 24.8) * kDeg) + t.pinhole_diameter_um / 2, 2) / 0.25;
+          M_PI *
+          std::pow(30 * std::tan(std::min(iris, 24.8) * kDeg) + t.pinhole_diameter_um / 2, 2) /
+          0.25;
       const double per_px = 0.25 * photons * open_px * sum / open_sum / lit_px;
       int exposure = 1;
       for (int e : {2, 5, 10, 20, 50, 100})
         if (e * per_px < 0.35 * t.well_e) exposure = e;
       w.Image16("flatfield/cone_" + tag + ".tif",
-                Trace(c, 30, uint64_t(exposure * 0.25 * photons * open_px * scale * sum / open_sum), plane++),
+                Trace(c, 30, uint64_t(exposure * 0.25 * photons * open_px * scale * sum / open_sum),
+                      plane++),
                 "cone for " + tag + " (relative exposure " + std::to_string(exposure) + ")");
       iris_toml += "[[flat]]\nfile = \"flat_" + tag + ".tif\"\ncone = \"cone_" + tag +
                    ".tif\"\ncone_dz_um = 30\ncone_exposure = " + std::to_string(exposure) +
@@ -250,7 +256,8 @@ int main(int argc, char** argv) {
     w.Image16("flatfield/dark.tif", Image(t.nx, t.ny), "dark frame");
     std::ofstream(fs::path(out) / "flatfield/metadata.toml")
         << "# Flat fields (no object) at several illumination apertures, each with the image of\n"
-        << "# its light cone through a pinhole (same lamp; cone_exposure = relative exposure time), for\n"
+        << "# its light cone through a pinhole (same lamp; cone_exposure = relative exposure "
+           "time), for\n"
         << "# `raymatch calibrate corrector`.\n"
         << "dark = \"dark.tif\"\npinhole_diameter_um = " << t.pinhole_diameter_um << "\n\n"
         << iris_toml << kCameraToml;
@@ -291,7 +298,7 @@ int main(int argc, char** argv) {
     for (int i = 0; i <= 240; ++i) {
       const double z = -30 + 56.0 * i / 240;  // lobes: R 18 at z = -10, R 14 at z = +12
       const double r1 = 18 * 18 - (z + 10) * (z + 10), r2 = 14 * 14 - (z - 12) * (z - 12);
-      const double neck = 9.0;                  // smoothed neck radius
+      const double neck = 9.0;  // smoothed neck radius
       double r = std::sqrt(std::max({r1, r2, 0.0}));
       if (z > -2 && z < 6) r = std::max(r, neck);
       outline.push_back({i == 0 || i == 240 ? 0.0 : r, z});
@@ -324,7 +331,8 @@ int main(int argc, char** argv) {
     tilted.objects[0].rotation_deg = {0, 90 - t.merging_tilt_deg, 0};
     tilted.defocus_um = {t.merging_defocus_um};
     w.Image16("merging/merging_tilted.tif",
-              Trace(tilted, t.merging_defocus_um, Simulator(tilted).RaysForPhotonTarget(photons * scale), plane++),
+              Trace(tilted, t.merging_defocus_um,
+                    Simulator(tilted).RaysForPhotonTarget(photons * scale), plane++),
               "merging drops tilted " + std::to_string(t.merging_tilt_deg) + " deg, defocus " +
                   std::to_string(t.merging_defocus_um) + " um");
     std::ofstream(fs::path(out) / "merging/metadata.toml")
@@ -337,8 +345,9 @@ int main(int argc, char** argv) {
     // --- Ground truth (never read by the pipeline).
     std::ostringstream tr;
     tr << "# Ground truth of the synthetic sample; the pipeline never reads this file.\n"
-       << "generator = \"tools/generate_sample.cpp\"\nseed = " << seed << "\nquick = "
-       << (quick ? "true" : "false") << "\ncommand_line = \"" << CommandLine() << "\"\n\n"
+       << "generator = \"tools/generate_sample.cpp\"\nseed = " << seed
+       << "\nquick = " << (quick ? "true" : "false") << "\ncommand_line = \"" << CommandLine()
+       << "\"\n\n"
        << "[light_field]\nedge_half_angle_deg = " << t.edge_deg
        << "\nedge_width_deg = " << t.edge_width_deg << "\nradial_rise = " << t.radial_rise
        << "\nazimuthal_amplitude = " << t.azimuthal << "\nazimuth_deg = " << t.azimuth_deg
@@ -352,9 +361,9 @@ int main(int argc, char** argv) {
        << "[drop]\nradius_um = " << t.radius_um << "\ncenter_um = [" << t.drop_center_um.x << ", "
        << t.drop_center_um.y << ", " << t.drop_center_um.z << "]\nindex = " << o.index
        << "\n# best-matching simulated defocus for experimental defocus d: d - center z\n\n"
-       << "[merging_tilted]\nimage = \"merging/merging_tilted.tif\"\ntilt_deg = " << t.merging_tilt_deg
-       << "   # axis tilted out of the image plane: mesh rotation_deg = [0, " << 90 - t.merging_tilt_deg
-       << ", 0]\ndefocus_um = " << t.merging_defocus_um << "\n";
+       << "[merging_tilted]\nimage = \"merging/merging_tilted.tif\"\ntilt_deg = "
+       << t.merging_tilt_deg << "   # axis tilted out of the image plane: mesh rotation_deg = [0, "
+       << 90 - t.merging_tilt_deg << ", 0]\ndefocus_um = " << t.merging_defocus_um << "\n";
     WriteTextFileAtomic(fs::path(out) / "truth.toml", tr.str());
     std::cout << "done: " << out << "\n";
   } catch (const Error& e) {

@@ -3,7 +3,6 @@
 #include <ceres/ceres.h>
 
 #include <Eigen/Dense>
-
 #include <cmath>
 #include <sstream>
 
@@ -67,17 +66,21 @@ TransmissionFit FitTransmissions(const std::vector<std::vector<double>>& W,
     if (col[j] < 1e-3 * colmax) f.undetermined.push_back(int(j)), fixed.push_back(int(j));
   ceres::Problem prob;
   double* T = f.transmissions.data();
-  double g = S[0] / std::max(1e-300, [&] { double m = 0; for (size_t j = 0; j < J; ++j) m += W[0][j]; return m; }());
+  double g = S[0] / std::max(1e-300, [&] {
+               double m = 0;
+               for (size_t j = 0; j < J; ++j) m += W[0][j];
+               return m;
+             }());
   for (size_t k = 0; k < K; ++k) {
-    auto* cost = new ceres::DynamicNumericDiffCostFunction<SignalResidual>(new SignalResidual{W[k], S[k], sg[k]});
+    auto* cost = new ceres::DynamicNumericDiffCostFunction<SignalResidual>(
+        new SignalResidual{W[k], S[k], sg[k]});
     cost->AddParameterBlock(int(J));
     cost->AddParameterBlock(1);
     cost->SetNumResiduals(1);
     prob.AddResidualBlock(cost, nullptr, T, &g);
   }
   if (smoothness > 0)
-    for (size_t j = 1; j + 1 < J; ++j)
-    {
+    for (size_t j = 1; j + 1 < J; ++j) {
       auto* c = new ceres::DynamicAutoDiffCostFunction<SmoothResidual, 4>(
           new SmoothResidual{int(j), smoothness});
       c->AddParameterBlock(int(J));
@@ -148,12 +151,14 @@ TransmissionFit FitTransmissions(const std::vector<std::vector<double>>& W,
     f.sigma_scale = mismatch || overstated ? std::sqrt(f.reduced_chi2) : 1.0;
     const Eigen::MatrixXd cov = lu.inverse() * (f.sigma_scale * f.sigma_scale);
     if (mismatch)
-      f.verdict = "chi^2 above its expectation: the model does not describe the flat fields within "
-                  "their noise; uncertainties inflated by sqrt(reduced chi^2)";
+      f.verdict =
+          "chi^2 above its expectation: the model does not describe the flat fields within "
+          "their noise; uncertainties inflated by sqrt(reduced chi^2)";
     else if (overstated)
-      f.verdict = "chi^2 below its expectation (z " + std::to_string(f.chi2_z).substr(0, 5) +
-                  "): the flat fields scatter less than their stated noise; uncertainties scaled by "
-                  "sqrt(reduced chi^2)";
+      f.verdict =
+          "chi^2 below its expectation (z " + std::to_string(f.chi2_z).substr(0, 5) +
+          "): the flat fields scatter less than their stated noise; uncertainties scaled by "
+          "sqrt(reduced chi^2)";
     for (int q = 0; q < P - 1; ++q) f.sigma[free[q]] = std::sqrt(std::max(0.0, cov(q, q)));
     f.gain_sigma = g * std::sqrt(std::max(0.0, cov(P - 1, P - 1)));
   }
@@ -217,12 +222,14 @@ CorrectorSummary CalibrateCorrector(const FlatFieldInput& in, const CorrectorOpt
       }
     double total = 0;
     for (double x : w) total += x;
-    if (!(total > 0)) throw Error(FileLocation{fl.cone}, "no light inside the NA circle of the cone image");
+    if (!(total > 0))
+      throw Error(FileLocation{fl.cone}, "no light inside the NA circle of the cone image");
     s.weights.push_back(w);
     s.signal.push_back(st.mean / fl.exposure);
     // sigma_k: the flat mean's noise (shot + read, over its pixels) and the relative noise of
     // the cone's light, which scales the whole model row (effective-variance approximation).
-    const double rel_flat = std::sqrt((std::max(st.mean, 1.0) + rn2) / st.count) / std::max(st.mean, 1e-300);
+    const double rel_flat =
+        std::sqrt((std::max(st.mean, 1.0) + rn2) / st.count) / std::max(st.mean, 1e-300);
     const double rel_cone = std::sqrt(var) / fl.cone_exposure / total;
     sigma.push_back(st.mean / fl.exposure * std::hypot(rel_flat, rel_cone));
   }

@@ -30,7 +30,8 @@ void ReadCommon(TomlReader& r, CameraInfo* cam, OpticsInfo* opt) {
   c.Finish();
   TomlReader o = r.Table("optics");
   opt->objective_focal_mm = o.Positive("objective_focal_mm");
-  if (!o.Has("na")) o.Fail("na", "required: numerical aperture NA = n sin(theta), 0 < NA < medium_index");
+  if (!o.Has("na"))
+    o.Fail("na", "required: numerical aperture NA = n sin(theta), 0 < NA < medium_index");
   opt->medium_index = o.InRange("medium_index", 1.0, 3.0, 1.0);
   opt->na = o.InRange("na", 0, 3, 0, true, true);
   if (opt->na >= opt->medium_index)
@@ -41,9 +42,10 @@ void ReadCommon(TomlReader& r, CameraInfo* cam, OpticsInfo* opt) {
   opt->wavelength_um = o.InRange("wavelength_um", 0.2, 2.0, 0.462);
   // A microscope's lengths: a value beyond 10 m (e.g. a mistyped 9e18) would be accepted here
   // and only fail, far from this file, when the calibrated scene is traced.
-  for (const auto& [key, v] : {std::pair<const char*, double>{"objective_focal_mm", opt->objective_focal_mm},
-                               {"working_distance_mm", opt->working_distance_mm},
-                               {"tube_focal_mm", opt->tube_focal_mm}})
+  for (const auto& [key, v] :
+       {std::pair<const char*, double>{"objective_focal_mm", opt->objective_focal_mm},
+        {"working_distance_mm", opt->working_distance_mm},
+        {"tube_focal_mm", opt->tube_focal_mm}})
     if (v > 1e4) o.Fail(key, "expected at most 10000 mm (10 m) for a microscope");
   o.Finish();
 }
@@ -69,13 +71,16 @@ LightFieldInput ReadLightFieldInput(const std::string& folder) {
     // mrcal path: a camera focused at infinity; no pinhole, no defocus series.
     in.camera_model = Existing(r, "camera_model", folder);
     if (r.Has("cone") || r.Has("pinhole"))
-      r.Fail("camera_model", "give either camera_model with [[direction]] images or pinhole with [[cone]] images, not both");
+      r.Fail("camera_model",
+             "give either camera_model with [[direction]] images or pinhole with [[cone]] images, "
+             "not both");
     for (TomlReader& c : r.Tables("direction")) {
       in.direction_images.push_back(Existing(c, "file", folder));
       c.Finish();
     }
     if (in.direction_images.empty())
-      throw Error(r.Where("camera_model"), "camera_model needs at least one [[direction]] image (file = ...)");
+      throw Error(r.Where("camera_model"),
+                  "camera_model needs at least one [[direction]] image (file = ...)");
   } else {
     in.pinhole = Existing(r, "pinhole", folder);
     in.pinhole_diameter_um = r.Positive("pinhole_diameter_um");
@@ -92,7 +97,8 @@ LightFieldInput ReadLightFieldInput(const std::string& folder) {
     for (size_t i = 0; i < in.cones.size(); ++i)
       for (size_t j = i + 1; j < in.cones.size(); ++j)
         if (in.cones[i].dz_um == in.cones[j].dz_um)
-          throw Error(r.Where(), "two cone images share dz_um = " + std::to_string(in.cones[i].dz_um));
+          throw Error(r.Where(),
+                      "two cone images share dz_um = " + std::to_string(in.cones[i].dz_um));
   }
   ReadCommon(r, &in.camera, &in.optics);
   r.Finish();
@@ -144,7 +150,8 @@ Image LoadPhotons(const std::string& file, const Image* dark, const CameraInfo& 
     mx = std::max(mx, double(v));
   }
   if (!(mx > 5 * std::max(cam.read_noise_e, 1.0)))
-    throw Error(FileLocation{file}, "image is blank (no pixel above the dark level + 5 read-noise sigmas)");
+    throw Error(FileLocation{file},
+                "image is blank (no pixel above the dark level + 5 read-noise sigmas)");
   return img;
 }
 

@@ -20,7 +20,6 @@ namespace {
 
 constexpr double kDeg = M_PI / 180;
 
-
 constexpr double kOutside = -1e300;
 
 double Bilinear(const Image& img, double fx, double fy) {  // fx, fy in pixel-centre units
@@ -66,8 +65,8 @@ void Centroid(const Image& img, double p, double fraction, double* x, double* y,
   if (rms) *rms = std::sqrt(std::max(0.0, sxx / w - (*x) * (*x) - (*y) * (*y)));
 }
 
-Image ConeToAngularMap(const Image& ph, double p, double dz, double ax, double ay, double az,
-                       int n, double extent, double na, std::vector<char>* covered) {
+Image ConeToAngularMap(const Image& ph, double p, double dz, double ax, double ay, double az, int n,
+                       double extent, double na, std::vector<char>* covered) {
   Image map(n, n);
   if (covered) covered->assign(size_t(n) * n, 0);
   const double h = dz - az;  // plane distance from the apex
@@ -131,7 +130,9 @@ LightFieldSummary FromCameraModel(const LightFieldInput& in, const LightFieldOpt
   for (const std::string& file : in.direction_images) {
     size_t sat = 0;
     const Image ph = LoadPhotons(file, dk, in.camera, &sat);
-    if (sat) s.warnings.push_back(file + ": " + std::to_string(sat) + " saturated pixels (radiance clipped there)");
+    if (sat)
+      s.warnings.push_back(file + ": " + std::to_string(sat) +
+                           " saturated pixels (radiance clipped there)");
     std::vector<char> cov;
     DirectionMapStats st;
     const Image m = DirectionImageToAngularMap(ph, in.camera_model, n, extent, &cov, &st);
@@ -148,7 +149,8 @@ LightFieldSummary FromCameraModel(const LightFieldInput& in, const LightFieldOpt
   for (size_t i = 0; i < map.size(); ++i) {
     if (count[i]) map.pixels[i] = std::max(0.f, map.pixels[i] / float(count[i]));
     const double u = (2 * (i % n + 0.5) / n - 1) * extent, v = (1 - 2 * (i / n + 0.5) / n) * extent;
-    if (u * u + v * v < in.optics.acceptance_sin() * in.optics.acceptance_sin() && !count[i]) ++unmeasured;
+    if (u * u + v * v < in.optics.acceptance_sin() * in.optics.acceptance_sin() && !count[i])
+      ++unmeasured;
   }
   if (unmeasured)
     s.warnings.push_back(std::to_string(unmeasured) +
@@ -178,7 +180,9 @@ Image SpatialMapFromFlat(const Image& photons, double pixel_um, int bin, double 
                          double* lo, double* hi) {
   if (bin < 1) throw Error("flat_bin_px must be >= 1");
   const int nbx = photons.width / bin, nby = photons.height / bin;
-  if (nbx < 1 || nby < 1) throw Error("the flat-field image is smaller than one bin of " + std::to_string(bin) + " pixels");
+  if (nbx < 1 || nby < 1)
+    throw Error("the flat-field image is smaller than one bin of " + std::to_string(bin) +
+                " pixels");
   const int x0 = (photons.width - nbx * bin) / 2, y0 = (photons.height - nby * bin) / 2;
   Image map(nbx, nby);
   for (int by = 0; by < nby; ++by)
@@ -217,7 +221,9 @@ LightFieldSummary FromCones(const LightFieldInput& in, const LightFieldOptions& 
   const Image* dk = dark.empty() ? nullptr : &dark;
   size_t sat = 0;
   const Image pin = LoadPhotons(in.pinhole, dk, in.camera, &sat);
-  if (sat) s.warnings.push_back(in.pinhole + ": " + std::to_string(sat) + " saturated pixels (centroid biased; lower the exposure)");
+  if (sat)
+    s.warnings.push_back(in.pinhole + ": " + std::to_string(sat) +
+                         " saturated pixels (centroid biased; lower the exposure)");
   double rms = 0;
   Centroid(pin, p, 0.1, &s.pinhole_x_um, &s.pinhole_y_um, &rms);
   s.pinhole_diameter_um = 2 * std::sqrt(2.0) * rms;  // uniform disc: rms^2 = R^2 / 2
@@ -252,15 +258,19 @@ LightFieldSummary FromCones(const LightFieldInput& in, const LightFieldOptions& 
         if (im.at(0, y) > 0.5 * plateau || im.at(im.width - 1, y) > 0.5 * plateau) return true;
       return false;
     }();
-    if (touches) s.warnings.push_back(c.file + ": the cone reaches the image border (its radius is underestimated; use a smaller dz)");
+    if (touches)
+      s.warnings.push_back(
+          c.file +
+          ": the cone reaches the image border (its radius is underestimated; use a smaller dz)");
   }
   // Joint fit of apex, axis and edge angle (Ceres, Levenberg-Marquardt).
   double apex[3] = {s.pinhole_x_um, s.pinhole_y_um, 0}, tilt[2] = {0, 0}, tan_half[1] = {0.3};
   ceres::Problem prob;
   for (size_t k = 0; k < in.cones.size(); ++k) {
-    prob.AddResidualBlock(new ceres::AutoDiffCostFunction<CenterResidual, 2, 3, 2>(
-                              new CenterResidual{in.cones[k].dz_um, f.center_x_um[k], f.center_y_um[k]}),
-                          nullptr, apex, tilt);
+    prob.AddResidualBlock(
+        new ceres::AutoDiffCostFunction<CenterResidual, 2, 3, 2>(
+            new CenterResidual{in.cones[k].dz_um, f.center_x_um[k], f.center_y_um[k]}),
+        nullptr, apex, tilt);
     prob.AddResidualBlock(new ceres::AutoDiffCostFunction<RadiusResidual, 1, 3, 1>(
                               new RadiusResidual{in.cones[k].dz_um, f.radius_um[k]}),
                           nullptr, apex, tan_half);
@@ -280,7 +290,8 @@ LightFieldSummary FromCones(const LightFieldInput& in, const LightFieldOptions& 
   double rc = 0, rr = 0;
   for (size_t k = 0; k < in.cones.size(); ++k) {
     const double h = in.cones[k].dz_um - apex[2];
-    rc += std::pow(f.center_x_um[k] - apex[0] - h * tilt[0], 2) + std::pow(f.center_y_um[k] - apex[1] - h * tilt[1], 2);
+    rc += std::pow(f.center_x_um[k] - apex[0] - h * tilt[0], 2) +
+          std::pow(f.center_y_um[k] - apex[1] - h * tilt[1], 2);
     rr += std::pow(f.radius_um[k] - h * tan_half[0], 2);
   }
   f.rms_center_residual_um = std::sqrt(rc / in.cones.size());
@@ -288,7 +299,8 @@ LightFieldSummary FromCones(const LightFieldInput& in, const LightFieldOptions& 
   // Edge radii are measured to ~0.1 pixel; half a pixel of misfit means the geometry is wrong.
   if (f.rms_radius_residual_um > 0.5 * p)
     s.warnings.push_back("the cone cross-section does not scale with dz (radius residual " +
-                         std::to_string(f.rms_radius_residual_um) + " um > half a pixel): check dz_um values");
+                         std::to_string(f.rms_radius_residual_um) +
+                         " um > half a pixel): check dz_um values");
   const double na_deg = std::asin(in.optics.acceptance_sin()) / kDeg;
   f.cut_by_na = f.half_angle_deg > na_deg - 0.5;
   // Angular map: average of the cone images' radiance (where measured).
@@ -298,21 +310,24 @@ LightFieldSummary FromCones(const LightFieldInput& in, const LightFieldOptions& 
   std::vector<int> count(size_t(n) * n, 0);
   for (size_t k = 0; k < cones.size(); ++k) {
     std::vector<char> cov;
-    const Image m = ConeToAngularMap(cones[k], p, in.cones[k].dz_um, apex[0], apex[1], apex[2], n, extent, in.optics.acceptance_sin(), &cov);
+    const Image m = ConeToAngularMap(cones[k], p, in.cones[k].dz_um, apex[0], apex[1], apex[2], n,
+                                     extent, in.optics.acceptance_sin(), &cov);
     for (size_t i = 0; i < m.size(); ++i)
       if (cov[i]) map.pixels[i] += m.pixels[i], ++count[i];
   }
   size_t unmeasured = 0;
   for (size_t i = 0; i < map.size(); ++i) {
     const double u = (2 * (i % n + 0.5) / n - 1) * extent, v = (1 - 2 * (i / n + 0.5) / n) * extent;
-    if (u * u + v * v < in.optics.acceptance_sin() * in.optics.acceptance_sin() && !count[i]) ++unmeasured;
+    if (u * u + v * v < in.optics.acceptance_sin() * in.optics.acceptance_sin() && !count[i])
+      ++unmeasured;
     if (count[i]) map.pixels[i] = std::max(0.f, map.pixels[i] / float(count[i]));  // radiance >= 0
   }
   if (unmeasured)
-    s.warnings.push_back(std::to_string(unmeasured) + " directions inside the NA fall outside every cone image (set to 0)");
+    s.warnings.push_back(std::to_string(unmeasured) +
+                         " directions inside the NA fall outside every cone image (set to 0)");
   std::ostringstream note;
-  note << "measured from " << cones.size() << " cone images up to NA " << in.optics.na
-       << " (" << na_deg << " deg)";
+  note << "measured from " << cones.size() << " cone images up to NA " << in.optics.na << " ("
+       << na_deg << " deg)";
   if (f.cut_by_na) note << "; the cone edge is cut by the objective NA";
   if (o.extrapolate_to_deg > na_deg) {
     // Mean radiance of the outermost measured ring, continued to the given angle.
@@ -320,14 +335,16 @@ LightFieldSummary FromCones(const LightFieldInput& in, const LightFieldOptions& 
     int rn = 0;
     const double s_lo = std::sin((na_deg - 2) * kDeg), s_na = in.optics.acceptance_sin();
     for (size_t i = 0; i < map.size(); ++i) {
-      const double u = (2 * (i % n + 0.5) / n - 1) * extent, v = (1 - 2 * (i / n + 0.5) / n) * extent;
+      const double u = (2 * (i % n + 0.5) / n - 1) * extent,
+                   v = (1 - 2 * (i / n + 0.5) / n) * extent;
       const double sr = std::hypot(u, v);
       if (sr > s_lo && sr < s_na && count[i]) ring += map.pixels[i], ++rn;
     }
     ring /= std::max(rn, 1);
     const double s_to = std::sin(o.extrapolate_to_deg * kDeg);
     for (size_t i = 0; i < map.size(); ++i) {
-      const double u = (2 * (i % n + 0.5) / n - 1) * extent, v = (1 - 2 * (i / n + 0.5) / n) * extent;
+      const double u = (2 * (i % n + 0.5) / n - 1) * extent,
+                   v = (1 - 2 * (i / n + 0.5) / n) * extent;
       const double sr = std::hypot(u, v);
       if (sr >= s_na && sr < s_to) map.pixels[i] = float(ring);
     }
@@ -359,7 +376,9 @@ LightFieldSummary CalibrateLightField(const LightFieldInput& in, const LightFiel
     if (!in.dark.empty()) dark = ReadImage(in.dark);
     size_t sat = 0;
     const Image flat = LoadPhotons(in.flat, dark.empty() ? nullptr : &dark, in.camera, &sat);
-    if (sat) s.warnings.push_back(in.flat + ": " + std::to_string(sat) + " saturated pixels (the spatial map is clipped there)");
+    if (sat)
+      s.warnings.push_back(in.flat + ": " + std::to_string(sat) +
+                           " saturated pixels (the spatial map is clipped there)");
     double lo, hi;
     CalibrationData& d = s.data;
     d.spatial_map = SpatialMapFromFlat(flat, in.camera.pixel_pitch_um / in.optics.magnification(),
@@ -369,8 +388,8 @@ LightFieldSummary CalibrateLightField(const LightFieldInput& in, const LightFiel
     os << "; spatial map from " << fs::path(in.flat).filename().string() << " (" << in.flat_bin_px
        << " px bins, " << lo << " to " << hi << " of the centre over the view)";
     d.light_field_note += os.str();
-    d.provenance["light_field_inputs"] =
-        d.provenance["light_field_inputs"].get<std::string>() + "; " + FileChecksum(in.flat) + " " + in.flat;
+    d.provenance["light_field_inputs"] = d.provenance["light_field_inputs"].get<std::string>() +
+                                         "; " + FileChecksum(in.flat) + " " + in.flat;
   }
   return s;
 }

@@ -22,20 +22,22 @@ Image DirectionImageToAngularMap(const Image& ph, const std::string& path, int n
                                  std::vector<char>* covered, DirectionMapStats* stats) {
   mrcal_cameramodel_t* model = mrcal_read_cameramodel_file(path.c_str());
   if (!model)
-    throw Error(FileLocation{path}, "mrcal could not read this .cameramodel (its parser printed the reason above)");
+    throw Error(FileLocation{path},
+                "mrcal could not read this .cameramodel (its parser printed the reason above)");
   struct Free {
     mrcal_cameramodel_t* m;
     ~Free() { mrcal_free_cameramodel(&m); }
   } free_model{model};
   if (int(model->imagersize[0]) != ph.width || int(model->imagersize[1]) != ph.height)
-    throw Error(FileLocation{path}, "the model's imager is " + std::to_string(model->imagersize[0]) +
-                                        "x" + std::to_string(model->imagersize[1]) +
-                                        " but the image is " + std::to_string(ph.width) + "x" +
-                                        std::to_string(ph.height));
+    throw Error(FileLocation{path},
+                "the model's imager is " + std::to_string(model->imagersize[0]) + "x" +
+                    std::to_string(model->imagersize[1]) + " but the image is " +
+                    std::to_string(ph.width) + "x" + std::to_string(ph.height));
   // rt_cam_ref: p_cam = R p_ref + t; directions need only R (Rodrigues vector r).
   const Eigen::Vector3d r(model->rt_cam_ref[0], model->rt_cam_ref[1], model->rt_cam_ref[2]);
-  const Eigen::Matrix3d R =
-      r.norm() > 0 ? Eigen::AngleAxisd(r.norm(), r.normalized()).toRotationMatrix() : Eigen::Matrix3d::Identity();
+  const Eigen::Matrix3d R = r.norm() > 0
+                                ? Eigen::AngleAxisd(r.norm(), r.normalized()).toRotationMatrix()
+                                : Eigen::Matrix3d::Identity();
   const Eigen::Matrix3d ref_from_cam = R.transpose();
   // Pixel corners in mrcal coordinates (pixel centres at integers): (x - 0.5, y - 0.5).
   const int W = ph.width, H = ph.height;
@@ -64,7 +66,8 @@ Image DirectionImageToAngularMap(const Image& ph, const std::string& path, int n
   for (int y = 0; y < H; ++y)
     for (int x = 0; x < W; ++x) {
       const size_t c00 = size_t(y) * (W + 1) + x, c10 = c00 + 1, c01 = c00 + W + 1, c11 = c01 + 1;
-      const double us[4] = {cu[c00], cu[c10], cu[c11], cu[c01]}, vs[4] = {cv[c00], cv[c10], cv[c11], cv[c01]};
+      const double us[4] = {cu[c00], cu[c10], cu[c11], cu[c01]},
+                   vs[4] = {cv[c00], cv[c10], cv[c11], cv[c01]};
       bool ok = true;
       for (int k = 0; k < 4; ++k) ok &= std::isfinite(us[k]);
       if (!ok) continue;
@@ -75,7 +78,8 @@ Image DirectionImageToAngularMap(const Image& ph, const std::string& path, int n
       }
       a = std::abs(a) / 2;
       st.max_s = std::max(st.max_s, std::hypot(mu, mv));
-      const int col = int(std::floor((mu / extent + 1) / 2 * n)), row = int(std::floor((1 - mv / extent) / 2 * n));
+      const int col = int(std::floor((mu / extent + 1) / 2 * n)),
+                row = int(std::floor((1 - mv / extent) / 2 * n));
       if (col < 0 || col >= n || row < 0 || row >= n) continue;
       counts[size_t(row) * n + col] += ph.at(x, y);
       area[size_t(row) * n + col] += a;
@@ -90,7 +94,8 @@ Image DirectionImageToAngularMap(const Image& ph, const std::string& path, int n
       if (covered) (*covered)[i] = 1;
     }
   if (!pixel_areas.empty()) {
-    std::nth_element(pixel_areas.begin(), pixel_areas.begin() + pixel_areas.size() / 2, pixel_areas.end());
+    std::nth_element(pixel_areas.begin(), pixel_areas.begin() + pixel_areas.size() / 2,
+                     pixel_areas.end());
     st.median_pixel_area_uv = pixel_areas[pixel_areas.size() / 2];
   }
   if (stats) *stats = st;
@@ -103,7 +108,8 @@ bool MrcalAvailable() { return false; }
 
 Image DirectionImageToAngularMap(const Image&, const std::string& path, int, double,
                                  std::vector<char>*, DirectionMapStats*) {
-  throw Error(FileLocation{path}, "raymatch was built without mrcal (install libmrcal-dev and reconfigure)");
+  throw Error(FileLocation{path},
+              "raymatch was built without mrcal (install libmrcal-dev and reconfigure)");
 }
 
 #endif

@@ -37,7 +37,8 @@ class ByteReader {
  public:
   ByteReader(const std::string& b, const std::string& file) : b_(b), file_(file) {}
   uint32_t U32() {
-    if (pos_ + 4 > b_.size()) throw Error(FileLocation{file_}, "truncated at byte " + std::to_string(pos_));
+    if (pos_ + 4 > b_.size())
+      throw Error(FileLocation{file_}, "truncated at byte " + std::to_string(pos_));
     uint32_t v = 0;
     for (int i = 0; i < 4; ++i) v |= uint32_t(uint8_t(b_[pos_ + i])) << (8 * i);
     pos_ += 4;
@@ -55,7 +56,8 @@ class ByteReader {
     const size_t at = pos_;
     const float f = F32();
     if (!std::isfinite(f))
-      throw Error(FileLocation{file_}, "byte " + std::to_string(at) + ": " + what + " is not a finite number");
+      throw Error(FileLocation{file_},
+                  "byte " + std::to_string(at) + ": " + what + " is not a finite number");
     return f;
   }
   std::string Chars(size_t n) {
@@ -75,11 +77,16 @@ class ByteReader {
 
 double ZemaxUnitUm(int32_t u) {
   switch (u) {
-    case 0: return 1e6;
-    case 1: return 25400;
-    case 2: return 1e4;
-    case 3: return 304800;
-    case 4: return 1e3;
+    case 0:
+      return 1e6;
+    case 1:
+      return 25400;
+    case 2:
+      return 1e4;
+    case 3:
+      return 304800;
+    case 4:
+      return 1e3;
   }
   throw Error("Zemax source file: dimension units " + std::to_string(u) +
               " (expected 0 m, 1 in, 2 cm, 3 ft or 4 mm)");
@@ -93,7 +100,8 @@ void WriteZemaxSourceFile(const std::string& path, const ZemaxSourceFile& f) {
   if (h.description.size() > 99)
     throw Error(FileLocation{path}, "Zemax description longer than 99 characters");
   ZemaxUnitUm(h.dimension_units);
-  if (f.rays.size() > UINT32_MAX) throw Error(FileLocation{path}, "too many rays for a Zemax source file");
+  if (f.rays.size() > UINT32_MAX)
+    throw Error(FileLocation{path}, "too many rays for a Zemax source file");
   ByteWriter w;
   w.I32(h.identifier);
   w.U32(uint32_t(f.rays.size()));
@@ -142,8 +150,9 @@ ZemaxSourceFile ReadZemaxSourceFile(const std::string& path) {
   ZemaxSourceHeader& h = f.header;
   h.identifier = r.I32();
   if (h.identifier != 1010)
-    throw Error(FileLocation{path}, "byte 0: identifier " + std::to_string(h.identifier) +
-                                        ", expected 1010 (not a Zemax binary source file, or big-endian)");
+    throw Error(FileLocation{path},
+                "byte 0: identifier " + std::to_string(h.identifier) +
+                    ", expected 1010 (not a Zemax binary source file, or big-endian)");
   h.num_rays = r.U32();
   h.description = r.Chars(100);
   for (float* v : {&h.source_flux, &h.ray_set_flux, &h.wavelength_um, &h.inclination_begin,
@@ -167,20 +176,23 @@ ZemaxSourceFile ReadZemaxSourceFile(const std::string& path) {
   const size_t per = h.ray_format == 2 ? 32 : 28;
   const size_t expect = kHeaderBytes + size_t(h.num_rays) * per;
   if (b.size() != expect)
-    throw Error(FileLocation{path}, "file has " + std::to_string(b.size()) + " bytes; the header's " +
-                                        std::to_string(h.num_rays) + " rays of " + std::to_string(per) +
-                                        " bytes need " + std::to_string(expect));
+    throw Error(FileLocation{path}, "file has " + std::to_string(b.size()) +
+                                        " bytes; the header's " + std::to_string(h.num_rays) +
+                                        " rays of " + std::to_string(per) + " bytes need " +
+                                        std::to_string(expect));
   f.rays.resize(h.num_rays);
   // Every ray value must be finite and every flux non-negative: a NaN or a negative weight
   // would turn the angular map's field radius (a flux-weighted RMS) into NaN.
   for (size_t k = 0; k < f.rays.size(); ++k) {
     ZemaxRay& ray = f.rays[k];
     const std::string what = "ray " + std::to_string(k);
-    for (float* v : {&ray.x, &ray.y, &ray.z, &ray.l, &ray.m, &ray.n, &ray.flux}) *v = r.FiniteF32(what);
+    for (float* v : {&ray.x, &ray.y, &ray.z, &ray.l, &ray.m, &ray.n, &ray.flux})
+      *v = r.FiniteF32(what);
     if (h.ray_format == 2) ray.wavelength_um = r.FiniteF32(what);
     if (ray.flux < 0)
-      throw Error(FileLocation{path}, "byte " + std::to_string(r.pos() - (h.ray_format == 2 ? 8 : 4)) + ": " +
-                                          what + " has a negative flux");
+      throw Error(FileLocation{path}, "byte " +
+                                          std::to_string(r.pos() - (h.ray_format == 2 ? 8 : 4)) +
+                                          ": " + what + " has a negative flux");
   }
   return f;
 }
@@ -247,7 +259,8 @@ ZemaxImportSummary AngularMapFromZemax(const ZemaxSourceFile& f, const ZemaxImpo
   if (!(ext > 0)) {
     for (const ZemaxRay& r : f.rays) {
       const double norm = std::sqrt(double(r.l) * r.l + double(r.m) * r.m + double(r.n) * r.n);
-      if (r.n > 0 && norm > 0 && std::isfinite(norm))  // the same normalisation as the binning below
+      if (r.n > 0 && norm > 0 &&
+          std::isfinite(norm))  // the same normalisation as the binning below
         ext = std::max({ext, std::abs(r.l / norm), std::abs(r.m / norm)});
     }
     ext = std::min(1.0, ext * 1.02);
@@ -259,8 +272,8 @@ ZemaxImportSummary AngularMapFromZemax(const ZemaxSourceFile& f, const ZemaxImpo
   double w_sum = 0, r2_sum = 0;
   for (const ZemaxRay& r : f.rays) {
     const double norm = std::sqrt(double(r.l) * r.l + double(r.m) * r.m + double(r.n) * r.n);
-    if (!(r.n > 0) || !(norm > 0) || !std::isfinite(norm) || !(r.flux >= 0) || !std::isfinite(r.flux) ||
-        !std::isfinite(r.x) || !std::isfinite(r.y)) {
+    if (!(r.n > 0) || !(norm > 0) || !std::isfinite(norm) || !(r.flux >= 0) ||
+        !std::isfinite(r.flux) || !std::isfinite(r.x) || !std::isfinite(r.y)) {
       ++s.rays_skipped;
       continue;
     }
@@ -287,7 +300,8 @@ ZemaxImportSummary AngularMapFromZemax(const ZemaxSourceFile& f, const ZemaxImpo
     map.pixels[i] = float(radiance);
   }
   if (s.rays_skipped)
-    s.warnings.push_back(std::to_string(s.rays_skipped) + " rays skipped (backward, zero or outside the map)");
+    s.warnings.push_back(std::to_string(s.rays_skipped) +
+                         " rays skipped (backward, zero or outside the map)");
   s.data.angular_map = map;
   s.data.angular_extent = ext;
   s.data.field_radius_um = std::sqrt(2 * r2_sum / w_sum);
@@ -298,7 +312,8 @@ ZemaxImportSummary AngularMapFromZemax(const ZemaxSourceFile& f, const ZemaxImpo
 }
 
 ZemaxImportSummary ImportZemaxLightField(const ZemaxSourceFile& file, const ZemaxImportOptions& o,
-                                         const CalibrationData& base, const std::string& source_path) {
+                                         const CalibrationData& base,
+                                         const std::string& source_path) {
   ZemaxImportSummary s = AngularMapFromZemax(file, o);
   CalibrationData d = base;
   d.angular_map = s.data.angular_map;
@@ -310,7 +325,8 @@ ZemaxImportSummary ImportZemaxLightField(const ZemaxSourceFile& file, const Zema
   nlohmann::json prov = ProvenanceJson();
   for (auto& [k, v] : base.provenance.items())
     if (!prov.contains(k) && k != "light_field_inputs") prov[k] = v;
-  if (!source_path.empty()) prov["light_field_inputs"] = FileChecksum(source_path) + " " + source_path;
+  if (!source_path.empty())
+    prov["light_field_inputs"] = FileChecksum(source_path) + " " + source_path;
   d.provenance = prov;
   s.data = d;
   return s;
@@ -321,12 +337,13 @@ NdArray ZemaxRayList(const ZemaxSourceFile& f, uint64_t* skipped) {
   NdArray a;
   uint64_t skip = 0;
   for (const ZemaxRay& r : f.rays) {
-    if (!(r.n > 0) || !(r.flux >= 0) || !(double(r.l) * r.l + double(r.m) * r.m < 1) || !std::isfinite(r.flux) ||
-        !std::isfinite(r.x) || !std::isfinite(r.y)) {
+    if (!(r.n > 0) || !(r.flux >= 0) || !(double(r.l) * r.l + double(r.m) * r.m < 1) ||
+        !std::isfinite(r.flux) || !std::isfinite(r.x) || !std::isfinite(r.y)) {
       ++skip;
       continue;
     }
-    a.values.insert(a.values.end(), {r.x * unit, r.y * unit, double(r.l), double(r.m), double(r.flux)});
+    a.values.insert(a.values.end(),
+                    {r.x * unit, r.y * unit, double(r.l), double(r.m), double(r.flux)});
   }
   a.shape = {a.values.size() / 5, 5};
   if (skipped) *skipped = skip;

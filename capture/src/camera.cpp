@@ -20,8 +20,10 @@ std::string Num(double v) {
 void ValidateSettings(const CameraInfo& info, const CaptureSettings& s) {
   const std::string cam = "camera " + info.id + ": ";
   if (!(s.exposure_us > 0) || !std::isfinite(s.exposure_us))
-    throw Error(cam + "exposure " + Num(s.exposure_us) + " us: expected a positive time in microseconds");
-  if (info.exposure_max_us > 0 && (s.exposure_us < info.exposure_min_us || s.exposure_us > info.exposure_max_us))
+    throw Error(cam + "exposure " + Num(s.exposure_us) +
+                " us: expected a positive time in microseconds");
+  if (info.exposure_max_us > 0 &&
+      (s.exposure_us < info.exposure_min_us || s.exposure_us > info.exposure_max_us))
     throw Error(cam + "exposure " + Num(s.exposure_us) + " us is outside the camera's range " +
                 Num(info.exposure_min_us) + " to " + Num(info.exposure_max_us) + " us");
   if (!(s.analogue_gain > 0) || !std::isfinite(s.analogue_gain))
@@ -32,7 +34,8 @@ void ValidateSettings(const CameraInfo& info, const CaptureSettings& s) {
   const Roi& r = s.roi;
   if (!r.whole()) {
     if (r.width <= 0 || r.height <= 0 || r.x < 0 || r.y < 0 ||
-        (info.width > 0 && (int64_t(r.x) + r.width > info.width || int64_t(r.y) + r.height > info.height)))
+        (info.width > 0 &&
+         (int64_t(r.x) + r.width > info.width || int64_t(r.y) + r.height > info.height)))
       throw Error(cam + "ROI " + std::to_string(r.x) + "," + std::to_string(r.y) + "," +
                   std::to_string(r.width) + "," + std::to_string(r.height) +
                   " (x,y,width,height in pixels) does not fit the " + std::to_string(info.width) +
@@ -55,7 +58,8 @@ Image CropRoi(const Image& img, const Roi& roi) {
 void ApplyBayerMode(Frame* f, BayerMode mode, bool mosaic_sensor, int bayer_order) {
   if (mode == BayerMode::kMosaic) return;
   if (!mosaic_sensor)
-    throw Error("Bayer mode given for a mono sensor (format " + f->pixel_format + "): expected 'mosaic'");
+    throw Error("Bayer mode given for a mono sensor (format " + f->pixel_format +
+                "): expected 'mosaic'");
   if (mode == BayerMode::kBin) {
     f->dn = BinBayer2x2(f->dn);
     f->bit_depth += 2;  // sums of four values of bit_depth bits
@@ -95,7 +99,8 @@ std::unique_ptr<Camera> OpenCamera(const std::string& id) {
 #ifdef RAYMATCH_WITH_LIBCAMERA
     return internal::OpenLibcamera(id.substr(10));
 #else
-    throw Error("camera '" + id + "': this raymatch was built without libcamera "
+    throw Error("camera '" + id +
+                "': this raymatch was built without libcamera "
                 "(RAYMATCH_WITH_LIBCAMERA=OFF or libcamera-dev missing); `raymatch --version` "
                 "lists the compiled-in backends");
 #endif
@@ -104,13 +109,15 @@ std::unique_ptr<Camera> OpenCamera(const std::string& id) {
   const std::vector<CameraInfo> cams = ListCameras(&notes);
   if (id.empty() || id == "auto") {
     if (cams.empty())
-      throw Error("no camera found (`raymatch capture list`); use --camera sim:SCENE.toml for the "
-                  "simulated camera");
+      throw Error(
+          "no camera found (`raymatch capture list`); use --camera sim:SCENE.toml for the "
+          "simulated camera");
     return OpenCamera(cams.front().id);
   }
   std::string have;
   for (const CameraInfo& c : cams) have += "\n  " + c.id + "  (" + c.model + ")";
-  throw Error("unknown camera '" + id + "': expected sim:SCENE.toml, libcamera:ID, v4l2:/dev/videoN " +
+  throw Error("unknown camera '" + id +
+              "': expected sim:SCENE.toml, libcamera:ID, v4l2:/dev/videoN " +
               (cams.empty() ? std::string("(no camera found on this machine)")
                             : "or one of the cameras found:" + have));
 }

@@ -26,7 +26,8 @@ FrameSet CaptureSet(Camera& cam, const CaptureSettings& s, int count, bool mean)
   for (int i = 0; i < count; ++i) {
     Frame f = cam.Capture(s);
     if (sum.empty()) sum.assign(f.dn.size(), 0.0);
-    if (f.dn.size() != sum.size()) throw Error("camera " + cam.info().id + ": frame size changed during a set");
+    if (f.dn.size() != sum.size())
+      throw Error("camera " + cam.info().id + ": frame size changed during a set");
     for (size_t k = 0; k < sum.size(); ++k) sum[k] += f.dn.pixels[k];
     if (i + 1 == count) {
       set.image = f.dn;
@@ -47,13 +48,16 @@ nlohmann::json FrameSidecar(const CameraInfo& info, const FrameSet& set, const s
   j["camera"] = {{"id", info.id}, {"backend", info.backend}, {"model", info.model}};
   if (info.pixel_pitch_um > 0) j["camera"]["pixel_pitch_um"] = info.pixel_pitch_um;
   j["sensor"] = {{"width", info.width}, {"height", info.height}};
-  j["image"] = {{"width", set.image.width}, {"height", set.image.height},
+  j["image"] = {{"width", set.image.width},
+                {"height", set.image.height},
                 {"stored_as", set.mean ? "float32 mean of code values" : "uint16 code values"}};
-  j["format"] = {{"pixel_format", f.pixel_format}, {"bit_depth", f.bit_depth},
+  j["format"] = {{"pixel_format", f.pixel_format},
+                 {"bit_depth", f.bit_depth},
                  {"max_code_value", (int64_t(1) << f.bit_depth) - 1}};
   j["exposure_us"] = f.exposure_us;
   j["analogue_gain"] = f.analogue_gain;
-  j["black_level_dn"] = f.black_level_dn ? nlohmann::json(*f.black_level_dn) : nlohmann::json(nullptr);
+  j["black_level_dn"] =
+      f.black_level_dn ? nlohmann::json(*f.black_level_dn) : nlohmann::json(nullptr);
   if (f.temperature_c) j["temperature_c"] = *f.temperature_c;
   j["frame_count"] = set.count;
   j["statistic"] = set.mean ? "mean" : "single frame";
@@ -73,20 +77,24 @@ void CheckOutputPath(const fs::path& path) {
   EnsureDirectory(dir);
   if (access(dir.c_str(), W_OK) != 0) {
     const std::string hint = WriteFailureHint(path);
-    throw Error(dir.string() + ": cannot write in this folder" + (hint.empty() ? "" : " (" + hint + ")"));
+    throw Error(dir.string() + ": cannot write in this folder" +
+                (hint.empty() ? "" : " (" + hint + ")"));
   }
 }
 
 void WriteFrameSet(const fs::path& path, const FrameSet& set, const nlohmann::json& sidecar) {
   const std::string desc = sidecar.dump();
-  if (set.mean) WriteFloatImage(path.string(), set.image, desc);
-  else WriteUint16Image(path.string(), set.image, desc);
+  if (set.mean)
+    WriteFloatImage(path.string(), set.image, desc);
+  else
+    WriteUint16Image(path.string(), set.image, desc);
   fs::path side = path;
   side.replace_extension(".json");
   WriteTextFileAtomic(side, sidecar.dump(2) + "\n");
 }
 
-SignalLevel MeasureSignal(const Image& dn, double black_dn, double max_dn, double e_per_dn, double well_e) {
+SignalLevel MeasureSignal(const Image& dn, double black_dn, double max_dn, double e_per_dn,
+                          double well_e) {
   SignalLevel s;
   if (dn.empty()) return s;
   std::vector<float> v = dn.pixels;
@@ -109,8 +117,11 @@ SignalLevel MeasureSignal(const Image& dn, double black_dn, double max_dn, doubl
   return s;
 }
 
-double SuggestExposure(double exposure_us, double level, bool clipped, double target, const CameraInfo& info) {
-  double e = clipped ? exposure_us / 2 : level <= 0.005 ? exposure_us * 10 : exposure_us * target / level;
+double SuggestExposure(double exposure_us, double level, bool clipped, double target,
+                       const CameraInfo& info) {
+  double e = clipped          ? exposure_us / 2
+             : level <= 0.005 ? exposure_us * 10
+                              : exposure_us * target / level;
   if (info.exposure_max_us > 0) e = std::clamp(e, info.exposure_min_us, info.exposure_max_us);
   return std::round(e);
 }
@@ -146,8 +157,10 @@ std::vector<std::string> CaptureFramesToFiles(Camera& cam, const FramesOptions& 
       std::snprintf(suffix, sizeof suffix, "_%04d", i);
       fs::path p = base.parent_path() / (base.stem().string() + suffix + base.extension().string());
       FrameSet set = CaptureSet(cam, o.settings, 1, false);
-      WriteFrameSet(p, set, FrameSidecar(cam.info(), set, what + " (frame " + std::to_string(i + 1) +
-                                                              " of " + std::to_string(o.count) + ")"));
+      WriteFrameSet(p, set,
+                    FrameSidecar(cam.info(), set,
+                                 what + " (frame " + std::to_string(i + 1) + " of " +
+                                     std::to_string(o.count) + ")"));
       written.push_back(Described(p, set));
     }
   };
@@ -160,7 +173,8 @@ std::vector<std::string> CaptureFramesToFiles(Camera& cam, const FramesOptions& 
     std::getline(in, line);
     stage.lamp_on = false;
     cam.SetStage(stage);
-    const fs::path dark = o.output.parent_path() / (o.output.stem().string() + "_dark" + o.output.extension().string());
+    const fs::path dark = o.output.parent_path() /
+                          (o.output.stem().string() + "_dark" + o.output.extension().string());
     write_sets(dark, "dark frames");
   }
   return written;

@@ -2,13 +2,13 @@
 // no ISP processing; auto exposure off, exposure and analogue gain set on every request.
 // Packed CSI-2 formats are unpacked with unpack.h; SensorBlackLevels (16-bit scale, libcamera's
 // convention) are converted to the format's bit depth.
+#include <libcamera/libcamera.h>
+#include <libcamera/version.h>
 #include <sys/mman.h>
 
 #include <chrono>
-#include <cstdlib>
 #include <condition_variable>
-#include <libcamera/libcamera.h>
-#include <libcamera/version.h>
+#include <cstdlib>
 #include <mutex>
 #include <sstream>
 
@@ -42,11 +42,14 @@ CameraInfo Describe(const std::shared_ptr<lc::Camera>& cam, std::string* best_fo
   info.backend = "libcamera";
   const lc::ControlList& props = cam->properties();
   info.model = props.get(lc::properties::Model).value_or("unknown model");
-  if (auto sz = props.get(lc::properties::PixelArraySize)) info.width = int(sz->width), info.height = int(sz->height);
-  if (auto cell = props.get(lc::properties::UnitCellSize)) info.pixel_pitch_um = cell->width / 1000.0;  // nm
+  if (auto sz = props.get(lc::properties::PixelArraySize))
+    info.width = int(sz->width), info.height = int(sz->height);
+  if (auto cell = props.get(lc::properties::UnitCellSize))
+    info.pixel_pitch_um = cell->width / 1000.0;  // nm
   const auto& ctrls = cam->controls();
   if (auto it = ctrls.find(&lc::controls::ExposureTime); it != ctrls.end())
-    info.exposure_min_us = it->second.min().get<int32_t>(), info.exposure_max_us = it->second.max().get<int32_t>();
+    info.exposure_min_us = it->second.min().get<int32_t>(),
+    info.exposure_max_us = it->second.max().get<int32_t>();
   if (auto it = ctrls.find(&lc::controls::AnalogueGain); it != ctrls.end())
     info.gain_min = it->second.min().get<float>(), info.gain_max = it->second.max().get<float>();
   std::unique_ptr<lc::CameraConfiguration> cfg = cam->generateConfiguration({lc::StreamRole::Raw});
@@ -82,15 +85,17 @@ class LibcameraCamera : public Camera {
       if (pf.toString() == info_.raw_format) sc.pixelFormat = pf;
     if (info_.width > 0) sc.size = lc::Size(info_.width, info_.height);
     sc.bufferCount = 1;
-    if (config_->validate() == lc::CameraConfiguration::Invalid || cam_->configure(config_.get()) != 0)
+    if (config_->validate() == lc::CameraConfiguration::Invalid ||
+        cam_->configure(config_.get()) != 0)
       throw Error("camera " + info_.id + ": cannot configure the raw stream " + info_.raw_format);
     if (sc.pixelFormat.toString() != info_.raw_format)
-      throw Error("camera " + info_.id + ": the raw stream came out as " + sc.pixelFormat.toString() +
-                  ", not " + info_.raw_format);
+      throw Error("camera " + info_.id + ": the raw stream came out as " +
+                  sc.pixelFormat.toString() + ", not " + info_.raw_format);
     width_ = int(sc.size.width), height_ = int(sc.size.height), stride_ = sc.stride;
     stream_ = sc.stream();
     allocator_ = std::make_unique<lc::FrameBufferAllocator>(cam_);
-    if (allocator_->allocate(stream_) <= 0) throw Error("camera " + info_.id + ": cannot allocate frame buffers");
+    if (allocator_->allocate(stream_) <= 0)
+      throw Error("camera " + info_.id + ": cannot allocate frame buffers");
     cam_->requestCompleted.connect(this, &LibcameraCamera::Completed);
   }
   ~LibcameraCamera() override {
@@ -117,7 +122,8 @@ class LibcameraCamera : public Camera {
       std::lock_guard<std::mutex> l(mu_);
       done_ = nullptr;
     }
-    if (cam_->queueRequest(req.get()) != 0) throw Error("camera " + info_.id + ": cannot queue a request");
+    if (cam_->queueRequest(req.get()) != 0)
+      throw Error("camera " + info_.id + ": cannot queue a request");
     std::unique_lock<std::mutex> l(mu_);
     const double wait_s = 5 + 3 * s.exposure_us * 1e-6;
     if (!cv_.wait_for(l, std::chrono::duration<double>(wait_s), [&] { return done_ != nullptr; }))
@@ -130,8 +136,8 @@ class LibcameraCamera : public Camera {
     if (mem == MAP_FAILED) throw Error("camera " + info_.id + ": cannot map the frame buffer");
     Frame f;
     try {
-      f.dn = CropRoi(UnpackRaw({static_cast<const uint8_t*>(mem) + plane.offset, plane.length}, width_,
-                               height_, stride_, packing_),
+      f.dn = CropRoi(UnpackRaw({static_cast<const uint8_t*>(mem) + plane.offset, plane.length},
+                               width_, height_, stride_, packing_),
                      s.roi);
     } catch (...) {
       munmap(mem, len);
@@ -148,7 +154,8 @@ class LibcameraCamera : public Camera {
     if (auto t = md.get(lc::controls::SensorTemperature)) f.temperature_c = *t;
     f.sensor_timestamp_ns = md.get(lc::controls::SensorTimestamp).value_or(0);
     f.timestamp_utc = UtcTimestamp();
-    f.extra = {{"libcamera_id", cam_->id()}, {"stride_bytes", stride_}, {"bayer_order", int(order_)}};
+    f.extra = {
+        {"libcamera_id", cam_->id()}, {"stride_bytes", stride_}, {"bayer_order", int(order_)}};
     ApplyBayerMode(&f, s.bayer, order_ != BayerOrder::kNone, int(order_));
     return f;
   }
@@ -194,7 +201,8 @@ std::unique_ptr<Camera> OpenLibcamera(const std::string& id) {
     std::string have;
     for (const auto& c : Manager().cameras()) have += "\n  libcamera:" + c->id();
     throw Error("unknown camera 'libcamera:" + id + "': " +
-                (have.empty() ? std::string("libcamera finds no camera on this machine") : "libcamera has:" + have));
+                (have.empty() ? std::string("libcamera finds no camera on this machine")
+                              : "libcamera has:" + have));
   }
   return std::make_unique<LibcameraCamera>(cam);
 }

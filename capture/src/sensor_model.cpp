@@ -4,8 +4,8 @@
 #include <cmath>
 #include <string>
 
-#include "raymatch/core/error.h"
 #include "raymatch/core/camera_readout.h"
+#include "raymatch/core/error.h"
 
 namespace raymatch::capture {
 
@@ -14,10 +14,14 @@ void SensorModel::Validate() const {
     throw Error("camera model: " + key + " = " + std::to_string(v) + ": expected " + expected);
   };
   if (bit_depth < 1 || bit_depth > 16) bad("bit_depth", bit_depth, "1 to 16");
-  if (!(gain_e_per_dn > 0) || !std::isfinite(gain_e_per_dn)) bad("gain_e_per_dn", gain_e_per_dn, "> 0");
-  if (!(black_level_dn >= 0) || black_level_dn > max_dn()) bad("black_level_dn", black_level_dn, "0 to 2^bit_depth - 1");
-  if (!(read_noise_e >= 0) || !std::isfinite(read_noise_e)) bad("read_noise_e", read_noise_e, ">= 0");
-  if (!(well_capacity_e > 0) || !std::isfinite(well_capacity_e)) bad("well_capacity_e", well_capacity_e, "> 0");
+  if (!(gain_e_per_dn > 0) || !std::isfinite(gain_e_per_dn))
+    bad("gain_e_per_dn", gain_e_per_dn, "> 0");
+  if (!(black_level_dn >= 0) || black_level_dn > max_dn())
+    bad("black_level_dn", black_level_dn, "0 to 2^bit_depth - 1");
+  if (!(read_noise_e >= 0) || !std::isfinite(read_noise_e))
+    bad("read_noise_e", read_noise_e, ">= 0");
+  if (!(well_capacity_e > 0) || !std::isfinite(well_capacity_e))
+    bad("well_capacity_e", well_capacity_e, "> 0");
 }
 
 Image ExposeSensor(const SensorModel& m, const Image& electrons, double analogue_gain,

@@ -4,6 +4,8 @@
 // what earlier sessions wrote there and is rewritten atomically at the end.
 #include "raymatch/capture/session.h"
 
+#include <toml++/toml.h>
+
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
@@ -11,8 +13,6 @@
 #include <iomanip>
 #include <iostream>
 #include <sstream>
-
-#include <toml++/toml.h>
 
 #include "raymatch/capture/frames.h"
 #include "raymatch/core/atomic_file.h"
@@ -75,16 +75,19 @@ std::string Prompter::Ask(const std::string& question, const std::string& fallba
     if (scripted) *out << (line.empty() ? "(default)" : line) << "\n";
     if (!line.empty()) return line;
     if (!fallback.empty()) return fallback;
-    if (scripted) throw Error("\"" + question + "\" has no default: the scripted answer must give a value");
+    if (scripted)
+      throw Error("\"" + question + "\" has no default: the scripted answer must give a value");
   }
 }
 
-double Prompter::AskNumber(const std::string& question, const std::string& fallback, double lo, double hi) {
+double Prompter::AskNumber(const std::string& question, const std::string& fallback, double lo,
+                           double hi) {
   for (;;) {
     const std::string a = Ask(question, fallback);
     double v = 0;
     if (ParseDouble(a, &v) && v >= lo && v <= hi) return v;
-    const std::string msg = "\"" + a + "\" for \"" + question + "\": expected a number from " + Num(lo) + " to " + Num(hi);
+    const std::string msg = "\"" + a + "\" for \"" + question + "\": expected a number from " +
+                            Num(lo) + " to " + Num(hi);
     if (scripted) throw Error(msg);
     *out << msg << "\n";
   }
@@ -104,19 +107,23 @@ std::vector<double> Prompter::AskList(const std::string& question, const std::st
       v.push_back(x);
     }
     if (ok && !v.empty()) return v;
-    const std::string msg = "\"" + a + "\" for \"" + question + "\": expected numbers separated by commas";
+    const std::string msg =
+        "\"" + a + "\" for \"" + question + "\": expected numbers separated by commas";
     if (scripted) throw Error(msg);
     *out << msg << "\n";
   }
 }
 
-void Prompter::WaitFor(const std::string& instruction) { Ask(instruction + "; then press Enter", "ready"); }
+void Prompter::WaitFor(const std::string& instruction) {
+  Ask(instruction + "; then press Enter", "ready");
+}
 
 namespace {
 
 class Session {
  public:
-  Session(Camera& cam, const SessionOptions& o, Prompter& ask) : cam_(cam), o_(o), ask_(ask), s_(o.settings) {}
+  Session(Camera& cam, const SessionOptions& o, Prompter& ask)
+      : cam_(cam), o_(o), ask_(ask), s_(o.settings) {}
 
   SessionSummary Run() {
     const fs::path folder = o_.folder;
@@ -128,11 +135,21 @@ class Session {
               << cam_.info().raw_format << ", " << cam_.info().bit_depth << "-bit\n";
     CameraAndOptics();
     switch (o_.kind) {
-      case SessionKind::kPinhole: Pinhole(); break;
-      case SessionKind::kCones: Cones(); break;
-      case SessionKind::kFlats: Flats(); break;
-      case SessionKind::kFocusScan: FocusScan(); break;
-      case SessionKind::kDark: Dark(); break;
+      case SessionKind::kPinhole:
+        Pinhole();
+        break;
+      case SessionKind::kCones:
+        Cones();
+        break;
+      case SessionKind::kFlats:
+        Flats();
+        break;
+      case SessionKind::kFocusScan:
+        FocusScan();
+        break;
+      case SessionKind::kDark:
+        Dark();
+        break;
     }
     std::ostringstream os;
     os << "# Written by `raymatch capture session` (docs/capture.md); frames' sidecars (.json)\n"
@@ -148,27 +165,40 @@ class Session {
   // [camera] and [optics]: asked once per folder (datasheet values), then kept.
   void CameraAndOptics() {
     const nlohmann::json& ds = cam_.info().datasheet;
-    auto def = [&](const char* key) { return ds.contains(key) ? Num(ds[key].get<double>()) : std::string(); };
+    auto def = [&](const char* key) {
+      return ds.contains(key) ? Num(ds[key].get<double>()) : std::string();
+    };
     if (!meta_.contains("camera")) {
       *ask_.out << "Camera datasheet values for metadata.toml [camera]:\n";
       toml::table c;
-      c.insert("pixel_pitch_um", ask_.AskNumber("sensor pixel pitch (um)", def("pixel_pitch_um"), 0.1, 1000));
-      c.insert("bit_depth", int64_t(ask_.AskNumber("data bits per pixel", def("bit_depth"), 1, 32)));
-      const double gain = ask_.AskNumber("electrons per code value at analogue gain 1", def("gain_e_per_dn"), 1e-4, 1e6);
+      c.insert("pixel_pitch_um",
+               ask_.AskNumber("sensor pixel pitch (um)", def("pixel_pitch_um"), 0.1, 1000));
+      c.insert("bit_depth",
+               int64_t(ask_.AskNumber("data bits per pixel", def("bit_depth"), 1, 32)));
+      const double gain = ask_.AskNumber("electrons per code value at analogue gain 1",
+                                         def("gain_e_per_dn"), 1e-4, 1e6);
       // The folder's images are converted with one gain: the datasheet value at this analogue gain.
       c.insert("gain_e_per_dn", gain / s_.analogue_gain);
-      c.insert("well_capacity_e", ask_.AskNumber("full-well capacity (electrons)", def("well_capacity_e"), 1, 1e9));
-      c.insert("read_noise_e", ask_.AskNumber("read noise (electrons rms)", def("read_noise_e"), 0, 1e6));
+      c.insert("well_capacity_e",
+               ask_.AskNumber("full-well capacity (electrons)", def("well_capacity_e"), 1, 1e9));
+      c.insert("read_noise_e",
+               ask_.AskNumber("read noise (electrons rms)", def("read_noise_e"), 0, 1e6));
       meta_.insert("camera", std::move(c));
     }
     if (!meta_.contains("optics")) {
       *ask_.out << "Microscope optics for metadata.toml [optics]:\n";
       toml::table t;
-      t.insert("objective_focal_mm", ask_.AskNumber("objective focal length (mm)", def("objective_focal_mm"), 0.1, 1000));
+      t.insert("objective_focal_mm",
+               ask_.AskNumber("objective focal length (mm)", def("objective_focal_mm"), 0.1, 1000));
       t.insert("na", ask_.AskNumber("objective NA", def("na"), 0.001, 1.6));
-      t.insert("working_distance_mm", ask_.AskNumber("working distance (mm)", def("working_distance_mm"), 0.01, 1000));
-      t.insert("tube_focal_mm", ask_.AskNumber("tube lens focal length (mm)", def("tube_focal_mm"), 1, 10000));
-      t.insert("wavelength_um", ask_.AskNumber("wavelength (um)", def("wavelength_um").empty() ? "0.462" : def("wavelength_um"), 0.2, 2.0));
+      t.insert("working_distance_mm",
+               ask_.AskNumber("working distance (mm)", def("working_distance_mm"), 0.01, 1000));
+      t.insert("tube_focal_mm",
+               ask_.AskNumber("tube lens focal length (mm)", def("tube_focal_mm"), 1, 10000));
+      t.insert(
+          "wavelength_um",
+          ask_.AskNumber("wavelength (um)",
+                         def("wavelength_um").empty() ? "0.462" : def("wavelength_um"), 0.2, 2.0));
       meta_.insert("optics", std::move(t));
     }
     const toml::table& c = *meta_["camera"].as_table();
@@ -180,7 +210,8 @@ class Session {
 
   double PinholeDiameter() {
     const std::string def = meta_.contains("pinhole_diameter_um")
-                                ? Num(meta_["pinhole_diameter_um"].value<double>().value_or(2)) : "2";
+                                ? Num(meta_["pinhole_diameter_um"].value<double>().value_or(2))
+                                : "2";
     const double d = ask_.AskNumber("pinhole diameter (um)", def, 0.01, 1000);
     meta_.insert_or_assign("pinhole_diameter_um", d);
     return d;
@@ -196,12 +227,15 @@ class Session {
       const SignalLevel lv = MeasureSignal(set.image, black, max_dn, e_per_dn_, well_e_);
       const double level = peak ? lv.peak_fraction : lv.median_fraction;
       const bool clipped = peak ? lv.clipped_fraction > 0 : lv.clipped_fraction > 1e-3;
-      const double suggest = SuggestExposure(s_.exposure_us, level, clipped, o_.target_signal, cam_.info());
+      const double suggest =
+          SuggestExposure(s_.exposure_us, level, clipped, o_.target_signal, cam_.info());
       *ask_.out << std::fixed << std::setprecision(1) << "  " << what << " at " << s_.exposure_us
-                << " us: signal median " << 100 * lv.median_fraction << " %, peak " << 100 * lv.peak_fraction
-                << " % of the well; clipped " << std::setprecision(3) << 100 * lv.clipped_fraction
-                << " % of pixels" << (clipped ? " (CLIPPED)" : "") << std::defaultfloat << "\n"
-                << "  suggested exposure for " << 100 * o_.target_signal << " % of the well: " << suggest << " us\n";
+                << " us: signal median " << 100 * lv.median_fraction << " %, peak "
+                << 100 * lv.peak_fraction << " % of the well; clipped " << std::setprecision(3)
+                << 100 * lv.clipped_fraction << " % of pixels" << (clipped ? " (CLIPPED)" : "")
+                << std::defaultfloat << "\n"
+                << "  suggested exposure for " << 100 * o_.target_signal
+                << " % of the well: " << suggest << " us\n";
       if (auto_adjust_) {
         if (!clipped && std::abs(level / o_.target_signal - 1) < 0.1) return set;
         if (suggest == s_.exposure_us) {  // at the camera's exposure limit
@@ -212,7 +246,9 @@ class Session {
         continue;
       }
       const std::string a = ask_.Ask(
-          "  keep (Enter), retake at the suggestion (s), adjust automatically (a), or a new exposure in us", "keep");
+          "  keep (Enter), retake at the suggestion (s), adjust automatically (a), or a new "
+          "exposure in us",
+          "keep");
       if (a == "keep" || a == "k") return set;
       if (a == "s") {
         s_.exposure_us = suggest;
@@ -222,7 +258,8 @@ class Session {
       } else {
         double v = 0;
         if (!ParseDouble(a, &v)) {
-          if (ask_.scripted) throw Error("answer \"" + a + "\": expected Enter, s, a or an exposure in us");
+          if (ask_.scripted)
+            throw Error("answer \"" + a + "\": expected Enter, s, a or an exposure in us");
           continue;
         }
         s_.exposure_us = v;
@@ -254,7 +291,8 @@ class Session {
     StageState st;
     st.pinhole = true;
     st.pinhole_diameter_um = PinholeDiameter();
-    const std::vector<double> dz = ask_.AskList("focus positions beyond the pinhole, dz (um, two or more)", "20, 30, 40");
+    const std::vector<double> dz =
+        ask_.AskList("focus positions beyond the pinhole, dz (um, two or more)", "20, 30, 40");
     toml::array cones;
     auto_adjust_ = false;
     for (double d : dz) {
@@ -262,7 +300,8 @@ class Session {
       st.focus_um = d;
       cam_.SetStage(st);
       const std::string name = "cone_dz" + Num(d) + ".tif";
-      Save(name, Expose("cone dz " + Num(d) + " um", true), "light cone, focus " + Num(d) + " um beyond the pinhole");
+      Save(name, Expose("cone dz " + Num(d) + " um", true),
+           "light cone, focus " + Num(d) + " um beyond the pinhole");
       cones.push_back(toml::table{{"file", name}, {"dz_um", d}});
     }
     meta_.insert_or_assign("cone", std::move(cones));
@@ -271,7 +310,8 @@ class Session {
   void Flats() {
     StageState st;
     const double pin = PinholeDiameter();
-    std::vector<double> iris = ask_.AskList("iris half-angles (deg), narrow to wide", "5, 10, 15, 20, 25");
+    std::vector<double> iris =
+        ask_.AskList("iris half-angles (deg), narrow to wide", "5, 10, 15, 20, 25");
     std::sort(iris.begin(), iris.end());
     const double dz = ask_.AskNumber("cone focus beyond the pinhole, dz (um)", "30", 1, 10000);
     // One flat exposure for the series (relative exposure 1), set at the widest iris.
@@ -298,7 +338,8 @@ class Session {
         flat = CaptureSet(cam_, s_, o_.average, o_.average > 1);
       }
       Save("flat_" + tag + ".tif", flat, "flat field, iris " + Num(a) + " deg");
-      ask_.WaitFor("Cone: pinhole in, focus " + Num(dz) + " um beyond it, iris " + Num(a) + " deg (same lamp)");
+      ask_.WaitFor("Cone: pinhole in, focus " + Num(dz) + " um beyond it, iris " + Num(a) +
+                   " deg (same lamp)");
       st = StageState{};
       st.pinhole = true;
       st.pinhole_diameter_um = pin;
@@ -321,9 +362,11 @@ class Session {
   }
 
   void FocusScan() {
-    const std::vector<double> z = ask_.AskList("focus positions (um, + = focal plane towards the camera)", "-20, -10, 0, 10, 20");
+    const std::vector<double> z = ask_.AskList(
+        "focus positions (um, + = focal plane towards the camera)", "-20, -10, 0, 10, 20");
     if (!meta_.contains("nominal_diameter_um"))
-      meta_.insert("nominal_diameter_um", ask_.AskNumber("nominal object diameter (um)", "", 0.01, 1e6));
+      meta_.insert("nominal_diameter_um",
+                   ask_.AskNumber("nominal object diameter (um)", "", 0.01, 1e6));
     if (!meta_.contains("temperature_K"))
       meta_.insert("temperature_K", ask_.AskNumber("temperature (K)", "293.15", 261.15, 773.15));
     StageState st;
@@ -336,8 +379,9 @@ class Session {
       cam_.SetStage(st);
       char name[64];
       std::snprintf(name, sizeof name, "scan_z%+07.2fum.tif", z[i]);
-      FrameSet set = i == 0 ? Expose("focus " + Num(z[i]) + " um", false)
-                            : CaptureSet(cam_, s_, o_.average, o_.average > 1);  // one exposure for the scan
+      FrameSet set =
+          i == 0 ? Expose("focus " + Num(z[i]) + " um", false)
+                 : CaptureSet(cam_, s_, o_.average, o_.average > 1);  // one exposure for the scan
       Save(name, set, "focus scan, defocus " + Num(z[i]) + " um");
       csv += Num(z[i]) + "," + name + "\n";
     }
@@ -346,8 +390,8 @@ class Session {
   }
 
   void Dark() {
-    s_.exposure_us = ask_.AskNumber("dark frame exposure (us; the longest used in this folder)", Num(s_.exposure_us),
-                                    1e-3, 1e9);
+    s_.exposure_us = ask_.AskNumber("dark frame exposure (us; the longest used in this folder)",
+                                    Num(s_.exposure_us), 1e-3, 1e9);
     ValidateSettings(cam_.info(), s_);
     ask_.WaitFor("Block the light (lamp off or shutter closed)");
     StageState st;
@@ -355,7 +399,8 @@ class Session {
     cam_.SetStage(st);
     FrameSet set = CaptureSet(cam_, s_, o_.average, o_.average > 1);
     const Frame& f = set.frames.back();
-    const SignalLevel lv = MeasureSignal(set.image, 0, double((int64_t(1) << f.bit_depth) - 1), e_per_dn_, well_e_);
+    const SignalLevel lv =
+        MeasureSignal(set.image, 0, double((int64_t(1) << f.bit_depth) - 1), e_per_dn_, well_e_);
     *ask_.out << "  dark median " << lv.median_fraction * well_e_ / e_per_dn_ << " DN\n";
     Save("dark.tif", set, "dark frame");
     meta_.insert_or_assign("dark", "dark.tif");
@@ -376,9 +421,11 @@ class Session {
 }  // namespace
 
 SessionSummary RunSession(Camera& cam, const SessionOptions& o, Prompter& ask) {
-  if (o.average < 1) throw Error("--average " + std::to_string(o.average) + ": expected at least 1");
+  if (o.average < 1)
+    throw Error("--average " + std::to_string(o.average) + ": expected at least 1");
   if (!(o.target_signal > 0 && o.target_signal < 1))
-    throw Error("--target-signal " + Num(o.target_signal) + ": expected a fraction of the well in (0, 1)");
+    throw Error("--target-signal " + Num(o.target_signal) +
+                ": expected a fraction of the well in (0, 1)");
   return Session(cam, o, ask).Run();
 }
 

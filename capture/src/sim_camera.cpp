@@ -56,7 +56,8 @@ class SimCamera : public Camera {
     const int64_t seed = r.Integer("seed", 1, 0, INT64_MAX);
     r.Finish();
     if (info_.exposure_min_us > info_.exposure_max_us)
-      throw Error(r.Where("exposure_min_us"), "'sim_camera.exposure_min_us' is above exposure_max_us");
+      throw Error(r.Where("exposure_min_us"),
+                  "'sim_camera.exposure_min_us' is above exposure_max_us");
     if (info_.gain_min > info_.gain_max)
       throw Error(r.Where("gain_min"), "'sim_camera.gain_min' is above gain_max");
     model_.Validate();
@@ -179,11 +180,16 @@ class SimCamera : public Camera {
  private:
   std::string SourceName() const {
     switch (scene_.source.type) {
-      case SourceType::kCone: return "cone";
-      case SourceType::kLightField: return "lightfield";
-      case SourceType::kCollimated: return "collimated";
-      case SourceType::kPoint: return "point";
-      case SourceType::kRayList: return "ray_list";
+      case SourceType::kCone:
+        return "cone";
+      case SourceType::kLightField:
+        return "lightfield";
+      case SourceType::kCollimated:
+        return "collimated";
+      case SourceType::kPoint:
+        return "point";
+      case SourceType::kRayList:
+        return "ray_list";
     }
     return "?";
   }

@@ -13,10 +13,14 @@ namespace raymatch::capture {
 int64_t MinimumStride(RawPacking packing, int width) {
   const int64_t w = width;
   switch (packing) {
-    case RawPacking::kRaw8: return w;
-    case RawPacking::kRaw10Csi2: return (w + 3) / 4 * 5;
-    case RawPacking::kRaw12Csi2: return (w + 1) / 2 * 3;
-    case RawPacking::kRaw16Le: return 2 * w;
+    case RawPacking::kRaw8:
+      return w;
+    case RawPacking::kRaw10Csi2:
+      return (w + 3) / 4 * 5;
+    case RawPacking::kRaw12Csi2:
+      return (w + 1) / 2 * 3;
+    case RawPacking::kRaw16Le:
+      return 2 * w;
   }
   return 0;
 }
@@ -29,7 +33,8 @@ Image UnpackRaw(std::span<const uint8_t> buffer, int width, int height, int64_t 
   const int64_t min_stride = MinimumStride(packing, width);
   if (stride < min_stride)
     throw Error("raw frame: stride " + std::to_string(stride) + " bytes is below the " +
-                std::to_string(min_stride) + " a row of " + std::to_string(width) + " pixels needs");
+                std::to_string(min_stride) + " a row of " + std::to_string(width) +
+                " pixels needs");
   const int64_t need = stride * (height - 1) + min_stride;
   if (int64_t(buffer.size()) < need)
     throw Error("raw frame: buffer of " + std::to_string(buffer.size()) + " bytes, " +
@@ -58,7 +63,8 @@ Image UnpackRaw(std::span<const uint8_t> buffer, int width, int height, int64_t 
         }
         break;
       case RawPacking::kRaw16Le:
-        for (int x = 0; x < width; ++x) out[x] = float(uint32_t(row[2 * x]) | (uint32_t(row[2 * x + 1]) << 8));
+        for (int x = 0; x < width; ++x)
+          out[x] = float(uint32_t(row[2 * x]) | (uint32_t(row[2 * x + 1]) << 8));
         break;
     }
   }
@@ -100,29 +106,49 @@ Image BinBayer2x2(const Image& mosaic) {
   return out;
 }
 
-bool DescribeRawFormat(const std::string& name_in, RawPacking* packing, int* bits, BayerOrder* order) {
+bool DescribeRawFormat(const std::string& name_in, RawPacking* packing, int* bits,
+                       BayerOrder* order) {
   std::string name = name_in;
   while (!name.empty() && name.back() == ' ') name.pop_back();  // V4L2 fourcc "Y16 "
   BayerOrder o = BayerOrder::kNone;
   int b = 0;
   RawPacking p = RawPacking::kRaw16Le;
   // V4L2 fourccs of the usual raw formats.
-  static const struct { const char* fourcc; BayerOrder order; int bits; RawPacking packing; } kV4l2[] = {
-      {"GREY", BayerOrder::kNone, 8, RawPacking::kRaw8},   {"Y10", BayerOrder::kNone, 10, RawPacking::kRaw16Le},
-      {"Y12", BayerOrder::kNone, 12, RawPacking::kRaw16Le}, {"Y16", BayerOrder::kNone, 16, RawPacking::kRaw16Le},
+  static const struct {
+    const char* fourcc;
+    BayerOrder order;
+    int bits;
+    RawPacking packing;
+  } kV4l2[] = {
+      {"GREY", BayerOrder::kNone, 8, RawPacking::kRaw8},
+      {"Y10", BayerOrder::kNone, 10, RawPacking::kRaw16Le},
+      {"Y12", BayerOrder::kNone, 12, RawPacking::kRaw16Le},
+      {"Y16", BayerOrder::kNone, 16, RawPacking::kRaw16Le},
       {"Y10P", BayerOrder::kNone, 10, RawPacking::kRaw10Csi2},
-      {"RGGB", BayerOrder::kRGGB, 8, RawPacking::kRaw8},   {"GRBG", BayerOrder::kGRBG, 8, RawPacking::kRaw8},
-      {"GBRG", BayerOrder::kGBRG, 8, RawPacking::kRaw8},   {"BA81", BayerOrder::kBGGR, 8, RawPacking::kRaw8},
-      {"RG10", BayerOrder::kRGGB, 10, RawPacking::kRaw16Le}, {"BA10", BayerOrder::kGRBG, 10, RawPacking::kRaw16Le},
-      {"GB10", BayerOrder::kGBRG, 10, RawPacking::kRaw16Le}, {"BG10", BayerOrder::kBGGR, 10, RawPacking::kRaw16Le},
-      {"RG12", BayerOrder::kRGGB, 12, RawPacking::kRaw16Le}, {"BA12", BayerOrder::kGRBG, 12, RawPacking::kRaw16Le},
-      {"GB12", BayerOrder::kGBRG, 12, RawPacking::kRaw16Le}, {"BG12", BayerOrder::kBGGR, 12, RawPacking::kRaw16Le},
-      {"pRAA", BayerOrder::kRGGB, 10, RawPacking::kRaw10Csi2}, {"pgAA", BayerOrder::kGRBG, 10, RawPacking::kRaw10Csi2},
-      {"pGAA", BayerOrder::kGBRG, 10, RawPacking::kRaw10Csi2}, {"pBAA", BayerOrder::kBGGR, 10, RawPacking::kRaw10Csi2},
-      {"pRCC", BayerOrder::kRGGB, 12, RawPacking::kRaw12Csi2}, {"pgCC", BayerOrder::kGRBG, 12, RawPacking::kRaw12Csi2},
-      {"pGCC", BayerOrder::kGBRG, 12, RawPacking::kRaw12Csi2}, {"pBCC", BayerOrder::kBGGR, 12, RawPacking::kRaw12Csi2},
-      {"RG16", BayerOrder::kRGGB, 16, RawPacking::kRaw16Le}, {"GR16", BayerOrder::kGRBG, 16, RawPacking::kRaw16Le},
-      {"GB16", BayerOrder::kGBRG, 16, RawPacking::kRaw16Le}, {"BYR2", BayerOrder::kBGGR, 16, RawPacking::kRaw16Le},
+      {"RGGB", BayerOrder::kRGGB, 8, RawPacking::kRaw8},
+      {"GRBG", BayerOrder::kGRBG, 8, RawPacking::kRaw8},
+      {"GBRG", BayerOrder::kGBRG, 8, RawPacking::kRaw8},
+      {"BA81", BayerOrder::kBGGR, 8, RawPacking::kRaw8},
+      {"RG10", BayerOrder::kRGGB, 10, RawPacking::kRaw16Le},
+      {"BA10", BayerOrder::kGRBG, 10, RawPacking::kRaw16Le},
+      {"GB10", BayerOrder::kGBRG, 10, RawPacking::kRaw16Le},
+      {"BG10", BayerOrder::kBGGR, 10, RawPacking::kRaw16Le},
+      {"RG12", BayerOrder::kRGGB, 12, RawPacking::kRaw16Le},
+      {"BA12", BayerOrder::kGRBG, 12, RawPacking::kRaw16Le},
+      {"GB12", BayerOrder::kGBRG, 12, RawPacking::kRaw16Le},
+      {"BG12", BayerOrder::kBGGR, 12, RawPacking::kRaw16Le},
+      {"pRAA", BayerOrder::kRGGB, 10, RawPacking::kRaw10Csi2},
+      {"pgAA", BayerOrder::kGRBG, 10, RawPacking::kRaw10Csi2},
+      {"pGAA", BayerOrder::kGBRG, 10, RawPacking::kRaw10Csi2},
+      {"pBAA", BayerOrder::kBGGR, 10, RawPacking::kRaw10Csi2},
+      {"pRCC", BayerOrder::kRGGB, 12, RawPacking::kRaw12Csi2},
+      {"pgCC", BayerOrder::kGRBG, 12, RawPacking::kRaw12Csi2},
+      {"pGCC", BayerOrder::kGBRG, 12, RawPacking::kRaw12Csi2},
+      {"pBCC", BayerOrder::kBGGR, 12, RawPacking::kRaw12Csi2},
+      {"RG16", BayerOrder::kRGGB, 16, RawPacking::kRaw16Le},
+      {"GR16", BayerOrder::kGRBG, 16, RawPacking::kRaw16Le},
+      {"GB16", BayerOrder::kGBRG, 16, RawPacking::kRaw16Le},
+      {"BYR2", BayerOrder::kBGGR, 16, RawPacking::kRaw16Le},
   };
   for (const auto& f : kV4l2)
     if (name == f.fourcc) {
@@ -137,8 +163,10 @@ bool DescribeRawFormat(const std::string& name_in, RawPacking* packing, int* bit
   if (!std::regex_match(name, m, kLibcamera)) return false;
   if (m[1].matched) {
     const std::string s = m[1];
-    o = s == "RGGB" ? BayerOrder::kRGGB : s == "GRBG" ? BayerOrder::kGRBG
-        : s == "GBRG" ? BayerOrder::kGBRG : BayerOrder::kBGGR;
+    o = s == "RGGB"   ? BayerOrder::kRGGB
+        : s == "GRBG" ? BayerOrder::kGRBG
+        : s == "GBRG" ? BayerOrder::kGBRG
+                      : BayerOrder::kBGGR;
   }
   b = std::stoi(m[2]);
   const bool csi2 = m[3].matched;
@@ -146,9 +174,12 @@ bool DescribeRawFormat(const std::string& name_in, RawPacking* packing, int* bit
     if (csi2) return false;
     p = RawPacking::kRaw8;
   } else if (csi2) {
-    if (b == 10) p = RawPacking::kRaw10Csi2;
-    else if (b == 12) p = RawPacking::kRaw12Csi2;
-    else return false;  // RAW14 CSI-2 (4 in 7 bytes) is not supported
+    if (b == 10)
+      p = RawPacking::kRaw10Csi2;
+    else if (b == 12)
+      p = RawPacking::kRaw12Csi2;
+    else
+      return false;  // RAW14 CSI-2 (4 in 7 bytes) is not supported
   } else {
     p = RawPacking::kRaw16Le;
   }

@@ -41,7 +41,9 @@ int Xioctl(int fd, unsigned long req, void* arg) {
 
 struct Fd {
   int fd = -1;
-  ~Fd() { if (fd >= 0) close(fd); }
+  ~Fd() {
+    if (fd >= 0) close(fd);
+  }
 };
 
 // Probes one device node; false when it is not a video capture device.
@@ -50,12 +52,14 @@ bool Probe(const std::string& dev, CameraInfo* info, uint32_t* raw_fourcc, std::
   Fd f;
   f.fd = open(dev.c_str(), O_RDWR | O_NONBLOCK);
   if (f.fd < 0) {
-    *note = dev + ": cannot open (" + std::strerror(errno) + "); docs/capture.md says how to get access";
+    *note = dev + ": cannot open (" + std::strerror(errno) +
+            "); docs/capture.md says how to get access";
     return false;
   }
   v4l2_capability cap{};
   if (Xioctl(f.fd, VIDIOC_QUERYCAP, &cap) != 0) return false;
-  const uint32_t caps = (cap.capabilities & V4L2_CAP_DEVICE_CAPS) ? cap.device_caps : cap.capabilities;
+  const uint32_t caps =
+      (cap.capabilities & V4L2_CAP_DEVICE_CAPS) ? cap.device_caps : cap.capabilities;
   if (!(caps & V4L2_CAP_VIDEO_CAPTURE)) return false;
   info->id = "v4l2:" + dev;
   info->backend = "v4l2";
@@ -94,7 +98,8 @@ bool Probe(const std::string& dev, CameraInfo* info, uint32_t* raw_fourcc, std::
     info->exposure_min_us = 100.0 * q.minimum, info->exposure_max_us = 100.0 * q.maximum;
   q = {};
   q.id = V4L2_CID_ANALOGUE_GAIN;
-  if (Xioctl(f.fd, VIDIOC_QUERYCTRL, &q) == 0 && !(q.flags & V4L2_CTRL_FLAG_DISABLED) && q.default_value > 0) {
+  if (Xioctl(f.fd, VIDIOC_QUERYCTRL, &q) == 0 && !(q.flags & V4L2_CTRL_FLAG_DISABLED) &&
+      q.default_value > 0) {
     // Sensor drivers count gain in their own steps; the default is unity on most of them.
     info->gain_min = double(q.minimum) / q.default_value;
     info->gain_max = double(q.maximum) / q.default_value;
@@ -118,9 +123,10 @@ class DirectStream {
     f.fmt.pix.field = V4L2_FIELD_NONE;
     if (Xioctl(fd_.fd, VIDIOC_S_FMT, &f) != 0) Fail("VIDIOC_S_FMT " + FourccName(fourcc));
     if (f.fmt.pix.pixelformat != fourcc)
-      throw Error("camera v4l2:" + dev_ + ": the driver set format " + FourccName(f.fmt.pix.pixelformat) +
-                  " instead of " + FourccName(fourcc));
-    width_ = int(f.fmt.pix.width), height_ = int(f.fmt.pix.height), stride_ = f.fmt.pix.bytesperline;
+      throw Error("camera v4l2:" + dev_ + ": the driver set format " +
+                  FourccName(f.fmt.pix.pixelformat) + " instead of " + FourccName(fourcc));
+    width_ = int(f.fmt.pix.width), height_ = int(f.fmt.pix.height),
+    stride_ = f.fmt.pix.bytesperline;
     v4l2_requestbuffers req{};
     req.count = 2, req.type = V4L2_BUF_TYPE_VIDEO_CAPTURE, req.memory = V4L2_MEMORY_MMAP;
     if (Xioctl(fd_.fd, VIDIOC_REQBUFS, &req) != 0 || req.count < 1) Fail("VIDIOC_REQBUFS");
@@ -144,7 +150,8 @@ class DirectStream {
   /// The next frame's bytes (waits up to `timeout_s`).
   std::vector<uint8_t> Next(double timeout_s, int64_t* timestamp_ns) {
     pollfd p{fd_.fd, POLLIN, 0};
-    if (poll(&p, 1, int(timeout_s * 1000)) <= 0) Fail("no frame within " + std::to_string(int(timeout_s)) + " s");
+    if (poll(&p, 1, int(timeout_s * 1000)) <= 0)
+      Fail("no frame within " + std::to_string(int(timeout_s)) + " s");
     v4l2_buffer b{};
     b.type = V4L2_BUF_TYPE_VIDEO_CAPTURE, b.memory = V4L2_MEMORY_MMAP;
     if (Xioctl(fd_.fd, VIDIOC_DQBUF, &b) != 0) Fail("VIDIOC_DQBUF");
@@ -175,7 +182,9 @@ class V4l2Camera : public Camera {
                   Join(info_.pixel_formats) + "): capture needs unprocessed sensor data");
     DescribeRawFormat(info_.raw_format, &packing_, nullptr, &order_);
     ctrl_.fd = open(dev_.c_str(), O_RDWR | O_NONBLOCK);
-    if (ctrl_.fd < 0) throw Error("camera " + info_.id + ": cannot open " + dev_ + " (" + std::strerror(errno) + ")");
+    if (ctrl_.fd < 0)
+      throw Error("camera " + info_.id + ": cannot open " + dev_ + " (" + std::strerror(errno) +
+                  ")");
     if (!cap_.open(dev_, cv::CAP_V4L2))
       throw Error("camera " + info_.id + ": OpenCV's V4L2 capture cannot open " + dev_);
     cap_.set(cv::CAP_PROP_FOURCC, double(fourcc_));
@@ -198,8 +207,10 @@ class V4l2Camera : public Camera {
     // The first frames after a change may still have the old exposure: drop two.
     cv::Mat raw;
     for (int i = 0; i < 3; ++i)
-      if (!cap_.read(raw) || raw.empty()) throw Error("camera " + info_.id + ": no frame from " + dev_);
-    const int w = int(cap_.get(cv::CAP_PROP_FRAME_WIDTH)), h = int(cap_.get(cv::CAP_PROP_FRAME_HEIGHT));
+      if (!cap_.read(raw) || raw.empty())
+        throw Error("camera " + info_.id + ": no frame from " + dev_);
+    const int w = int(cap_.get(cv::CAP_PROP_FRAME_WIDTH)),
+              h = int(cap_.get(cv::CAP_PROP_FRAME_HEIGHT));
     const size_t bytes = raw.total() * raw.elemSize();
     const int64_t stride = h > 0 ? int64_t(bytes) / h : 0;
     Frame f;
@@ -220,16 +231,20 @@ class V4l2Camera : public Camera {
     std::vector<uint8_t> bytes;
     int64_t ts = 0;
     const double timeout = 5 + 3 * s.exposure_us * 1e-6;
-    for (int i = 0; i < 3; ++i) bytes = direct_->Next(timeout, &ts);  // two frames may predate the settings
+    for (int i = 0; i < 3; ++i)
+      bytes = direct_->Next(timeout, &ts);  // two frames may predate the settings
     Frame f;
-    f.dn = CropRoi(UnpackRaw(bytes, direct_->width_, direct_->height_, direct_->stride_, packing_), s.roi);
+    f.dn = CropRoi(UnpackRaw(bytes, direct_->width_, direct_->height_, direct_->stride_, packing_),
+                   s.roi);
     f.bit_depth = info_.bit_depth;
     f.pixel_format = info_.raw_format;
     f.exposure_us = s.exposure_us;
     f.analogue_gain = s.analogue_gain;
     f.timestamp_utc = UtcTimestamp();
     f.sensor_timestamp_ns = ts;
-    f.extra = {{"device", dev_}, {"stride_bytes", direct_->stride_}, {"bayer_order", int(order_)},
+    f.extra = {{"device", dev_},
+               {"stride_bytes", direct_->stride_},
+               {"bayer_order", int(order_)},
                {"path", "direct V4L2 ioctls (mmap streaming)"}};
     ApplyBayerMode(&f, s.bayer, order_ != BayerOrder::kNone, int(order_));
     return f;
@@ -243,7 +258,8 @@ class V4l2Camera : public Camera {
       v4l2_control c{};
       c.id = id, c.value = v;
       if (Xioctl(ctrl_.fd, VIDIOC_S_CTRL, &c) != 0)
-        throw Error("camera " + info_.id + ": the driver refused " + what + " (" + std::strerror(errno) + ")");
+        throw Error("camera " + info_.id + ": the driver refused " + what + " (" +
+                    std::strerror(errno) + ")");
     };
     if (info_.exposure_max_us > 0) {
       set(V4L2_CID_EXPOSURE_AUTO, V4L2_EXPOSURE_MANUAL, "manual exposure");
@@ -284,8 +300,10 @@ std::vector<CameraInfo> ListV4l2(std::vector<std::string>* notes) {
     CameraInfo info;
     uint32_t fourcc = 0;
     std::string note;
-    if (Probe(d, &info, &fourcc, &note)) out.push_back(info);
-    else if (!note.empty() && notes) notes->push_back(note);
+    if (Probe(d, &info, &fourcc, &note))
+      out.push_back(info);
+    else if (!note.empty() && notes)
+      notes->push_back(note);
   }
   return out;
 }
@@ -296,9 +314,11 @@ std::unique_ptr<Camera> OpenV4l2(const std::string& dev) {
   double unity = 1;
   std::string note;
   if (!std::filesystem::exists(dev))
-    throw Error("unknown camera 'v4l2:" + dev + "': no such device (`raymatch capture list` shows the cameras found)");
+    throw Error("unknown camera 'v4l2:" + dev +
+                "': no such device (`raymatch capture list` shows the cameras found)");
   if (!Probe(dev, &info, &fourcc, &note, &unity))
-    throw Error("camera 'v4l2:" + dev + "': " + (note.empty() ? "not a video capture device" : note));
+    throw Error("camera 'v4l2:" + dev +
+                "': " + (note.empty() ? "not a video capture device" : note));
   return std::make_unique<V4l2Camera>(dev, info, fourcc, unity);
 }
 

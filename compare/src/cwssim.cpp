@@ -107,7 +107,8 @@ Table AngularTable(int orientations, int k) {
   for (int i = -(2 * kLut + 1); i <= kLut + 1; ++i) {
     const double x = M_PI * i / kLut;
     const double a = M_PI + x, alfa = a - std::floor(a / (2 * M_PI)) * 2 * M_PI - M_PI;
-    t.y.push_back(std::abs(alfa) < M_PI / 2 ? 2 * std::sqrt(c) * std::pow(std::cos(x), order) : 0.0);
+    t.y.push_back(std::abs(alfa) < M_PI / 2 ? 2 * std::sqrt(c) * std::pow(std::cos(x), order)
+                                            : 0.0);
   }
   const double x0 = M_PI * -(2 * kLut + 1) / kLut, x1 = M_PI * -(2 * kLut) / kLut;
   t.origin = x0 + M_PI * k / orientations;
@@ -120,7 +121,8 @@ Table AngularTable(int orientations, int k) {
 void CwSsimOptions::Validate() const {
   Require(data_range > 0 && std::isfinite(data_range), "CW-SSIM: data_range (L) must be > 0");
   Require(level >= 0 && level <= 20, "CW-SSIM: level must be 0 (auto) or 1..20");
-  Require(orientations >= 1 && orientations <= 16, "CW-SSIM: orientations must be 1..16 (buildSCFpyr's order 0..15)");
+  Require(orientations >= 1 && orientations <= 16,
+          "CW-SSIM: orientations must be 1..16 (buildSCFpyr's order 0..15)");
   Require(guard_band >= 0, "CW-SSIM: guard_band must be >= 0");
   Require(k >= 0, "CW-SSIM: k must be >= 0");
   Require(window >= 1 && window % 2 == 1, "CW-SSIM: window must be odd and >= 1");
@@ -146,7 +148,8 @@ CwSsimBands ComputeCwSsimBands(const Image& img, const CwSsimOptions& o, int lev
     for (int x = 0; x < s.w; ++x) {
       const double xr = (x - cx) / (s.w / 2.0), yr = (y - cy) / (s.h / 2.0);
       double r = std::sqrt(xr * xr + yr * yr);
-      if (x == cx && y == cy) r = 1.0 / (s.w / 2.0);  // as buildSCFpyr: the DC takes its neighbour's radius
+      if (x == cx && y == cy)
+        r = 1.0 / (s.w / 2.0);  // as buildSCFpyr: the DC takes its neighbour's radius
       s.log_rad[size_t(y) * s.w + x] = std::log2(r);
       s.angle[size_t(y) * s.w + x] = std::atan2(yr, xr);
     }
@@ -215,8 +218,8 @@ CwSsimResult CwSsimFromBands(const CwSsimBands& a, const CwSsimBands& b, const C
     throw CompareError(FailureKind::kInvalidInput,
                        "CW-SSIM: the band at level " + std::to_string(level) + " (" +
                            std::to_string(a.width) + "x" + std::to_string(a.height) +
-                           " after the guard band) is smaller than the " + std::to_string(M) +
-                           "x" + std::to_string(M) + " window");
+                           " after the guard band) is smaller than the " + std::to_string(M) + "x" +
+                           std::to_string(M) + " window");
   }
   std::vector<double> gw(size_t(w) * h);
   double gs = 0;
@@ -276,8 +279,8 @@ CwSsimResult CwSsim(const Image& a, const Image& b, const CwSsimOptions& o) {
   CheckComparable(a, b, "CW-SSIM");
   const int max_level = MaxCwSsimLevel(a.width, a.height);
   const int level = CwSsimLevelFor(o, a.width, a.height);
-  return CwSsimFromBands(ComputeCwSsimBands(a, o, level), ComputeCwSsimBands(b, o, level), o,
-                         level, max_level);
+  return CwSsimFromBands(ComputeCwSsimBands(a, o, level), ComputeCwSsimBands(b, o, level), o, level,
+                         max_level);
 }
 
 }  // namespace raymatch::compare

@@ -2,9 +2,9 @@
 
 #include <algorithm>
 #include <cmath>
-#include <limits>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 
@@ -17,7 +17,8 @@ namespace raymatch::compare {
 namespace {
 
 Image LoadChecked(const std::string& path) {
-  if (!fs::exists(path)) throw CompareError(FailureKind::kFileError, FileLocation{path}, "file not found");
+  if (!fs::exists(path))
+    throw CompareError(FailureKind::kFileError, FileLocation{path}, "file not found");
   try {
     return ReadImage(path);
   } catch (const Error& e) {
@@ -61,7 +62,8 @@ void ReadJsonIndex(const std::string& index, std::istream& in, const fs::path& b
   } catch (const std::exception& e) {
     IndexError(FileLocation{index}, std::string("not valid JSON: ") + e.what());
   }
-  const char* shape = "expected {\"planes\": [{\"defocus_um\": <number>, \"image\": \"<file>\"}, ...]}";
+  const char* shape =
+      "expected {\"planes\": [{\"defocus_um\": <number>, \"image\": \"<file>\"}, ...]}";
   if (!j.is_object() || !j.contains("planes") || !j["planes"].is_array())
     IndexError(FileLocation{index}, std::string("no \"planes\" array: ") + shape);
   const nlohmann::json& planes = j["planes"];
@@ -69,7 +71,8 @@ void ReadJsonIndex(const std::string& index, std::istream& in, const fs::path& b
     const nlohmann::json& p = planes[i];
     const std::string field = "planes[" + std::to_string(i) + "]";
     if (!p.is_object()) IndexError(FileLocation{index}, field + " is not an object: " + shape);
-    if (!p.contains("defocus_um")) IndexError(FileLocation{index}, field + ".defocus_um is missing");
+    if (!p.contains("defocus_um"))
+      IndexError(FileLocation{index}, field + ".defocus_um is missing");
     if (!p.contains("image")) IndexError(FileLocation{index}, field + ".image is missing");
     const nlohmann::json& z = p["defocus_um"];
     if (!z.is_number())
@@ -79,7 +82,8 @@ void ReadJsonIndex(const std::string& index, std::istream& in, const fs::path& b
     if (!std::isfinite(dz)) IndexError(FileLocation{index}, field + ".defocus_um must be finite");
     const nlohmann::json& im = p["image"];
     if (!im.is_string() || im.get<std::string>().empty())
-      IndexError(FileLocation{index}, field + ".image must be a non-empty file name (string), got " +
+      IndexError(FileLocation{index}, field +
+                                          ".image must be a non-empty file name (string), got " +
                                           std::string(im.type_name()) + " " + im.dump());
     s->defocus_um.push_back(dz);
     s->files.push_back((base / im.get<std::string>()).string());
@@ -109,7 +113,8 @@ void ReadCsvIndex(const std::string& index, std::istream& in, const fs::path& ba
                  "the defocus '" + line.substr(0, comma) + "' is not a finite number");
     std::string f = line.substr(comma + 1);
     while (!f.empty() && (f.back() == '\r' || f.back() == ' ')) f.pop_back();
-    if (f.empty()) IndexError(FileLocation{index, n, int(comma) + 2}, "no image file after the defocus");
+    if (f.empty())
+      IndexError(FileLocation{index, n, int(comma) + 2}, "no image file after the defocus");
     s->defocus_um.push_back(z);
     s->files.push_back((base / f).string());
   }
@@ -121,11 +126,13 @@ Stack ReadStack(const std::string& index) {
   if (!fs::exists(index))
     throw CompareError(FailureKind::kFileError, FileLocation{index}, "stack index not found");
   if (fs::is_directory(index))
-    throw CompareError(FailureKind::kFileError, FileLocation{index}, "is a folder, not a stack index");
+    throw CompareError(FailureKind::kFileError, FileLocation{index},
+                       "is a folder, not a stack index");
   const fs::path base = fs::path(index).parent_path();
   Stack s;
   std::ifstream in(index);
-  if (!in) throw CompareError(FailureKind::kFileError, FileLocation{index}, "cannot open the stack index");
+  if (!in)
+    throw CompareError(FailureKind::kFileError, FileLocation{index}, "cannot open the stack index");
   if (fs::path(index).extension() == ".json")
     ReadJsonIndex(index, in, base, &s);
   else
@@ -179,16 +186,23 @@ Image PrepareExperiment(const Image& raw, const PrepareOptions& o, const Image* 
 
 const char* MeasureName(Measure m) {
   switch (m) {
-    case Measure::kMse: return "mse";
-    case Measure::kSsim: return "ssim";
-    case Measure::kMsSsim: return "ms_ssim";
-    case Measure::kCwSsim: return "cw_ssim";
-    case Measure::kPoissonChi2: return "poisson_chi2";
+    case Measure::kMse:
+      return "mse";
+    case Measure::kSsim:
+      return "ssim";
+    case Measure::kMsSsim:
+      return "ms_ssim";
+    case Measure::kCwSsim:
+      return "cw_ssim";
+    case Measure::kPoissonChi2:
+      return "poisson_chi2";
   }
   return "?";
 }
 
-bool HigherIsBetter(Measure m) { return m == Measure::kSsim || m == Measure::kMsSsim || m == Measure::kCwSsim; }
+bool HigherIsBetter(Measure m) {
+  return m == Measure::kSsim || m == Measure::kMsSsim || m == Measure::kCwSsim;
+}
 
 namespace {
 
@@ -249,8 +263,10 @@ Registration Register(const Image& a0, const Image& b, double scale) {
     };
     for (int y = margin; y < h - margin; ++y)
       for (int x = margin; x < w - margin; ++x) {
-        const double gx = 0.25 * (a.at(x + 1, y) + b.at(x + 1, y) - a.at(x - 1, y) - b.at(x - 1, y));
-        const double gy = 0.25 * (a.at(x, y + 1) + b.at(x, y + 1) - a.at(x, y - 1) - b.at(x, y - 1));
+        const double gx =
+            0.25 * (a.at(x + 1, y) + b.at(x + 1, y) - a.at(x - 1, y) - b.at(x - 1, y));
+        const double gy =
+            0.25 * (a.at(x, y + 1) + b.at(x, y + 1) - a.at(x, y - 1) - b.at(x, y - 1));
         const double r = double(a.at(x, y)) - b.at(x, y), vr = var(x, y);
         m[0] += gx * gx, m[1] += gx * gy, m[2] += gy * gy;
         gn[0] += (var(x + 1, y) + var(x - 1, y)) / 16;  // noise of gx: (a+b)/2 differenced, / 2
@@ -335,7 +351,8 @@ FocusScanResult RunFocusScan(const Stack& exp, const Stack& sim, const FocusScan
   // Bring the simulation to the experiment's background level (exposure), then register.
   if (o.normalize_background) {
     const double me = Median(r.exp_images[exp.images.size() / 2].pixels);
-    const double ms = Median(r.sim_images[Nearest(sim.defocus_um, exp.defocus_um[exp.images.size() / 2])].pixels);
+    const double ms =
+        Median(r.sim_images[Nearest(sim.defocus_um, exp.defocus_um[exp.images.size() / 2])].pixels);
     if (!(ms > 0) || !(me > 0))
       throw CompareError(FailureKind::kInvalidInput, "blank images: cannot match exposures");
     r.sim_scale = me / ms;
@@ -344,9 +361,8 @@ FocusScanResult RunFocusScan(const Stack& exp, const Stack& sim, const FocusScan
   }
   if (o.register_shift) {
     const size_t k = exp.images.size() / 2;
-    const Registration reg =
-        Register(r.exp_images[k], r.sim_images[Nearest(sim.defocus_um, exp.defocus_um[k])],
-                 r.sim_scale);
+    const Registration reg = Register(
+        r.exp_images[k], r.sim_images[Nearest(sim.defocus_um, exp.defocus_um[k])], r.sim_scale);
     r.registration_run = true;
     r.shift_estimate_px = reg.shift;
     r.shift_sigma_px = reg.sigma;
@@ -391,18 +407,24 @@ FocusScanResult RunFocusScan(const Stack& exp, const Stack& sim, const FocusScan
         const Image &a = r.exp_images[i], &b = r.sim_images[j];
         double v = 0;
         switch (m) {
-          case Measure::kMse: v = MeanSquaredError(a, b); break;
+          case Measure::kMse:
+            v = MeanSquaredError(a, b);
+            break;
           case Measure::kSsim: {
             SsimOptions so;
             so.data_range = L;
             v = Ssim(a, b, so).ssim;
             break;
           }
-          case Measure::kMsSsim: v = MsSsim(a, b, mo).ms_ssim; break;
+          case Measure::kMsSsim:
+            v = MsSsim(a, b, mo).ms_ssim;
+            break;
           case Measure::kCwSsim:
             v = CwSsimFromBands(eb[i], sb[j], cwo, cwo.level, cw_max).cw_ssim;
             break;
-          case Measure::kPoissonChi2: v = PoissonMeasures(a, b).chi2_per_pixel; break;
+          case Measure::kPoissonChi2:
+            v = PoissonMeasures(a, b).chi2_per_pixel;
+            break;
         }
         ms.matrix[i][j] = v;
       }
@@ -425,7 +447,9 @@ FocusScanResult RunFocusScan(const Stack& exp, const Stack& sim, const FocusScan
     if (std::count(o.primary.begin(), o.primary.end(), ms.measure)) {
       ms.primary = true;
       ++primary;
-      if (!ms.passes) ++failed, failed_names += std::string(failed_names.empty() ? "" : ", ") + MeasureName(ms.measure);
+      if (!ms.passes)
+        ++failed,
+            failed_names += std::string(failed_names.empty() ? "" : ", ") + MeasureName(ms.measure);
     }
   r.verdict = failed == 0 ? Verdict::kPass : failed < primary ? Verdict::kWarning : Verdict::kFail;
   r.message = failed == 0 ? "all primary measures pass the focus-scan test"
@@ -447,7 +471,9 @@ nlohmann::json FocusScanResult::ToJson() const {
                   {"matrix", m.matrix},
                   {"best_matches", best}});
   }
-  return {{"verdict", verdict == Verdict::kPass ? "pass" : verdict == Verdict::kWarning ? "warning" : "fail"},
+  return {{"verdict", verdict == Verdict::kPass      ? "pass"
+                      : verdict == Verdict::kWarning ? "warning"
+                                                     : "fail"},
           {"message", message},
           {"data_range", data_range},
           {"registration_shift_px", shift_px},
@@ -455,8 +481,11 @@ nlohmann::json FocusScanResult::ToJson() const {
            {{"run", registration_run},
             {"applied", {shift_applied[0], shift_applied[1]}},
             {"estimate_px", shift_estimate_px},
-            {"sigma_px", {std::isfinite(shift_sigma_px[0]) ? nlohmann::json(shift_sigma_px[0]) : nlohmann::json(nullptr),
-                          std::isfinite(shift_sigma_px[1]) ? nlohmann::json(shift_sigma_px[1]) : nlohmann::json(nullptr)}},
+            {"sigma_px",
+             {std::isfinite(shift_sigma_px[0]) ? nlohmann::json(shift_sigma_px[0])
+                                               : nlohmann::json(nullptr),
+              std::isfinite(shift_sigma_px[1]) ? nlohmann::json(shift_sigma_px[1])
+                                               : nlohmann::json(nullptr)}},
             {"rule", "a shift is applied on an axis only where |estimate| > 3 sigma (shot noise)"},
             {"summary", RegistrationSummary()}}},
           {"simulation_scale", sim_scale},

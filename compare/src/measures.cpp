@@ -37,8 +37,8 @@ void CheckComparable(const Image& a, const Image& b, const std::string& what) {
   if (a.empty() || b.empty())
     throw CompareError(FailureKind::kInvalidInput, what + ": an image is empty");
   if (a.width != b.width || a.height != b.height) {
-    throw CompareError(FailureKind::kSizeMismatch, what + ": sizes differ (" + SizeText(a) +
-                                                       " vs " + SizeText(b) + " pixels)");
+    throw CompareError(FailureKind::kSizeMismatch,
+                       what + ": sizes differ (" + SizeText(a) + " vs " + SizeText(b) + " pixels)");
   }
   CheckFinite(a, what + " (first image)");
   CheckFinite(b, what + " (second image)");
@@ -156,9 +156,12 @@ int MaxMsSsimScales(int width, int height) {
 
 const char* MsSsimWeightsName(MsSsimWeights w) {
   switch (w) {
-    case MsSsimWeights::kMatlab: return "matlab";
-    case MsSsimWeights::kWang2003: return "wang2003";
-    case MsSsimWeights::kCustom: return "custom";
+    case MsSsimWeights::kMatlab:
+      return "matlab";
+    case MsSsimWeights::kWang2003:
+      return "wang2003";
+    case MsSsimWeights::kCustom:
+      return "custom";
   }
   return "?";
 }
@@ -189,9 +192,9 @@ std::vector<double> MsSsimScaleWeights(MsSsimWeights kind, int num_scales,
       break;
     }
     case MsSsimWeights::kCustom:
-      Require(int(custom.size()) == num_scales,
-              "MS-SSIM: " + std::to_string(custom.size()) + " custom weights for " +
-                  std::to_string(num_scales) + " scales");
+      Require(int(custom.size()) == num_scales, "MS-SSIM: " + std::to_string(custom.size()) +
+                                                    " custom weights for " +
+                                                    std::to_string(num_scales) + " scales");
       w = custom;
       break;
   }
@@ -214,8 +217,8 @@ MsSsimResult MsSsim(const Image& a, const Image& b, const MsSsimOptions& options
   r.max_scales = MaxMsSsimScales(a.width, a.height);
   r.num_scales = MsSsimScalesFor(options, a.width, a.height);
   Require(r.num_scales <= r.max_scales,
-          "MS-SSIM: " + std::to_string(r.num_scales) + " scales are too many for a " +
-              SizeText(a) + " image (at most " + std::to_string(r.max_scales) +
+          "MS-SSIM: " + std::to_string(r.num_scales) + " scales are too many for a " + SizeText(a) +
+              " image (at most " + std::to_string(r.max_scales) +
               ": every scale but the last must be at least 2x2 pixels)");
   const std::vector<double> w =
       MsSsimScaleWeights(options.weights, r.num_scales, options.custom_weights);

@@ -73,7 +73,8 @@ class Figure {
   Figure(const std::string& path, int width, int height, int nx_sub = 1, int ny_sub = 1)
       : lock_(Mutex()), path_(path) {
     if (!HavePngCairo())
-      throw Error("PLplot has no pngcairo device: install plplot-driver-cairo (writing " + path + ")");
+      throw Error("PLplot has no pngcairo device: install plplot-driver-cairo (writing " + path +
+                  ")");
     if (!path_.parent_path().empty()) EnsureDirectory(path_.parent_path());
     tmp_ = TemporaryPathFor(path_);
     // Create the file here: PLplot, when it cannot open its output, asks for another name on
@@ -111,7 +112,8 @@ class Figure {
     if (!WholePng(tmp_)) {
       DiscardTemporary(tmp_);
       const std::string hint = WriteFailureHint(path_);
-      throw Error("could not write the figure " + path_.string() + (hint.empty() ? "" : ": " + hint));
+      throw Error("could not write the figure " + path_.string() +
+                  (hint.empty() ? "" : ": " + hint));
     }
     CommitTemporary(tmp_, path_);
   }
@@ -161,15 +163,16 @@ void ColourBar(plstream& pls, double lo, double hi, const std::string& label) {
   PLFLT range[] = {lo, hi};
   const PLFLT* values[] = {range};
   pls.col0(kBlack);
-  pls.colorbar(&w, &h, PL_COLORBAR_GRADIENT, PL_POSITION_RIGHT | PL_POSITION_OUTSIDE | PL_POSITION_VIEWPORT,
-               0.03, 0.0, 0.04, 1.0, kWhite, kBlack, 1, 0, 0, 0, 0, 1, label_opts, labels, 1,
-               axis_opts, ticks, sub_ticks, n_values, values);
+  pls.colorbar(&w, &h, PL_COLORBAR_GRADIENT,
+               PL_POSITION_RIGHT | PL_POSITION_OUTSIDE | PL_POSITION_VIEWPORT, 0.03, 0.0, 0.04, 1.0,
+               kWhite, kBlack, 1, 0, 0, 0, 0, 1, label_opts, labels, 1, axis_opts, ticks, sub_ticks,
+               n_values, values);
 }
 
 /// Draws `img` (row 0 at the top) into world rectangle [x0, x1] x [y0, y1] (y0 bottom) with
 /// colours lo..hi of the current cmap1.
-void DrawImage(plstream& pls, const Image& img, double x0, double x1, double y0, double y1, double lo,
-               double hi) {
+void DrawImage(plstream& pls, const Image& img, double x0, double x1, double y0, double y1,
+               double lo, double hi) {
   // plimagefr places its nx x ny values on the corners of an (nx - 1) x (ny - 1) grid of cells
   // spanning [x0, x1] x [y0, y1] and fills each cell with its lower-left value: one value more
   // per axis (the last column and top row repeated) gives every pixel its own cell.
@@ -237,7 +240,8 @@ void Panel(plstream& pls, const PlotPanel& panel) {
   pls.adv(0);
   pls.vpor(0.14, 0.96, 0.14, 0.88);
   pls.wind(x0 - xp, x1 + xp, y0 - yp, y1 + yp + top);
-  const std::string xo = std::string(p.log_x ? "l" : "") + "g", yo = std::string(p.log_y ? "l" : "") + "g";
+  const std::string xo = std::string(p.log_x ? "l" : "") + "g",
+                    yo = std::string(p.log_y ? "l" : "") + "g";
   pls.col0(kGrid);
   pls.width(1);
   pls.box(xo.c_str(), 0, 0, yo.c_str(), 0, 0);
@@ -261,7 +265,8 @@ void Panel(plstream& pls, const PlotPanel& panel) {
       pls.poin(PLINT(x.size()), x.data(), y.data(), 17);  // filled circle
       if (s.yerr.size() == x.size()) {
         std::vector<PLFLT> lo(x.size()), hi(x.size());
-        for (size_t i = 0; i < x.size(); ++i) lo[i] = ty(s.y[i] - s.yerr[i]), hi[i] = ty(s.y[i] + s.yerr[i]);
+        for (size_t i = 0; i < x.size(); ++i)
+          lo[i] = ty(s.y[i] - s.yerr[i]), hi[i] = ty(s.y[i] + s.yerr[i]);
         pls.erry(PLINT(x.size()), x.data(), lo.data(), hi.data());
       }
       if (s.joined && x.size() > 1) pls.line(PLINT(x.size()), x.data(), y.data());
@@ -275,7 +280,8 @@ void Panel(plstream& pls, const PlotPanel& panel) {
   // range far from zero (a deviance of 23745 +- 20) do not round to the same label.
   pls.sxax(7, 0);
   pls.syax(7, 0);
-  const std::string xb = std::string("bcnst") + (p.log_x ? "l" : ""), yb = std::string("bcnstv") + (p.log_y ? "l" : "");
+  const std::string xb = std::string("bcnst") + (p.log_x ? "l" : ""),
+                    yb = std::string("bcnstv") + (p.log_y ? "l" : "");
   pls.box(xb.c_str(), 0, 0, yb.c_str(), 0, 0);
   // The y title clear of tick labels of up to 7 characters (PLplot's own sits at 5 characters).
   pls.lab(Esc(p.xlabel).c_str(), "", Esc(p.title).c_str());
@@ -288,7 +294,8 @@ void Panel(plstream& pls, const PlotPanel& panel) {
     const Series& s = p.series[k];
     if (s.label.empty()) continue;
     const int colour = kSeriesColour + int(k % kSeriesColours);
-    opt.push_back(s.points ? (s.joined ? PL_LEGEND_SYMBOL | PL_LEGEND_LINE : PL_LEGEND_SYMBOL) : PL_LEGEND_LINE);
+    opt.push_back(s.points ? (s.joined ? PL_LEGEND_SYMBOL | PL_LEGEND_LINE : PL_LEGEND_SYMBOL)
+                           : PL_LEGEND_LINE);
     text_colours.push_back(kBlack);
     line_colours.push_back(colour), line_styles.push_back(1), line_widths.push_back(2);
     symbol_colours.push_back(colour), symbol_scales.push_back(1), symbol_numbers.push_back(1);
@@ -307,7 +314,8 @@ void Panel(plstream& pls, const PlotPanel& panel) {
 
 }  // namespace
 
-void WritePlot(const std::string& path, const std::vector<PlotPanel>& panels, int width, int panel_height) {
+void WritePlot(const std::string& path, const std::vector<PlotPanel>& panels, int width,
+               int panel_height) {
   Figure fig(path, width, panel_height * int(std::max<size_t>(1, panels.size())), 1,
              int(std::max<size_t>(1, panels.size())));
   for (const PlotPanel& p : panels) Panel(*fig, p);
@@ -357,7 +365,8 @@ void WriteMap(const std::string& path, const MapPlot& m) {
       for (int x = 0; x < w; ++x) {
         const double v = m.image.at(x, y);
         pls.col1(std::clamp(hi > lo ? (v - lo) / (hi - lo) : 0.5, 0.0, 1.0));
-        PLFLT px[] = {xe[x], xe[x + 1], xe[x + 1], xe[x]}, py[] = {ye[y], ye[y], ye[y + 1], ye[y + 1]};
+        PLFLT px[] = {xe[x], xe[x + 1], xe[x + 1], xe[x]},
+              py[] = {ye[y], ye[y], ye[y + 1], ye[y + 1]};
         pls.fill(4, px, py);
       }
   }
@@ -418,9 +427,11 @@ void WriteImageGrid(const std::string& path, const ImageGrid& g) {
       pls.col0(kBlack);
       pls.box("bc", 0, 0, "bc", 0, 0);
       pls.schr(0, tw < 140 ? 0.8 : 1.0);
-      if (r < int(g.tile_labels.size()) && c < int(g.tile_labels[r].size()) && !g.tile_labels[r][c].empty())
+      if (r < int(g.tile_labels.size()) && c < int(g.tile_labels[r].size()) &&
+          !g.tile_labels[r][c].empty())
         pls.mtex("t", 0.6, 0.5, 0.5, Esc(g.tile_labels[r][c]).c_str());
-      if (c == 0 && r < int(g.row_labels.size())) pls.mtex("lv", 0.6, 0.5, 1.0, Esc(g.row_labels[r]).c_str());
+      if (c == 0 && r < int(g.row_labels.size()))
+        pls.mtex("lv", 0.6, 0.5, 1.0, Esc(g.row_labels[r]).c_str());
       pls.schr(0, 1.0);
     }
   // Title centred on the figure (lines split at '\n'), colour bar beside the whole grid.

@@ -18,15 +18,19 @@ namespace raymatch::compare {
 
 namespace {
 
-
 /// The colour bar's label: the measure's name, its unit and which way is better.
 std::string MeasureAxisLabel(Measure m) {
   switch (m) {
-    case Measure::kMse: return "MSE (photons² per pixel; lower = better)";
-    case Measure::kSsim: return "SSIM (dimensionless; 1 = identical)";
-    case Measure::kMsSsim: return "MS-SSIM (dimensionless; 1 = identical)";
-    case Measure::kCwSsim: return "CW-SSIM (dimensionless; 1 = identical)";
-    case Measure::kPoissonChi2: return "Poisson χ² per pixel (dimensionless; 1 = shot noise)";
+    case Measure::kMse:
+      return "MSE (photons² per pixel; lower = better)";
+    case Measure::kSsim:
+      return "SSIM (dimensionless; 1 = identical)";
+    case Measure::kMsSsim:
+      return "MS-SSIM (dimensionless; 1 = identical)";
+    case Measure::kCwSsim:
+      return "CW-SSIM (dimensionless; 1 = identical)";
+    case Measure::kPoissonChi2:
+      return "Poisson χ² per pixel (dimensionless; 1 = shot noise)";
   }
   return MeasureName(m);
 }
@@ -104,7 +108,8 @@ void Montage(const FocusScanResult& r, const std::string& path) {
     g.rows[g.rows.size() - 2].push_back(r.exp_images[i]);
     g.rows.back().push_back(r.sim_images[j]);
     std::string label = Um(r.exp_defocus_um[i]);
-    if (r.sim_defocus_um[j] != r.exp_defocus_um[i]) label += " (sim " + Um(r.sim_defocus_um[j]) + ")";
+    if (r.sim_defocus_um[j] != r.exp_defocus_um[i])
+      label += " (sim " + Um(r.sim_defocus_um[j]) + ")";
     g.tile_labels[g.tile_labels.size() - 2].push_back(label);
   }
   g.lo = 0, g.hi = r.data_range > 0 ? r.data_range : 1;
@@ -112,7 +117,8 @@ void Montage(const FocusScanResult& r, const std::string& path) {
   std::ostringstream t;
   t.precision(5);
   t << "Experiment (upper row) and simulation (lower row), labelled by defocus\none grey scale for "
-       "all tiles: 0 to L = " << g.hi << " photons per pixel";
+       "all tiles: 0 to L = "
+    << g.hi << " photons per pixel";
   g.title = t.str();
   g.colour_label = "photons per pixel";
   g.tile_px = 120;
@@ -151,7 +157,7 @@ double PlaneFigures(const FocusScanResult& r, int i, const std::string& residual
   p.xlabel = "x (px from the image centre)";
   p.ylabel = "y (px from the image centre)";
   p.colour_label = r.sim_scale > 0.98 && r.sim_scale < 1.02 ? "(sim − exp) / √(sim + exp)  (σ)"
-                                                             : "(sim − exp) / √(s·sim + exp)  (σ)";
+                                                            : "(sim − exp) / √(s·sim + exp)  (σ)";
   p.max_side_px = 380;
   WriteMap(residual_png, p);
 
@@ -170,7 +176,8 @@ double PlaneFigures(const FocusScanResult& r, int i, const std::string& residual
     if (n[k] == 0) continue;
     const double me = se[k] / n[k], msim = ss[k] / n[k];
     // The simulation was scaled by sim_scale: its variance is sim_scale times its value.
-    const double sde = std::sqrt(std::max(0.0, me)), sds = std::sqrt(std::max(0.0, r.sim_scale * msim));
+    const double sde = std::sqrt(std::max(0.0, me)),
+                 sds = std::sqrt(std::max(0.0, r.sim_scale * msim));
     for (Series* q : {&ex, &sim}) q->x.push_back(k + 0.5);
     ex.y.push_back(me), ex.band_lo.push_back(me - sde), ex.band_hi.push_back(me + sde);
     sim.y.push_back(msim), sim.band_lo.push_back(msim - sds), sim.band_hi.push_back(msim + sds);
@@ -216,24 +223,32 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
       "table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 6px;"
       "font-size:12px;text-align:right}.pass{color:#070}.fail{color:#b00}"
       "img{max-width:100%}table.planes td{border:none;vertical-align:top}</style></head><body>"
-      "<h1>" + title + "</h1>";
-  const char* verdict = r.verdict == Verdict::kPass ? "pass" : r.verdict == Verdict::kWarning ? "warning" : "fail";
-  html += "<p><b>Verdict: <span class='" + std::string(r.verdict == Verdict::kPass ? "pass" : "fail") +
-          "'>" + verdict + "</span></b> &mdash; " + r.message + "</p>";
+      "<h1>" +
+      title + "</h1>";
+  const char* verdict = r.verdict == Verdict::kPass      ? "pass"
+                        : r.verdict == Verdict::kWarning ? "warning"
+                                                         : "fail";
+  html += "<p><b>Verdict: <span class='" +
+          std::string(r.verdict == Verdict::kPass ? "pass" : "fail") + "'>" + verdict +
+          "</span></b> &mdash; " + r.message + "</p>";
   html += "<p>Dynamic range L = " + Fmt(r.data_range) + "; MS-SSIM " +
-          std::to_string(r.ms_ssim.num_scales) + " scales (" + MsSsimWeightsName(r.ms_ssim.weights) +
-          " weights); CW-SSIM level " + std::to_string(r.cw_ssim.level) + ", " +
-          std::to_string(r.cw_ssim.orientations) + " orientations, K " + Fmt(r.cw_ssim.k) +
-          "; " + r.RegistrationSummary() + "; simulation scaled by " + Fmt(r.sim_scale) + ".</p>";
+          std::to_string(r.ms_ssim.num_scales) + " scales (" +
+          MsSsimWeightsName(r.ms_ssim.weights) + " weights); CW-SSIM level " +
+          std::to_string(r.cw_ssim.level) + ", " + std::to_string(r.cw_ssim.orientations) +
+          " orientations, K " + Fmt(r.cw_ssim.k) + "; " + r.RegistrationSummary() +
+          "; simulation scaled by " + Fmt(r.sim_scale) + ".</p>";
   Montage(r, (d / "montage.png").string());
-  html += "<h2>Experiment (top) and simulation (bottom)</h2><p>Each tile is labelled by its "
-          "defocus; one grey scale for all tiles, 0 to L = " + Fmt(r.data_range) +
-          " photons per pixel (the simulation scaled by " + Fmt(r.sim_scale) + ").</p>" +
-          EmbeddedPng((d / "montage.png").string(), "experiment above simulation per defocus");
-  html += "<h2>Cross-similarity</h2><p>Rows: experiment defocus, columns: simulation defocus. "
-          "Bright = better match for every measure (the colour bar gives the measure's values); "
-          "white box = best match in the row; red dot = the simulation plane of the same "
-          "defocus.</p>";
+  html +=
+      "<h2>Experiment (top) and simulation (bottom)</h2><p>Each tile is labelled by its "
+      "defocus; one grey scale for all tiles, 0 to L = " +
+      Fmt(r.data_range) + " photons per pixel (the simulation scaled by " + Fmt(r.sim_scale) +
+      ").</p>" +
+      EmbeddedPng((d / "montage.png").string(), "experiment above simulation per defocus");
+  html +=
+      "<h2>Cross-similarity</h2><p>Rows: experiment defocus, columns: simulation defocus. "
+      "Bright = better match for every measure (the colour bar gives the measure's values); "
+      "white box = best match in the row; red dot = the simulation plane of the same "
+      "defocus.</p>";
   for (const MeasureScan& m : r.measures) {
     const std::string name = MeasureName(m.measure);
     std::ostringstream csv;
@@ -249,7 +264,8 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
     const std::string png = (d / ("heatmap_" + name + ".png")).string();
     Heatmap(r, m, png);
     html += "<h3>" + name + " <span class='" + (m.passes ? "pass'>passes" : "fail'>fails") +
-            "</span>" + (m.primary ? "" : " <small>(informational, not in the verdict)</small>") + "</h3>" + EmbeddedPng(png, name + " heatmap") + "<table><tr><th>exp z \\ sim z</th>";
+            "</span>" + (m.primary ? "" : " <small>(informational, not in the verdict)</small>") +
+            "</h3>" + EmbeddedPng(png, name + " heatmap") + "<table><tr><th>exp z \\ sim z</th>";
     for (double z : r.sim_defocus_um) html += "<th>" + Fmt(z) + "</th>";
     html += "</tr>";
     for (size_t i = 0; i < m.matrix.size(); ++i) {
@@ -261,19 +277,22 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
     }
     html += "</table>";
   }
-  html += "<h2>Per plane: residuals and radial profiles</h2><p>Left: (sim &minus; exp) / "
-          "&radic;(s&middot;sim + exp) per pixel, in shot-noise standard deviations (blue: "
-          "simulation too dark, red: too bright; clamped at &plusmn;4), where s = " + Fmt(r.sim_scale) +
-          " is the factor the simulation was scaled by (s = 1 when photon-matched: (sim &minus; "
-          "exp) / &radic;(sim + exp)). Right: azimuthal means about the image "
-          "centre with one pixel's &plusmn;1&sigma; shot-noise band. Each experimental plane is "
-          "paired with the simulation plane nearest in defocus.</p><table class='planes'>";
+  html +=
+      "<h2>Per plane: residuals and radial profiles</h2><p>Left: (sim &minus; exp) / "
+      "&radic;(s&middot;sim + exp) per pixel, in shot-noise standard deviations (blue: "
+      "simulation too dark, red: too bright; clamped at &plusmn;4), where s = " +
+      Fmt(r.sim_scale) +
+      " is the factor the simulation was scaled by (s = 1 when photon-matched: (sim &minus; "
+      "exp) / &radic;(sim + exp)). Right: azimuthal means about the image "
+      "centre with one pixel's &plusmn;1&sigma; shot-noise band. Each experimental plane is "
+      "paired with the simulation plane nearest in defocus.</p><table class='planes'>";
   for (int i = 0; i < int(r.exp_images.size()); ++i) {
     const std::string res = (d / ("plane_" + std::to_string(i) + "_residual.png")).string();
     const std::string prof = (d / ("plane_" + std::to_string(i) + "_profile.png")).string();
     PlaneFigures(r, i, res, prof);
     html += "<tr><td>" + EmbeddedPng(res, "residual at " + Fmt(r.exp_defocus_um[i]) + " um") +
-            "</td><td>" + EmbeddedPng(prof, "radial profile at " + Fmt(r.exp_defocus_um[i]) + " um") +
+            "</td><td>" +
+            EmbeddedPng(prof, "radial profile at " + Fmt(r.exp_defocus_um[i]) + " um") +
             "</td></tr>";
   }
   html += "</table>";

@@ -40,8 +40,8 @@ size_t CheckedValueCount(const std::string& path, const std::vector<size_t>& sha
   for (size_t d : shape) {
     if (d == 0) Fail(path, "empty array (shape " + dims + ")");
     if (d > kMaxArrayValues || n * d > kMaxArrayValues)
-      Fail(path, "shape " + dims + " is more than the limit of " +
-                     std::to_string(kMaxArrayValues) + " values");
+      Fail(path, "shape " + dims + " is more than the limit of " + std::to_string(kMaxArrayValues) +
+                     " values");
     n *= d;
   }
   return static_cast<size_t>(n);
@@ -82,8 +82,10 @@ NdArray ReadNpy(const std::string& path) {
   const std::string dims = m[1].str();
   const std::regex number("\\d+");
   for (std::sregex_iterator it(dims.begin(), dims.end(), number), end; it != end; ++it)
-    if (it->str().size() > 18) Fail(path, "dimension " + it->str() + " in the header is too large");
-    else a.shape.push_back(std::stoull(it->str()));
+    if (it->str().size() > 18)
+      Fail(path, "dimension " + it->str() + " in the header is too large");
+    else
+      a.shape.push_back(std::stoull(it->str()));
   if (bytes != 1 && bytes != 2 && bytes != 4 && bytes != 8)
     Fail(path, "unsupported dtype " + std::string(1, kind) + std::to_string(bytes));
   const size_t n = CheckedValueCount(path, a.shape);
@@ -97,24 +99,36 @@ NdArray ReadNpy(const std::string& path) {
                    std::to_string(uint64_t(n) * bytes) + " bytes), the file holds " +
                    std::to_string(std::max<std::streamoff>(data_bytes, 0)) + " bytes");
   std::vector<char> raw(n * bytes);
-  if (!in.read(raw.data(), raw.size())) Fail(path, "truncated data: expected " + std::to_string(n) + " values");
+  if (!in.read(raw.data(), raw.size()))
+    Fail(path, "truncated data: expected " + std::to_string(n) + " values");
   const bool little = std::endian::native == std::endian::little;
   const bool swap = (endian == '<' && !little) || (endian == '>' && little);
   a.values.resize(n);
   for (size_t i = 0; i < n; ++i) {
     const char* p = raw.data() + i * bytes;
     double v;
-    if (kind == 'f' && bytes == 8) v = Load<double>(p, swap);
-    else if (kind == 'f' && bytes == 4) v = Load<float>(p, swap);
-    else if (kind == 'i' && bytes == 8) v = Load<int64_t>(p, swap);
-    else if (kind == 'i' && bytes == 4) v = Load<int32_t>(p, swap);
-    else if (kind == 'i' && bytes == 2) v = Load<int16_t>(p, swap);
-    else if (kind == 'i' && bytes == 1) v = Load<int8_t>(p, swap);
-    else if (kind == 'u' && bytes == 8) v = Load<uint64_t>(p, swap);
-    else if (kind == 'u' && bytes == 4) v = Load<uint32_t>(p, swap);
-    else if (kind == 'u' && bytes == 2) v = Load<uint16_t>(p, swap);
-    else if (kind == 'u' && bytes == 1) v = Load<uint8_t>(p, swap);
-    else Fail(path, "unsupported dtype " + std::string(1, kind) + std::to_string(bytes));
+    if (kind == 'f' && bytes == 8)
+      v = Load<double>(p, swap);
+    else if (kind == 'f' && bytes == 4)
+      v = Load<float>(p, swap);
+    else if (kind == 'i' && bytes == 8)
+      v = Load<int64_t>(p, swap);
+    else if (kind == 'i' && bytes == 4)
+      v = Load<int32_t>(p, swap);
+    else if (kind == 'i' && bytes == 2)
+      v = Load<int16_t>(p, swap);
+    else if (kind == 'i' && bytes == 1)
+      v = Load<int8_t>(p, swap);
+    else if (kind == 'u' && bytes == 8)
+      v = Load<uint64_t>(p, swap);
+    else if (kind == 'u' && bytes == 4)
+      v = Load<uint32_t>(p, swap);
+    else if (kind == 'u' && bytes == 2)
+      v = Load<uint16_t>(p, swap);
+    else if (kind == 'u' && bytes == 1)
+      v = Load<uint8_t>(p, swap);
+    else
+      Fail(path, "unsupported dtype " + std::string(1, kind) + std::to_string(bytes));
     a.values[i] = v;
   }
   if (fortran && a.shape.size() > 1) {  // column-major -> row-major
@@ -179,7 +193,8 @@ NdArray ReadHdf5(const std::string& path, const std::string& dataset) {
     throw;
   }
   a.values.resize(n);
-  const herr_t st = n ? H5Dread(d, H5T_NATIVE_DOUBLE, H5S_ALL, H5S_ALL, H5P_DEFAULT, a.values.data()) : -1;
+  const herr_t st =
+      n ? H5Dread(d, H5T_NATIVE_DOUBLE, H5S_ALL, H5S_ALL, H5P_DEFAULT, a.values.data()) : -1;
   H5Sclose(sp);
   H5Dclose(d);
   H5Fclose(f);
@@ -200,11 +215,14 @@ void WriteHdf5(const std::string& path, const std::string& dataset, const NdArra
   const hid_t sp = H5Screate_simple(static_cast<int>(dims.size()), dims.data(), nullptr);
   const hid_t lcpl = H5Pcreate(H5P_LINK_CREATE);
   H5Pset_create_intermediate_group(lcpl, 1);  // "/grid/n" creates group "/grid"
-  const hid_t d = H5Dcreate2(f, dataset.c_str(), H5T_IEEE_F64LE, sp, lcpl, H5P_DEFAULT,
-                             H5P_DEFAULT);
+  const hid_t d =
+      H5Dcreate2(f, dataset.c_str(), H5T_IEEE_F64LE, sp, lcpl, H5P_DEFAULT, H5P_DEFAULT);
   H5Pclose(lcpl);
-  const herr_t st = d < 0 ? herr_t(-1) : H5Dwrite(d, H5T_NATIVE_DOUBLE, H5S_ALL, H5S_ALL, H5P_DEFAULT, a.values.data());
-  const herr_t closed = (d < 0 ? 0 : H5Dclose(d)) | H5Sclose(sp) | H5Fclose(f);  // a full disk can show here
+  const herr_t st =
+      d < 0 ? herr_t(-1)
+            : H5Dwrite(d, H5T_NATIVE_DOUBLE, H5S_ALL, H5S_ALL, H5P_DEFAULT, a.values.data());
+  const herr_t closed =
+      (d < 0 ? 0 : H5Dclose(d)) | H5Sclose(sp) | H5Fclose(f);  // a full disk can show here
   if (st < 0 || closed < 0) {
     const std::string hint = WriteFailureHint(path);
     DiscardTemporary(tmp);

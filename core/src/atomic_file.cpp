@@ -91,7 +91,8 @@ void Unregister(const fs::path& tmp) noexcept {
     return;
   }
   for (Slot& s : g_slots) {
-    if (s.state.load(std::memory_order_acquire) != kLive || std::strcmp(s.path, a.c_str()) != 0) continue;
+    if (s.state.load(std::memory_order_acquire) != kLive || std::strcmp(s.path, a.c_str()) != 0)
+      continue;
     int expected = kLive;
     if (s.state.compare_exchange_strong(expected, kBusy, std::memory_order_acq_rel)) {
       s.path[0] = '\0';
@@ -120,7 +121,8 @@ void CommitTemporary(const fs::path& tmp, const fs::path& final_path) {
   fs::rename(tmp, final_path, ec);
   if (ec) {
     DiscardTemporary(tmp);
-    throw Error(FileLocation{final_path.string()}, "cannot move finished file into place: " + ec.message());
+    throw Error(FileLocation{final_path.string()},
+                "cannot move finished file into place: " + ec.message());
   }
   Unregister(tmp);
 }
@@ -143,8 +145,10 @@ std::string WriteFailureHint(const fs::path& path) {
   struct statvfs st {};
   if (statvfs(dir.c_str(), &st) == 0) {
     if (st.f_flag & ST_RDONLY) return "read-only file system";
-    const unsigned long long free_bytes = static_cast<unsigned long long>(st.f_bavail) * st.f_frsize;
-    if (free_bytes < (1u << 20)) return "the disk is full (" + std::to_string(free_bytes) + " bytes free)";
+    const unsigned long long free_bytes =
+        static_cast<unsigned long long>(st.f_bavail) * st.f_frsize;
+    if (free_bytes < (1u << 20))
+      return "the disk is full (" + std::to_string(free_bytes) + " bytes free)";
   }
   if (access(dir.c_str(), W_OK) != 0) return "no permission to write in " + dir.string();
   return "";
@@ -221,7 +225,9 @@ void RemoveStaleOutput(const fs::path& path) {
   std::error_code ec;
   if (!fs::exists(fs::symlink_status(path, ec))) return;  // (a read-only folder may hold none)
   fs::remove(path, ec);
-  if (ec) throw Error(FileLocation{path.string()}, "cannot remove the previous run's file: " + ec.message());
+  if (ec)
+    throw Error(FileLocation{path.string()},
+                "cannot remove the previous run's file: " + ec.message());
 }
 
 }  // namespace raymatch

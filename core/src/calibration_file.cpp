@@ -65,25 +65,32 @@ void WriteCalibrationFile(const std::string& path, const CalibrationData& d) {
   };
   try {
     if (d.has_light_field()) {
-      const std::string side = sidecar(".angular.tif", d.angular_map,
-                                       "raymatch calibration: angular radiance over direction cosines");
+      const std::string side =
+          sidecar(".angular.tif", d.angular_map,
+                  "raymatch calibration: angular radiance over direction cosines");
       os << "\n[light_field]\nangular_map = " << Quote(side)
          << "   # float32 TIFF: columns u, rows v (top = +extent)\nangular_extent = "
          << d.angular_extent << "\nfield_radius_um = " << d.field_radius_um
-         << "   # uniform disc at the object plane; 0 = not measured (simulator sizes it)\nna_limit = "
+         << "   # uniform disc at the object plane; 0 = not measured (simulator sizes "
+            "it)\nna_limit = "
          << d.na_limit << "   # the map is cut at this NA (0 = not cut)\ncone_half_angle_deg = "
          << d.cone_half_angle_deg << "\nnote = " << Quote(d.light_field_note) << "\n";
       if (d.edge_half_angle_deg > 0)
-        os << "edge_half_angle_deg = " << d.edge_half_angle_deg << "   # beyond na_limit: soft edge, "
+        os << "edge_half_angle_deg = " << d.edge_half_angle_deg
+           << "   # beyond na_limit: soft edge, "
            << "half radiance here (calibrate sphere)\nedge_width_deg = " << d.edge_width_deg
            << "   # (1 - tanh((theta - edge) / width)) / 2\nedge_tilt_deg = [" << d.edge_tilt_deg[0]
-           << ", " << d.edge_tilt_deg[1] << "]   # the edge's axis: direction cosines (sin x, sin y)\n";
+           << ", " << d.edge_tilt_deg[1]
+           << "]   # the edge's axis: direction cosines (sin x, sin y)\n";
       if (!d.spatial_map.empty()) {
-        const std::string sp = sidecar(".spatial.tif", d.spatial_map,
-                                       "raymatch calibration: relative irradiance at the object plane");
+        const std::string sp =
+            sidecar(".spatial.tif", d.spatial_map,
+                    "raymatch calibration: relative irradiance at the object plane");
         os << "spatial_map = " << Quote(sp)
-           << "   # float32 TIFF: columns x, rows y (top = +y), relative irradiance\nfield_size_um = ["
-           << d.field_size_um[0] << ", " << d.field_size_um[1] << "]   # the map's rectangle, centred on the axis\n";
+           << "   # float32 TIFF: columns x, rows y (top = +y), relative irradiance\nfield_size_um "
+              "= ["
+           << d.field_size_um[0] << ", " << d.field_size_um[1]
+           << "]   # the map's rectangle, centred on the axis\n";
       }
     }
   } catch (...) {
@@ -95,7 +102,8 @@ void WriteCalibrationFile(const std::string& path, const CalibrationData& d) {
        << "   # Gaussian PSF sigma at the object plane (calibrate sphere)\n";
   if (d.has_corrector()) {
     os << "\n[corrector]\ndistance_mm = " << d.corrector_distance_mm
-       << "\nring_outer_mm = " << List(d.ring_outer_mm) << "\ntransmissions = " << List(d.transmissions)
+       << "\nring_outer_mm = " << List(d.ring_outer_mm)
+       << "\ntransmissions = " << List(d.transmissions)
        << "\ntransmission_sigma = " << List(d.transmission_sigma) << "\n";
   }
   const fs::path toml_tmp = TemporaryPathFor(path);
@@ -121,11 +129,11 @@ CalibrationData ReadCalibrationFile(const std::string& path) {
   const toml::table t = ParseTomlFile(path);
   TomlReader r(t, path, "");
   CalibrationData d;
-  if (r.String("format") != kFormat)
-    r.Fail("format", std::string("expected \"") + kFormat + "\"");
+  if (r.String("format") != kFormat) r.Fail("format", std::string("expected \"") + kFormat + "\"");
   if (r.Has("provenance")) {
     TomlReader p = r.Table("provenance");
-    for (auto& [k, v] : *t["provenance"].as_table()) d.provenance[std::string(k.str())] = p.String(std::string(k.str()));
+    for (auto& [k, v] : *t["provenance"].as_table())
+      d.provenance[std::string(k.str())] = p.String(std::string(k.str()));
     p.Finish();
   }
   TomlReader o = r.Table("optics");
@@ -153,11 +161,13 @@ CalibrationData ReadCalibrationFile(const std::string& path) {
     d.cone_half_angle_deg = l.InRange("cone_half_angle_deg", 0, 90, 0);
     d.light_field_note = l.String("note", "");
     if (l.Has("edge_half_angle_deg") || l.Has("edge_width_deg")) {
-      if (!(d.na_limit > 0)) l.Fail("edge_half_angle_deg", "a soft edge beyond the NA needs na_limit > 0");
+      if (!(d.na_limit > 0))
+        l.Fail("edge_half_angle_deg", "a soft edge beyond the NA needs na_limit > 0");
       d.edge_half_angle_deg = l.InRange("edge_half_angle_deg", 1, 85, 0, true, true);
       d.edge_width_deg = l.InRange("edge_width_deg", 0.01, 20, 0, true, true);
       if (!l.Has("edge_width_deg")) l.Fail("edge_width_deg", "required with edge_half_angle_deg");
-      if (!l.Has("edge_half_angle_deg")) l.Fail("edge_half_angle_deg", "required with edge_width_deg");
+      if (!l.Has("edge_half_angle_deg"))
+        l.Fail("edge_half_angle_deg", "required with edge_width_deg");
       if (l.Has("edge_tilt_deg")) d.edge_tilt_deg = ReadEdgeTiltDeg(l, "edge_tilt_deg");
     }
     if (l.Has("spatial_map") || l.Has("field_size_um")) {
@@ -174,7 +184,8 @@ CalibrationData ReadCalibrationFile(const std::string& path) {
       }
       if (!(sum > 0)) l.Fail("spatial_map", "the map is all zero");
       const auto fsz = l.Numbers("field_size_um", 2, 2);
-      if (!(fsz[0] > 0) || !(fsz[1] > 0)) l.Fail("field_size_um", "expected two positive sizes (width, height)");
+      if (!(fsz[0] > 0) || !(fsz[1] > 0))
+        l.Fail("field_size_um", "expected two positive sizes (width, height)");
       d.field_size_um[0] = fsz[0], d.field_size_um[1] = fsz[1];
     }
     l.Finish();
@@ -192,7 +203,8 @@ CalibrationData ReadCalibrationFile(const std::string& path) {
     d.transmission_sigma = c.Numbers("transmission_sigma", 1, 64);
     if (d.transmissions.size() != d.ring_outer_mm.size() ||
         d.transmission_sigma.size() != d.ring_outer_mm.size())
-      c.Fail("transmissions", "ring_outer_mm, transmissions and transmission_sigma need equal lengths");
+      c.Fail("transmissions",
+             "ring_outer_mm, transmissions and transmission_sigma need equal lengths");
     for (double v : d.transmissions)
       if (v < 0 || v > 1.5) c.Fail("transmissions", "expected values in [0, 1.5]");
     c.Finish();

@@ -17,7 +17,8 @@ static std::string Compose(const FileLocation& where, const std::string& message
   return loc.empty() ? "error: " + message : loc + ": error: " + message;
 }
 
-Error::Error(const std::string& message) : std::runtime_error("error: " + message), message_(message) {}
+Error::Error(const std::string& message)
+    : std::runtime_error("error: " + message), message_(message) {}
 
 Error::Error(const FileLocation& where, const std::string& message)
     : std::runtime_error(Compose(where, message)), where_(where), message_(message) {}

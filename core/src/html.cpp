@@ -35,19 +35,31 @@ std::string HtmlEscape(const std::string& text) {
   std::string o;
   for (char c : text) {
     switch (c) {
-      case '&': o += "&amp;"; break;
-      case '<': o += "&lt;"; break;
-      case '>': o += "&gt;"; break;
-      case '\'': o += "&#39;"; break;
-      case '"': o += "&quot;"; break;
-      default: o += c;
+      case '&':
+        o += "&amp;";
+        break;
+      case '<':
+        o += "&lt;";
+        break;
+      case '>':
+        o += "&gt;";
+        break;
+      case '\'':
+        o += "&#39;";
+        break;
+      case '"':
+        o += "&quot;";
+        break;
+      default:
+        o += c;
     }
   }
   return o;
 }
 
 std::string EmbeddedPng(const std::string& png, const std::string& alt) {
-  return "<img alt='" + HtmlEscape(alt) + "' src='data:image/png;base64," + Base64(ReadFileBytes(png)) + "'>";
+  return "<img alt='" + HtmlEscape(alt) + "' src='data:image/png;base64," +
+         Base64(ReadFileBytes(png)) + "'>";
 }
 
 }  // namespace raymatch

@@ -30,9 +30,15 @@ Mat3 RotationFromEulerDeg(double ax, double by, double cz) {
                sb = std::sin(by * d), cc = std::cos(cz * d), sc = std::sin(cz * d);
   Mat3 r;
   // Rz * Ry * Rx
-  r.m[0][0] = cc * cb; r.m[0][1] = cc * sb * sa - sc * ca; r.m[0][2] = cc * sb * ca + sc * sa;
-  r.m[1][0] = sc * cb; r.m[1][1] = sc * sb * sa + cc * ca; r.m[1][2] = sc * sb * ca - cc * sa;
-  r.m[2][0] = -sb;     r.m[2][1] = cb * sa;                r.m[2][2] = cb * ca;
+  r.m[0][0] = cc * cb;
+  r.m[0][1] = cc * sb * sa - sc * ca;
+  r.m[0][2] = cc * sb * ca + sc * sa;
+  r.m[1][0] = sc * cb;
+  r.m[1][1] = sc * sb * sa + cc * ca;
+  r.m[1][2] = sc * sb * ca - cc * sa;
+  r.m[2][0] = -sb;
+  r.m[2][1] = cb * sa;
+  r.m[2][2] = cb * ca;
   return r;
 }
 
@@ -41,7 +47,8 @@ double BorderMedian(const Image& img) {
   const int bw = std::max(1, std::min(img.width, img.height) / 8);
   for (int y = 0; y < img.height; ++y)
     for (int x = 0; x < img.width; ++x)
-      if (x < bw || y < bw || x >= img.width - bw || y >= img.height - bw) v.push_back(img.at(x, y));
+      if (x < bw || y < bw || x >= img.width - bw || y >= img.height - bw)
+        v.push_back(img.at(x, y));
   if (v.empty()) return 0;
   std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
   return v[v.size() / 2];

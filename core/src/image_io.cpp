@@ -16,13 +16,20 @@ namespace {
 
 double TypeMax(OIIO::TypeDesc t) {
   switch (t.basetype) {
-    case OIIO::TypeDesc::UINT8: return 255.0;
-    case OIIO::TypeDesc::INT8: return 127.0;
-    case OIIO::TypeDesc::UINT16: return 65535.0;
-    case OIIO::TypeDesc::INT16: return 32767.0;
-    case OIIO::TypeDesc::UINT32: return 4294967295.0;
-    case OIIO::TypeDesc::INT32: return 2147483647.0;
-    default: return 1.0;
+    case OIIO::TypeDesc::UINT8:
+      return 255.0;
+    case OIIO::TypeDesc::INT8:
+      return 127.0;
+    case OIIO::TypeDesc::UINT16:
+      return 65535.0;
+    case OIIO::TypeDesc::INT16:
+      return 32767.0;
+    case OIIO::TypeDesc::UINT32:
+      return 4294967295.0;
+    case OIIO::TypeDesc::INT32:
+      return 2147483647.0;
+    default:
+      return 1.0;
   }
 }
 
@@ -32,8 +39,8 @@ std::string FormatFor(const std::string& path) {
   if (ext == ".tif" || ext == ".tiff") return "tiff";
   if (ext == ".exr") return "openexr";
   if (ext == ".png") return "png";
-  throw Error(FileLocation{path}, "unsupported image extension '" + ext +
-                                      "' (expected .tif, .tiff, .exr or .png)");
+  throw Error(FileLocation{path},
+              "unsupported image extension '" + ext + "' (expected .tif, .tiff, .exr or .png)");
 }
 
 void WriteWithOiio(const std::string& path, const OIIO::ImageSpec& spec, OIIO::TypeDesc in_type,
@@ -44,7 +51,7 @@ void WriteWithOiio(const std::string& path, const OIIO::ImageSpec& spec, OIIO::T
   const std::filesystem::path tmp = TemporaryPathFor(path);
   if (!out->open(tmp.string(), spec) || !out->write_image(in_type, data) || !out->close()) {
     std::string why = out->geterror();
-    out.reset();  // closes the file before it is removed
+    out.reset();                                      // closes the file before it is removed
     const std::string hint = WriteFailureHint(path);  // OpenImageIO's message rarely says why
     if (!hint.empty()) why = hint + ": " + why;
     DiscardTemporary(tmp);
@@ -104,8 +111,9 @@ Image ReadImage(const std::string& path, ImageFileInfo* info) {
   // Integer files are read in their own type: OIIO's conversion to float goes through a
   // normalised single-precision value, which multiplied back is off by up to 4e-3 code values.
   const bool integer = tmax > 1.0;
-  const OIIO::TypeDesc read_type = integer ? OIIO::TypeDesc(OIIO::TypeDesc::BASETYPE(spec.format.basetype))
-                                           : OIIO::TypeDesc(OIIO::TypeDesc::DOUBLE);
+  const OIIO::TypeDesc read_type =
+      integer ? OIIO::TypeDesc(OIIO::TypeDesc::BASETYPE(spec.format.basetype))
+              : OIIO::TypeDesc(OIIO::TypeDesc::DOUBLE);
   const size_t values = size_t(spec.width) * spec.height * spec.nchannels;
   std::vector<unsigned char> raw(values * read_type.size());
   if (!in->read_image(0, 0, 0, spec.nchannels, read_type, raw.data()))
@@ -113,13 +121,20 @@ Image ReadImage(const std::string& path, ImageFileInfo* info) {
   auto value = [&](size_t k) -> double {
     const unsigned char* p = raw.data() + k * read_type.size();
     switch (read_type.basetype) {
-      case OIIO::TypeDesc::UINT8: return ValueAt<uint8_t>(p);
-      case OIIO::TypeDesc::INT8: return ValueAt<int8_t>(p);
-      case OIIO::TypeDesc::UINT16: return ValueAt<uint16_t>(p);
-      case OIIO::TypeDesc::INT16: return ValueAt<int16_t>(p);
-      case OIIO::TypeDesc::UINT32: return ValueAt<uint32_t>(p);
-      case OIIO::TypeDesc::INT32: return ValueAt<int32_t>(p);
-      default: return ValueAt<double>(p);
+      case OIIO::TypeDesc::UINT8:
+        return ValueAt<uint8_t>(p);
+      case OIIO::TypeDesc::INT8:
+        return ValueAt<int8_t>(p);
+      case OIIO::TypeDesc::UINT16:
+        return ValueAt<uint16_t>(p);
+      case OIIO::TypeDesc::INT16:
+        return ValueAt<int16_t>(p);
+      case OIIO::TypeDesc::UINT32:
+        return ValueAt<uint32_t>(p);
+      case OIIO::TypeDesc::INT32:
+        return ValueAt<int32_t>(p);
+      default:
+        return ValueAt<double>(p);
     }
   };
   Image img(spec.width, spec.height);

@@ -9,7 +9,8 @@ namespace raymatch {
 
 toml::table ParseTomlFile(const std::string& path) {
   std::error_code ec;
-  if (std::filesystem::is_directory(path, ec)) throw Error(FileLocation{path}, "is a folder, not a TOML file");
+  if (std::filesystem::is_directory(path, ec))
+    throw Error(FileLocation{path}, "is a folder, not a TOML file");
   std::ifstream in(path, std::ios::binary);
   if (!in) throw Error(FileLocation{path}, "cannot open file for reading");
   std::stringstream ss;
@@ -40,13 +41,20 @@ static FileLocation LocOf(const std::string& file, const toml::source_region& r)
 
 static const char* TypeName(const toml::node& n) {
   switch (n.type()) {
-    case toml::node_type::table: return "a table";
-    case toml::node_type::array: return "an array";
-    case toml::node_type::string: return "a string";
-    case toml::node_type::integer: return "an integer";
-    case toml::node_type::floating_point: return "a number";
-    case toml::node_type::boolean: return "a boolean";
-    default: return "a date/time";
+    case toml::node_type::table:
+      return "a table";
+    case toml::node_type::array:
+      return "an array";
+    case toml::node_type::string:
+      return "a string";
+    case toml::node_type::integer:
+      return "an integer";
+    case toml::node_type::floating_point:
+      return "a number";
+    case toml::node_type::boolean:
+      return "a boolean";
+    default:
+      return "a date/time";
   }
 }
 
@@ -88,8 +96,8 @@ void TomlReader::TypeError(const std::string& key, const std::string& expected) 
 double TomlReader::Number(const std::string& key) {
   const toml::node* n = Node(key);
   if (!n || !(n->is_integer() || n->is_floating_point())) TypeError(key, "a number");
-  const double v = n->is_integer() ? static_cast<double>(n->as_integer()->get())
-                                   : n->as_floating_point()->get();
+  const double v =
+      n->is_integer() ? static_cast<double>(n->as_integer()->get()) : n->as_floating_point()->get();
   if (!std::isfinite(v)) Fail(key, "expected a finite number");
   return v;
 }
@@ -134,8 +142,8 @@ int64_t TomlReader::Integer(const std::string& key, int64_t fallback, int64_t lo
   int64_t v = 0;
   if (n->is_integer()) {
     v = n->as_integer()->get();
-  } else if (n->is_floating_point() && std::floor(n->as_floating_point()->get()) ==
-                                           n->as_floating_point()->get() &&
+  } else if (n->is_floating_point() &&
+             std::floor(n->as_floating_point()->get()) == n->as_floating_point()->get() &&
              std::abs(n->as_floating_point()->get()) < 9e18) {
     v = static_cast<int64_t>(n->as_floating_point()->get());  // allow 1e9 for ray counts
   } else {
@@ -198,8 +206,7 @@ std::vector<std::string> TomlReader::Strings(const std::string& key) {
   return out;
 }
 
-std::vector<double> TomlReader::Numbers(const std::string& key, size_t min_size,
-                                        size_t max_size) {
+std::vector<double> TomlReader::Numbers(const std::string& key, size_t min_size, size_t max_size) {
   const toml::node* n = Node(key);
   if (!n || !n->is_array()) TypeError(key, "an array of numbers");
   const toml::array& a = *n->as_array();
@@ -208,8 +215,8 @@ std::vector<double> TomlReader::Numbers(const std::string& key, size_t min_size,
     if (!(e.is_integer() || e.is_floating_point()))
       throw Error(LocOf(file_, e.source()),
                   "'" + Path(key) + "': expected an array of numbers, found " + TypeName(e));
-    const double v = e.is_integer() ? static_cast<double>(e.as_integer()->get())
-                                    : e.as_floating_point()->get();
+    const double v =
+        e.is_integer() ? static_cast<double>(e.as_integer()->get()) : e.as_floating_point()->get();
     if (!std::isfinite(v))
       throw Error(LocOf(file_, e.source()), "'" + Path(key) + "': expected finite numbers");
     out.push_back(v);
@@ -237,7 +244,8 @@ std::vector<std::vector<double>> TomlReader::NumberRows(const std::string& key, 
     for (const toml::node& e : *row.as_array()) {
       if (!(e.is_integer() || e.is_floating_point()))
         throw Error(where, "'" + Path(key) + "': expected numbers, found " + TypeName(e));
-      const double x = e.is_integer() ? double(e.as_integer()->get()) : e.as_floating_point()->get();
+      const double x =
+          e.is_integer() ? double(e.as_integer()->get()) : e.as_floating_point()->get();
       if (!std::isfinite(x)) throw Error(where, "'" + Path(key) + "': expected finite numbers");
       v.push_back(x);
     }

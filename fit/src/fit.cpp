@@ -2,6 +2,7 @@
 // simulated images with common random numbers; the final steps and the uncertainties are in
 // uncertainty.cpp.
 #include <ceres/ceres.h>
+#include <unistd.h>
 
 #include <Eigen/Dense>
 #include <algorithm>
@@ -9,8 +10,6 @@
 #include <cstdio>
 #include <iostream>
 #include <sstream>
-
-#include <unistd.h>
 
 #include "profile.h"
 #include "runner.h"
@@ -28,7 +27,8 @@ std::vector<double> Grid(Runner& run, const FitSpec& spec, FitResult* res) {
   for (size_t i = 0; i < P; ++i) {
     const Parameter& p = spec.parameters[i];
     for (int k = 0; k < p.points; ++k)
-      res->grid_axes[i].push_back(p.points == 1 ? p.start : p.lower + (p.upper - p.lower) * k / (p.points - 1));
+      res->grid_axes[i].push_back(
+          p.points == 1 ? p.start : p.lower + (p.upper - p.lower) * k / (p.points - 1));
     total *= p.points;
   }
   const size_t level = spec.rays.fractions.size() - 1;
@@ -48,7 +48,9 @@ std::vector<double> Grid(Runner& run, const FitSpec& spec, FitResult* res) {
   const auto [mn, mx] = std::minmax_element(res->grid_errors.begin(), res->grid_errors.end());
   if (*mn == *mx) {
     res->status = FitStatus::kFlat;
-    res->message = "the error function has the same value at every grid point: the parameters do not change the image";
+    res->message =
+        "the error function has the same value at every grid point: the parameters do not change "
+        "the image";
   } else {
     res->status = FitStatus::kConverged;
     res->converged = true;
@@ -103,11 +105,14 @@ std::vector<double> Pattern(Runner& run, const FitSpec& spec, FitResult* res) {
   for (size_t l = 0; l < L && budget; ++l) {
     const double delta_min = std::pow(4.0, double(L - 1 - l)) / 64;
     delta = std::max(delta, 2 * delta_min);
-    budget = Compass(run, spec, l, [&] { return run.Seed(); }, Stage::kPoll, &x, &delta, delta_min, &moved);
+    budget = Compass(
+        run, spec, l, [&] { return run.Seed(); }, Stage::kPoll, &x, &delta, delta_min, &moved);
   }
   if (std::none_of(moved.begin(), moved.end(), [](bool b) { return b; })) {
     res->status = FitStatus::kFlat;
-    res->message = "the error function did not change for any polled step: the parameters do not change the image";
+    res->message =
+        "the error function did not change for any polled step: the parameters do not change the "
+        "image";
   } else if (!budget) {
     res->status = FitStatus::kMaxEvaluations;
     res->message = "stopped after max_evaluations = " + std::to_string(spec.max_evaluations);
@@ -182,7 +187,8 @@ Differences AverageSets(const std::vector<Differences>& sets, size_t first, size
     a.jacobian += sets[s].jacobian;
     for (size_t k = 0; k < a.dmu.size(); ++k)
       for (size_t i = 0; i < a.dmu[k].size(); ++i)
-        for (size_t q = 0; q < a.dmu[k][i].size(); ++q) a.dmu[k][i].pixels[q] += sets[s].dmu[k][i].pixels[q];
+        for (size_t q = 0; q < a.dmu[k][i].size(); ++q)
+          a.dmu[k][i].pixels[q] += sets[s].dmu[k][i].pixels[q];
   }
   if (n > 1) {
     a.jacobian /= double(n);
@@ -228,7 +234,6 @@ class ImageCost : public ceres::CostFunction {
   std::vector<bool>* flat_;
 };
 
-
 /// Stops a level once the search stalls at the resolution the ray streams allow: a successful
 /// step that lowered the deviance by less than 1 or moved every parameter by less than 1/32 of
 /// its `step`, or three unsuccessful iterations in a row (the error with fixed ray streams is
@@ -236,11 +241,15 @@ class ImageCost : public ceres::CostFunction {
 class StallCallback : public ceres::IterationCallback {
  public:
   StallCallback(const double* x, const FitSpec& spec, std::function<bool()> over_budget)
-      : x_(x), spec_(spec), last_(x, x + spec.parameters.size()), over_budget_(std::move(over_budget)) {}
+      : x_(x),
+        spec_(spec),
+        last_(x, x + spec.parameters.size()),
+        over_budget_(std::move(over_budget)) {}
   ceres::CallbackReturnType operator()(const ceres::IterationSummary& s) override {
     if (over_budget_()) return ceres::SOLVER_TERMINATE_SUCCESSFULLY;
     if (s.iteration == 0) return ceres::SOLVER_CONTINUE;
-    if (!s.step_is_successful) return ++failures_ >= 5 ? ceres::SOLVER_TERMINATE_SUCCESSFULLY : ceres::SOLVER_CONTINUE;
+    if (!s.step_is_successful)
+      return ++failures_ >= 5 ? ceres::SOLVER_TERMINATE_SUCCESSFULLY : ceres::SOLVER_CONTINUE;
     failures_ = 0;
     // Ceres' cost is half the deviance: a step worth less than 1 in deviance (0.5 in
     // log-likelihood) is well inside one standard deviation of every parameter.
@@ -272,8 +281,8 @@ class StallCallback : public ceres::IterationCallback {
 /// It ends when the predicted decrease of the deviance is below kPolishTolerance, i.e. the
 /// remaining step is a fraction of the statistical uncertainty, confirmed with a Jacobian at
 /// that point (which the uncertainties then reuse).
-std::vector<double> Polish(Runner& run, const FitSpec& spec, const std::vector<double>& start, size_t L,
-                           uint64_t seed, Stage stage) {
+std::vector<double> Polish(Runner& run, const FitSpec& spec, const std::vector<double>& start,
+                           size_t L, uint64_t seed, Stage stage) {
   const size_t P = spec.parameters.size();
   const int bin = run.model().BinAt(L);
   // kPolishTolerance: with fixed ray streams the deviance differences between nearby points
@@ -373,9 +382,10 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
     ceres::Solve(so, &problem, &sum);
     term = sum.termination_type;
     if (record)
-      run.Say("level " + std::to_string(f + 1) + " (ray fraction " + Fmt(spec.rays.fractions[f], 3) + ", bin " +
-              std::to_string(run.model().BinAt(f)) + "): " + std::to_string(sum.iterations.size()) +
-              " iterations, deviance " + Fmt(2 * sum.initial_cost) + " -> " + Fmt(2 * sum.final_cost) + ", " +
+      run.Say("level " + std::to_string(f + 1) + " (ray fraction " +
+              Fmt(spec.rays.fractions[f], 3) + ", bin " + std::to_string(run.model().BinAt(f)) +
+              "): " + std::to_string(sum.iterations.size()) + " iterations, deviance " +
+              Fmt(2 * sum.initial_cost) + " -> " + Fmt(2 * sum.final_cost) + ", " +
               std::to_string(run.Count() - level_start) + " evaluations");
     ok = ok && sum.IsSolutionUsable();
     if (record && std::all_of(flat.begin(), flat.end(), [](bool b) { return b; })) break;
@@ -392,7 +402,8 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
     if (flat[i]) flat_keys += (flat_keys.empty() ? "" : ", ") + spec.parameters[i].key;
   if (!flat_keys.empty()) {
     res->status = FitStatus::kFlat;
-    res->message = "the image does not change with " + flat_keys + " (flat error function): the fit cannot move it";
+    res->message = "the image does not change with " + flat_keys +
+                   " (flat error function): the fit cannot move it";
   } else if (!run.Budget()) {
     res->status = FitStatus::kMaxEvaluations;
     res->message = "stopped after max_evaluations = " + std::to_string(spec.max_evaluations);
@@ -425,7 +436,8 @@ Matrix FisherInformation(const std::vector<Image>& mu, const std::vector<std::ve
 }
 
 Matrix FisherInformation(const std::vector<Image>& mu, const std::vector<std::vector<Image>>& dmu_a,
-                         const std::vector<std::vector<Image>>& dmu_b, const std::vector<double>& read_variance) {
+                         const std::vector<std::vector<Image>>& dmu_b,
+                         const std::vector<double>& read_variance) {
   const size_t P = dmu_a.empty() ? 0 : dmu_a[0].size();
   Matrix F(P, std::vector<double>(P, 0.0));
   for (size_t k = 0; k < mu.size(); ++k)
@@ -434,8 +446,10 @@ Matrix FisherInformation(const std::vector<Image>& mu, const std::vector<std::ve
       const double m = mu[k].pixels[q] + (k < read_variance.size() ? read_variance[k] : 0.0);
       for (size_t i = 0; i < P; ++i)
         for (size_t j = 0; j < P; ++j)
-          F[i][j] += 0.5 * (double(dmu_a[k][i].pixels[q]) * dmu_b[k][j].pixels[q] +
-                            double(dmu_b[k][i].pixels[q]) * dmu_a[k][j].pixels[q]) / m;
+          F[i][j] += 0.5 *
+                     (double(dmu_a[k][i].pixels[q]) * dmu_b[k][j].pixels[q] +
+                      double(dmu_b[k][i].pixels[q]) * dmu_a[k][j].pixels[q]) /
+                     m;
     }
   return F;
 }
@@ -446,7 +460,8 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
   Runner run(spec, options, &res);
   FitModel& model = run.model();
   res.photon_matched_rays = model.photon_matched_rays();
-  res.region_center_um = {model.region_center().x, model.region_center().y, model.region_center().z};
+  res.region_center_um = {model.region_center().x, model.region_center().y,
+                          model.region_center().z};
   res.region_radius_um = model.region_radius();
   const double setup_s = Since(t_start);
   const size_t P = spec.parameters.size();
@@ -504,7 +519,8 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
     Image r(mu.width, mu.height);
     for (size_t q = 0; q < mu.size(); ++q) {
       const double var = std::max(1.0, double(mu.pixels[q])) *
-                             (1 + 1 / (spec.rays.ray_factor * spec.rays.fractions.back())) + read2;
+                             (1 + 1 / (spec.rays.ray_factor * spec.rays.fractions.back())) +
+                         read2;
       r.pixels[q] = static_cast<float>((double(mu.pixels[q]) - ex.pixels[q]) / std::sqrt(var));
     }
     res.residuals.push_back(std::move(r));
@@ -528,7 +544,8 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
   res.seconds = {{"setup (region, source field, photon target)", setup_s},
                  {"background rays (traced once per image and ray count)", bg_total},
                  {"search evaluations", search_s - bg_search},
-                 {"derivatives, final steps and uncertainties (repeats, slices, profiles)", unc_s - (bg_total - bg_search)}};
+                 {"derivatives, final steps and uncertainties (repeats, slices, profiles)",
+                  unc_s - (bg_total - bg_search)}};
   res.total_seconds = Since(t_start);
   if (options.progress && isatty(2)) std::fprintf(stderr, "\r\033[K");
   for (const ParameterResult& p : res.parameters)

@@ -28,7 +28,8 @@ const char* MethodName(Method m) {
 }
 
 const char* StageName(Stage s) {
-  static const char* n[] = {"grid", "poll", "lm", "polish", "fisher", "final", "repeat", "slice", "best", "profile"};
+  static const char* n[] = {"grid",  "poll",   "lm",    "polish", "fisher",
+                            "final", "repeat", "slice", "best",   "profile"};
   return n[int(s)];
 }
 
@@ -75,7 +76,9 @@ std::string NumericKeys(const toml::table& t) {
   for (const auto& [k, v] : t) {
     std::string name(k.str());
     if (v.is_number()) {
-    } else if (const toml::array* a = v.as_array(); a && !a->empty() && a->is_homogeneous(toml::node_type::none) && (*a)[0].is_number()) {
+    } else if (const toml::array* a = v.as_array(); a && !a->empty() &&
+                                                    a->is_homogeneous(toml::node_type::none) &&
+                                                    (*a)[0].is_number()) {
       name += "[0.." + std::to_string(a->size() - 1) + "]";
     } else if (v.is_table() || v.is_array_of_tables()) {
       name += v.is_table() ? ".*" : "[i].* or " + name + ".<name>.*";
@@ -142,7 +145,8 @@ Slot Resolve(toml::table& root, const std::string& key, const std::string& scene
       if (*s.index >= a->size())
         throw fail("'" + s.name + "' has " + std::to_string(a->size()) + " values");
       toml::node& e = (*a)[*s.index];
-      if (!e.is_number()) throw fail("'" + s.name + "[" + std::to_string(*s.index) + "]' is not a number");
+      if (!e.is_number())
+        throw fail("'" + s.name + "[" + std::to_string(*s.index) + "]' is not a number");
       return {nullptr, "", a, *s.index, &e};
     }
     if (s.index) throw fail("'" + s.name + "' is not a list");
@@ -192,7 +196,7 @@ void SetSceneValue(toml::table& scene, const std::string& key, double value,
 
 namespace {
 constexpr int kMaxGridPoints = 10001;  ///< grid samples per parameter
-constexpr double kMaxDefocusUm = 1e5;   ///< |defocus| of an image, and of its bounds when fitted
+constexpr double kMaxDefocusUm = 1e5;  ///< |defocus| of an image, and of its bounds when fitted
 /// A grid's size for a message (the product of the axes can exceed any integer type).
 std::string GridCount(double n) {
   char buf[32];
@@ -222,9 +226,11 @@ void CheckExperimentImage(const FitImage& fi, double expected_photons_per_pixel,
   const double saturated = double(at_max) / double(im.size());
   if (saturated > 0.5) {
     char buf[64];
-    std::snprintf(buf, sizeof buf, "%.0f %% of its pixels sit at its largest value %.6g", 100 * saturated, max);
-    throw Error(fi.where, "image " + fi.file + " is mostly saturated: " + buf +
-                              "; expose it less (or check that it is a camera image, not a constant)");
+    std::snprintf(buf, sizeof buf, "%.0f %% of its pixels sit at its largest value %.6g",
+                  100 * saturated, max);
+    throw Error(fi.where,
+                "image " + fi.file + " is mostly saturated: " + buf +
+                    "; expose it less (or check that it is a camera image, not a constant)");
   }
   // The flat level: mean of the border frame BorderMedian uses (robust at low counts, where the
   // median of Poisson counts is coarse).
@@ -236,17 +242,23 @@ void CheckExperimentImage(const FitImage& fi, double expected_photons_per_pixel,
       if (x < bw || y < bw || x >= im.width - bw || y >= im.height - bw) border += im.at(x, y), ++n;
   border /= double(std::max<size_t>(n, 1));
   if (!(border > 0))
-    throw Error(fi.where, "image " + fi.file + " has no light around the object: the mean of its border "
-                              "pixels is " + std::to_string(border) +
-                              " photons (a brightfield image has a lit background; check the dark frame)");
+    throw Error(fi.where,
+                "image " + fi.file +
+                    " has no light around the object: the mean of its border "
+                    "pixels is " +
+                    std::to_string(border) +
+                    " photons (a brightfield image has a lit background; check the dark frame)");
   constexpr double kLevelFactor = 3;
-  if (expected_photons_per_pixel > 0 &&
-      (border > kLevelFactor * expected_photons_per_pixel || border * kLevelFactor < expected_photons_per_pixel)) {
+  if (expected_photons_per_pixel > 0 && (border > kLevelFactor * expected_photons_per_pixel ||
+                                         border * kLevelFactor < expected_photons_per_pixel)) {
     char buf[160];
-    std::snprintf(buf, sizeof buf, "its flat level (mean of the border pixels) is %.4g photons per pixel, "
-                  "%.3g times the %.4g", border, border / expected_photons_per_pixel, expected_photons_per_pixel);
-    throw Error(fi.where, "image " + fi.file + " does not match the experiment's photon count: " + buf +
-                              " of " + expected_from + " (more than a factor 3 apart); check gain_e_per_dn, "
+    std::snprintf(buf, sizeof buf,
+                  "its flat level (mean of the border pixels) is %.4g photons per pixel, "
+                  "%.3g times the %.4g",
+                  border, border / expected_photons_per_pixel, expected_photons_per_pixel);
+    throw Error(fi.where, "image " + fi.file + " does not match the experiment's photon count: " +
+                              buf + " of " + expected_from +
+                              " (more than a factor 3 apart); check gain_e_per_dn, "
                               "the dark frame and the exposure, or correct photons_per_pixel");
   }
 }
@@ -267,7 +279,8 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
   } else {
     f.scene_file = ResolvePath(path, r.String("scene"));
     if (!fs::is_regular_file(f.scene_file))
-      r.Fail("scene", (fs::is_directory(f.scene_file) ? "is a folder, not a scene file: " : "scene file not found: ") +
+      r.Fail("scene", (fs::is_directory(f.scene_file) ? "is a folder, not a scene file: "
+                                                      : "scene file not found: ") +
                           f.scene_file);
   }
   f.scene = ParseTomlFile(f.scene_file);
@@ -281,17 +294,21 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
   const simulate::Scene scene = simulate::LoadScene(f.scene, f.scene_file);  // checks it
   // Mesh files are read when a simulator is built: check them now (the meshes are cached, so
   // the fit reads each file once), before anything runs or is written.
-  if (std::any_of(scene.objects.begin(), scene.objects.end(),
-                  [](const simulate::ObjectSpec& o) { return o.shape == simulate::ShapeType::kMesh; })) {
+  if (std::any_of(scene.objects.begin(), scene.objects.end(), [](const simulate::ObjectSpec& o) {
+        return o.shape == simulate::ShapeType::kMesh;
+      })) {
     const simulate::Geometry check(scene.objects);
   }
   f.seed = static_cast<uint64_t>(r.Integer("seed", 1, 0, INT64_MAX));
   const std::string m = r.Choice("method", {"grid", "pattern", "lm"}, "lm");
-  f.method = m == "grid" ? Method::kGrid : m == "pattern" ? Method::kPattern : Method::kLevenbergMarquardt;
-  const std::string e = r.Choice("error", {"poisson", "mse", "ssim", "ms-ssim", "cw-ssim"}, "poisson");
-  f.error = e == "poisson" ? ErrorFunction::kPoisson
-            : e == "mse"   ? ErrorFunction::kMse
-            : e == "ssim"  ? ErrorFunction::kSsim
+  f.method = m == "grid"      ? Method::kGrid
+             : m == "pattern" ? Method::kPattern
+                              : Method::kLevenbergMarquardt;
+  const std::string e =
+      r.Choice("error", {"poisson", "mse", "ssim", "ms-ssim", "cw-ssim"}, "poisson");
+  f.error = e == "poisson"   ? ErrorFunction::kPoisson
+            : e == "mse"     ? ErrorFunction::kMse
+            : e == "ssim"    ? ErrorFunction::kSsim
             : e == "ms-ssim" ? ErrorFunction::kMsSsim
                              : ErrorFunction::kCwSsim;
   f.max_evaluations = static_cast<int>(r.Integer("max_evaluations", 2000, 1, 10000000));
@@ -322,7 +339,8 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     try {
       fi.photons = compare::PrepareExperiment(raw, prep, dark.empty() ? nullptr : &dark, nullptr);
     } catch (const Error& err) {  // e.g. a dark frame of another size: name both files
-      throw Error(fi.where, "image " + fi.file + (fi.dark_file.empty() ? "" : " with dark frame " + fi.dark_file) +
+      throw Error(fi.where, "image " + fi.file +
+                                (fi.dark_file.empty() ? "" : " with dark frame " + fi.dark_file) +
                                 ": " + err.message());
     }
     // Saturated pixels (at or above saturation_dn) and, with a dark frame (an offset above 0),
@@ -330,19 +348,22 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     if (fi.saturation_dn > 0 || !dark.empty()) {
       fi.usable = Image(raw.width, raw.height, 1.0f);
       for (size_t p = 0; p < raw.size(); ++p)
-        if ((fi.saturation_dn > 0 && raw.pixels[p] >= fi.saturation_dn) || (!dark.empty() && raw.pixels[p] <= 0)) {
+        if ((fi.saturation_dn > 0 && raw.pixels[p] >= fi.saturation_dn) ||
+            (!dark.empty() && raw.pixels[p] <= 0)) {
           fi.usable.pixels[p] = 0;
           ++fi.excluded_pixels;
         }
       if (fi.excluded_pixels == 0) fi.usable = Image();
     }
     if (fi.photons.width != scene.camera.nx || fi.photons.height != scene.camera.ny)
-      throw Error(fi.where, "image " + fi.file + " is " + std::to_string(fi.photons.width) + " x " +
-                                std::to_string(fi.photons.height) + " pixels; the scene's camera has " +
-                                std::to_string(scene.camera.nx) + " x " + std::to_string(scene.camera.ny));
+      throw Error(fi.where,
+                  "image " + fi.file + " is " + std::to_string(fi.photons.width) + " x " +
+                      std::to_string(fi.photons.height) + " pixels; the scene's camera has " +
+                      std::to_string(scene.camera.nx) + " x " + std::to_string(scene.camera.ny));
     f.images.push_back(std::move(fi));
   }
-  if (f.images.empty()) r.Fail("image", "missing: give at least one [[image]] with file and defocus_um");
+  if (f.images.empty())
+    r.Fail("image", "missing: give at least one [[image]] with file and defocus_um");
 
   std::set<std::string> keys;
   for (TomlReader p : r.Tables("parameter")) {
@@ -358,13 +379,16 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
       const std::string field = segs.size() == 2 ? segs[1].name : "";
       const bool known = field == "defocus_um" || field == "background_photons" ||
                          field == "background_slope_x" || field == "background_slope_y";
-      if (segs.size() != 2 || !segs[0].index || segs[0].name != "image" || !known || segs[1].index ||
-          *segs[0].index >= f.images.size())
-        p.Fail("key", "image keys are image[i].defocus_um, image[i].background_photons, "
-                      "image[i].background_slope_x or _y with i < " + std::to_string(f.images.size()));
+      if (segs.size() != 2 || !segs[0].index || segs[0].name != "image" || !known ||
+          segs[1].index || *segs[0].index >= f.images.size())
+        p.Fail("key",
+               "image keys are image[i].defocus_um, image[i].background_photons, "
+               "image[i].background_slope_x or _y with i < " +
+                   std::to_string(f.images.size()));
       if (field == "defocus_um") {
         current = f.images[*segs[0].index].defocus_um;
-        if (!(std::abs(p.Number("lower")) <= kMaxDefocusUm && std::abs(p.Number("upper")) <= kMaxDefocusUm))
+        if (!(std::abs(p.Number("lower")) <= kMaxDefocusUm &&
+              std::abs(p.Number("upper")) <= kMaxDefocusUm))
           p.Fail("lower", "focus positions lie within +-1e5 um (10 cm)");
       }
     } else {
@@ -379,8 +403,8 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     if (!(q.upper > q.lower)) p.Fail("upper", "must be greater than lower");
     q.start = p.Number("start", current);
     if (q.start < q.lower || q.start > q.upper)
-      p.Fail(p.Has("start") ? "start" : "key", "start value " + std::to_string(q.start) +
-                                                   " lies outside [lower, upper]");
+      p.Fail(p.Has("start") ? "start" : "key",
+             "start value " + std::to_string(q.start) + " lies outside [lower, upper]");
     if (!std::isfinite(q.upper - q.lower)) p.Fail("upper", "upper - lower must be a finite number");
     q.step = p.Positive("step", (q.upper - q.lower) / 10);
     q.points = static_cast<int>(p.Integer("points", 0, 2, kMaxGridPoints));
@@ -402,7 +426,8 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
   for (const Parameter& q : f.parameters) grid_points *= std::max(q.points, 1);
   if (f.method == Method::kGrid) {
     if (grid_points > f.max_evaluations)
-      r.Fail("method", "the grid has " + GridCount(grid_points) + " points, more than max_evaluations (" +
+      r.Fail("method", "the grid has " + GridCount(grid_points) +
+                           " points, more than max_evaluations (" +
                            std::to_string(f.max_evaluations) + ")");
   }
 

@@ -180,8 +180,9 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
   if (ppp == 0 && !scene_rays) {
     ppp = BorderMedian(spec.images[0].photons);  // as `run` recovers the exposure
     if (!(ppp > 0))
-      throw raymatch::Error(FileLocation{spec.file}, "the first image's background is not positive: give "
-                                           "[rays] photons_per_pixel");
+      throw raymatch::Error(FileLocation{spec.file},
+                            "the first image's background is not positive: give "
+                            "[rays] photons_per_pixel");
     say_("background of the first image: " + std::to_string(ppp) + " photons per pixel");
   }
   photon_matched_rays_ = ppp > 0 ? simulate::Simulator(s0).RaysForPhotonTarget(ppp) : s0.trace.rays;
@@ -189,7 +190,8 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
     using Part = simulate::SourceSpec::EdgePart;
     const double all = simulate::Simulator(TracedScene(s0, Part::kAll)).source_weight();
     const double in = simulate::Simulator(TracedScene(s0, Part::kInside)).source_weight();
-    if (!(all > 0 && in > 0)) throw raymatch::Error(FileLocation{spec.file}, "light_field_edge keys need a light field");
+    if (!(all > 0 && in > 0))
+      throw raymatch::Error(FileLocation{spec.file}, "light_field_edge keys need a light field");
     inside_share_ = in / all;
   }
   for (const FitImage& f : spec.images)
@@ -213,12 +215,14 @@ std::vector<double> FitModel::DefocusAt(const std::vector<double>& theta) const 
   for (const FitImage& f : spec_.images) d.push_back(f.defocus_um);
   for (size_t i = 0; i < theta.size(); ++i) {
     const std::string& k = spec_.parameters[i].key;
-    if (k.starts_with("image[") && k.ends_with("].defocus_um")) d[std::stoul(k.substr(6))] = theta[i];
+    if (k.starts_with("image[") && k.ends_with("].defocus_um"))
+      d[std::stoul(k.substr(6))] = theta[i];
   }
   return d;
 }
 
-Image FitModel::BackgroundOf(const std::vector<double>& theta, size_t i, int width, int height) const {
+Image FitModel::BackgroundOf(const std::vector<double>& theta, size_t i, int width,
+                             int height) const {
   double level = 0, gx = 0, gy = 0;
   bool any = false;
   const std::string prefix = "image[" + std::to_string(i) + "].background_";
@@ -233,12 +237,14 @@ Image FitModel::BackgroundOf(const std::vector<double>& theta, size_t i, int wid
   Image b(width, height);
   for (int y = 0; y < height; ++y)
     for (int x = 0; x < width; ++x)
-      b.at(x, y) = static_cast<float>(level + gx * (x - 0.5 * (width - 1)) + gy * (y - 0.5 * (height - 1)));
+      b.at(x, y) =
+          static_cast<float>(level + gx * (x - 0.5 * (width - 1)) + gy * (y - 0.5 * (height - 1)));
   return b;
 }
 
 uint64_t FitModel::RaysAt(double fraction) const {
-  return std::max<uint64_t>(1, std::llround(double(photon_matched_rays_) * spec_.rays.ray_factor * fraction));
+  return std::max<uint64_t>(
+      1, std::llround(double(photon_matched_rays_) * spec_.rays.ray_factor * fraction));
 }
 
 double FitModel::ScaleAt(double fraction) const {
@@ -284,7 +290,8 @@ const Image* FitModel::BackgroundAt(const simulate::Simulator& sim, size_t i, ui
   return &bg.image;
 }
 
-simulate::Scene FitModel::TracedScene(simulate::Scene s, simulate::SourceSpec::EdgePart part) const {
+simulate::Scene FitModel::TracedScene(simulate::Scene s,
+                                      simulate::SourceSpec::EdgePart part) const {
   s.source.edge_part = part;
   if (psf_os_ > 1) {
     s.camera.psf_sigma_um = 0;
@@ -305,7 +312,8 @@ Image FitModel::ApplyPsf(const Image& fine, double sigma_um, uint64_t seed, uint
   // numbers across evaluations, so the image changes smoothly with sigma.
   const double sg = sigma_um / (object_pixel_um_ / os);
   const int rows = fine.height;
-  const int workers = std::max(1, std::min(threads_ > 0 ? threads_ : int(std::thread::hardware_concurrency()), rows));
+  const int workers = std::max(
+      1, std::min(threads_ > 0 ? threads_ : int(std::thread::hardware_concurrency()), rows));
   std::vector<Image> part(size_t(workers), Image(nx, ny));
   auto run = [&](int w) {
     Image& out = part[size_t(w)];
@@ -406,7 +414,8 @@ Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, 
     }
     for (float& v : counts.pixels) v = static_cast<float>(v * s);
     if (!bg_image.pixels.empty())
-      for (size_t p = 0; p < counts.size(); ++p) counts.pixels[p] = std::max(0.0f, counts.pixels[p] + bg_image.pixels[p]);
+      for (size_t p = 0; p < counts.size(); ++p)
+        counts.pixels[p] = std::max(0.0f, counts.pixels[p] + bg_image.pixels[p]);
     out.photons.push_back(std::move(counts));
     out.photons_per_ray.push_back(s);
   }
@@ -455,11 +464,13 @@ std::string Fmt(double v, int prec) {
 /// The template of image i of `sim`, given its binned counts: each count plus one ray
 /// (TemplateMean), plus the image's read-noise shift (ReadShift), the mean every Poisson
 /// measure below compares the (equally shifted) experiment with.
-std::vector<double> FitModel::TemplateOf(const Image& binned, const Simulated& sim, size_t i, int bin) const {
+std::vector<double> FitModel::TemplateOf(const Image& binned, const Simulated& sim, size_t i,
+                                         int bin) const {
   std::vector<double> t(binned.size());
   const double shift = ReadShift(i, bin);
   for (size_t p = 0; p < binned.size(); ++p)
-    t[p] = TemplateMean(binned.pixels[p], sim.photons_per_ray[i], sim.finite_ray_correction) + shift;
+    t[p] =
+        TemplateMean(binned.pixels[p], sim.photons_per_ray[i], sim.finite_ray_correction) + shift;
   return t;
 }
 
@@ -505,7 +516,8 @@ double FitModel::Error(const Simulated& sim, int bin) const {
         break;
       }
       case ErrorFunction::kMse:
-        for (size_t p = 0; p < e.size(); ++p) s += (double(mu[i].pixels[p]) - e.pixels[p]) * (double(mu[i].pixels[p]) - e.pixels[p]);
+        for (size_t p = 0; p < e.size(); ++p)
+          s += (double(mu[i].pixels[p]) - e.pixels[p]) * (double(mu[i].pixels[p]) - e.pixels[p]);
         npix += e.size();
         break;
       case ErrorFunction::kSsim: {
@@ -545,7 +557,8 @@ void FitModel::DevianceResiduals(const Simulated& sim, int bin, double* out) con
   for (size_t i = 0; i < sim.photons.size(); ++i) {
     const Image& e = exp[i];
     const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin);
-    for (size_t p = 0; p < e.size(); ++p) *out++ = Uses(use[i], p) ? DevianceResidual(e.pixels[p], t[p]) : 0.0;
+    for (size_t p = 0; p < e.size(); ++p)
+      *out++ = Uses(use[i], p) ? DevianceResidual(e.pixels[p], t[p]) : 0.0;
   }
 }
 
@@ -575,7 +588,8 @@ void FitModel::Score(const Simulated& sim, const std::vector<std::vector<Image>>
   }
 }
 
-std::pair<double, double> FitModel::ExpectedDeviance(const Simulated& sim, int bin, size_t parameters) const {
+std::pair<double, double> FitModel::ExpectedDeviance(const Simulated& sim, int bin,
+                                                     size_t parameters) const {
   const std::vector<Image>& use = Usable(bin);  // pixels left out: saturated, clipped
   // A pixel's deviance for a correct model: the Poisson part of the experiment (exact for low
   // counts) times 1 + w for the template's own Poisson noise (w photons per ray: variance
@@ -594,7 +608,9 @@ std::pair<double, double> FitModel::ExpectedDeviance(const Simulated& sim, int b
       mean += g, var += 2 * g * g, units += u, pixels += 1;
     }
   }
-  if (pixels > 0) mean -= double(parameters) * units / pixels, var *= std::max(0.0, 1 - double(parameters) / pixels);
+  if (pixels > 0)
+    mean -= double(parameters) * units / pixels,
+        var *= std::max(0.0, 1 - double(parameters) / pixels);
   return {mean, std::sqrt(var)};
 }
 
@@ -618,7 +634,8 @@ GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameter
     auto variance = [&](double tp) { return tp + w * std::max(0.0, tp - shift); };
     for (size_t p = 0; p < e.size(); ++p)
       if (Uses(use[i], p)) {
-        r.pixels[p] = static_cast<float>((std::max(0.0f, e.pixels[p]) - t[p]) / std::sqrt(variance(t[p])));
+        r.pixels[p] =
+            static_cast<float>((std::max(0.0f, e.pixels[p]) - t[p]) / std::sqrt(variance(t[p])));
         ++g.pixels;
       }
     for (int y = 0; y < r.height; ++y)
@@ -652,11 +669,12 @@ GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameter
   }
   std::vector<std::string> why;
   if (g.z > 3)
-    why.push_back("deviance " + Fmt(g.deviance, 6) + " for " + Fmt(g.expected, 6) + " +- " + Fmt(g.sd, 3) +
-                  " expected (" + Fmt(g.z, 3) + " standard deviations)");
+    why.push_back("deviance " + Fmt(g.deviance, 6) + " for " + Fmt(g.expected, 6) + " +- " +
+                  Fmt(g.sd, 3) + " expected (" + Fmt(g.z, 3) + " standard deviations)");
   if (g.block_z > 3)
-    why.push_back("residuals structured on " + std::to_string(g.block_px * bin) + "-pixel blocks (chi-square " +
-                  Fmt(g.block_chi2, 5) + " for " + std::to_string(g.blocks) + " blocks, " + Fmt(g.block_z, 3) +
+    why.push_back("residuals structured on " + std::to_string(g.block_px * bin) +
+                  "-pixel blocks (chi-square " + Fmt(g.block_chi2, 5) + " for " +
+                  std::to_string(g.blocks) + " blocks, " + Fmt(g.block_z, 3) +
                   " standard deviations)");
   // The correlation must also matter: the simulator's own images carry a vertical neighbour
   // correlation of about 0.01 (measured between two seeds at equal parameters), 2-3.6 standard
@@ -674,8 +692,8 @@ GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameter
     g.verdict += "; the model does not describe the image within its noise, sigmas inflated by " +
                  Fmt(g.sigma_inflation, 3) + " (values may be biased beyond that)";
   } else {
-    g.verdict = "consistent with the noise (deviance " + Fmt(g.deviance, 6) + " for " + Fmt(g.expected, 6) +
-                " +- " + Fmt(g.sd, 3) + " expected)";
+    g.verdict = "consistent with the noise (deviance " + Fmt(g.deviance, 6) + " for " +
+                Fmt(g.expected, 6) + " +- " + Fmt(g.sd, 3) + " expected)";
   }
   return g;
 }

@@ -57,7 +57,8 @@ class FitModel {
   /// Expected deviance at the optimum for a correct model (Poisson and template noise) and its
   /// standard deviation, from the best images; `parameters` are subtracted from the degrees of
   /// freedom.
-  std::pair<double, double> ExpectedDeviance(const Simulated& sim, int bin, size_t parameters) const;
+  std::pair<double, double> ExpectedDeviance(const Simulated& sim, int bin,
+                                             size_t parameters) const;
 
   /// Goodness of fit at the optimum: deviance against its expectation, block chi-square of the
   /// Pearson residuals, neighbour correlation, the verdict and the sigma inflation.
@@ -110,11 +111,11 @@ class FitModel {
   /// With psf_os_ > 1: the fine image of TracedScene with the PSF sigma (um at the object
   /// plane) applied ray by ray (streams from `seed` and `plane`), summed to the camera's pixels.
   Image ApplyPsf(const Image& fine, double sigma_um, uint64_t seed, uint32_t plane) const;
-  double field_radius_ = 0;   // fixed source field radius (0: the scene's own)
+  double field_radius_ = 0;  // fixed source field radius (0: the scene's own)
   Vec3 region_center_;
   double region_radius_ = 0;
   uint64_t photon_matched_rays_ = 0;
-  double data_range_ = 1;     // L for the SSIM family (largest experimental pixel)
+  double data_range_ = 1;  // L for the SSIM family (largest experimental pixel)
   double near_fraction_ = 0;
   double background_seconds_ = 0;
   // Caches: rays near the region per (image, rays, seed); background per (..., defocus).
@@ -146,7 +147,8 @@ class FitModel {
   double ReadShift(size_t i, int bin) const;
   /// Image i's pixels that enter the likelihood, binned (empty images: all of them).
   const std::vector<Image>& Usable(int bin) const;
-  std::vector<double> TemplateOf(const Image& binned, const Simulated& sim, size_t i, int bin) const;
+  std::vector<double> TemplateOf(const Image& binned, const Simulated& sim, size_t i,
+                                 int bin) const;
 };
 
 }  // namespace raymatch::fit

@@ -2,9 +2,8 @@
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
-#include <sstream>
-
 #include <nlohmann/json.hpp>
+#include <sstream>
 
 #include "raymatch/compare/plot.h"
 #include "raymatch/core/atomic_file.h"
@@ -28,7 +27,9 @@ std::string Num(double v, int prec = 6) {
 }
 
 /// JSON number or null (never NaN in an output).
-nlohmann::json J(double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); }
+nlohmann::json J(double v) {
+  return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr);
+}
 
 nlohmann::json Matrix(const std::vector<std::vector<double>>& m) {
   nlohmann::json a = nlohmann::json::array();
@@ -42,7 +43,8 @@ nlohmann::json Matrix(const std::vector<std::vector<double>>& m) {
 
 std::string Esc(const std::string& s) {
   std::string o;
-  for (char c : s) o += c == '<' ? "&lt;" : c == '>' ? "&gt;" : c == '&' ? "&amp;" : std::string(1, c);
+  for (char c : s)
+    o += c == '<' ? "&lt;" : c == '>' ? "&gt;" : c == '&' ? "&amp;" : std::string(1, c);
   return o;
 }
 
@@ -56,14 +58,17 @@ static std::string GoodnessHtml(const GoodnessOfFit& g) {
     << (g.mismatch ? "#c00;background:#fee" : "#6a6;background:#efe") << "\"><b>" << Esc(g.verdict)
     << "</b></p>\n<table><tr><th>measure</th><th>value</th><th>expected for a correct model</th>"
        "<th>standard deviations</th></tr>\n<tr><td style=\"text-align:left\">Poisson deviance ("
-    << g.pixels << " pixels)</td><td>" << Num(g.deviance, 6) << "</td><td>" << Num(g.expected, 6) << " +- "
-    << Num(g.sd, 3) << "</td><td>" << Num(g.z, 3) << "</td></tr>\n<tr><td style=\"text-align:left\">"
-    << "chi-square of residuals summed over " << g.block_px << " x " << g.block_px << " pixel blocks</td><td>"
-    << Num(g.block_chi2, 5) << "</td><td>" << g.blocks << " +- " << Num(std::sqrt(2.0 * double(g.blocks)), 3)
-    << "</td><td>" << Num(g.block_z, 3) << "</td></tr>\n<tr><td style=\"text-align:left\">"
+    << g.pixels << " pixels)</td><td>" << Num(g.deviance, 6) << "</td><td>" << Num(g.expected, 6)
+    << " +- " << Num(g.sd, 3) << "</td><td>" << Num(g.z, 3)
+    << "</td></tr>\n<tr><td style=\"text-align:left\">"
+    << "chi-square of residuals summed over " << g.block_px << " x " << g.block_px
+    << " pixel blocks</td><td>" << Num(g.block_chi2, 5) << "</td><td>" << g.blocks << " +- "
+    << Num(std::sqrt(2.0 * double(g.blocks)), 3) << "</td><td>" << Num(g.block_z, 3)
+    << "</td></tr>\n<tr><td style=\"text-align:left\">"
     << "correlation of neighbouring residuals</td><td>" << Num(g.neighbour_correlation, 3)
-    << "</td><td>0</td><td>" << Num(g.neighbour_z, 3) << "</td></tr></table>\n<p>Sigma inflation factor "
-    << Num(g.sigma_inflation, 3) << " (applied to the reported sigma when the model does not describe "
+    << "</td><td>0</td><td>" << Num(g.neighbour_z, 3)
+    << "</td></tr></table>\n<p>Sigma inflation factor " << Num(g.sigma_inflation, 3)
+    << " (applied to the reported sigma when the model does not describe "
        "the image; see docs/fit.md, \"Goodness of fit\").</p>\n";
   return h.str();
 }
@@ -115,10 +120,14 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
                {"region_radius_um", J(res.region_radius_um)},
                {"retraced_ray_fraction", J(res.near_ray_fraction)}};
   for (const FitImage& im : spec.images)
-    j["images"].push_back({{"file", im.file}, {"defocus_um", im.defocus_um}, {"dark", im.dark_file},
-                           {"gain_e_per_dn", im.gain_e_per_dn}, {"read_noise_e", im.read_noise_e},
-                           {"saturation_dn", im.saturation_dn},
-                           {"excluded_pixels", im.excluded_pixels}});  // saturated or clipped: not in the likelihood
+    j["images"].push_back(
+        {{"file", im.file},
+         {"defocus_um", im.defocus_um},
+         {"dark", im.dark_file},
+         {"gain_e_per_dn", im.gain_e_per_dn},
+         {"read_noise_e", im.read_noise_e},
+         {"saturation_dn", im.saturation_dn},
+         {"excluded_pixels", im.excluded_pixels}});  // saturated or clipped: not in the likelihood
   auto Profile = [](const ParameterResult& p) -> nlohmann::json {
     if (p.profile_reason.empty() || p.profile_t.empty()) return nullptr;
     return {{"reason", p.profile_reason},
@@ -160,12 +169,19 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
   csv << ",ray_fraction,bin,rays,seed,error,seconds\n";
   size_t idx = 0;
   for (const Evaluation& e : res.evaluations) {
-    nlohmann::json ev = {{"stage", StageName(e.stage)}, {"theta", e.theta}, {"ray_fraction", e.ray_fraction},
-                         {"bin", e.bin}, {"rays", e.rays}, {"seed", e.seed}, {"error", J(e.error)}, {"seconds", e.seconds}};
+    nlohmann::json ev = {{"stage", StageName(e.stage)},
+                         {"theta", e.theta},
+                         {"ray_fraction", e.ray_fraction},
+                         {"bin", e.bin},
+                         {"rays", e.rays},
+                         {"seed", e.seed},
+                         {"error", J(e.error)},
+                         {"seconds", e.seconds}};
     j["evaluations"].push_back(ev);
     csv << idx++ << "," << StageName(e.stage);
     for (double v : e.theta) csv << "," << v;
-    csv << "," << e.ray_fraction << "," << e.bin << "," << e.rays << "," << e.seed << "," << e.error << "," << e.seconds << "\n";
+    csv << "," << e.ray_fraction << "," << e.bin << "," << e.rays << "," << e.seed << "," << e.error
+        << "," << e.seconds << "\n";
   }
   WriteTextFileAtomic(dir / "fit.json", j.dump(2) + "\n");
   WriteTextFileAtomic(dir / "evaluations.csv", csv.str());
@@ -175,7 +191,8 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
   for (size_t k = 0; k < res.best_images.size(); ++k) {
     const std::string stem = "image" + std::to_string(k);
     nlohmann::json meta = {{"what", "expected photons per pixel at the fit optimum"},
-                           {"fit_file", spec.file}, {"image", spec.images[k].file},
+                           {"fit_file", spec.file},
+                           {"image", spec.images[k].file},
                            {"provenance", ProvenanceJson()}};
     WriteFloatImage((dir / (stem + "_best.tif")).string(), res.best_images[k], meta.dump());
     meta["what"] = "residual (sim - exp) / sqrt(sim (1 + 1/(ray_factor x fraction)))";
@@ -190,7 +207,8 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
     chi2 /= double(std::max<size_t>(1, res.residuals[k].size()));
     imgs += "<h3>" + Esc(spec.images[k].file) + " (defocus " + Num(spec.images[k].defocus_um) +
             " um)</h3><table><tr><td>experiment</td><td>simulation at the optimum</td><td>residual "
-            "(blue -4 ... red +4 sigma); mean square " + Num(chi2, 4) + "</td></tr><tr><td>" +
+            "(blue -4 ... red +4 sigma); mean square " +
+            Num(chi2, 4) + "</td></tr><tr><td>" +
             EmbeddedPng((dir / (stem + "_experiment.png")).string()) + "</td><td>" +
             EmbeddedPng((dir / (stem + "_best.png")).string()) + "</td><td>" +
             EmbeddedPng((dir / (stem + "_residual.png")).string()) + "</td></tr></table>\n";
@@ -211,13 +229,16 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
     double at_best = p.slice_error.front();
     for (size_t k = 1; k < p.slice_x.size(); ++k)
       if (p.slice_x[k - 1] <= p.best && p.best <= p.slice_x[k]) {
-        const double w = p.slice_x[k] > p.slice_x[k - 1] ? (p.best - p.slice_x[k - 1]) / (p.slice_x[k] - p.slice_x[k - 1]) : 0;
+        const double w = p.slice_x[k] > p.slice_x[k - 1]
+                             ? (p.best - p.slice_x[k - 1]) / (p.slice_x[k] - p.slice_x[k - 1])
+                             : 0;
         at_best = p.slice_error[k - 1] + w * (p.slice_error[k] - p.slice_error[k - 1]);
       }
     if (p.best > p.slice_x.back()) at_best = p.slice_error.back();
     dot.y = {at_best};
-    compare::WritePlot((dir / png).string(), {s, dot}, "error along " + p.key + " through the optimum",
-                       p.key + (p.unit.empty() ? "" : " (" + p.unit + ")"), ErrorFunctionName(spec.error));
+    compare::WritePlot(
+        (dir / png).string(), {s, dot}, "error along " + p.key + " through the optimum",
+        p.key + (p.unit.empty() ? "" : " (" + p.unit + ")"), ErrorFunctionName(spec.error));
     plots += EmbeddedPng((dir / png).string()) + "\n";
   }
   if (res.grid_axes.size() == 1) {
@@ -230,38 +251,45 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
     const int nx = int(res.grid_axes[1].size()), ny = int(res.grid_axes[0].size());
     Image m(nx, ny);
     for (int r = 0; r < ny; ++r)
-      for (int c = 0; c < nx; ++c) m.at(c, r) = static_cast<float>(res.grid_errors[size_t(r) * nx + c]);
+      for (int c = 0; c < nx; ++c)
+        m.at(c, r) = static_cast<float>(res.grid_errors[size_t(r) * nx + c]);
     const auto [lo, hi] = std::minmax_element(res.grid_errors.begin(), res.grid_errors.end());
-    compare::WriteFalseColour((dir / "landscape.png").string(), m, *lo, *hi, std::max(4, 240 / std::max(nx, ny)));
-    plots += "<p>Grid landscape: columns " + Esc(spec.parameters[1].key) + " from " + Num(res.grid_axes[1].front()) +
-             " to " + Num(res.grid_axes[1].back()) + ", rows " + Esc(spec.parameters[0].key) + " from " +
-             Num(res.grid_axes[0].front()) + " (top) to " + Num(res.grid_axes[0].back()) +
-             "; colour: " + ErrorFunctionName(spec.error) + " from " + Num(*lo) + " (dark) to " + Num(*hi) +
-             " (yellow).</p>" + EmbeddedPng((dir / "landscape.png").string()) + "\n";
+    compare::WriteFalseColour((dir / "landscape.png").string(), m, *lo, *hi,
+                              std::max(4, 240 / std::max(nx, ny)));
+    plots += "<p>Grid landscape: columns " + Esc(spec.parameters[1].key) + " from " +
+             Num(res.grid_axes[1].front()) + " to " + Num(res.grid_axes[1].back()) + ", rows " +
+             Esc(spec.parameters[0].key) + " from " + Num(res.grid_axes[0].front()) + " (top) to " +
+             Num(res.grid_axes[0].back()) + "; colour: " + ErrorFunctionName(spec.error) +
+             " from " + Num(*lo) + " (dark) to " + Num(*hi) + " (yellow).</p>" +
+             EmbeddedPng((dir / "landscape.png").string()) + "\n";
   }
 
   std::ostringstream h;
   h << "<!doctype html><html><head><meta charset=\"utf-8\"><title>raymatch fit</title><style>"
-       "body{font-family:sans-serif;max-width:1100px;margin:2em auto}table{border-collapse:collapse}"
+       "body{font-family:sans-serif;max-width:1100px;margin:2em "
+       "auto}table{border-collapse:collapse}"
        "td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}img{image-rendering:pixelated;"
        "max-width:100%}</style></head><body>\n<h1>raymatch fit</h1>\n<p>"
     << Esc(spec.file) << ": " << MethodName(spec.method) << " on " << ErrorFunctionName(spec.error)
-    << ", status <b>" << Esc(StatusName(res.status)) << "</b>: " << Esc(res.message) << ". " << res.evaluations.size()
-    << " evaluations in " << Num(res.total_seconds, 3) << " s; best error " << Num(res.best_error) << ".</p>\n"
-    << GoodnessHtml(res.goodness) << "<h2>Parameters</h2><table><tr><th>key</th><th>unit</th><th>start</th><th>best</th>"
+    << ", status <b>" << Esc(StatusName(res.status)) << "</b>: " << Esc(res.message) << ". "
+    << res.evaluations.size() << " evaluations in " << Num(res.total_seconds, 3)
+    << " s; best error " << Num(res.best_error) << ".</p>\n"
+    << GoodnessHtml(res.goodness)
+    << "<h2>Parameters</h2><table><tr><th>key</th><th>unit</th><th>start</th><th>best</th>"
        "<th>sigma (reported)</th><th>curvature only</th><th>repeat seeds (simulation noise)</th>"
        "<th>Cramer-Rao bound</th><th>CRB incl. simulation noise</th><th>profile-likelihood 68 % "
        "interval</th><th>bounds</th></tr>\n";
   for (const ParameterResult& p : res.parameters)
     h << "<tr><td style=\"text-align:left\">" << Esc(p.key) << "</td><td>" << p.unit << "</td><td>"
-      << Num(p.start) << "</td><td>" << Num(p.best, 8) << (p.at_bound ? " (at bound)" : "") << "</td><td>"
-      << Num(p.sigma, 3) << "</td><td>" << Num(p.sigma_curvature, 3) << "</td><td>" << Num(p.sigma_repeat, 3) << "</td><td>"
-      << Num(p.sigma_cramer_rao, 3) << "</td><td>" << Num(p.sigma_expected, 3) << "</td><td"
-      << (p.profile_t.empty() ? ">not needed" : " title=\"" + Esc(p.profile_reason) + "\">[" +
-                                                    (p.profile_lower_open ? "&le; " : "") +
-                                                    Num(p.profile_lower, 8) + ", " +
-                                                    (p.profile_upper_open ? "&ge; " : "") +
-                                                    Num(p.profile_upper, 8) + "]")
+      << Num(p.start) << "</td><td>" << Num(p.best, 8) << (p.at_bound ? " (at bound)" : "")
+      << "</td><td>" << Num(p.sigma, 3) << "</td><td>" << Num(p.sigma_curvature, 3) << "</td><td>"
+      << Num(p.sigma_repeat, 3) << "</td><td>" << Num(p.sigma_cramer_rao, 3) << "</td><td>"
+      << Num(p.sigma_expected, 3) << "</td><td"
+      << (p.profile_t.empty()
+              ? ">not needed"
+              : " title=\"" + Esc(p.profile_reason) + "\">[" +
+                    (p.profile_lower_open ? "&le; " : "") + Num(p.profile_lower, 8) + ", " +
+                    (p.profile_upper_open ? "&ge; " : "") + Num(p.profile_upper, 8) + "]")
       << "</td><td>[" << Num(p.lower) << ", " << Num(p.upper) << "]</td></tr>\n";
   h << "</table>\n";
   if (!res.correlation.empty()) {
@@ -275,11 +303,17 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
     }
     h << "</table>\n";
   }
-  h << "<h2>Images</h2>\n" << imgs << "<h2>Error function</h2>\n" << plots << "<h2>Time</h2><table>";
-  for (const auto& [k, v] : res.seconds) h << "<tr><td style=\"text-align:left\">" << Esc(k) << "</td><td>" << Num(v, 3) << " s</td></tr>";
-  h << "</table>\n<p>Rays: " << res.photon_matched_rays << " photon-matched rays per image x ray factor "
-    << spec.rays.ray_factor << "; re-traced share per evaluation " << Num(res.near_ray_fraction, 3)
-    << " (rays that can meet an object; the others traced once). Every evaluation: evaluations.csv; "
+  h << "<h2>Images</h2>\n"
+    << imgs << "<h2>Error function</h2>\n"
+    << plots << "<h2>Time</h2><table>";
+  for (const auto& [k, v] : res.seconds)
+    h << "<tr><td style=\"text-align:left\">" << Esc(k) << "</td><td>" << Num(v, 3)
+      << " s</td></tr>";
+  h << "</table>\n<p>Rays: " << res.photon_matched_rays
+    << " photon-matched rays per image x ray factor " << spec.rays.ray_factor
+    << "; re-traced share per evaluation " << Num(res.near_ray_fraction, 3)
+    << " (rays that can meet an object; the others traced once). Every evaluation: "
+       "evaluations.csv; "
        "everything: fit.json.</p></body></html>\n";
   const fs::path report = dir / "report.html";
   WriteTextFileAtomic(report, h.str());

@@ -6,8 +6,8 @@
 #include <nlohmann/json.hpp>
 #include <sstream>
 
-#include "raymatch/compare/plot.h"
 #include "raymatch/compare/focus_scan.h"
+#include "raymatch/compare/plot.h"
 #include "raymatch/core/atomic_file.h"
 #include "raymatch/core/error.h"
 #include "raymatch/core/image_io.h"
@@ -64,7 +64,8 @@ AccuracyResult RunAccuracyStudy(const AccuracyOptions& o) {
     const compare::Stack st = compare::ReadStack(o.experiment_csv);
     size_t k = 0;
     for (size_t i = 1; i < st.defocus_um.size(); ++i)
-      if (std::abs(st.defocus_um[i] - o.defocus_um) < std::abs(st.defocus_um[k] - o.defocus_um)) k = i;
+      if (std::abs(st.defocus_um[i] - o.defocus_um) < std::abs(st.defocus_um[k] - o.defocus_um))
+        k = i;
     compare::Stack one{{st.defocus_um[k]}, {st.images[k]}, {st.files[k]}};
     compare::Stack rs{{o.defocus_um}, {ref_img}, {"reference"}};
     compare::FocusScanOptions fo;  // prepare + register the experiment against the reference
@@ -86,7 +87,8 @@ AccuracyResult RunAccuracyStudy(const AccuracyOptions& o) {
     row.relative_shot_noise = mean > 0 ? 1 / std::sqrt(mean) : 0;
     row.vs_reference = Measures(img, ref_img, L);
     if (!exp_img.empty()) row.vs_experiment = Measures(img, exp_img, L);
-    std::cerr << "  fraction 1/" << d << ": " << row.rays << " rays, " << row.seconds << " s" << std::endl;
+    std::cerr << "  fraction 1/" << d << ": " << row.rays << " rays, " << row.seconds << " s"
+              << std::endl;
     res.rows.push_back(row);
   }
   EnsureDirectory(o.output_dir);
@@ -103,16 +105,19 @@ AccuracyResult RunAccuracyStudy(const AccuracyOptions& o) {
     for (double v : r.vs_reference) csv << "," << v;
     for (double v : r.vs_experiment) csv << "," << v;
     csv << "\n";
-    rows.push_back({{"fraction", r.fraction}, {"rays", r.rays}, {"seconds", r.seconds},
+    rows.push_back({{"fraction", r.fraction},
+                    {"rays", r.rays},
+                    {"seconds", r.seconds},
                     {"rays_per_second", r.rays_per_second},
                     {"relative_shot_noise", r.relative_shot_noise},
-                    {"vs_reference", r.vs_reference}, {"vs_experiment", r.vs_experiment}});
+                    {"vs_reference", r.vs_reference},
+                    {"vs_experiment", r.vs_experiment}});
   }
   res.csv = (fs::path(o.output_dir) / "accuracy.csv").string();
   WriteTextFileAtomic(res.csv, csv.str());
   const nlohmann::json j = {{"provenance", ProvenanceJson()}, {"scene", o.scene_file},
-                            {"defocus_um", o.defocus_um}, {"photon_matched_rays", full},
-                            {"measures", res.measures}, {"rows", rows}};
+                            {"defocus_um", o.defocus_um},     {"photon_matched_rays", full},
+                            {"measures", res.measures},       {"rows", rows}};
   WriteTextFileAtomic(fs::path(o.output_dir) / "accuracy.json", j.dump(2) + "\n");
   // Accuracy against time: MS-SSIM and the Poisson chi^2 per pixel (both measures), against the
   // reference and, when given, the experiment, over the tracing time of each ray fraction.
@@ -136,7 +141,8 @@ AccuracyResult RunAccuracyStudy(const AccuracyOptions& o) {
     for (compare::PlotPanel* p : {&ms, &chi}) {
       const size_t k = p == &ms ? 2 : 4;
       p->series[0].x.push_back(t), p->series[0].y.push_back(r.vs_reference[k]);
-      if (p->series.size() > 1) p->series[1].x.push_back(t), p->series[1].y.push_back(r.vs_experiment[k]);
+      if (p->series.size() > 1)
+        p->series[1].x.push_back(t), p->series[1].y.push_back(r.vs_experiment[k]);
     }
   }
   res.plot = (fs::path(o.output_dir) / "accuracy.png").string();

@@ -30,27 +30,35 @@ py::dict ConeToDict(const calibrate::ConeFit& c) {
 
 void BindCalibrate(py::module_& m) {
   using CD = CalibrationData;
-  py::class_<CD>(m, "Calibration",
-                 "A calibration file's content (docs/calibration-format.md): light field, corrector, "
-                 "optics. Images are read-only NumPy views.")
+  py::class_<CD>(
+      m, "Calibration",
+      "A calibration file's content (docs/calibration-format.md): light field, corrector, "
+      "optics. Images are read-only NumPy views.")
       .def(py::init<>())
-      .def_static("read", [](const py::object& p) { return ReadCalibrationFile(PathArg(p)); }, py::arg("path"),
-                  "Reads a calibration file strictly (with its sidecars).")
+      .def_static(
+          "read", [](const py::object& p) { return ReadCalibrationFile(PathArg(p)); },
+          py::arg("path"), "Reads a calibration file strictly (with its sidecars).")
       .def(
-          "write", [](const CD& d, const py::object& p) { WriteCalibrationFile(PathArg(p), d); }, py::arg("path"),
-          "Writes the TOML file and its sidecar TIFFs (atomically).")
+          "write", [](const CD& d, const py::object& p) { WriteCalibrationFile(PathArg(p), d); },
+          py::arg("path"), "Writes the TOML file and its sidecar TIFFs (atomically).")
       .def_property_readonly("has_light_field", &CD::has_light_field)
       .def_property_readonly("has_corrector", &CD::has_corrector)
-      .def_property_readonly("angular_map", [](py::object self) { return ViewArray(self.cast<const CD&>().angular_map, self); },
-                             "Angular radiance over direction cosines (u, v) in [-angular_extent, angular_extent]^2; "
-                             "columns u increasing, rows v decreasing")
+      .def_property_readonly(
+          "angular_map",
+          [](py::object self) { return ViewArray(self.cast<const CD&>().angular_map, self); },
+          "Angular radiance over direction cosines (u, v) in [-angular_extent, angular_extent]^2; "
+          "columns u increasing, rows v decreasing")
       .def_readonly("angular_extent", &CD::angular_extent)
       .def_readonly("field_radius_um", &CD::field_radius_um)
       .def_readonly("na_limit", &CD::na_limit)
       .def_readonly("cone_half_angle_deg", &CD::cone_half_angle_deg)
-      .def_property_readonly("spatial_map", [](py::object self) { return ViewArray(self.cast<const CD&>().spatial_map, self); },
-                             "Relative irradiance at the object plane (empty = uniform)")
-      .def_property_readonly("field_size_um", [](const CD& d) { return py::make_tuple(d.field_size_um[0], d.field_size_um[1]); })
+      .def_property_readonly(
+          "spatial_map",
+          [](py::object self) { return ViewArray(self.cast<const CD&>().spatial_map, self); },
+          "Relative irradiance at the object plane (empty = uniform)")
+      .def_property_readonly(
+          "field_size_um",
+          [](const CD& d) { return py::make_tuple(d.field_size_um[0], d.field_size_um[1]); })
       .def_readonly("light_field_note", &CD::light_field_note)
       .def_readonly("ring_outer_mm", &CD::ring_outer_mm)
       .def_readonly("transmissions", &CD::transmissions)
@@ -87,8 +95,10 @@ void BindCalibrate(py::module_& m) {
         d["warnings"] = s.warnings;
         return d;
       },
-      py::arg("folder"), py::arg("map_size") = 64, py::arg("extent") = 0.0, py::arg("extrapolate_to_deg") = 0.0,
-      "`raymatch calibrate lightfield FOLDER`: the light-field source from a pinhole image and cone "
+      py::arg("folder"), py::arg("map_size") = 64, py::arg("extent") = 0.0,
+      py::arg("extrapolate_to_deg") = 0.0,
+      "`raymatch calibrate lightfield FOLDER`: the light-field source from a pinhole image and "
+      "cone "
       "images (FOLDER/metadata.toml, docs/calibration.md). map_size: angular map cells per side; "
       "extent: map half-width in direction cosines (0 = 1.15 NA); extrapolate_to_deg: continue the "
       "radiance beyond the NA up to this half-angle (deg). Returns a dict: 'calibration' (write it "
@@ -96,15 +106,18 @@ void BindCalibrate(py::module_& m) {
 
   m.def(
       "calibrate_corrector",
-      [](const py::object& folder, int zones, double smoothness, double distance_mm, const py::object& base) {
+      [](const py::object& folder, int zones, double smoothness, double distance_mm,
+         const py::object& base) {
         calibrate::CorrectorOptions o;
         o.zones = zones;
         o.smoothness = smoothness;
         o.distance_mm = distance_mm;
         const std::string f = PathArg(folder);
         std::optional<CalibrationData> b;
-        if (py::isinstance<CalibrationData>(base)) b = base.cast<CalibrationData>();
-        else if (!base.is_none()) b = ReadCalibrationFile(PathArg(base));
+        if (py::isinstance<CalibrationData>(base))
+          b = base.cast<CalibrationData>();
+        else if (!base.is_none())
+          b = ReadCalibrationFile(PathArg(base));
         calibrate::CorrectorSummary s;
         {
           py::gil_scoped_release nogil;
@@ -125,8 +138,8 @@ void BindCalibrate(py::module_& m) {
         d["warnings"] = s.warnings;
         return d;
       },
-      py::arg("folder"), py::arg("zones") = 9, py::arg("smoothness") = 0.0, py::arg("distance_mm") = 0.0,
-      py::arg("base") = py::none(),
+      py::arg("folder"), py::arg("zones") = 9, py::arg("smoothness") = 0.0,
+      py::arg("distance_mm") = 0.0, py::arg("base") = py::none(),
       "`raymatch calibrate corrector FOLDER`: angular-corrector zone transmissions from a "
       "flat-field iris series. zones: central disc + rings; smoothness: second-difference penalty "
       "weight (dimensionless); distance_mm: corrector plane from the focal plane in mm (0 = the "
@@ -137,8 +150,8 @@ void BindCalibrate(py::module_& m) {
 void BindFit(py::module_& m) {
   m.def(
       "_fit",
-      [](const py::object& fit_file, const std::string& scene, const std::string& calibration, int threads,
-         bool progress, const std::string& output) {
+      [](const py::object& fit_file, const std::string& scene, const std::string& calibration,
+         int threads, bool progress, const std::string& output) {
         const std::string path = PathArg(fit_file);
         fit::FitResult r;
         std::string report;
@@ -240,8 +253,8 @@ void BindFit(py::module_& m) {
         d["report"] = report;
         return d;
       },
-      py::arg("fit_file"), py::arg("scene"), py::arg("calibration"), py::arg("threads"), py::arg("progress"),
-      py::arg("output"));
+      py::arg("fit_file"), py::arg("scene"), py::arg("calibration"), py::arg("threads"),
+      py::arg("progress"), py::arg("output"));
 }
 
 }  // namespace raymatch::python

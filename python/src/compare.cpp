@@ -22,8 +22,8 @@ Pair Images(const py::handle& a, const py::handle& b) {
   return p;
 }
 
-compare::MsSsimOptions MsOptions(double data_range, int scales, const py::object& weights, double sigma,
-                                 double k1, double k2) {
+compare::MsSsimOptions MsOptions(double data_range, int scales, const py::object& weights,
+                                 double sigma, double k1, double k2) {
   compare::MsSsimOptions o;
   o.data_range = data_range;
   o.num_scales = scales;
@@ -37,8 +37,9 @@ compare::MsSsimOptions MsOptions(double data_range, int scales, const py::object
     } else if (w == compare::MsSsimWeightsName(compare::MsSsimWeights::kWang2003)) {
       o.weights = compare::MsSsimWeights::kWang2003;
     } else {
-      throw CompareError(FailureKind::kInvalidInput,
-                         "ms_ssim weights must be 'matlab', 'wang2003' or a list of numbers, got '" + w + "'");
+      throw CompareError(
+          FailureKind::kInvalidInput,
+          "ms_ssim weights must be 'matlab', 'wang2003' or a list of numbers, got '" + w + "'");
     }
   } else {
     o.weights = compare::MsSsimWeights::kCustom;
@@ -47,8 +48,8 @@ compare::MsSsimOptions MsOptions(double data_range, int scales, const py::object
   return o;
 }
 
-compare::CwSsimOptions CwOptions(double data_range, int level, int orientations, double k, int guard_band,
-                                 int window) {
+compare::CwSsimOptions CwOptions(double data_range, int level, int orientations, double k,
+                                 int guard_band, int window) {
   compare::CwSsimOptions o;
   o.data_range = data_range;
   o.level = level;
@@ -101,15 +102,18 @@ py::dict PoissonToDict(const compare::PoissonResult& r) {
 }
 
 const char* VerdictName(compare::Verdict v) {
-  return v == compare::Verdict::kPass ? "pass" : v == compare::Verdict::kWarning ? "warning" : "fail";
+  return v == compare::Verdict::kPass      ? "pass"
+         : v == compare::Verdict::kWarning ? "warning"
+                                           : "fail";
 }
 
 compare::Measure MeasureFromName(const std::string& n) {
   for (auto m : {compare::Measure::kMse, compare::Measure::kSsim, compare::Measure::kMsSsim,
                  compare::Measure::kCwSsim, compare::Measure::kPoissonChi2})
     if (n == compare::MeasureName(m)) return m;
-  throw CompareError(FailureKind::kInvalidInput,
-                     "unknown measure '" + n + "'; expected mse, ssim, ms_ssim, cw_ssim or poisson_chi2");
+  throw CompareError(
+      FailureKind::kInvalidInput,
+      "unknown measure '" + n + "'; expected mse, ssim, ms_ssim, cw_ssim or poisson_chi2");
 }
 
 compare::Stack MakeStack(const std::vector<double>& defocus_um, const py::iterable& images,
@@ -119,7 +123,8 @@ compare::Stack MakeStack(const std::vector<double>& defocus_um, const py::iterab
   s.images = FromArrays(images, what);
   s.files = files;
   if (s.files.empty())
-    for (size_t i = 0; i < s.images.size(); ++i) s.files.push_back(std::string(what) + "[" + std::to_string(i) + "]");
+    for (size_t i = 0; i < s.images.size(); ++i)
+      s.files.push_back(std::string(what) + "[" + std::to_string(i) + "]");
   if (s.images.size() != s.defocus_um.size() || s.files.size() != s.images.size())
     throw CompareError(FailureKind::kInvalidInput,
                        std::string(what) + ": " + std::to_string(s.images.size()) + " images but " +
@@ -142,10 +147,12 @@ void BindCompare(py::module_& m) {
       "psnr",
       [](const py::object& x, const py::object& y, double L) {
         const Pair p = Images(x, y);
-        if (!(L > 0)) throw CompareError(FailureKind::kInvalidInput, "data_range L must be > 0 (pixel units)");
+        if (!(L > 0))
+          throw CompareError(FailureKind::kInvalidInput, "data_range L must be > 0 (pixel units)");
         return compare::PeakSignalToNoiseRatio(p.a, p.b, L);
       },
-      a, b, py::arg("data_range"), "10 log10(L^2 / MSE) in dB (capped at 999 dB for identical images).");
+      a, b, py::arg("data_range"),
+      "10 log10(L^2 / MSE) in dB (capped at 999 dB for identical images).");
   m.def(
       "ssim",
       [](const py::object& x, const py::object& y, double L, double sigma, double k1, double k2,
@@ -170,15 +177,16 @@ void BindCompare(py::module_& m) {
         d["map"] = ToArray(std::move(r.map));
         return d;
       },
-      a, b, py::arg("data_range"), py::arg("sigma") = 1.5, py::arg("k1") = 0.01, py::arg("k2") = 0.03,
-      py::arg("full") = false,
-      "SSIM exactly as MATLAB ssim() (Gaussian window sigma in pixels, replicate padding, mean over "
+      a, b, py::arg("data_range"), py::arg("sigma") = 1.5, py::arg("k1") = 0.01,
+      py::arg("k2") = 0.03, py::arg("full") = false,
+      "SSIM exactly as MATLAB ssim() (Gaussian window sigma in pixels, replicate padding, mean "
+      "over "
       "the whole map; docs/compare.md). full=True returns a dict with the map and the mean "
       "luminance and contrast-structure terms.");
   m.def(
       "ms_ssim",
-      [](const py::object& x, const py::object& y, double L, int scales, const py::object& weights, double sigma,
-         double k1, double k2) {
+      [](const py::object& x, const py::object& y, double L, int scales, const py::object& weights,
+         double sigma, double k1, double k2) {
         const Pair p = Images(x, y);
         const auto o = MsOptions(L, scales, weights, sigma, k1, k2);
         compare::MsSsimResult r;
@@ -188,14 +196,15 @@ void BindCompare(py::module_& m) {
         }
         return MsToDict(r, o);
       },
-      a, b, py::arg("data_range"), py::arg("scales") = 0, py::arg("weights") = "matlab", py::arg("sigma") = 1.5,
-      py::arg("k1") = 0.01, py::arg("k2") = 0.03,
+      a, b, py::arg("data_range"), py::arg("scales") = 0, py::arg("weights") = "matlab",
+      py::arg("sigma") = 1.5, py::arg("k1") = 0.01, py::arg("k2") = 0.03,
       "MS-SSIM as MATLAB multissim(); scales 0 = one below the most the size allows; weights "
-      "'matlab', 'wang2003' or a list (normalised). Returns a dict with 'value' and per-scale terms.");
+      "'matlab', 'wang2003' or a list (normalised). Returns a dict with 'value' and per-scale "
+      "terms.");
   m.def(
       "cw_ssim",
-      [](const py::object& x, const py::object& y, double L, int level, int orientations, double k, int guard_band,
-         int window) {
+      [](const py::object& x, const py::object& y, double L, int level, int orientations, double k,
+         int guard_band, int window) {
         const Pair p = Images(x, y);
         const auto o = CwOptions(L, level, orientations, k, guard_band, window);
         compare::CwSsimResult r;
@@ -205,8 +214,8 @@ void BindCompare(py::module_& m) {
         }
         return CwToDict(r, o);
       },
-      a, b, py::arg("data_range"), py::arg("level") = 0, py::arg("orientations") = 16, py::arg("k") = 0.0,
-      py::arg("guard_band") = 0, py::arg("window") = 7,
+      a, b, py::arg("data_range"), py::arg("level") = 0, py::arg("orientations") = 16,
+      py::arg("k") = 0.0, py::arg("guard_band") = 0, py::arg("window") = 7,
       "CW-SSIM as cwssim_index.m (level 0 = one below the maximum; k in (0..255-scaled "
       "coefficient)^2; guard_band in full-resolution pixels; window in band pixels).");
   m.def(
@@ -215,17 +224,21 @@ void BindCompare(py::module_& m) {
         const Pair p = Images(x, y);
         return PoissonToDict(compare::PoissonMeasures(p.a, p.b));
       },
-      a, b, "Poisson chi-square and deviance per pixel of two photon-count images (~1 when they agree).");
+      a, b,
+      "Poisson chi-square and deviance per pixel of two photon-count images (~1 when they agree).");
   m.def(
       "compare",
-      [](const py::object& x, const py::object& y, double L, int ms_scales, const py::object& ms_weights,
-         double ms_sigma, int cw_level, int cw_orientations, double cw_k) {
+      [](const py::object& x, const py::object& y, double L, int ms_scales,
+         const py::object& ms_weights, double ms_sigma, int cw_level, int cw_orientations,
+         double cw_k) {
         // apps/compare.cpp's RunCompare, the same JSON fields except the file names.
         const Pair p = Images(x, y);
         if (!(L > 0) || !std::isfinite(L))
-          throw CompareError(FailureKind::kInvalidInput,
-                             "the data range L must be a number > 0 in pixel units, e.g. 4095 for 12-bit "
-                             "data or 65535 for 16-bit; got " + std::to_string(L));
+          throw CompareError(
+              FailureKind::kInvalidInput,
+              "the data range L must be a number > 0 in pixel units, e.g. 4095 for 12-bit "
+              "data or 65535 for 16-bit; got " +
+                  std::to_string(L));
         compare::SsimOptions so;
         so.data_range = L;
         const auto mo = MsOptions(L, ms_scales, ms_weights, ms_sigma, 0.01, 0.03);
@@ -254,8 +267,9 @@ void BindCompare(py::module_& m) {
         d["poisson"] = PoissonToDict(po);
         return d;
       },
-      a, b, py::arg("data_range"), py::arg("ms_ssim_scales") = 0, py::arg("ms_ssim_weights") = "matlab",
-      py::arg("ms_ssim_sigma") = 1.5, py::arg("cw_ssim_level") = 0, py::arg("cw_ssim_orientations") = 16,
+      a, b, py::arg("data_range"), py::arg("ms_ssim_scales") = 0,
+      py::arg("ms_ssim_weights") = "matlab", py::arg("ms_ssim_sigma") = 1.5,
+      py::arg("cw_ssim_level") = 0, py::arg("cw_ssim_orientations") = 16,
       py::arg("cw_ssim_k") = 0.0,
       "All measures of `raymatch compare A B -L data_range` as a dict (the CLI's JSON without the "
       "file names). data_range L is in pixel units (4095 for 12-bit data in 16-bit files).");
@@ -270,17 +284,23 @@ void BindCompare(py::module_& m) {
       },
       py::arg("index"));
 
-  py::class_<compare::FocusScanResult>(m, "FocusScanResult", "Result of raymatch.focus_scan (docs/compare.md)")
-      .def_property_readonly("verdict", [](const compare::FocusScanResult& r) { return VerdictName(r.verdict); },
-                             "'pass', 'warning' (some primary measures fail) or 'fail'")
-      .def_property_readonly("exit_code", [](const compare::FocusScanResult& r) { return static_cast<int>(r.verdict); },
-                             "The exit status `raymatch compare-scan` gives: 0 pass, 1 warning, 2 fail")
+  py::class_<compare::FocusScanResult>(m, "FocusScanResult",
+                                       "Result of raymatch.focus_scan (docs/compare.md)")
+      .def_property_readonly(
+          "verdict", [](const compare::FocusScanResult& r) { return VerdictName(r.verdict); },
+          "'pass', 'warning' (some primary measures fail) or 'fail'")
+      .def_property_readonly(
+          "exit_code",
+          [](const compare::FocusScanResult& r) { return static_cast<int>(r.verdict); },
+          "The exit status `raymatch compare-scan` gives: 0 pass, 1 warning, 2 fail")
       .def_readonly("message", &compare::FocusScanResult::message)
       .def_readonly("exp_defocus_um", &compare::FocusScanResult::exp_defocus_um)
       .def_readonly("sim_defocus_um", &compare::FocusScanResult::sim_defocus_um)
       .def_readonly("data_range", &compare::FocusScanResult::data_range)
-      .def_readonly("shift_px", &compare::FocusScanResult::shift_px, "(x, y) shift applied to the experiment, pixels")
-      .def_readonly("sim_scale", &compare::FocusScanResult::sim_scale, "factor applied to the simulation")
+      .def_readonly("shift_px", &compare::FocusScanResult::shift_px,
+                    "(x, y) shift applied to the experiment, pixels")
+      .def_readonly("sim_scale", &compare::FocusScanResult::sim_scale,
+                    "factor applied to the simulation")
       .def_property_readonly("registration", &compare::FocusScanResult::RegistrationSummary)
       .def_property_readonly(
           "measures",
@@ -303,7 +323,8 @@ void BindCompare(py::module_& m) {
           "exp_images",
           [](py::object self) {
             py::list l;
-            for (const auto& img : self.cast<const compare::FocusScanResult&>().exp_images) l.append(ViewArray(img, self));
+            for (const auto& img : self.cast<const compare::FocusScanResult&>().exp_images)
+              l.append(ViewArray(img, self));
             return l;
           },
           "Prepared experimental images (photons), read-only views")
@@ -311,12 +332,14 @@ void BindCompare(py::module_& m) {
           "sim_images",
           [](py::object self) {
             py::list l;
-            for (const auto& img : self.cast<const compare::FocusScanResult&>().sim_images) l.append(ViewArray(img, self));
+            for (const auto& img : self.cast<const compare::FocusScanResult&>().sim_images)
+              l.append(ViewArray(img, self));
             return l;
           },
           "Simulated images as compared (scaled), read-only views")
-      .def("to_dict", [](const compare::FocusScanResult& r) { return ToPython(r.ToJson()); },
-           "The content of compare_scan.json")
+      .def(
+          "to_dict", [](const compare::FocusScanResult& r) { return ToPython(r.ToJson()); },
+          "The content of compare_scan.json")
       .def(
           "write_report",
           [](const compare::FocusScanResult& r, const py::object& dir, const std::string& title) {
@@ -328,17 +351,20 @@ void BindCompare(py::module_& m) {
           "Writes what `raymatch compare-scan` writes (JSON, CSV, heatmaps, montage, report.html) "
           "into directory; returns the report's path.")
       .def("__repr__", [](const compare::FocusScanResult& r) {
-        return std::string("<raymatch.FocusScanResult ") + VerdictName(r.verdict) + ": " + r.message + ">";
+        return std::string("<raymatch.FocusScanResult ") + VerdictName(r.verdict) + ": " +
+               r.message + ">";
       });
 
   m.def(
       "_focus_scan",
-      [](const std::vector<double>& exp_z, const py::iterable& exp_images, const std::vector<std::string>& exp_files,
-         const std::vector<double>& sim_z, const py::iterable& sim_images, const std::vector<std::string>& sim_files,
-         double L, const std::string& dark, const std::string& flat, double gain,
+      [](const std::vector<double>& exp_z, const py::iterable& exp_images,
+         const std::vector<std::string>& exp_files, const std::vector<double>& sim_z,
+         const py::iterable& sim_images, const std::vector<std::string>& sim_files, double L,
+         const std::string& dark, const std::string& flat, double gain,
          std::optional<std::array<int, 4>> roi, bool register_shift, bool normalize, int ms_scales,
-         const py::object& ms_weights, double ms_sigma, int cw_level, int cw_orientations, double cw_k,
-         std::optional<std::vector<std::string>> measures, std::optional<std::vector<std::string>> primary) {
+         const py::object& ms_weights, double ms_sigma, int cw_level, int cw_orientations,
+         double cw_k, std::optional<std::vector<std::string>> measures,
+         std::optional<std::vector<std::string>> primary) {
         const compare::Stack e = MakeStack(exp_z, exp_images, exp_files, "experiment");
         const compare::Stack s = MakeStack(sim_z, sim_images, sim_files, "simulation");
         compare::FocusScanOptions o;
@@ -362,11 +388,12 @@ void BindCompare(py::module_& m) {
         py::gil_scoped_release nogil;
         return compare::RunFocusScan(e, s, o);
       },
-      py::arg("exp_defocus_um"), py::arg("exp_images"), py::arg("exp_files"), py::arg("sim_defocus_um"),
-      py::arg("sim_images"), py::arg("sim_files"), py::arg("data_range"), py::arg("dark"), py::arg("flat"),
-      py::arg("gain"), py::arg("roi"), py::arg("register_shift"), py::arg("normalize"), py::arg("ms_ssim_scales"),
-      py::arg("ms_ssim_weights"), py::arg("ms_ssim_sigma"), py::arg("cw_ssim_level"),
-      py::arg("cw_ssim_orientations"), py::arg("cw_ssim_k"), py::arg("measures"), py::arg("primary"));
+      py::arg("exp_defocus_um"), py::arg("exp_images"), py::arg("exp_files"),
+      py::arg("sim_defocus_um"), py::arg("sim_images"), py::arg("sim_files"), py::arg("data_range"),
+      py::arg("dark"), py::arg("flat"), py::arg("gain"), py::arg("roi"), py::arg("register_shift"),
+      py::arg("normalize"), py::arg("ms_ssim_scales"), py::arg("ms_ssim_weights"),
+      py::arg("ms_ssim_sigma"), py::arg("cw_ssim_level"), py::arg("cw_ssim_orientations"),
+      py::arg("cw_ssim_k"), py::arg("measures"), py::arg("primary"));
 }
 
 }  // namespace raymatch::python

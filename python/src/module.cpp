@@ -27,9 +27,12 @@ struct PyScene {
 
 const char* KindName(compare::FailureKind k) {
   switch (k) {
-    case compare::FailureKind::kSizeMismatch: return "size_mismatch";
-    case compare::FailureKind::kFileError: return "file_error";
-    default: return "invalid_input";
+    case compare::FailureKind::kSizeMismatch:
+      return "size_mismatch";
+    case compare::FailureKind::kFileError:
+      return "file_error";
+    default:
+      return "invalid_input";
   }
 }
 
@@ -46,12 +49,16 @@ struct TableAdder {
   toml::table& t;
   const std::string& key;
   template <class N>
-  void operator()(N&& node) const { t.insert_or_assign(key, std::forward<N>(node)); }
+  void operator()(N&& node) const {
+    t.insert_or_assign(key, std::forward<N>(node));
+  }
 };
 struct ArrayAdder {
   toml::array& a;
   template <class N>
-  void operator()(N&& node) const { a.push_back(std::forward<N>(node)); }
+  void operator()(N&& node) const {
+    a.push_back(std::forward<N>(node));
+  }
 };
 
 template <class Add>
@@ -98,7 +105,8 @@ toml::table DictToToml(const py::dict& d) {
   toml::table t;
   for (auto item : d) {
     if (!py::isinstance<py::str>(item.first))
-      throw py::type_error("scene dict: keys must be strings, got " + std::string(py::str(py::repr(item.first))));
+      throw py::type_error("scene dict: keys must be strings, got " +
+                           std::string(py::str(py::repr(item.first))));
     const std::string k = item.first.cast<std::string>();
     Insert(t, k, item.second, k);
   }
@@ -119,16 +127,17 @@ PyScene SceneFromTable(toml::table t, const std::string& source) {
 // ---------------------------------------------------------------------------------------------
 // simulate: apps/simulate.cpp's RunSimulate and simulate::RunScan without the files.
 
-py::tuple Simulate(const PyScene& ps, std::optional<uint64_t> rays, std::optional<std::vector<double>> defocus_um,
-                   std::optional<int64_t> seed, std::optional<double> photons_per_pixel, int threads,
-                   bool progress) {
+py::tuple Simulate(const PyScene& ps, std::optional<uint64_t> rays,
+                   std::optional<std::vector<double>> defocus_um, std::optional<int64_t> seed,
+                   std::optional<double> photons_per_pixel, int threads, bool progress) {
   simulate::Scene scene = ps.scene;
   if (seed) {
     if (*seed < 0) throw py::value_error("seed must be >= 0, got " + std::to_string(*seed));
     scene.trace.seed = static_cast<uint64_t>(*seed);
   }
   if (defocus_um) {
-    if (defocus_um->empty()) throw py::value_error("defocus_um is empty: give at least one focal-plane position (um)");
+    if (defocus_um->empty())
+      throw py::value_error("defocus_um is empty: give at least one focal-plane position (um)");
     scene.defocus_um = *defocus_um;
   }
   if (photons_per_pixel && *photons_per_pixel > 0) {
@@ -149,9 +158,12 @@ py::tuple Simulate(const PyScene& ps, std::optional<uint64_t> rays, std::optiona
   {
     py::gil_scoped_release nogil;
     sim = std::make_unique<simulate::Simulator>(scene);
-    if (rays) rays_per_image = *rays;
-    else if (scene.trace.rays > 0) rays_per_image = scene.trace.rays;
-    else rays_per_image = sim->RaysForPhotonTarget(scene.trace.photons_per_pixel, &hits_per_ray);
+    if (rays)
+      rays_per_image = *rays;
+    else if (scene.trace.rays > 0)
+      rays_per_image = scene.trace.rays;
+    else
+      rays_per_image = sim->RaysForPhotonTarget(scene.trace.photons_per_pixel, &hits_per_ray);
   }
   py::list images, sidecars, code_values;
   for (size_t i = 0; i < scene.defocus_um.size(); ++i) {
@@ -159,7 +171,8 @@ py::tuple Simulate(const PyScene& ps, std::optional<uint64_t> rays, std::optiona
     simulate::RunControl ctl;
     ctl.progress = progress;
     char label[64];
-    std::snprintf(label, sizeof label, "plane %zu/%zu z=%+.2f um", i + 1, scene.defocus_um.size(), dz);
+    std::snprintf(label, sizeof label, "plane %zu/%zu z=%+.2f um", i + 1, scene.defocus_um.size(),
+                  dz);
     ctl.label = label;
     simulate::PlaneResult r;
     nlohmann::json meta;
@@ -179,24 +192,26 @@ py::tuple Simulate(const PyScene& ps, std::optional<uint64_t> rays, std::optiona
     sidecars.append(ToPython(meta));
     if (PyErr_CheckSignals() != 0) throw py::error_already_set();  // Ctrl-C between planes
   }
-  return py::make_tuple(images, py::cast(scene.defocus_um), sidecars, rays_per_image,
-                        hits_per_ray, py::cast(sim->Effects()), code_values);
+  return py::make_tuple(images, py::cast(scene.defocus_um), sidecars, rays_per_image, hits_per_ray,
+                        py::cast(sim->Effects()), code_values);
 }
 
 }  // namespace
 
 void BindScene(py::module_& m) {
-  py::class_<PyScene>(m, "Scene",
-                      "A scene (docs/scene-format.md), read and checked by the same strict reader as "
-                      "`raymatch simulate`. Build one with Scene.from_file, Scene.from_toml or "
-                      "Scene.from_dict. Lengths in micrometres.")
+  py::class_<PyScene>(
+      m, "Scene",
+      "A scene (docs/scene-format.md), read and checked by the same strict reader as "
+      "`raymatch simulate`. Build one with Scene.from_file, Scene.from_toml or "
+      "Scene.from_dict. Lengths in micrometres.")
       .def_static(
           "from_file",
           [](const py::object& path) {
             const std::string p = PathArg(path);
             return PyScene{simulate::LoadScene(p), true};
           },
-          py::arg("path"), "Reads a scene file (.toml). Raises raymatch.Error 'file:line:col: error: ...'.")
+          py::arg("path"),
+          "Reads a scene file (.toml). Raises raymatch.Error 'file:line:col: error: ...'.")
       .def_static(
           "from_toml",
           [](const std::string& text, std::optional<py::object> base_dir) {
@@ -219,10 +234,12 @@ void BindScene(py::module_& m) {
           py::arg("scene"), py::arg("base_dir") = py::none(),
           "A scene from a dict shaped like the TOML file (tables = dicts, [[object]] = list of "
           "dicts, e.g. {'camera': {'pixels': [64, 48], 'pixel_pitch_um': 20}, 'object': [{...}]}). "
-          "None values are left out; NumPy arrays and scalars are accepted. name defaults to 'scene'.")
+          "None values are left out; NumPy arrays and scalars are accepted. name defaults to "
+          "'scene'.")
       .def_property_readonly("name", [](const PyScene& s) { return s.scene.name; })
-      .def_property_readonly("file", [](const PyScene& s) { return s.scene.file; },
-                             "The scene file, or '<string>' / '<dict>' (in base_dir if given)")
+      .def_property_readonly(
+          "file", [](const PyScene& s) { return s.scene.file; },
+          "The scene file, or '<string>' / '<dict>' (in base_dir if given)")
       .def_property(
           "defocus_um", [](const PyScene& s) { return s.scene.defocus_um; },
           [](PyScene& s, const std::vector<double>& v) {
@@ -244,27 +261,34 @@ void BindScene(py::module_& m) {
       .def_property(
           "threads", [](const PyScene& s) { return s.scene.trace.threads; },
           [](PyScene& s, int v) { s.scene.trace.threads = v; }, "Worker threads (0 = all cores)")
-      .def_property_readonly("pixels", [](const PyScene& s) { return py::make_tuple(s.scene.camera.nx, s.scene.camera.ny); },
-                             "(columns, rows) of the camera")
-      .def_property_readonly("pixel_pitch_um", [](const PyScene& s) { return s.scene.camera.pixel_pitch_um; })
-      .def_property_readonly("wavelength_um", [](const PyScene& s) { return s.scene.wavelength_um; })
-      .def_property_readonly("object_names", [](const PyScene& s) {
-        std::vector<std::string> n;
-        for (const auto& o : s.scene.objects) n.push_back(o.name);
-        return n;
-      })
-      .def_property_readonly("warnings", [](const PyScene& s) { return s.scene.warnings; },
-                             "Non-fatal notes from loading (the CLI prints them)")
+      .def_property_readonly(
+          "pixels",
+          [](const PyScene& s) { return py::make_tuple(s.scene.camera.nx, s.scene.camera.ny); },
+          "(columns, rows) of the camera")
+      .def_property_readonly("pixel_pitch_um",
+                             [](const PyScene& s) { return s.scene.camera.pixel_pitch_um; })
+      .def_property_readonly("wavelength_um",
+                             [](const PyScene& s) { return s.scene.wavelength_um; })
+      .def_property_readonly("object_names",
+                             [](const PyScene& s) {
+                               std::vector<std::string> n;
+                               for (const auto& o : s.scene.objects) n.push_back(o.name);
+                               return n;
+                             })
+      .def_property_readonly(
+          "warnings", [](const PyScene& s) { return s.scene.warnings; },
+          "Non-fatal notes from loading (the CLI prints them)")
       .def("__repr__", [](const PyScene& s) {
         return "<raymatch.Scene '" + s.scene.name + "' from " + s.scene.file + ": " +
-               std::to_string(s.scene.camera.nx) + "x" + std::to_string(s.scene.camera.ny) + " px, " +
-               std::to_string(s.scene.objects.size()) + " object(s), " +
+               std::to_string(s.scene.camera.nx) + "x" + std::to_string(s.scene.camera.ny) +
+               " px, " + std::to_string(s.scene.objects.size()) + " object(s), " +
                std::to_string(s.scene.defocus_um.size()) + " plane(s)>";
       });
 
   m.def("_simulate", &Simulate, py::arg("scene"), py::arg("rays") = py::none(),
         py::arg("defocus_um") = py::none(), py::arg("seed") = py::none(),
-        py::arg("photons_per_pixel") = py::none(), py::arg("threads") = 0, py::arg("progress") = false);
+        py::arg("photons_per_pixel") = py::none(), py::arg("threads") = 0,
+        py::arg("progress") = false);
 }
 
 }  // namespace raymatch::python
@@ -278,7 +302,8 @@ PYBIND11_MODULE(_raymatch, m) {
   // raymatch.Error carries the message the CLI prints after "raymatch: ", and its parts.
   // Leaked on purpose: the types must outlive every module object (pybind11 2.10 idiom).
   static auto* error_type = new py::exception<raymatch::Error>(m, "Error", PyExc_RuntimeError);
-  static auto* compare_error_type = new py::exception<raymatch::compare::CompareError>(m, "CompareError", error_type->ptr());
+  static auto* compare_error_type =
+      new py::exception<raymatch::compare::CompareError>(m, "CompareError", error_type->ptr());
   py::register_exception_translator([](std::exception_ptr p) {
     auto raise = [](py::object type, const raymatch::Error& e, const char* kind) {
       py::object inst = type(e.what());

@@ -25,8 +25,9 @@
 // error, which LocalMesh reports naming the mesh file.
 namespace Assimp {
 void aiAssertViolation(const char* expression, const char* file, int line) {
-  throw std::runtime_error(std::string("Assimp's internal check '") + (expression ? expression : "?") +
-                           "' failed (" + (file ? file : "?") + ":" + std::to_string(line) + ")");
+  throw std::runtime_error(std::string("Assimp's internal check '") +
+                           (expression ? expression : "?") + "' failed (" + (file ? file : "?") +
+                           ":" + std::to_string(line) + ")");
 }
 }  // namespace Assimp
 
@@ -77,11 +78,12 @@ void CheckMeshFileSizes(const ObjectSpec& o) {
       ws >> first;
       if (first.empty() && k > 0) continue;  // a blank line
       if (k == 0 ? first != "ply"
-                 : first != "format" && first != "comment" && first != "obj_info" && first != "element" &&
-                       first != "property")
-        throw Error(o.where, "mesh '" + o.mesh_file + "': PLY header line " + std::to_string(k + 1) +
-                                 " is not a PLY header line (ply, format, comment, obj_info, element, "
-                                 "property, end_header)");
+                 : first != "format" && first != "comment" && first != "obj_info" &&
+                       first != "element" && first != "property")
+        throw Error(o.where,
+                    "mesh '" + o.mesh_file + "': PLY header line " + std::to_string(k + 1) +
+                        " is not a PLY header line (ply, format, comment, obj_info, element, "
+                        "property, end_header)");
       std::istringstream ls(line);
       std::string word, name;
       uintmax_t count = 0;
@@ -124,16 +126,19 @@ TriangleMesh LocalMesh(const ObjectSpec& o) {
   for (unsigned k = 0; k < sc->mNumMeshes; ++k) {
     const aiMesh* mesh = sc->mMeshes[k];
     if (!mesh || (mesh->mNumVertices && !mesh->mVertices) || (mesh->mNumFaces && !mesh->mFaces))
-      throw Error(o.where, "mesh '" + o.mesh_file + "': a mesh without vertex or face data; truncated or corrupt");
+      throw Error(o.where, "mesh '" + o.mesh_file +
+                               "': a mesh without vertex or face data; truncated or corrupt");
     for (unsigned f = 0; f < mesh->mNumFaces; ++f) {
       const aiFace& face = mesh->mFaces[f];
       if (face.mNumIndices && !face.mIndices)
-        throw Error(o.where, "mesh '" + o.mesh_file + "': face " + std::to_string(f + 1) + " has no indices");
+        throw Error(o.where, "mesh '" + o.mesh_file + "': face " + std::to_string(f + 1) +
+                                 " has no indices");
       for (unsigned i = 0; i < face.mNumIndices; ++i)
         if (face.mIndices[i] >= mesh->mNumVertices)
           throw Error(o.where, "mesh '" + o.mesh_file + "': face " + std::to_string(f + 1) +
-                                   " names vertex " + std::to_string(face.mIndices[i] + 1) + " of " +
-                                   std::to_string(mesh->mNumVertices) + "; truncated or corrupt");
+                                   " names vertex " + std::to_string(face.mIndices[i] + 1) +
+                                   " of " + std::to_string(mesh->mNumVertices) +
+                                   "; truncated or corrupt");
     }
   }
   try {
@@ -159,11 +164,12 @@ TriangleMesh LocalMesh(const ObjectSpec& o) {
       for (unsigned k = 0; k < face.mNumIndices; ++k)
         if (face.mIndices[k] >= mesh->mNumVertices)
           throw Error(o.where, "mesh '" + o.mesh_file + "': face " + std::to_string(f + 1) +
-                                   " names vertex " + std::to_string(face.mIndices[k] + 1) + " of " +
-                                   std::to_string(mesh->mNumVertices) + "; truncated or corrupt");
+                                   " names vertex " + std::to_string(face.mIndices[k] + 1) +
+                                   " of " + std::to_string(mesh->mNumVertices) +
+                                   "; truncated or corrupt");
       if (face.mNumIndices == 3)
-        m.triangles.push_back({base + face.mIndices[0], base + face.mIndices[1],
-                               base + face.mIndices[2]});
+        m.triangles.push_back(
+            {base + face.mIndices[0], base + face.mIndices[1], base + face.mIndices[2]});
       else
         m.triangles.push_back({base, base, base});  // points/lines: counted as degenerate
     }
@@ -229,7 +235,8 @@ void LoadMesh(const ObjectSpec& o, std::vector<float>* verts, std::vector<unsign
     const Vec3 p = rot * v + o.center_um;
     // Embree holds vertices in float: a coordinate beyond its range would become Inf.
     if (!(std::abs(p.x) < 1e30 && std::abs(p.y) < 1e30 && std::abs(p.z) < 1e30))
-      throw Error(o.where, what + " has a vertex beyond 1e30 um after scaling and placing; check scale_um");
+      throw Error(o.where,
+                  what + " has a vertex beyond 1e30 um after scaling and placing; check scale_um");
     verts->insert(verts->end(), {float(p.x), float(p.y), float(p.z)});
   }
   for (const auto& t : m.triangles) idx->insert(idx->end(), {t[0], t[1], t[2]});
@@ -305,9 +312,8 @@ Geometry::Geometry(const std::vector<ObjectSpec>& objects) {
       rtcSetSharedGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
                                  vertices_[m].data(), 0, 3 * sizeof(float),
                                  vertices_[m].size() / 3);
-      rtcSetSharedGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
-                                 indices_[m].data(), 0, 3 * sizeof(unsigned),
-                                 indices_[m].size() / 3);
+      rtcSetSharedGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, indices_[m].data(),
+                                 0, 3 * sizeof(unsigned), indices_[m].size() / 3);
       rtcCommitGeometry(g);
       rtcAttachGeometryByID(scene, g, static_cast<unsigned>(m));
       rtcReleaseGeometry(g);

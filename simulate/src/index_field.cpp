@@ -68,8 +68,7 @@ void IndexField::Eval(const Vec3& p, double* n, Vec3* grad) const {
                    v11 = v(iz + 1, ir + 1);
       const double a0 = v00 + (v01 - v00) * fr, a1 = v10 + (v11 - v10) * fr;
       *n = a0 + (a1 - a0) * fz;
-      const double dn_dr =
-          in_r ? ((v01 - v00) * (1 - fz) + (v11 - v10) * fz) / spacing_um.x : 0.0;
+      const double dn_dr = in_r ? ((v01 - v00) * (1 - fz) + (v11 - v10) * fz) / spacing_um.x : 0.0;
       const double dn_dz = in_z ? (a1 - a0) / spacing_um.z : 0.0;
       // On the axis dn/dr is taken as 0 (the field is smooth and symmetric there).
       const Vec3 radial = r > 1e-12 ? Vec3(p.x / r, p.y / r, 0) : Vec3();
@@ -86,10 +85,12 @@ void IndexField::Eval(const Vec3& p, double* n, Vec3* grad) const {
 
 double IndexField::MaxStepUm() const {
   switch (type) {
-    case IndexFieldType::kGridRZ: return 0.5 * std::min(spacing_um.x, spacing_um.z);
+    case IndexFieldType::kGridRZ:
+      return 0.5 * std::min(spacing_um.x, spacing_um.z);
     case IndexFieldType::kGrid3D:
       return 0.5 * std::min({spacing_um.x, spacing_um.y, spacing_um.z});
-    default: return 0;
+    default:
+      return 0;
   }
 }
 
@@ -138,9 +139,15 @@ void IndexField::NextCell(const GridCell& g, int a, int side, GridCell* next) co
   next->k[a] = k;
   SetAxis(n, k, full, &next->lo[a], &next->hi[a], &next->stride[a]);
   switch (a) {
-    case 0: next->node.x = origin_um.x + i * spacing_um.x; break;
-    case 1: next->node.y = origin_um.y + i * spacing_um.y; break;
-    default: next->node.z = origin_um.z + i * spacing_um.z; break;
+    case 0:
+      next->node.x = origin_um.x + i * spacing_um.x;
+      break;
+    case 1:
+      next->node.y = origin_um.y + i * spacing_um.y;
+      break;
+    default:
+      next->node.z = origin_um.z + i * spacing_um.z;
+      break;
   }
   next->base = g.base + size_t(ptrdiff_t(i - i_old) * ptrdiff_t(full));  // wraps like a signed step
   Corners(next);
@@ -452,7 +459,9 @@ int CellStep(const IndexField& f, const Vec3& c, const GrinSettings& cfg, GridCe
     double first = 1;
     CellExit missed;
     for (int a = 0; a < 3; ++a) {
-      const double side = u1[a] > g.hi[a] + kStraddle ? 1.0 : u1[a] < g.lo[a] - kStraddle ? -1.0 : 0.0;
+      const double side = u1[a] > g.hi[a] + kStraddle   ? 1.0
+                          : u1[a] < g.lo[a] - kStraddle ? -1.0
+                                                        : 0.0;
       if (side == 0) continue;
       const double face = side > 0 ? g.hi[a] : g.lo[a];
       const double along = (face - u0[a]) / (u1[a] - u0[a]);  // chord fraction at the face

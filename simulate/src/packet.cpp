@@ -12,10 +12,11 @@
 // rounding, which moves a ray across a pixel edge almost never: the build flag guards that).
 #undef HWY_TARGET_INCLUDE
 #define HWY_TARGET_INCLUDE "packet.cpp"
+#include "packet.h"
+
 #include <hwy/foreach_target.h>  // IWYU pragma: keep
 #include <hwy/highway.h>
 
-#include "packet.h"
 #include "stages-inl.h"
 
 HWY_BEFORE_NAMESPACE();
@@ -126,8 +127,7 @@ HWY_INLINE hn::Mask<DF> DiscPair(Words& w, int j, hn::Vec<DF>& a, hn::Vec<DF>& b
 
 // SampleUnitDisc from each lane's cursor on (even: every draw before it came in pairs). A lane
 // whose words run out gets cursor -1.
-HWY_INLINE void UnitDisc(Words& w, hn::Vec<DI>& cursor, hn::Vec<DF>& a_out,
-                         hn::Vec<DF>& b_out) {
+HWY_INLINE void UnitDisc(Words& w, hn::Vec<DI>& cursor, hn::Vec<DF>& a_out, hn::Vec<DF>& b_out) {
   const DF df;
   const DI di;
   auto done = hn::RebindMask(df, hn::Lt(cursor, hn::Zero(di)));  // out of words already
@@ -146,8 +146,8 @@ HWY_INLINE void UnitDisc(Words& w, hn::Vec<DI>& cursor, hn::Vec<DF>& a_out,
 
 // Two discs drawn one after the other from word 0 (a disc field, then a cone's direction) in
 // one pass over the pairs: the first inside pair is the field's, the next one the direction's.
-HWY_INLINE void TwoDiscs(Words& w, hn::Vec<DI>& cursor, hn::Vec<DF>& fa,
-                         hn::Vec<DF>& fb, hn::Vec<DF>& da, hn::Vec<DF>& db) {
+HWY_INLINE void TwoDiscs(Words& w, hn::Vec<DI>& cursor, hn::Vec<DF>& fa, hn::Vec<DF>& fb,
+                         hn::Vec<DF>& da, hn::Vec<DF>& db) {
   const DF df;
   const DI di;
   auto field_done = hn::Lt(hn::Zero(df), hn::Zero(df)), dir_done = field_done;  // all false
@@ -216,7 +216,8 @@ void SampleSourceImpl(const SourceParams& s, uint64_t seed, uint32_t stream, con
         break;
       case SourceParams::kTabulated: {  // the caller maps (u, v) through the angular table
         // Lanes out of words keep cursor -1; the others need two more words.
-        const auto ok = hn::AndNot(hn::Lt(cursor, hn::Zero(di)), hn::Lt(cursor, hn::Set(di, kWords - 1)));
+        const auto ok =
+            hn::AndNot(hn::Lt(cursor, hn::Zero(di)), hn::Lt(cursor, hn::Set(di, kWords - 1)));
         auto u = hn::Zero(df), v = hn::Zero(df);
         for (int j = 0; j + 1 < kWords; j += 2) {  // the cursor is even here
           const auto at = hn::RebindMask(df, hn::Eq(cursor, hn::Set(di, j)));
@@ -231,11 +232,12 @@ void SampleSourceImpl(const SourceParams& s, uint64_t seed, uint32_t stream, con
       }
     }
     // The words the caller reads after the source (polarisation, corrector) must exist too.
-    if (extra_words > 0) w.Need(static_cast<int>(hn::GetLane(hn::MaxOfLanes(di, cursor))) + extra_words - 1);
+    if (extra_words > 0)
+      w.Need(static_cast<int>(hn::GetLane(hn::MaxOfLanes(di, cursor))) + extra_words - 1);
     hn::StoreU(cursor, di, r->cursor + i);
-    hn::StoreU(hn::IfThenElseZero(hn::RebindMask(df, hn::Lt(cursor, hn::Zero(di))),
-                                  hn::Set(df, kScalar)),
-               df, r->out + i);
+    hn::StoreU(
+        hn::IfThenElseZero(hn::RebindMask(df, hn::Lt(cursor, hn::Zero(di))), hn::Set(df, kScalar)),
+        df, r->out + i);
   }
 }
 
@@ -250,15 +252,16 @@ void TabulatedImpl(const Table2D& t, size_t n, Rays* r) {
     if (hn::AllFalse(df, open)) continue;
     // Distribution2D::Sample(u0, u1): y from the marginal with u1, then x in that row with u0
     hn::Vec<DI> row, col;
-    const auto y = st::Sample1D<L>(t.marginal_cdf.data(), hn::Zero(di), t.marginal_guide.data(),
-                            hn::Zero(di), t.height, t.marginal_guide_size, hn::LoadU(df, r->v + i), &row);
+    const auto y =
+        st::Sample1D<L>(t.marginal_cdf.data(), hn::Zero(di), t.marginal_guide.data(), hn::Zero(di),
+                        t.height, t.marginal_guide_size, hn::LoadU(df, r->v + i), &row);
     // The row's offsets, multiplied in double (exact for these sizes; not every target
     // multiplies 64-bit integers).
     const auto row_d = hn::ConvertTo(df, row);
     const auto cdf_at = hn::ConvertTo(di, hn::Mul(row_d, hn::Set(df, double(t.width + 1))));
     const auto guide_at = hn::ConvertTo(di, hn::Mul(row_d, hn::Set(df, double(t.row_guide_size))));
     const auto x = st::Sample1D<L>(t.row_cdf.data(), cdf_at, t.row_guide.data(), guide_at, t.width,
-                            t.row_guide_size, hn::LoadU(df, r->u + i), &col);
+                                   t.row_guide_size, hn::LoadU(df, r->u + i), &col);
     // Beyond the unit circle: escaped
     st::V3<L> d;
     const auto beyond = hn::And(open, st::TabulatedDirection<L>(x, y, t.extent, d));
@@ -278,24 +281,26 @@ HWY_INLINE void Summarise(const Optics& o, hn::Vec<DF> out, size_t i, size_t n, 
   const auto valid = hn::FirstN(df, n - i);  // the last vector may reach past the batch
   const auto detected = hn::Ge(out, hn::Zero(df));
   // Pixel indices are integers below 2^31: exact in double and in int64.
-  const auto spare = hn::Add(hn::Set(df, o.nx * o.ny),
-                             hn::ConvertTo(df, hn::And(hn::Iota(di, 0), hn::Set(di, kSpareSlots - 1))));
+  const auto spare =
+      hn::Add(hn::Set(df, o.nx * o.ny),
+              hn::ConvertTo(df, hn::And(hn::Iota(di, 0), hn::Set(di, kSpareSlots - 1))));
   hn::StoreU(hn::ConvertTo(di, hn::IfThenElse(detected, out, spare)), di, r->slot + i);
   r->counts[int(Fate::kDetected)] += hn::CountTrue(df, hn::And(valid, detected));
   for (Fate f : kPacketFates)
     r->counts[int(f)] += hn::CountTrue(df, hn::And(valid, hn::Eq(out, hn::Set(df, FateCode(f)))));
-  const auto back = hn::And(valid, hn::Or(hn::Eq(out, hn::Set(df, kScalar)), hn::Eq(out, hn::Set(df, kNear))));
+  const auto back =
+      hn::And(valid, hn::Or(hn::Eq(out, hn::Set(df, kScalar)), hn::Eq(out, hn::Set(df, kNear))));
   if (!hn::AllFalse(df, back)) {
     uint8_t bits[8] = {};
     hn::StoreMaskBits(df, back, bits);
     for (size_t k = 0; k < hn::Lanes(df); ++k)
-      if ((bits[k / 8] >> (k % 8)) & 1) r->handed_back[r->num_handed_back++] = static_cast<int64_t>(i + k);
+      if ((bits[k / 8] >> (k % 8)) & 1)
+        r->handed_back[r->num_handed_back++] = static_cast<int64_t>(i + k);
   }
 }
 
 // The near test (before the optics only), then the optics stages (stages-inl.h) to a pixel.
-void OpticsImpl(const NearParams& near, const Optics& o, size_t n, bool from_objects,
-                    Rays* r) {
+void OpticsImpl(const NearParams& near, const Optics& o, size_t n, bool from_objects, Rays* r) {
   const DF df;
   const size_t N = hn::Lanes(df);
   const auto zero = hn::Zero(df);
@@ -369,7 +374,8 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
   for (size_t i = 0; i < n; i += N) {
     const auto px = hn::LoadU(df, r->px + i), py = hn::LoadU(df, r->py + i),
                pz = hn::LoadU(df, r->pz + i);
-    auto dx = hn::LoadU(df, r->dx + i), dy = hn::LoadU(df, r->dy + i), dz = hn::LoadU(df, r->dz + i);
+    auto dx = hn::LoadU(df, r->dx + i), dy = hn::LoadU(df, r->dy + i),
+         dz = hn::LoadU(df, r->dz + i);
     const st::V3<L> o = st::OnPlane<L>(sp.source_z, {px, py, pz}, {dx, dy, dz}, hn::Div(one, dz));
     auto ox = o.x, oy = o.y, oz = o.z;
     auto cursor = hn::LoadU(di, r->cursor + i);
@@ -378,13 +384,15 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
     auto depth = hn::Zero(di), events = hn::Zero(di), internal = hn::Zero(di);
     auto queries = hn::Zero(di), interface = hn::Zero(di), fresnel = hn::Zero(di);
     auto path_class = hn::Set(di, -1);
-    auto classified = hn::Lt(zero, zero);  // all false
+    auto classified = hn::Lt(zero, zero);             // all false
     auto finish = [&](hn::Mask<DF> m, double code) {  // lanes that end here with this outcome
       out = hn::IfThenElse(m, hn::Set(df, code), out);
       active = hn::AndNot(m, active);
     };
     auto as_i = [&](hn::Mask<DF> m) { return hn::RebindMask(di, m); };
-    auto count = [&](hn::Vec<DI>& v, hn::Mask<DF> m) { v = hn::IfThenElse(as_i(m), hn::Add(v, hn::Set(di, 1)), v); };
+    auto count = [&](hn::Vec<DI>& v, hn::Mask<DF> m) {
+      v = hn::IfThenElse(as_i(m), hn::Add(v, hn::Set(di, 1)), v);
+    };
     while (!hn::AllFalse(df, active)) {
       count(queries, active);  // ++c.shape_queries
       // IntersectSphere(o, d, c, r2)
@@ -429,14 +437,16 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
       // Refract(d, nf, n1 / n2)
       st::V3<L> tr;
       hn::Vec<DF> ct;
-      const auto tir = st::Refract<L>({dx, dy, dz}, {fx2, fy2, fz2}, hn::Div(n1, n2), cos_i, tr, ct);
+      const auto tir =
+          st::Refract<L>({dx, dy, dz}, {fx2, fy2, fz2}, hn::Div(n1, n2), cos_i, tr, ct);
       const auto tx = tr.x, ty = tr.y, tz = tr.z;
       auto reflect = tir;
       if (sp.fresnel) {
         const auto draw = hn::AndNot(tir, active);
         count(fresnel, draw);
         // rng.Uniform() from the lane's next word; a lane out of words goes to the scalar path
-        const auto out_of_words = hn::And(draw, hn::RebindMask(df, hn::Gt(cursor, hn::Set(di, kWords - 1))));
+        const auto out_of_words =
+            hn::And(draw, hn::RebindMask(df, hn::Gt(cursor, hn::Set(di, kWords - 1))));
         finish(out_of_words, kScalar);
         const auto drawing = hn::AndNot(out_of_words, draw);
         const auto u = UniformAtCursor(*r, i, cursor, drawing);
@@ -470,12 +480,15 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
       // Path classes of the first departure (TraceObjects): reflected at the first entry -> 0;
       // internal reflections counted until the ray first leaves -> 1 + their number (max 7).
       const auto open = hn::AndNot(classified, active);
-      const auto first_reflection = hn::And(hn::And(open, reflect),
-                                            hn::And(entering, hn::RebindMask(df, hn::Eq(events, hn::Set(di, 1)))));
+      const auto first_reflection =
+          hn::And(hn::And(open, reflect),
+                  hn::And(entering, hn::RebindMask(df, hn::Eq(events, hn::Set(di, 1)))));
       path_class = hn::IfThenElse(as_i(first_reflection), hn::Zero(di), path_class);
       count(internal, hn::AndNot(first_reflection, hn::AndNot(entering, hn::And(open, reflect))));
       const auto leaves = hn::AndNot(entering, hn::AndNot(reflect, open));
-      path_class = hn::IfThenElse(as_i(leaves), hn::Min(hn::Add(internal, hn::Set(di, 1)), hn::Set(di, kPathClasses - 1)), path_class);
+      path_class = hn::IfThenElse(
+          as_i(leaves), hn::Min(hn::Add(internal, hn::Set(di, 1)), hn::Set(di, kPathClasses - 1)),
+          path_class);
       classified = hn::Or(classified, hn::Or(first_reflection, leaves));
       // The ray moves on (lanes still in the loop only).
       dx = hn::IfThenElse(active, hn::Div(ex, elen), dx);
@@ -531,7 +544,9 @@ void OpticsAfterObjects(const Optics& o, size_t n, Rays* r) {
   HWY_DYNAMIC_DISPATCH(OpticsImpl)(NearParams{}, o, n, true, r);
 }
 void Sphere(const SphereParams& s, size_t n, Rays* r) { HWY_DYNAMIC_DISPATCH(SphereImpl)(s, n, r); }
-void Tabulated(const Table2D& t, size_t n, Rays* r) { HWY_DYNAMIC_DISPATCH(TabulatedImpl)(t, n, r); }
+void Tabulated(const Table2D& t, size_t n, Rays* r) {
+  HWY_DYNAMIC_DISPATCH(TabulatedImpl)(t, n, r);
+}
 const char* TargetName() {
   // The target HWY_DYNAMIC_DISPATCH uses: the best one both compiled and supported.
   const int64_t chosen = hwy::SupportedTargets() & HWY_TARGETS;

@@ -24,7 +24,7 @@ inline constexpr size_t kBatch = 256;  ///< rays per batch: a multiple of every 
 inline constexpr int kWords = 12;      ///< random words per ray made up front (3 Philox blocks)
 inline constexpr int kMaxBounds = 8;   ///< objects the near test takes; more: scalar path
 
-inline constexpr int kPathClasses = 8;         ///< TraceCounters::path_class
+inline constexpr int kPathClasses = 8;  ///< TraceCounters::path_class
 
 /// The light field's angular table (a Distribution2D, sampling.h) laid out for the packet
 /// stage: the marginal over rows and every row's conditional, each a cdf (n + 1 values) and a
@@ -73,7 +73,7 @@ struct Rays {
   double dx[kBatch], dy[kBatch], dz[kBatch];  ///< unit direction
   double u[kBatch], v[kBatch];  ///< tabulated direction's uniforms; u: then the corrector draw
   double psf_du[kBatch], psf_dv[kBatch];  ///< the camera PSF's offset at the sensor (PsfDraws)
-  double out[kBatch];           ///< pixel index, FateCode(fate), kScalar or kNear (stages.h)
+  double out[kBatch];  ///< pixel index, FateCode(fate), kScalar or kNear (stages.h)
   // The optics' summary of out[0, n): the image element each lane adds one to (its pixel, or
   // for every other outcome a spare element past the image, npix + lane % 8, so that the adds
   // never wait on each other), the lanes for the scalar path or the near list (kScalar, kNear)

@@ -41,9 +41,9 @@ static std::string FormatDefocus(double z) {
 }
 
 static const char* PrName(PartialReflection p) {
-  return p == PartialReflection::kOff ? "off"
+  return p == PartialReflection::kOff           ? "off"
          : p == PartialReflection::kUnpolarized ? "unpolarized"
-                                                 : "polarized";
+                                                : "polarized";
 }
 
 nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_t plane_index) {
@@ -88,7 +88,8 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
       {"seconds", r.seconds},
       {"threads", r.threads},
       {"mpi_ranks", r.ranks},
-      {"simd", r.simd ? std::string(SimdTarget()) + " packets (Google Highway)" : "off (one ray at a time)"},
+      {"simd", r.simd ? std::string(SimdTarget()) + " packets (Google Highway)"
+                      : "off (one ray at a time)"},
       {"rays_per_second", r.seconds > 0 ? r.rays / r.seconds : 0.0},
       {"effects", sim.Effects()},
       {"partial_reflection", PrName(s.trace.partial_reflection)},
@@ -115,8 +116,8 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
         {"max_counts", st.max},
         {"object_pixel_um", sim.object_pixel_um()},
         {"magnification", Magnification(s.optics)},
-        {"orientation", s.camera.flip ? "upright: +x right, +y up (inversion undone)"
-                                      : "raw sensor: inverted"}}},
+        {"orientation",
+         s.camera.flip ? "upright: +x right, +y up (inversion undone)" : "raw sensor: inverted"}}},
       {"wavelength_um", s.wavelength_um},
       {"medium_index", s.medium_index},
       {"objects", objects},
@@ -146,8 +147,9 @@ bool CodeValues(const Scene& scene, const Image& counts, uint32_t plane_index, I
             {"bit_depth", c.bit_depth},
             {"saturated_pixels", n.saturated},
             {"clipped_low_pixels", n.clipped_low},
-            {"model", "counts as photoelectrons, clipped at the full well, + Gaussian read noise, / gain + "
-                      "dark level, rounded, clipped to [0, 2^bits - 1]"}};
+            {"model",
+             "counts as photoelectrons, clipped at the full well, + Gaussian read noise, / gain + "
+             "dark level, rounded, clipped to [0, 2^bits - 1]"}};
   return true;
 }
 
@@ -182,8 +184,8 @@ ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
     const double dz = scene.defocus_um[i];
     RunControl ctl = opt.control;
     char label[64];
-    std::snprintf(label, sizeof label, "plane %zu/%zu z=%+.2f um", i + 1,
-                  scene.defocus_um.size(), dz);
+    std::snprintf(label, sizeof label, "plane %zu/%zu z=%+.2f um", i + 1, scene.defocus_um.size(),
+                  dz);
     ctl.label = label;
     const PlaneResult r = sim.TracePlane(dz, static_cast<uint32_t>(i), sum.rays_per_image, ctl);
     nlohmann::json meta = PlaneMetadata(sim, r, static_cast<uint32_t>(i));
@@ -211,11 +213,13 @@ ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
     }
     out.mean_counts = ComputeStats(r.counts).mean;
     out.seconds = r.seconds;
-    planes.push_back({{"defocus_um", dz},
-                      {"image", fs::path(out.image).filename().string()},
-                      {"png", out.png.empty() ? "" : fs::path(out.png).filename().string()},
-                      {"sidecar", fs::path(out.sidecar).filename().string()},
-                      {"code_values", out.code_values.empty() ? "" : fs::path(out.code_values).filename().string()}});
+    planes.push_back(
+        {{"defocus_um", dz},
+         {"image", fs::path(out.image).filename().string()},
+         {"png", out.png.empty() ? "" : fs::path(out.png).filename().string()},
+         {"sidecar", fs::path(out.sidecar).filename().string()},
+         {"code_values",
+          out.code_values.empty() ? "" : fs::path(out.code_values).filename().string()}});
     csv << FormatDefocus(dz) << "," << fs::path(out.image).filename().string() << ","
         << (out.png.empty() ? "" : fs::path(out.png).filename().string()) << ","
         << fs::path(out.sidecar).filename().string() << "," << r.rays << ","

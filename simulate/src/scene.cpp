@@ -57,7 +57,8 @@ void ReadField(TomlReader& r, SourceSpec& s) {
 
 SourceSpec ReadSource(TomlReader r, const std::string& file) {
   SourceSpec s;
-  const std::string type = r.Choice("type", {"collimated", "cone", "point", "lightfield", "ray_list"});
+  const std::string type =
+      r.Choice("type", {"collimated", "cone", "point", "lightfield", "ray_list"});
   if (type == "collimated") {
     s.type = SourceType::kCollimated;
     ReadField(r, s);
@@ -88,7 +89,8 @@ SourceSpec ReadSource(TomlReader r, const std::string& file) {
     for (size_t i = 0; i < a.shape[0]; ++i) {
       const double* v = &a.values[5 * i];
       for (int k = 0; k < 5; ++k)
-        if (!std::isfinite(v[k])) r.Fail("file", "ray " + std::to_string(i) + " has a NaN or Inf value");
+        if (!std::isfinite(v[k]))
+          r.Fail("file", "ray " + std::to_string(i) + " has a NaN or Inf value");
       if (v[2] * v[2] + v[3] * v[3] >= 1)
         r.Fail("file", "ray " + std::to_string(i) + ": direction cosines need u^2 + v^2 < 1");
       if (v[4] < 0) r.Fail("file", "ray " + std::to_string(i) + ": negative weight");
@@ -143,15 +145,15 @@ void ReadMaterial(TomlReader& r, const Scene& scene, ObjectSpec& o) {
   o.index = w.n;
   std::ostringstream os;
   os.precision(8);
-  os << "water (IAPWS R9-97, T=" << T << " K, rho=" << rho << " kg/m^3, lambda="
-     << scene.wavelength_um << " um): n=" << w.n;
+  os << "water (IAPWS R9-97, T=" << T << " K, rho=" << rho
+     << " kg/m^3, lambda=" << scene.wavelength_um << " um): n=" << w.n;
   o.material = os.str();
 }
 
 std::shared_ptr<const IndexField> ReadIndexField(TomlReader r, Scene& scene, const ObjectSpec& o) {
   auto f = std::make_shared<IndexField>();
-  const std::string type = r.Choice(
-      "type", {"luneburg", "fisheye", "parabolic", "linear_n2", "grid_rz", "grid_3d"});
+  const std::string type =
+      r.Choice("type", {"luneburg", "fisheye", "parabolic", "linear_n2", "grid_rz", "grid_3d"});
   if (type == "luneburg") {
     f->type = IndexFieldType::kLuneburg;
     f->n0 = r.Positive("n0", scene.medium_index);
@@ -187,8 +189,9 @@ std::shared_ptr<const IndexField> ReadIndexField(TomlReader r, Scene& scene, con
     }
     const size_t dims = rz ? 2 : 3;
     if (a.shape.size() != dims)
-      r.Fail("file", std::string("expected a ") + (rz ? "2D array [nz][nr]" : "3D array [nz][ny][nx]") +
-                         ", got " + std::to_string(a.shape.size()) + " dimensions");
+      r.Fail("file", std::string("expected a ") +
+                         (rz ? "2D array [nz][nr]" : "3D array [nz][ny][nx]") + ", got " +
+                         std::to_string(a.shape.size()) + " dimensions");
     for (size_t i = 0; i < a.size(); ++i)
       if (!std::isfinite(a.values[i]))
         r.Fail("file", "grid value " + std::to_string(i) + " (flat C-order index) is NaN or Inf");
@@ -196,8 +199,10 @@ std::shared_ptr<const IndexField> ReadIndexField(TomlReader r, Scene& scene, con
     for (double v : sp)
       if (!(v > 0)) r.Fail("spacing_um", "spacings must be positive");
     std::vector<double> org(dims, 0.0);
-    if (r.Has("origin_um")) org = r.Numbers("origin_um", dims, dims);
-    else r.Number("origin_um", 0);
+    if (r.Has("origin_um"))
+      org = r.Numbers("origin_um", dims, dims);
+    else
+      r.Number("origin_um", 0);
     if (rz) {
       f->nz = int(a.shape[0]), f->nx = int(a.shape[1]), f->ny = 1;
       f->spacing_um = {sp[0], 1, sp[1]};
@@ -295,7 +300,8 @@ ObjectSpec ReadObject(TomlReader r, Scene& scene, int i) {
     Outline outline;
     try {
       if (r.Has("outline_rz_um")) {
-        for (const auto& row : r.NumberRows("outline_rz_um", 2)) outline.push_back({row[0], row[1]});
+        for (const auto& row : r.NumberRows("outline_rz_um", 2))
+          outline.push_back({row[0], row[1]});
         o.shape_description = "revolved outline (" + std::to_string(outline.size()) + " points)";
       } else if (r.Has("outline_file")) {
         const std::string f = Resolve(scene.file, r.String("outline_file"));
@@ -311,12 +317,15 @@ ObjectSpec ReadObject(TomlReader r, Scene& scene, int i) {
         so.smooth_px = r.InRange("smooth_px", 0, 100, 1.5);
         double axis = 0;
         outline = OutlineFromSilhouette(ReadImage(f), so, &axis);
-        o.shape_description = "revolved silhouette of " + f + " (axis at " +
-                              std::to_string(axis) + " px)";
+        o.shape_description =
+            "revolved silhouette of " + f + " (axis at " + std::to_string(axis) + " px)";
       }
     } catch (const Error& e) {
       if (!e.where().file.empty() && e.where().file != scene.file) throw;
-      r.Fail(r.Has("outline_rz_um") ? "outline_rz_um" : r.Has("outline_file") ? "outline_file" : "outline_image", e.message());
+      r.Fail(r.Has("outline_rz_um")  ? "outline_rz_um"
+             : r.Has("outline_file") ? "outline_file"
+                                     : "outline_image",
+             e.message());
     }
     const int segments = static_cast<int>(r.Integer("segments", 256, 8, 65536));
     o.mesh = std::make_shared<TriangleMesh>(RevolveOutline(outline, segments));
@@ -331,12 +340,13 @@ ObjectSpec ReadObject(TomlReader r, Scene& scene, int i) {
       r.Fail("file", e.what());
     }
     const auto sp = r.Numbers("spacing_um", 3, 3);
-    const auto org = r.Has("origin_um") ? r.Numbers("origin_um", 3, 3) : std::vector<double>{0, 0, 0};
+    const auto org =
+        r.Has("origin_um") ? r.Numbers("origin_um", 3, 3) : std::vector<double>{0, 0, 0};
     if (!(sp[0] > 0 && sp[1] > 0 && sp[2] > 0)) r.Fail("spacing_um", "spacings must be positive");
     const double iso = r.InRange("iso", 0, 1, 0.5, true, true);
     try {
-      o.mesh = std::make_shared<TriangleMesh>(MeshFromVolumeFraction(
-          a, {sp[0], sp[1], sp[2]}, {org[0], org[1], org[2]}, iso));
+      o.mesh = std::make_shared<TriangleMesh>(
+          MeshFromVolumeFraction(a, {sp[0], sp[1], sp[2]}, {org[0], org[1], org[2]}, iso));
     } catch (const Error& e) {
       r.Fail("file", e.message());
     }
@@ -392,7 +402,8 @@ OpticsSpec ReadOptics(TomlReader& top, double medium_index) {
   o.model = model == "single" ? ObjectiveModel::kSingle : ObjectiveModel::kTwoLens;
   o.objective_focal_mm = obj.Positive("focal_length_mm");
   // NA = n sin(theta) with n the scene's medium (dry: 1, water dipping: 1.33), so NA < n.
-  if (!obj.Has("na")) obj.Fail("na", "required: numerical aperture NA = n sin(theta), 0 < NA < medium_index");
+  if (!obj.Has("na"))
+    obj.Fail("na", "required: numerical aperture NA = n sin(theta), 0 < NA < medium_index");
   o.na = obj.InRange("na", 0, 3, 0, true, true);
   if (o.na >= medium_index)
     obj.Fail("na", "NA = n sin(theta) must be below the medium's index n = medium_index = " +
@@ -482,8 +493,9 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
   if (r.Has("light_field_edge")) {
     TomlReader e = r.Table("light_field_edge");
     if (!(s.source.type == SourceType::kLightField && s.source.map_na_limit > 0))
-      e.Fail("half_angle_deg", "the edge continues a calibrated light field cut at the objective's NA "
-                               "(a calibration file with na_limit > 0 and no [source] table)");
+      e.Fail("half_angle_deg",
+             "the edge continues a calibrated light field cut at the objective's NA "
+             "(a calibration file with na_limit > 0 and no [source] table)");
     const double na_deg = std::asin(s.source.map_na_limit) * 180 / M_PI;
     s.source.edge_half_angle_deg = e.InRange("half_angle_deg", na_deg - 10, na_deg + 10, 0);
     s.source.edge_width_deg = e.InRange("width_deg", 0.05, 5, 0);
@@ -509,7 +521,8 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
                                 " (NA = n sin(theta), docs/conventions.md)");
     s.optics.working_distance_mm = cal->working_distance_mm;
     s.optics.tube_focal_mm = cal->tube_focal_mm;
-    if (r.Has("tube_lens")) r.Fail("tube_lens", "give [objective] too, or neither (both come from the calibration)");
+    if (r.Has("tube_lens"))
+      r.Fail("tube_lens", "give [objective] too, or neither (both come from the calibration)");
     ReadCorrector(r, &s.optics);
   }
   if (cal && cal->has_corrector() && !r.Has("corrector")) {
@@ -572,7 +585,8 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
     s.trace.threads = static_cast<int>(tr.Integer("threads", 0, 0, 4096));
     s.trace.grin.tolerance_um = tr.Positive("grin_tolerance_um", s.trace.grin.tolerance_um);
     s.trace.grin.max_step_um = tr.Positive("grin_max_step_um", 0.0);
-    s.trace.grin.max_steps = static_cast<int>(tr.Integer("grin_max_steps", s.trace.grin.max_steps, 1, 1000000000));
+    s.trace.grin.max_steps =
+        static_cast<int>(tr.Integer("grin_max_steps", s.trace.grin.max_steps, 1, 1000000000));
     s.trace.grin.uniform_tolerance =
         tr.InRange("grin_uniform_tolerance", -1.0, 1e-3, s.trace.grin.uniform_tolerance);
     s.trace.grin.cell_steps = tr.Bool("grin_cell_steps", s.trace.grin.cell_steps);

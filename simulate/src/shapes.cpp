@@ -103,7 +103,8 @@ Outline OutlineFromSilhouette(const Image& image, const SilhouetteOptions& opt,
   while (left[y1] < 0) --y1;
   std::vector<double> r(y1 - y0 + 1);
   for (int y = y0; y <= y1; ++y)
-    r[y - y0] = left[y] < 0 ? 0 : 0.5 * (std::max(0.0, axis - left[y]) + std::max(0.0, right[y] - axis));
+    r[y - y0] =
+        left[y] < 0 ? 0 : 0.5 * (std::max(0.0, axis - left[y]) + std::max(0.0, right[y] - axis));
   if (opt.smooth_px > 0) {
     cv::Mat rv(1, static_cast<int>(r.size()), CV_64F, r.data()), sm;
     cv::GaussianBlur(rv, sm, cv::Size(0, 0), opt.smooth_px, 0, cv::BORDER_REPLICATE);
@@ -113,7 +114,8 @@ Outline OutlineFromSilhouette(const Image& image, const SilhouetteOptions& opt,
   const double zc = 0.5 * (y0 + y1 + 1);
   Outline out;
   out.push_back({0.0, (zc - y1 - 1) * opt.pixel_um});
-  for (int y = y1; y >= y0; --y) out.push_back({r[y - y0] * opt.pixel_um, (zc - y - 0.5) * opt.pixel_um});
+  for (int y = y1; y >= y0; --y)
+    out.push_back({r[y - y0] * opt.pixel_um, (zc - y - 0.5) * opt.pixel_um});
   out.push_back({0.0, (zc - y0) * opt.pixel_um});
   return out;
 }
@@ -212,8 +214,8 @@ MeshReport CheckAndOrientMesh(TriangleMesh* mesh) {
     RTCDevice dev = rtcNewDevice(nullptr);
     RTCScene sc = rtcNewScene(dev);
     RTCGeometry g = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_TRIANGLE);
-    float* vb = static_cast<float*>(rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0,
-                                                            RTC_FORMAT_FLOAT3, 3 * sizeof(float), V.size()));
+    float* vb = static_cast<float*>(rtcSetNewGeometryBuffer(
+        g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 3 * sizeof(float), V.size()));
     for (size_t i = 0; i < V.size(); ++i)
       vb[3 * i] = float(V[i].x), vb[3 * i + 1] = float(V[i].y), vb[3 * i + 2] = float(V[i].z);
     unsigned* ib = static_cast<unsigned*>(rtcSetNewGeometryBuffer(
@@ -240,7 +242,8 @@ MeshReport CheckAndOrientMesh(TriangleMesh* mesh) {
       rtcIntersect1(sc, &ctx, &rh);
       if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) continue;
       const auto& t = T[rh.hit.primID];
-      const bool shares = std::count(t.begin(), t.end(), e.first) || std::count(t.begin(), t.end(), e.second);
+      const bool shares =
+          std::count(t.begin(), t.end(), e.first) || std::count(t.begin(), t.end(), e.second);
       if (!shares) ++rep.self_intersections;
     }
     rtcReleaseScene(sc);

@@ -12,12 +12,12 @@
 #include <thread>
 #include <variant>
 
+#include "objects.h"
+#include "packet_driver.h"
 #include "raymatch/core/cluster.h"
 #include "raymatch/core/error.h"
 #include "raymatch/core/progress.h"
 #include "raymatch/core/rng.h"
-#include "objects.h"
-#include "packet_driver.h"
 #include "trace_ray.h"
 #include "tracer_impl.h"
 
@@ -79,8 +79,9 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
   for (const ObjectSpec& o : scene.objects) {
     im.index.push_back(o.index);
     im.field.push_back(o.index_field.get());
-    im.uniform.push_back(o.index_field ? UniformCells(*o.index_field, scene.trace.grin.uniform_tolerance)
-                                       : UniformCells());
+    im.uniform.push_back(o.index_field
+                             ? UniformCells(*o.index_field, scene.trace.grin.uniform_tolerance)
+                             : UniformCells());
     im.center.push_back(o.center_um);
     im.size.push_back(o.shape == ShapeType::kSphere ? o.radius_um : Length(o.semi_axes_um));
     im.has_grin = im.has_grin || o.index_field != nullptr;
@@ -143,9 +144,8 @@ std::vector<std::string> Simulator::Effects() const {
       e.push_back("partial_reflection:polarized");
   }
   if (impl_->has_grin) e.push_back("gradient_index:sharma_embedded");
-  if (std::any_of(impl_->field.begin(), impl_->field.end(), [&](const IndexField* f) {
-        return f && UsesCellSteps(*f, scene_.trace.grin);
-      }))
+  if (std::any_of(impl_->field.begin(), impl_->field.end(),
+                  [&](const IndexField* f) { return f && UsesCellSteps(*f, scene_.trace.grin); }))
     e.push_back("gradient_index:cell_steps");
   if (impl_->geometry.has_meshes()) e.push_back("mesh_bvh:embree");
   if (scene_.optics.corrector.enabled) e.push_back("angular_corrector");
@@ -230,14 +230,15 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
   constexpr uint64_t kChunk = 8192;
   const uint64_t chunks = (rays + kChunk - 1) / kChunk;
   const uint64_t my_chunks = chunks > rank ? (chunks - rank + ranks - 1) / ranks : 0;
-  Progress progress(control.progress && cluster.is_root(),
-                    ranks > 1 ? control.label + " (" + std::to_string(ranks) + " ranks)" : control.label,
-                    std::min(rays, my_chunks * kChunk));
+  Progress progress(
+      control.progress && cluster.is_root(),
+      ranks > 1 ? control.label + " (" + std::to_string(ranks) + " ranks)" : control.label,
+      std::min(rays, my_chunks * kChunk));
 
   const Optics op = im.optics.Shifted(defocus_um);  // this plane's optics, for both paths
-  const std::optional<PacketPlan> plan =
-      control.simd && im.packets.ok ? std::optional(MakePacketPlan(im, scene_, pr, sel))
-                                    : std::nullopt;
+  const std::optional<PacketPlan> plan = control.simd && im.packets.ok
+                                             ? std::optional(MakePacketPlan(im, scene_, pr, sel))
+                                             : std::nullopt;
   // Split mode: each chunk's near rays in their own list, joined in chunk order below.
   std::vector<std::vector<uint64_t>> near_by_chunk(sel.split ? chunks : 0);
   auto run_chunk = [&](uint64_t ci) {
@@ -252,8 +253,8 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
           auto range = [&]<PartialReflection P, bool C, bool M>() {
             if constexpr (kPacketSource<Source>) {
               if (plan) {
-                TraceRangePackets<P, C, M>(im, src, ts, op, plane_index, b, e, sel, acc,
-                                           near_out, *plan);
+                TraceRangePackets<P, C, M>(im, src, ts, op, plane_index, b, e, sel, acc, near_out,
+                                           *plan);
                 return;
               }
             }
@@ -364,7 +365,8 @@ uint64_t Simulator::RaysForPhotonTarget(double photons_per_pixel, double* hppr) 
   Scene flat = scene_;
   flat.objects.clear();
   // The same source field as the real scene: its automatic size depends on the objects.
-  if (flat.source.field_shape == FieldShape::kDisc) flat.source.field_radius_um = impl_->field_radius_um;
+  if (flat.source.field_shape == FieldShape::kDisc)
+    flat.source.field_radius_um = impl_->field_radius_um;
   flat.trace.seed = 0x5eed;
   Simulator pilot(flat);
   constexpr uint64_t kPilotRays = 400000;

@@ -33,8 +33,8 @@ TriangleMesh MeshFromVolumeFraction(const NdArray& f, const Vec3& spacing, const
   openvdb::tools::volumeToMesh(*grid, points, tris, quads, iso, 0.0);
   TriangleMesh m;
   for (const auto& p : points)
-    m.vertices.push_back({origin.x + p.x() * spacing.x, origin.y + p.y() * spacing.y,
-                          origin.z + p.z() * spacing.z});
+    m.vertices.push_back(
+        {origin.x + p.x() * spacing.x, origin.y + p.y() * spacing.y, origin.z + p.z() * spacing.z});
   for (const auto& t : tris) m.triangles.push_back({t.x(), t.y(), t.z()});
   for (const auto& q : quads) {
     m.triangles.push_back({q.x(), q.y(), q.z()});

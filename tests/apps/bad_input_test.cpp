@@ -25,7 +25,9 @@ CliRun Raymatch(const std::string& args, const testing::TempDir& dir) {
   return testing::RunShell(std::string(RAYMATCH_BIN) + " " + args, dir);
 }
 
-bool Has(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
+bool Has(const std::string& text, const std::string& part) {
+  return text.find(part) != std::string::npos;
+}
 
 /// No file or folder under `dir` whose name holds ".partial-" (an unfinished temporary).
 int Partials(const fs::path& dir) {
@@ -41,15 +43,17 @@ int Partials(const fs::path& dir) {
 TEST(BadInputCli, CompareScanJsonIndexWithAStringDefocusIsAFileError) {
   testing::TempDir dir;
   WriteFloatImage(dir / "x.tif", Image(32, 32, 100.f), "");
-  const std::string good = dir.Write("good.json", R"({"planes": [{"defocus_um": 0, "image": "x.tif"}]})");
-  for (const char* bad : {R"({"planes": [{"defocus_um": "0", "image": "x.tif"}]})",
-                          R"({"planes": [{"defocus_um": 0, "image": ["x.tif"]}]})",
-                          R"({"planes": "x.tif"})"}) {
+  const std::string good =
+      dir.Write("good.json", R"({"planes": [{"defocus_um": 0, "image": "x.tif"}]})");
+  for (const char* bad :
+       {R"({"planes": [{"defocus_um": "0", "image": "x.tif"}]})",
+        R"({"planes": [{"defocus_um": 0, "image": ["x.tif"]}]})", R"({"planes": "x.tif"})"}) {
     const std::string index = dir.Write("bad.json", bad);
     for (const bool first : {true, false}) {
-      const CliRun r = Raymatch("compare-scan " + (first ? index + " " + good : good + " " + index) + " -o " +
-                                    (dir / "out"),
-                                dir);
+      const CliRun r =
+          Raymatch("compare-scan " + (first ? index + " " + good : good + " " + index) + " -o " +
+                       (dir / "out"),
+                   dir);
       EXPECT_EQ(r.code, 4) << bad << "\n" << r.err;
       EXPECT_TRUE(Has(r.err, index)) << r.err;
       EXPECT_TRUE(Has(r.err, "planes")) << r.err;
@@ -66,7 +70,8 @@ TEST(BadInputCli, CompareScanCsvIndexWithANonFiniteDefocusIsAFileError) {
   WriteFloatImage(dir / "x.tif", Image(32, 32, 100.f), "");
   const std::string good = dir.Write("good.csv", "defocus_um,file\n0,x.tif\n5,x.tif\n");
   for (const char* z : {"nan", "inf", "-inf", "five", "5um"}) {
-    const std::string index = dir.Write("bad.csv", std::string("defocus_um,file\n0,x.tif\n") + z + ",x.tif\n");
+    const std::string index =
+        dir.Write("bad.csv", std::string("defocus_um,file\n0,x.tif\n") + z + ",x.tif\n");
     const CliRun r = Raymatch("compare-scan " + index + " " + good + " -o " + (dir / "out"), dir);
     EXPECT_EQ(r.code, 4) << z << "\n" << r.err;
     EXPECT_TRUE(Has(r.err, index + ":3:")) << r.err;
@@ -78,19 +83,25 @@ const char* kTetra = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 
 
 std::string MeshScene(const std::string& mesh) {
   return "name = \"m\"\nseed = 3\n[source]\ntype = \"cone\"\nhalf_angle_deg = 20\n"
-         "[[object]]\ntype = \"mesh\"\nfile = \"" + mesh + "\"\nscale_um = 10\nmaterial = \"water\"\n"
+         "[[object]]\ntype = \"mesh\"\nfile = \"" +
+         mesh +
+         "\"\nscale_um = 10\nmaterial = \"water\"\n"
          "[objective]\nfocal_length_mm = 10\nna = 0.42\n[tube_lens]\nfocal_length_mm = 200\n"
-         "[camera]\npixels = [24, 16]\npixel_pitch_um = 20\n[trace]\nrays = 20000\n[scan]\ndefocus_um = [0]\n";
+         "[camera]\npixels = [24, 16]\npixel_pitch_um = 20\n[trace]\nrays = "
+         "20000\n[scan]\ndefocus_um = [0]\n";
 }
 
 // The mesh mutants of issue 25 (each refused, as before) must leave no output folder: the
 // simulator, which reads the mesh, is built before the folder is made.
 const std::pair<const char*, std::string> kBadMeshes[] = {
-    {"face index out of range", "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 9\nf 2 3 4\nf 1 4 3\n"},
+    {"face index out of range",
+     "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 9\nf 2 3 4\nf 1 4 3\n"},
     {"deleted vertex line", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\n"},
     {"NaN vertex", "v 0 0 0\nv nan 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\n"},
     {"open mesh", "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\n"},
-    {"coincident copies", std::string(kTetra) + "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 5 7 6\nf 5 6 8\nf 6 7 8\nf 5 8 7\n"},
+    {"coincident copies",
+     std::string(kTetra) +
+         "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 5 7 6\nf 5 6 8\nf 6 7 8\nf 5 8 7\n"},
     {"garbage bytes", std::string("\x01\x9f\xff garbage \x00\x02 not a mesh\n",
                                   sizeof "\x01\x9f\xff garbage \x00\x02 not a mesh\n" - 1)},
 };
@@ -98,7 +109,9 @@ const std::pair<const char*, std::string> kBadMeshes[] = {
 TEST(BadInputCli, SimulateWithAnUnusableMeshLeavesNoOutputFolder) {
   testing::TempDir dir;
   dir.Write("good.obj", kTetra);
-  const CliRun ok = Raymatch("simulate " + dir.Write("good.toml", MeshScene("good.obj")) + " -q -o " + (dir / "good"), dir);
+  const CliRun ok = Raymatch(
+      "simulate " + dir.Write("good.toml", MeshScene("good.obj")) + " -q -o " + (dir / "good"),
+      dir);
   ASSERT_EQ(ok.code, 0) << ok.err;  // the control: the same scene with a closed mesh runs
   for (const auto& [what, text] : kBadMeshes) {
     dir.Write("bad.obj", text);
@@ -137,10 +150,11 @@ const char* kFitScene =
 
 std::string FitFile(const testing::TempDir& dir, const std::string& image) {
   dir.Write("model.toml", kFitScene);
-  return dir.Write("fit.toml", "scene = \"model.toml\"\nmax_evaluations = 5\n[[image]]\nfile = \"" + image +
-                                   "\"\ndefocus_um = 0\n[[parameter]]\nkey = \"object.drop.radius_um\"\n"
-                                   "lower = 4\nupper = 8\n[rays]\nfractions = [0.25]\n"
-                                   "[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\ncramer_rao = false\n");
+  return dir.Write("fit.toml",
+                   "scene = \"model.toml\"\nmax_evaluations = 5\n[[image]]\nfile = \"" + image +
+                       "\"\ndefocus_um = 0\n[[parameter]]\nkey = \"object.drop.radius_um\"\n"
+                       "lower = 4\nupper = 8\n[rays]\nfractions = [0.25]\n"
+                       "[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\ncramer_rao = false\n");
 }
 
 Image Noisy(double level, unsigned seed) {
@@ -191,9 +205,11 @@ std::string SamplePipeline(const testing::TempDir& dir, const std::string& fits)
   const fs::path src = fs::path(RAYMATCH_SOURCE_DIR) / "datasets-sample";
   for (const char* f : {"lightfield", "flatfield", "drop46", "merging", "fit"})
     fs::copy(src / f, dir.path() / f, fs::copy_options::recursive);
-  return dir.Write("pipeline.toml", "output = \"out/run\"\n[calibration]\nlightfield = \"lightfield\"\n"
-                                    "corrector = \"flatfield\"\n[experiment]\nscan = \"drop46\"\n"
-                                    "mesh_object = \"merging\"\n[simulation]\nray_fraction = 0.01\n" + fits);
+  return dir.Write("pipeline.toml",
+                   "output = \"out/run\"\n[calibration]\nlightfield = \"lightfield\"\n"
+                   "corrector = \"flatfield\"\n[experiment]\nscan = \"drop46\"\n"
+                   "mesh_object = \"merging\"\n[simulation]\nray_fraction = 0.01\n" +
+                       fits);
 }
 
 // Defect 3 for `run`: every input (the mesh object's mesh, the fit files and their images) is
@@ -213,7 +229,8 @@ TEST(BadInputCli, RunChecksEveryInputBeforeMakingItsFolder) {
   std::stringstream ss;
   ss << in.rdbuf();
   std::string fit = ss.str();
-  const std::string first_image = "../drop46/drop_z-05um.tif", first_dark = "dark = \"../drop46/dark.tif\"\n";
+  const std::string first_image = "../drop46/drop_z-05um.tif",
+                    first_dark = "dark = \"../drop46/dark.tif\"\n";
   ASSERT_NE(fit.find(first_image), std::string::npos) << fit;  // the sample's fit's first image
   fit.replace(fit.find(first_image), first_image.size(), "../drop46/black.tif");
   ASSERT_NE(fit.find(first_dark), std::string::npos) << fit;

@@ -23,7 +23,8 @@ constexpr double kMean = 1000;     // photons per pixel
 constexpr double kObjPixel = 0.5;  // um: 10 um pitch, 20x
 
 double Pattern(double x, double y) {  // object-plane um, y up
-  return 1 + 0.12 * x / (kNx * kObjPixel / 2) + 0.06 * std::exp(-(std::pow(x + 6, 2) + std::pow(y - 4, 2)) / 50);
+  return 1 + 0.12 * x / (kNx * kObjPixel / 2) +
+         0.06 * std::exp(-(std::pow(x + 6, 2) + std::pow(y - 4, 2)) / 50);
 }
 
 Image MeasuredFlat() {
@@ -40,7 +41,8 @@ Image MeasuredFlat() {
 /// Mean over pixels of (a - b)^2 / (a + b): 1 for two independent Poisson images of one mean.
 double ChiSquarePerPixel(const Image& a, const Image& b) {
   double s = 0;
-  for (size_t i = 0; i < a.size(); ++i) s += std::pow(a.pixels[i] - b.pixels[i], 2) / std::max(1.f, a.pixels[i] + b.pixels[i]);
+  for (size_t i = 0; i < a.size(); ++i)
+    s += std::pow(a.pixels[i] - b.pixels[i], 2) / std::max(1.f, a.pixels[i] + b.pixels[i]);
   return s / a.size();
 }
 
@@ -48,8 +50,9 @@ Image SimulateFlat(const testing::TempDir& dir, const CalibrationData& c, const 
                    double defocus_um = 0) {
   WriteCalibrationFile(dir / (name + ".toml"), c);
   const simulate::Scene s = simulate::LoadScene(dir.Write(
-      name + "_scene.toml", "seed = 3\ncalibration = \"" + name + ".toml\"\n[camera]\npixels = [" + std::to_string(kNx) +
-                                ", " + std::to_string(kNy) + "]\n[scan]\ndefocus_um = [" + std::to_string(defocus_um) + "]\n"));
+      name + "_scene.toml", "seed = 3\ncalibration = \"" + name + ".toml\"\n[camera]\npixels = [" +
+                                std::to_string(kNx) + ", " + std::to_string(kNy) +
+                                "]\n[scan]\ndefocus_um = [" + std::to_string(defocus_um) + "]\n"));
   const simulate::Simulator sim(s);
   return sim.TracePlane(defocus_um, 0, sim.RaysForPhotonTarget(kMean)).counts;
 }
@@ -60,7 +63,8 @@ double EdgeToCentre(const Image& img, int border) {
   int ne = 0, nc = 0;
   for (int r = 0; r < img.height; ++r)
     for (int x = 0; x < img.width; ++x) {
-      const bool edge = x < border || r < border || x >= img.width - border || r >= img.height - border;
+      const bool edge =
+          x < border || r < border || x >= img.width - border || r >= img.height - border;
       (edge ? e : c) += img.at(x, r), ++(edge ? ne : nc);
     }
   return (e / ne) / (c / nc);
@@ -98,7 +102,8 @@ TEST(CalibratedFlatField, SceneReproducesTheFlatFieldOfItsSpatialMap) {
   // leaves the pattern's ~5 % rms: about +1.3.
   const double with_map = ChiSquarePerPixel(flat, SimulateFlat(dir, c, "cal"));
   const double without = ChiSquarePerPixel(flat, SimulateFlat(dir, uniform, "uniform"));
-  std::printf("chi^2 per pixel: with the spatial map %.3f, uniform field %.3f\n", with_map, without);
+  std::printf("chi^2 per pixel: with the spatial map %.3f, uniform field %.3f\n", with_map,
+              without);
   EXPECT_GT(with_map, 0.9);
   EXPECT_LT(with_map, 1.15);
   EXPECT_GT(without, 1.8);

@@ -23,10 +23,10 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <nlohmann/json.hpp>
 #include <set>
 #include <sstream>
 #include <thread>
-#include <nlohmann/json.hpp>
 
 #include "raymatch/core/image_io.h"
 #include "temp_dir.h"
@@ -80,9 +80,10 @@ int Wait(pid_t pid, double limit_s = 300) {
 std::vector<fs::path> Partials(const fs::path& dir) {
   std::vector<fs::path> v;
   std::error_code ec;
-  for (auto it = fs::recursive_directory_iterator(dir, ec); !ec && it != fs::recursive_directory_iterator();
-       it.increment(ec))
-    if (it->path().filename().string().find(".partial-") != std::string::npos) v.push_back(it->path());
+  for (auto it = fs::recursive_directory_iterator(dir, ec);
+       !ec && it != fs::recursive_directory_iterator(); it.increment(ec))
+    if (it->path().filename().string().find(".partial-") != std::string::npos)
+      v.push_back(it->path());
   return v;
 }
 
@@ -93,7 +94,8 @@ bool SignalWhen(pid_t pid, const std::function<bool()>& ready, int sig, double l
   while (std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() < limit_s) {
     if (ready()) return kill(pid, sig) == 0;
     siginfo_t info{};  // has the child ended? (WNOWAIT: Wait() reaps it)
-    if (waitid(P_PID, pid, &info, WEXITED | WNOHANG | WNOWAIT) == 0 && info.si_pid == pid) return false;
+    if (waitid(P_PID, pid, &info, WEXITED | WNOHANG | WNOWAIT) == 0 && info.si_pid == pid)
+      return false;
     std::this_thread::sleep_for(std::chrono::microseconds(200));
   }
   return false;
@@ -102,8 +104,8 @@ bool SignalWhen(pid_t pid, const std::function<bool()>& ready, int sig, double l
 /// True once any file under `dir` was modified after `since`.
 bool NewFileUnder(const fs::path& dir, fs::file_time_type since) {
   std::error_code ec;
-  for (auto it = fs::recursive_directory_iterator(dir, ec); !ec && it != fs::recursive_directory_iterator();
-       it.increment(ec))
+  for (auto it = fs::recursive_directory_iterator(dir, ec);
+       !ec && it != fs::recursive_directory_iterator(); it.increment(ec))
     if (it->is_regular_file(ec) && it->last_write_time(ec) > since) return true;
   return false;
 }
@@ -119,12 +121,15 @@ void ExpectNothingPartialOrMisleading(const fs::path& dir) {
       EXPECT_NO_THROW(ReadImage(e.path().string())) << "incomplete final file " << e.path();
     } else if (ext == ".json") {
       nlohmann::json j;
-      EXPECT_NO_THROW(j = nlohmann::json::parse(Slurp(e.path()))) << "incomplete final file " << e.path();
+      EXPECT_NO_THROW(j = nlohmann::json::parse(Slurp(e.path())))
+          << "incomplete final file " << e.path();
       if (e.path().filename().string().ends_with("_scan.json"))
         for (const auto& p : j["planes"])
           for (const char* k : {"image", "sidecar", "png"}) {
             const std::string f = p.value(k, "");
-            if (!f.empty()) EXPECT_TRUE(fs::exists(e.path().parent_path() / f)) << e.path() << " lists missing " << f;
+            if (!f.empty())
+              EXPECT_TRUE(fs::exists(e.path().parent_path() / f))
+                  << e.path() << " lists missing " << f;
           }
     }
   }
@@ -180,13 +185,16 @@ TEST_P(SimulateSignal, LeavesNoPartialOrStaleIndexAndReRunSucceeds) {
   ASSERT_TRUE(fs::exists(out / "fault_scan.json"));
 
   const pid_t pid = Spawn(args, dir.path() / "o1.txt", dir.path() / "e1.txt");
-  const bool sent = SignalWhen(pid, [&] { return !Partials(out).empty(); }, sig);
+  const bool sent = SignalWhen(
+      pid, [&] { return !Partials(out).empty(); }, sig);
   const int status = Wait(pid);
   ASSERT_TRUE(sent) << "the scan ended before a temporary was seen: " << Describe(status);
   const std::string err = Slurp(dir.path() / "e1.txt");
   // The process ends by the signal itself (a shell shows 128 + signal number).
   EXPECT_TRUE(WIFSIGNALED(status) && WTERMSIG(status) == sig) << Describe(status) << "\n" << err;
-  EXPECT_NE(err.find(sig == SIGINT ? "interrupted (SIGINT)" : "terminated (SIGTERM)"), std::string::npos) << err;
+  EXPECT_NE(err.find(sig == SIGINT ? "interrupted (SIGINT)" : "terminated (SIGTERM)"),
+            std::string::npos)
+      << err;
   EXPECT_FALSE(fs::exists(out / "fault_scan.json")) << "the earlier scan's index survived";
   EXPECT_FALSE(fs::exists(out / "fault_scan.csv"));
   ExpectNothingPartialOrMisleading(out);
@@ -199,7 +207,9 @@ TEST_P(SimulateSignal, LeavesNoPartialOrStaleIndexAndReRunSucceeds) {
 }
 
 INSTANTIATE_TEST_SUITE_P(Faults, SimulateSignal, ::testing::Values(SIGINT, SIGTERM),
-                         [](const auto& info) { return std::string(info.param == SIGINT ? "SIGINT" : "SIGTERM"); });
+                         [](const auto& info) {
+                           return std::string(info.param == SIGINT ? "SIGINT" : "SIGTERM");
+                         });
 
 // `raymatch run` on the committed sample at ray fraction 0.005 (no fits, no mesh object; about
 // 4 s): after a complete run, interrupted as soon as the simulation writes its first file (its
@@ -211,10 +221,11 @@ TEST(Faults, RunInterruptedBySignalsThenReRunSucceeds) {
   testing::TempDir dir;
   const std::string sample = std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample/";
   const std::string pipeline = dir.Write(
-      "pipeline.toml", "[calibration]\nlightfield = \"" + sample + "lightfield\"\ncorrector = \"" + sample +
-                           "flatfield\"\n[experiment]\nscan = \"" + sample + "drop46\"\n");
+      "pipeline.toml", "[calibration]\nlightfield = \"" + sample + "lightfield\"\ncorrector = \"" +
+                           sample + "flatfield\"\n[experiment]\nscan = \"" + sample + "drop46\"\n");
   const fs::path out = dir.path() / "out";
-  const std::vector<std::string> args{"run", pipeline, "-o", out.string(), "--ray-fraction", "0.005", "--threads", "2"};
+  const std::vector<std::string> args{"run",   pipeline,    "-o", out.string(), "--ray-fraction",
+                                      "0.005", "--threads", "2"};
   auto run = [&](std::vector<std::string> a, const std::string& tag) {
     const int status = Wait(Spawn(a, dir.path() / ("o" + tag), dir.path() / ("e" + tag)));
     return std::make_pair(status, Slurp(dir.path() / ("e" + tag)));
@@ -228,20 +239,25 @@ TEST(Faults, RunInterruptedBySignalsThenReRunSucceeds) {
 
   int k = 1;
   for (int sig : {SIGINT, SIGTERM}) {
-    // A changed ray fraction changes scene.toml: the simulation step runs, the calibration is reused.
+    // A changed ray fraction changes scene.toml: the simulation step runs, the calibration is
+    // reused.
     std::vector<std::string> a = args;
     if (sig == SIGINT) a[5] = "0.006";
     const std::string tag = std::to_string(k++);
     const auto start = fs::file_time_type::clock::now();
     const pid_t pid = Spawn(a, dir.path() / ("o" + tag), dir.path() / ("e" + tag));
-    const bool sent = SignalWhen(pid, [&] { return NewFileUnder(out / "simulation", start); }, sig);
+    const bool sent = SignalWhen(
+        pid, [&] { return NewFileUnder(out / "simulation", start); }, sig);
     const int status = Wait(pid);
     const std::string err = Slurp(dir.path() / ("e" + tag));
-    ASSERT_TRUE(sent) << "the run ended before the simulation wrote a file: " << Describe(status) << "\n" << err;
+    ASSERT_TRUE(sent) << "the run ended before the simulation wrote a file: " << Describe(status)
+                      << "\n"
+                      << err;
     EXPECT_TRUE(WIFSIGNALED(status) && WTERMSIG(status) == sig) << Describe(status) << "\n" << err;
     EXPECT_NE(err.find("unfinished output files removed"), std::string::npos) << err;
     EXPECT_FALSE(fs::exists(out / "index.html")) << "a report of an earlier run survived";
-    EXPECT_FALSE(fs::exists(out / ".simulation.stamp")) << "an interrupted simulation looks finished";
+    EXPECT_FALSE(fs::exists(out / ".simulation.stamp"))
+        << "an interrupted simulation looks finished";
     EXPECT_FALSE(fs::exists(out / "simulation/sim_scan.json"));
     ExpectNothingPartialOrMisleading(out);
   }
@@ -251,7 +267,8 @@ TEST(Faults, RunInterruptedBySignalsThenReRunSucceeds) {
   a.push_back("--progress");
   auto [s3, e3] = run(a, "3");
   ASSERT_TRUE(WIFEXITED(s3) && WEXITSTATUS(s3) <= 2) << Describe(s3) << "\n" << e3;
-  EXPECT_EQ(e3.find("simulation unchanged: reusing"), std::string::npos) << "reused an interrupted simulation";
+  EXPECT_EQ(e3.find("simulation unchanged: reusing"), std::string::npos)
+      << "reused an interrupted simulation";
   EXPECT_NE(e3.find('\r'), std::string::npos) << "--progress wrote no progress bar";
   EXPECT_TRUE(fs::exists(out / "index.html"));
   ExpectNothingPartialOrMisleading(out);
@@ -301,12 +318,13 @@ TEST(Faults, FullDiskGivesAClearErrorAndNoPartialFiles) {
   Tmpfs fs_(disk, "size=1m");
   if (!fs_.mounted()) GTEST_SKIP() << fs_.why();
   // Each plane's TIFF is 4 MB: the first one fills the 1 MB disk.
-  const std::vector<std::string> args{"simulate", scene, "-o", (disk / "out").string(), "--threads", "2",
-                                      "--rays", "20000"};
+  const std::vector<std::string> args{"simulate",  scene, "-o",     (disk / "out").string(),
+                                      "--threads", "2",   "--rays", "20000"};
   const int status = Wait(Spawn(args, dir.path() / "o1.txt", dir.path() / "e1.txt"));
   const std::string err = Slurp(dir.path() / "e1.txt");
   EXPECT_EQ(ExitCode(status), 1) << Describe(status) << "\n" << err;
-  EXPECT_NE(err.find("fault_z-020.00um"), std::string::npos) << "the message names the file: " << err;
+  EXPECT_NE(err.find("fault_z-020.00um"), std::string::npos)
+      << "the message names the file: " << err;
   EXPECT_NE(err.find("the disk is full"), std::string::npos) << err;
   ExpectNothingPartialOrMisleading(disk);
   EXPECT_FALSE(fs::exists(disk / "out/fault_z-020.00um.tif"));
@@ -327,21 +345,25 @@ TEST(Faults, UnwritableOutputFolderGivesAClearErrorAndNoFiles) {
   if (geteuid() == 0) {
     // Root ignores permissions: a read-only tmpfs instead of chmod.
     mnt = std::make_unique<Tmpfs>(ro, "size=64m");
-    if (!mnt->mounted()) GTEST_SKIP() << "root, and " << mnt->why() << ": cannot make an unwritable folder";
+    if (!mnt->mounted())
+      GTEST_SKIP() << "root, and " << mnt->why() << ": cannot make an unwritable folder";
     fs::create_directories(ro / "out");
     ASSERT_TRUE(mnt->Remount("size=64m", MS_RDONLY)) << std::strerror(errno);
   } else {
     fs::create_directories(ro / "out");
-    fs::permissions(ro / "out", fs::perms::owner_read | fs::perms::owner_exec | fs::perms::group_read |
-                                    fs::perms::group_exec | fs::perms::others_read | fs::perms::others_exec);
+    fs::permissions(ro / "out", fs::perms::owner_read | fs::perms::owner_exec |
+                                    fs::perms::group_read | fs::perms::group_exec |
+                                    fs::perms::others_read | fs::perms::others_exec);
   }
-  const std::vector<std::string> args{"simulate", scene, "-o", (ro / "out").string(), "--threads", "2",
-                                      "--rays", "20000"};
+  const std::vector<std::string> args{"simulate",  scene, "-o",     (ro / "out").string(),
+                                      "--threads", "2",   "--rays", "20000"};
   const int status = Wait(Spawn(args, dir.path() / "o1.txt", dir.path() / "e1.txt"));
   const std::string err = Slurp(dir.path() / "e1.txt");
   EXPECT_EQ(ExitCode(status), 1) << Describe(status) << "\n" << err;
-  EXPECT_NE(err.find((ro / "out").string()), std::string::npos) << "the message names the folder: " << err;
-  EXPECT_NE(err.find(mnt ? "read-only file system" : "no permission to write"), std::string::npos) << err;
+  EXPECT_NE(err.find((ro / "out").string()), std::string::npos)
+      << "the message names the folder: " << err;
+  EXPECT_NE(err.find(mnt ? "read-only file system" : "no permission to write"), std::string::npos)
+      << err;
   EXPECT_TRUE(fs::is_empty(ro / "out"));
   // Made writable: the same command succeeds.
   if (mnt) {

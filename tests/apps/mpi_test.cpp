@@ -29,9 +29,12 @@ CliRun RunCli(const std::string& prefix, const std::string& args, const testing:
 // LeakSanitizer (scripts/check-sanitizers.sh) the ranks do not check leaks: Open MPI 4.1 leaves
 // its components' allocations at MPI_Finalize (reported in libmpi and in MCA modules unloaded by
 // then, which a suppression cannot name); raymatch's own code is leak-checked by every other test.
-const char* kMpiFlags = " --allow-run-as-root --oversubscribe --mca btl self,vader -x LSAN_OPTIONS=detect_leaks=0";
+const char* kMpiFlags =
+    " --allow-run-as-root --oversubscribe --mca btl self,vader -x LSAN_OPTIONS=detect_leaks=0";
 
-std::string Mpirun(int n) { return std::string(RAYMATCH_MPIEXEC) + kMpiFlags + " -n " + std::to_string(n); }
+std::string Mpirun(int n) {
+  return std::string(RAYMATCH_MPIEXEC) + kMpiFlags + " -n " + std::to_string(n);
+}
 
 nlohmann::json ReadJson(const fs::path& p) {
   std::ifstream in(p);
@@ -65,7 +68,8 @@ defocus_um = [-5, 0, 5]
 
 std::vector<fs::path> ListTree(const fs::path& dir) {
   std::vector<fs::path> out;
-  for (const auto& e : fs::recursive_directory_iterator(dir)) out.push_back(fs::relative(e.path(), dir));
+  for (const auto& e : fs::recursive_directory_iterator(dir))
+    out.push_back(fs::relative(e.path(), dir));
   std::sort(out.begin(), out.end());
   return out;
 }
@@ -74,8 +78,10 @@ TEST(Mpi, TwoRanksGiveTheSingleProcessImagesBitForBit) {
   testing::TempDir dir;
   const std::string scene = dir.Write("mpi.toml", kScene);
   const fs::path one = dir / "one", two = dir / "two";
-  ASSERT_EQ(RunCli("", "simulate " + scene + " -o " + one.string() + " -q --threads 2", dir).code, 0);
-  const CliRun r = RunCli(Mpirun(2), "simulate " + scene + " -o " + two.string() + " -q --threads 1", dir);
+  ASSERT_EQ(RunCli("", "simulate " + scene + " -o " + one.string() + " -q --threads 2", dir).code,
+            0);
+  const CliRun r =
+      RunCli(Mpirun(2), "simulate " + scene + " -o " + two.string() + " -q --threads 1", dir);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(ListTree(one), ListTree(two));  // the same files, none from rank 1
   for (const char* z : {"-005.00", "+000.00", "+005.00"}) {
@@ -100,9 +106,11 @@ TEST(Mpi, TwoRanksFitLikeOneProcess) {
   testing::TempDir dir;
   const std::string scene = dir.Write("mpi.toml", kScene);
   // The "experiment": a simulated image at another seed.
-  ASSERT_EQ(RunCli("", "simulate " + scene + " -o " + std::string(dir / "exp") +
-                        " -q --seed 99 --defocus-um 5",
-                dir).code,
+  ASSERT_EQ(RunCli("",
+                   "simulate " + scene + " -o " + std::string(dir / "exp") +
+                       " -q --seed 99 --defocus-um 5",
+                   dir)
+                .code,
             0);
   const std::string fit = dir.Write("fit.toml", R"(scene = "mpi.toml"
 method = "grid"
@@ -145,8 +153,8 @@ TEST(Mpi, AFailingRankStopsTheJobWithAMessageAndNoPartialOutputs) {
   // Rank 1 alone gets a temporary folder that cannot exist (under a regular file), so it fails
   // while rank 0 goes on; MPMD syntax gives each rank its own environment.
   const std::string file = dir.Write("not_a_folder", "x");
-  const std::string cmd = std::string(RAYMATCH_MPIEXEC) + kMpiFlags + " -n 1 " +
-                          RAYMATCH_BIN + " simulate " + scene + " -o " + out.string() +
+  const std::string cmd = std::string(RAYMATCH_MPIEXEC) + kMpiFlags + " -n 1 " + RAYMATCH_BIN +
+                          " simulate " + scene + " -o " + out.string() +
                           " -q --threads 1 : -n 1 -x TMPDIR=" + file + "/sub " + RAYMATCH_BIN +
                           " simulate " + scene + " -o " + out.string() + " -q --threads 1";
   const CliRun r = testing::RunShell(cmd, dir);

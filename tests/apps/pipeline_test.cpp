@@ -6,12 +6,12 @@
 
 #include <filesystem>
 #include <fstream>
-#include <sstream>
 #include <nlohmann/json.hpp>
-#include "raymatch/core/toml_reader.h"
+#include <sstream>
 
-#include "raymatch/core/calibration_file.h"
 #include "generated_toml.h"
+#include "raymatch/core/calibration_file.h"
+#include "raymatch/core/toml_reader.h"
 #include "temp_dir.h"
 
 namespace raymatch {
@@ -20,7 +20,8 @@ namespace {
 std::vector<double> TruthTransmissions(const std::string& truth_toml) {
   const toml::table t = ParseTomlFile(truth_toml);
   std::vector<double> v;
-  for (const auto& x : *t["corrector"]["transmissions"].as_array()) v.push_back(x.value<double>().value());
+  for (const auto& x : *t["corrector"]["transmissions"].as_array())
+    v.push_back(x.value<double>().value());
   return v;
 }
 
@@ -85,7 +86,9 @@ TEST(GeneratedToml, FloatsInTheirShortestFormReadBackExactly) {
 TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
   testing::TempDir dir;
   const std::string data = dir / "sample";
-  ASSERT_EQ(std::system((std::string(RAYMATCH_GENERATOR) + " " + data + " --quick >/dev/null").c_str()), 0);
+  ASSERT_EQ(
+      std::system((std::string(RAYMATCH_GENERATOR) + " " + data + " --quick >/dev/null").c_str()),
+      0);
   std::filesystem::copy_file(std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample/pipeline.toml",
                              data + "/pipeline.toml");
   std::filesystem::copy(std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample/fit", data + "/fit");
@@ -94,7 +97,8 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
     // (scripts/check-sanitizers.sh): there they trace fewer rays. The test checks that they run
     // and are reported, not their values, so every check stays.
     ReplaceInFile(data + "/fit/sphere.toml", "fractions = [0.0625, 0.25]", "fractions = [0.0625]");
-    ReplaceInFile(data + "/fit/merging_grid.toml", "fractions = [0.015625]", "fractions = [0.00390625]");
+    ReplaceInFile(data + "/fit/merging_grid.toml", "fractions = [0.015625]",
+                  "fractions = [0.00390625]");
     // and the sphere calibration (9 parameters, 2 planes) is left out.
     ReplaceInFile(data + "/pipeline.toml", "\nsphere = \"drop46\"", "\n# sphere = \"drop46\"");
   }
@@ -125,7 +129,9 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
     if (name == "ssim") continue;  // the paper's finding: SSIM need not pass
     for (const auto& b : m["best_matches"])
       EXPECT_LE(std::abs(b["best_simulation_defocus_um"].get<double>() -
-                         b["experiment_defocus_um"].get<double>()), 5.0) << name;
+                         b["experiment_defocus_um"].get<double>()),
+                5.0)
+          << name;
   }
   EXPECT_TRUE(std::filesystem::exists(dir / "out/index.html"));
   // The sample's pipeline calibrates with its drop too ([calibration] sphere): the light field's
@@ -151,7 +157,8 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
   const std::vector<double> truth = TruthTransmissions(data + "/truth.toml");
   ASSERT_EQ(cal.transmissions.size(), truth.size());
   for (size_t j = 1; j < truth.size(); ++j)
-    EXPECT_LT(std::abs(cal.transmissions[j] - truth[j]), 3 * cal.transmission_sigma[j]) << "zone " << j;
+    EXPECT_LT(std::abs(cal.transmissions[j] - truth[j]), 3 * cal.transmission_sigma[j])
+        << "zone " << j;
   // The mesh object (merging drops, rotated so their axis lies along the image x axis) matches
   // its experimental image: Poisson chi-square per pixel near 1-2 (both images carry shot noise);
   // a wrong rotation (axis along the optical axis) gives about 12 on this data.
@@ -217,14 +224,17 @@ photons_per_pixel = 400
 // from 1 by up to 0.12).
 TEST(Pipeline, CorrectorRecoversTheTruthOnTheSample) {
   testing::TempDir dir;
-  ASSERT_EQ(std::system((std::string(RAYMATCH_BIN) + " calibrate corrector " +
-                         RAYMATCH_SOURCE_DIR + "/datasets-sample/flatfield -o " + (dir / "c.toml") +
-                         " >/dev/null").c_str()), 0);
+  ASSERT_EQ(std::system((std::string(RAYMATCH_BIN) + " calibrate corrector " + RAYMATCH_SOURCE_DIR +
+                         "/datasets-sample/flatfield -o " + (dir / "c.toml") + " >/dev/null")
+                            .c_str()),
+            0);
   const CalibrationData cal = ReadCalibrationFile(dir / "c.toml");
-  const std::vector<double> truth = TruthTransmissions(std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample/truth.toml");
+  const std::vector<double> truth =
+      TruthTransmissions(std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample/truth.toml");
   ASSERT_EQ(cal.transmissions.size(), truth.size());
   for (size_t j = 1; j < truth.size(); ++j) {
-    EXPECT_LT(std::abs(cal.transmissions[j] - truth[j]), 3 * cal.transmission_sigma[j]) << "zone " << j;
+    EXPECT_LT(std::abs(cal.transmissions[j] - truth[j]), 3 * cal.transmission_sigma[j])
+        << "zone " << j;
     EXPECT_LT(cal.transmission_sigma[j], 0.03) << "zone " << j;
   }
 }

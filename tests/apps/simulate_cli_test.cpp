@@ -5,9 +5,9 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <nlohmann/json.hpp>
 #include <set>
 #include <sstream>
-#include <nlohmann/json.hpp>
 
 #include "raymatch/core/image_io.h"
 #include "shell.h"
@@ -80,8 +80,16 @@ TEST(SimulateCli, WritesImagesSidecarsAndIndex) {
 TEST(SimulateCli, SameSeedSameImageAcrossThreadCounts) {
   testing::TempDir dir;
   const std::string scene = dir.Write("tiny.toml", kScene);
-  ASSERT_EQ(Raymatch("simulate " + scene + " -q --no-png --defocus-um 0 --threads 1 -o " + (dir / "a"), dir).code, 0);
-  ASSERT_EQ(Raymatch("simulate " + scene + " -q --no-png --defocus-um 0 --threads 2 -o " + (dir / "b"), dir).code, 0);
+  ASSERT_EQ(
+      Raymatch("simulate " + scene + " -q --no-png --defocus-um 0 --threads 1 -o " + (dir / "a"),
+               dir)
+          .code,
+      0);
+  ASSERT_EQ(
+      Raymatch("simulate " + scene + " -q --no-png --defocus-um 0 --threads 2 -o " + (dir / "b"),
+               dir)
+          .code,
+      0);
   EXPECT_EQ(ReadImage(dir / "a/tiny_z+000.00um.tif").pixels,
             ReadImage(dir / "b/tiny_z+000.00um.tif").pixels);
 }
@@ -107,8 +115,11 @@ TEST(SimulateCli, BadSceneGivesLocatedErrorAndNoOutput) {
 TEST(SimulateCli, CloseFocusPositionsGetTheirOwnFiles) {
   testing::TempDir dir;
   const std::string scene = dir.Write("tiny.toml", kScene);
-  const CliRun r = Raymatch("simulate " + scene + " -q --no-png --rays 2000 --defocus-um "
-                            "48.331,48.334,-0.125,0.1 -o " + (dir / "out"), dir);
+  const CliRun r = Raymatch("simulate " + scene +
+                                " -q --no-png --rays 2000 --defocus-um "
+                                "48.331,48.334,-0.125,0.1 -o " +
+                                (dir / "out"),
+                            dir);
   ASSERT_EQ(r.code, 0) << r.err;
   for (const char* z : {"+048.331", "+048.334", "-000.125", "+000.10"})
     EXPECT_TRUE(fs::exists(dir / ("out/tiny_z" + std::string(z) + "um.tif"))) << z;
@@ -123,8 +134,11 @@ TEST(SimulateCli, CloseFocusPositionsGetTheirOwnFiles) {
   text << csv.rdbuf();
   EXPECT_NE(text.str().find("48.331,"), std::string::npos) << text.str();
 
-  const CliRun twice = Raymatch("simulate " + scene + " -q --no-png --rays 2000 --defocus-um "
-                                "5,0,5 -o " + (dir / "dup"), dir);
+  const CliRun twice = Raymatch("simulate " + scene +
+                                    " -q --no-png --rays 2000 --defocus-um "
+                                    "5,0,5 -o " +
+                                    (dir / "dup"),
+                                dir);
   EXPECT_EQ(twice.code, 1);
   EXPECT_NE(twice.err.find("focus position 5 um is listed twice"), std::string::npos) << twice.err;
   EXPECT_FALSE(fs::exists(dir / "dup"));
@@ -138,8 +152,11 @@ TEST(SimulateCli, SidecarRecordsNaDensityAndPathClasses) {
   text.replace(text.find("material = \"water\""), 18,
                "material = \"water\"\ntemperature_K = 293.15");
   const std::string scene = dir.Write("tiny.toml", "medium_index = 1.33\n" + text);
-  ASSERT_EQ(Raymatch("simulate " + scene + " -q --no-png --rays 20000 --defocus-um 0 -o " +
-                         (dir / "out"), dir).code, 0);
+  ASSERT_EQ(
+      Raymatch("simulate " + scene + " -q --no-png --rays 20000 --defocus-um 0 -o " + (dir / "out"),
+               dir)
+          .code,
+      0);
   std::ifstream js(dir / "out/tiny_z+000.00um.json");
   const auto j = nlohmann::json::parse(js);
   EXPECT_EQ(j["objective"]["na"], 0.42);
@@ -162,11 +179,14 @@ TEST(SimulateCli, SidecarRecordsNaDensityAndPathClasses) {
 TEST(SimulateCli, ReadoutWritesCodeValuesLikeARawFrame) {
   testing::TempDir dir;
   std::string text = kScene;
-  text.replace(text.find("[trace]"), 7,
-               "[camera.readout]\ngain_e_per_dn = 2\ndark_dn = 100\nread_noise_e = 6\nbit_depth = 12\n"
-               "well_capacity_e = 1e6\n[trace]");
+  text.replace(
+      text.find("[trace]"), 7,
+      "[camera.readout]\ngain_e_per_dn = 2\ndark_dn = 100\nread_noise_e = 6\nbit_depth = 12\n"
+      "well_capacity_e = 1e6\n[trace]");
   const std::string scene = dir.Write("tiny.toml", text);
-  ASSERT_EQ(Raymatch("simulate " + scene + " -q --no-png --defocus-um 0 -o " + (dir / "out"), dir).code, 0);
+  ASSERT_EQ(
+      Raymatch("simulate " + scene + " -q --no-png --defocus-um 0 -o " + (dir / "out"), dir).code,
+      0);
   const std::string stem = dir / "out/tiny_z+000.00um";
   ImageFileInfo info;
   const Image dn = ReadImage(stem + "_dn.tif", &info);
@@ -193,17 +213,21 @@ TEST(SimulateCli, ReadoutWritesCodeValuesLikeARawFrame) {
   std::ifstream idx(dir / "out/tiny_scan.json");
   EXPECT_EQ(nlohmann::json::parse(idx)["planes"][0]["code_values"], "tiny_z+000.00um_dn.tif");
   // Without [camera.readout], photon counts only.
-  ASSERT_EQ(Raymatch("simulate " + dir.Write("plain.toml", kScene) + " -q --no-png --defocus-um 0 -o " +
-                         (dir / "plain"), dir).code, 0);
+  ASSERT_EQ(Raymatch("simulate " + dir.Write("plain.toml", kScene) +
+                         " -q --no-png --defocus-um 0 -o " + (dir / "plain"),
+                     dir)
+                .code,
+            0);
   EXPECT_FALSE(fs::exists(dir / "plain/tiny_z+000.00um_dn.tif"));
 }
 
 TEST(SimulateCli, SampleSceneIsValid) {
   testing::TempDir dir;
   const CliRun r = Raymatch("simulate " + std::string(RAYMATCH_SOURCE_DIR) +
-                             "/datasets-sample/drop46/scene.toml -q --no-png --rays 20000 "
-                             "--defocus-um 0 -o " + (dir / "out"),
-                         dir);
+                                "/datasets-sample/drop46/scene.toml -q --no-png --rays 20000 "
+                                "--defocus-um 0 -o " +
+                                (dir / "out"),
+                            dir);
   EXPECT_EQ(r.code, 0) << r.err;
 }
 
@@ -221,16 +245,24 @@ TEST(CompareCli, ExitCodes) {
   // The experiment against itself passes.
   EXPECT_EQ(Raymatch("compare-scan " + root + "scan.csv " + root + "scan.csv --dark " + root +
                          "dark.tif --gain 1.0989 -o " + (dir / "self"),
-                     dir).code,
+                     dir)
+                .code,
             0);
   EXPECT_TRUE(std::filesystem::exists(dir / "self/report.html"));
-  EXPECT_EQ(Raymatch("compare " + root + "drop_z+00um.tif " + root + "drop_z+05um.tif -L 4095", dir).code, 0);
+  EXPECT_EQ(
+      Raymatch("compare " + root + "drop_z+00um.tif " + root + "drop_z+05um.tif -L 4095", dir).code,
+      0);
   WriteFloatImage(dir / "tiny.tif", Image(8, 8, 1.f), "");
-  EXPECT_EQ(Raymatch("compare " + root + "drop_z+00um.tif " + (dir / "tiny.tif") + " -L 4095", dir).code, 3);
-  EXPECT_EQ(Raymatch("compare " + root + "drop_z+00um.tif " + (dir / "none.tif") + " -L 4095", dir).code, 4);
+  EXPECT_EQ(
+      Raymatch("compare " + root + "drop_z+00um.tif " + (dir / "tiny.tif") + " -L 4095", dir).code,
+      3);
+  EXPECT_EQ(
+      Raymatch("compare " + root + "drop_z+00um.tif " + (dir / "none.tif") + " -L 4095", dir).code,
+      4);
   EXPECT_EQ(Raymatch("compare-scan " + (dir / "none.csv") + " " + root + "scan.csv", dir).code, 4);
   const std::string tiny = dir.Write("tiny.csv", "0,tiny.tif\n");
-  EXPECT_EQ(Raymatch("compare-scan " + tiny + " " + root + "scan.csv -o " + (dir / "x"), dir).code, 3);
+  EXPECT_EQ(Raymatch("compare-scan " + tiny + " " + root + "scan.csv -o " + (dir / "x"), dir).code,
+            3);
 }
 
 // Issue 15 defect 7: `-L 0` is a usage error (exit 2, docs/compare.md) whose message says what L
@@ -239,12 +271,14 @@ TEST(CompareCli, DataRangeMessageIsShort) {
   testing::TempDir dir;
   const std::string root = std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample/drop46/";
   for (const char* L : {"0", "-3", "abc"}) {
-    const CliRun r = Raymatch("compare " + root + "drop_z+00um.tif " + root + "drop_z+05um.tif -L " + L, dir);
+    const CliRun r =
+        Raymatch("compare " + root + "drop_z+00um.tif " + root + "drop_z+05um.tif -L " + L, dir);
     EXPECT_EQ(r.code, 2) << L;
     EXPECT_NE(r.err.find("the data range L must be a number > 0"), std::string::npos) << r.err;
     EXPECT_LT(r.err.size(), 400u) << r.err;
   }
-  const CliRun neg = Raymatch("compare-scan " + root + "scan.csv " + root + "scan.csv -L -1 -o " + (dir / "n"), dir);
+  const CliRun neg = Raymatch(
+      "compare-scan " + root + "scan.csv " + root + "scan.csv -L -1 -o " + (dir / "n"), dir);
   EXPECT_EQ(neg.code, 2);
   EXPECT_NE(neg.err.find("the data range L must be a number >= 0"), std::string::npos) << neg.err;
   std::ifstream doc(std::string(RAYMATCH_SOURCE_DIR) + "/docs/compare.md");
@@ -258,11 +292,15 @@ TEST(CompareCli, DataRangeMessageIsShort) {
 TEST(CompareCli, MultiscaleSettingsAreUsedAndRecorded) {
   testing::TempDir dir;
   const std::string root = std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample/drop46/";
-  const std::string pair = "compare " + root + "drop_z+00um.tif " + root + "drop_z+05um.tif -L 4095 ";
+  const std::string pair =
+      "compare " + root + "drop_z+00um.tif " + root + "drop_z+05um.tif -L 4095 ";
   ASSERT_EQ(Raymatch(pair + "--json " + (dir / "d.json"), dir).code, 0);
-  ASSERT_EQ(Raymatch(pair + "--ms-ssim-weights wang2003 --ms-ssim-scales 5 --cw-ssim-orientations 8 "
-                            "--cw-ssim-k 0.01 --json " + (dir / "s.json"),
-                     dir).code,
+  ASSERT_EQ(Raymatch(pair +
+                         "--ms-ssim-weights wang2003 --ms-ssim-scales 5 --cw-ssim-orientations 8 "
+                         "--cw-ssim-k 0.01 --json " +
+                         (dir / "s.json"),
+                     dir)
+                .code,
             0);
   std::ifstream fd(dir / "d.json"), fs(dir / "s.json");
   const auto d = nlohmann::json::parse(fd), s = nlohmann::json::parse(fs);

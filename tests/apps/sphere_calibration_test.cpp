@@ -1,17 +1,17 @@
 // `raymatch calibrate sphere` end to end on the sample (datasets-sample/): the light field and
 // corrector calibrated from the sample's own images, then the drop's focus scan fitted for the
 // drop and the nuisances. Known answers: datasets-sample/truth.toml (the generator's). Label
-// slow (9-13 minutes on 2 cores; 9 min 20 s alone). On the reduced sample (1/16 of the photons, as the golden
-// pipeline test uses) the nine-parameter information is not positive definite at the default
-// rays and no uncertainties come out, so the full sample it is.
+// slow (9-13 minutes on 2 cores; 9 min 20 s alone). On the reduced sample (1/16 of the photons, as
+// the golden pipeline test uses) the nine-parameter information is not positive definite at the
+// default rays and no uncertainties come out, so the full sample it is.
 #include <gtest/gtest.h>
 
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <map>
-#include <sstream>
 #include <nlohmann/json.hpp>
+#include <sstream>
 
 #include "raymatch/core/calibration_file.h"
 #include "raymatch/core/toml_reader.h"
@@ -38,22 +38,34 @@ std::string Slurp(const std::string& path) {
 // (the truth's is 1.2), and the half-angle absorbs the difference (docs/calibration.md).
 TEST(SphereCalibration, ReducedSampleRecoversTheDropAndThePsf) {
   testing::TempDir dir;
-  const std::string data = std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample", log = dir / "log.txt";
-  ASSERT_EQ(Raymatch("calibrate lightfield " + data + "/lightfield -o " + (dir / "lf.toml"), log), 0) << Slurp(log);
-  ASSERT_EQ(Raymatch("calibrate corrector " + data + "/flatfield --base " + (dir / "lf.toml") + " -o " + (dir / "cal.toml"), log), 0)
+  const std::string data = std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample",
+                    log = dir / "log.txt";
+  ASSERT_EQ(Raymatch("calibrate lightfield " + data + "/lightfield -o " + (dir / "lf.toml"), log),
+            0)
       << Slurp(log);
-  ASSERT_EQ(Raymatch("calibrate sphere " + data + "/drop46 --base " + (dir / "cal.toml") + " -o " + (dir / "sphere.toml"), log), 0)
+  ASSERT_EQ(Raymatch("calibrate corrector " + data + "/flatfield --base " + (dir / "lf.toml") +
+                         " -o " + (dir / "cal.toml"),
+                     log),
+            0)
+      << Slurp(log);
+  ASSERT_EQ(Raymatch("calibrate sphere " + data + "/drop46 --base " + (dir / "cal.toml") + " -o " +
+                         (dir / "sphere.toml"),
+                     log),
+            0)
       << Slurp(log);
   const toml::table truth = ParseTomlFile(data + "/truth.toml");
   double want_tilt[2] = {0, 0};
-  auto t = [&](const char* table, const char* key) { return truth[table][key].value<double>().value(); };
+  auto t = [&](const char* table, const char* key) {
+    return truth[table][key].value<double>().value();
+  };
   const auto* c = truth["drop"]["center_um"].as_array();
-  const std::map<std::string, double> want{{"object.drop.center_um[0]", c->get(0)->value<double>().value()},
-                                           {"object.drop.center_um[1]", c->get(1)->value<double>().value()},
-                                           {"object.drop.center_um[2]", c->get(2)->value<double>().value()},
-                                           {"object.drop.radius_um", t("drop", "radius_um")},
-                                           {"object.drop.index", t("drop", "index")},
-                                           {"camera.psf_sigma_um", t("camera", "psf_sigma_um")}};
+  const std::map<std::string, double> want{
+      {"object.drop.center_um[0]", c->get(0)->value<double>().value()},
+      {"object.drop.center_um[1]", c->get(1)->value<double>().value()},
+      {"object.drop.center_um[2]", c->get(2)->value<double>().value()},
+      {"object.drop.radius_um", t("drop", "radius_um")},
+      {"object.drop.index", t("drop", "index")},
+      {"camera.psf_sigma_um", t("camera", "psf_sigma_um")}};
   // The truth's tilt (0.8 deg towards azimuth 120 deg) as [x, y] angles of the edge's axis.
   const double kDeg = 3.14159265358979323846 / 180, tilt = t("light_field", "tilt_deg") * kDeg,
                az = t("light_field", "tilt_azimuth_deg") * kDeg;
@@ -71,11 +83,13 @@ TEST(SphereCalibration, ReducedSampleRecoversTheDropAndThePsf) {
     ASSERT_GT(sigma, 0) << key;
     for (int a = 0; a < 2; ++a)
       if (key == "light_field_edge.tilt_deg[" + std::to_string(a) + "]") {
-        EXPECT_LT(std::abs(best - want_tilt[a]), 3 * sigma) << key << " = " << best << " +- " << sigma;
+        EXPECT_LT(std::abs(best - want_tilt[a]), 3 * sigma)
+            << key << " = " << best << " +- " << sigma;
         ++checked;
       }
     if (want.count(key)) {
-      EXPECT_LT(std::abs(best - want.at(key)), 3 * sigma) << key << " = " << best << " +- " << sigma;
+      EXPECT_LT(std::abs(best - want.at(key)), 3 * sigma)
+          << key << " = " << best << " +- " << sigma;
       ++checked;
     }
     if (key == "camera.psf_sigma_um") EXPECT_NEAR(cal.psf_sigma_um, best, 1e-9);

@@ -5,8 +5,8 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
-#include <sstream>
 #include <random>
+#include <sstream>
 
 #include "raymatch/calibrate/corrector.h"
 #include "raymatch/calibrate/lightfield.h"
@@ -28,7 +28,8 @@ std::vector<double> UniformConeWeights(double iris_deg, int zones) {
   const double edge = 1.02 * kNa / std::sqrt(1 - kNa * kNa);
   for (int j = 0; j < zones; ++j) {
     auto s_of = [&](double t) { return t / std::sqrt(1 + t * t); };  // tan -> sin
-    const double lo = std::min(s_of(edge * j / zones), s_iris), hi = std::min(s_of(edge * (j + 1) / zones), s_iris);
+    const double lo = std::min(s_of(edge * j / zones), s_iris),
+                 hi = std::min(s_of(edge * (j + 1) / zones), s_iris);
     w[j] = M_PI * (hi * hi - lo * lo) * 1e6;
   }
   return w;
@@ -122,7 +123,8 @@ TEST(CorrectorFit, ZoneWithoutLightIsReportedUndetermined) {
   const TransmissionFit f = FitTransmissions(W, S, sg, 0);
   ASSERT_FALSE(f.undetermined.empty());
   EXPECT_EQ(f.undetermined.back(), 8);
-  EXPECT_NE(f.message.find("zone 8 receives no light in any flat field: undetermined"), std::string::npos);
+  EXPECT_NE(f.message.find("zone 8 receives no light in any flat field: undetermined"),
+            std::string::npos);
 }
 
 // Synthetic pinhole and cone images of a uniform cone of half-angle 15 deg (inside the NA),
@@ -142,7 +144,8 @@ void WriteFolder(const testing::TempDir& dir, double half_deg, const std::vector
   Image pin(nx, ny);
   for (int y = 0; y < ny; ++y)
     for (int x = 0; x < nx; ++x)
-      pin.at(x, y) = std::hypot((x + 0.5 - nx / 2.0) * p, (ny / 2.0 - y - 0.5) * p) < 1.0 ? pin_level : 0.f;
+      pin.at(x, y) =
+          std::hypot((x + 0.5 - nx / 2.0) * p, (ny / 2.0 - y - 0.5) * p) < 1.0 ? pin_level : 0.f;
   WriteUint16Image(dir / "pinhole.tif", blank ? Image(nx, ny) : expose(pin), "");
   WriteUint16Image(dir / "dark.tif", Image(nx, ny, 100.f), "");
   std::string meta = "pinhole = \"pinhole.tif\"\npinhole_diameter_um = 2\ndark = \"dark.tif\"\n";
@@ -160,8 +163,9 @@ void WriteFolder(const testing::TempDir& dir, double half_deg, const std::vector
     WriteUint16Image(dir / f, expose(e), "");
     meta += "[[cone]]\nfile = \"" + f + "\"\ndz_um = " + std::to_string(h) + "\n";
   }
-  meta += "[camera]\npixel_pitch_um = 10\nbit_depth = 12\ngain_e_per_dn = 1\n"
-          "[optics]\nobjective_focal_mm = 10\nna = 0.42\ntube_focal_mm = 200\n";
+  meta +=
+      "[camera]\npixel_pitch_um = 10\nbit_depth = 12\ngain_e_per_dn = 1\n"
+      "[optics]\nobjective_focal_mm = 10\nna = 0.42\ntube_focal_mm = 200\n";
   std::ofstream(dir / "metadata.toml") << meta;
 }
 
@@ -182,7 +186,8 @@ TEST(LightField, RecoversTheConeFromSyntheticImages) {
     for (int x = 0; x < m.width; ++x) {
       const double u = (2 * (x + 0.5) / m.width - 1) * s.data.angular_extent,
                    v = (1 - 2 * (y + 0.5) / m.height) * s.data.angular_extent;
-      if (std::hypot(u, v) < 0.8 * std::sin(15 * M_PI / 180)) sum += m.at(x, y), ss += m.at(x, y) * m.at(x, y), ++n;
+      if (std::hypot(u, v) < 0.8 * std::sin(15 * M_PI / 180))
+        sum += m.at(x, y), ss += m.at(x, y) * m.at(x, y), ++n;
     }
   const double mean = sum / n;
   EXPECT_LT(std::sqrt(ss / n - mean * mean) / mean, 0.05);
@@ -218,7 +223,8 @@ TEST(LightField, NaIsQuotedInTheCalibrationMedium) {
     ReadLightFieldInput(bad.path().string());
     ADD_FAILURE();
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("must be below medium_index"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("must be below medium_index"), std::string::npos)
+        << e.what();
   }
 }
 
@@ -277,7 +283,9 @@ TEST(LightField, SaturationIsReportedAndSizesMustMatch) {
   WriteFolder(sat, 15, {20, 30}, false, 4095.f);  // 12-bit camera: the pinhole clips at 4095
   const LightFieldSummary s = CalibrateLightField(ReadLightFieldInput(sat.path().string()), {});
   bool warned = false;
-  for (const auto& w : s.warnings) warned |= w.find("pinhole.tif: ") != std::string::npos && w.find("saturated pixels") != std::string::npos;
+  for (const auto& w : s.warnings)
+    warned |= w.find("pinhole.tif: ") != std::string::npos &&
+              w.find("saturated pixels") != std::string::npos;
   EXPECT_TRUE(warned) << s.BriefReport();
   EXPECT_NEAR(s.cone.half_angle_deg, 15, 0.3);  // still usable: a warning, not an error
 
@@ -288,8 +296,10 @@ TEST(LightField, SaturationIsReportedAndSizesMustMatch) {
     CalibrateLightField(ReadLightFieldInput(sizes.path().string()), {});
     FAIL();
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("cone30.tif: error: image is 100x80 but the dark frame is 160x120"),
-              std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find(
+                  "cone30.tif: error: image is 100x80 but the dark frame is 160x120"),
+              std::string::npos)
+        << e.what();
   }
 }
 

@@ -62,12 +62,13 @@ TEST(ZemaxSource, HeaderLayoutIsTheDocumentedOne) {
   EXPECT_EQ(F32At(b, 116), 0.405f);
   for (int i = 0; i < 4; ++i) EXPECT_EQ(F32At(b, 120 + 4 * i), float(1 + i));
   EXPECT_EQ(I32At(b, 136), 2);
-  for (int i = 0; i < 13; ++i) EXPECT_EQ(F32At(b, 140 + 4 * i), float(5 + i)) << "offset " << 140 + 4 * i;
+  for (int i = 0; i < 13; ++i)
+    EXPECT_EQ(F32At(b, 140 + 4 * i), float(5 + i)) << "offset " << 140 + 4 * i;
   EXPECT_EQ(I32At(b, 192), 2);
   EXPECT_EQ(I32At(b, 196), 1);
   EXPECT_EQ(I32At(b, 200), 18);
   EXPECT_EQ(I32At(b, 204), 19);
-  EXPECT_EQ(F32At(b, 208 + 3 * 4), 0.6f);   // first ray's l
+  EXPECT_EQ(F32At(b, 208 + 3 * 4), 0.6f);    // first ray's l
   EXPECT_EQ(F32At(b, 208 + 7 * 4), 0.462f);  // first ray's wavelength
   // Reading gives back every field bit-exactly.
   const ZemaxSourceFile g = ReadZemaxSourceFile(dir / "probe.dat");
@@ -97,7 +98,8 @@ TEST(ZemaxSource, BadFilesSayWhatIsWrong) {
     ReadZemaxSourceFile(dir / "short.dat");
     FAIL();
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("3 rays of 28 bytes need 292"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("3 rays of 28 bytes need 292"), std::string::npos)
+        << e.what();
   }
   b[0] = 0x12;
   std::ofstream(dir / "id.dat", std::ios::binary) << b;
@@ -123,9 +125,11 @@ CalibrationData ConeCalibration(int n, double extent) {
   const double se = std::sin(20 * M_PI / 180);
   for (int y = 0; y < n; ++y)
     for (int x = 0; x < n; ++x) {
-      const double u = (2 * (x + 0.5) / n - 1) * extent - 0.02, v = (1 - 2 * (y + 0.5) / n) * extent;
+      const double u = (2 * (x + 0.5) / n - 1) * extent - 0.02,
+                   v = (1 - 2 * (y + 0.5) / n) * extent;
       const double s = std::hypot(u, v);
-      c.angular_map.at(x, y) = float((1 + 0.2 * s * s / (se * se)) * 0.5 * (1 - std::tanh((s - se) / 0.01)));
+      c.angular_map.at(x, y) =
+          float((1 + 0.2 * s * s / (se * se)) * 0.5 * (1 - std::tanh((s - se) / 0.01)));
     }
   return c;
 }
@@ -194,13 +198,15 @@ TEST(ZemaxSource, ExportImportRoundTripMatchesTheMapStatistically) {
   EXPECT_NE(SampleZemaxSource(cal, eo).rays[0].l, f.rays[0].l);
   // Import into a calibration file that reads back.
   CalibrationData base = cal;
-  base.objective_focal_mm = 10, base.working_distance_mm = 20, base.na = 0.42, base.tube_focal_mm = 200;
+  base.objective_focal_mm = 10, base.working_distance_mm = 20, base.na = 0.42,
+  base.tube_focal_mm = 200;
   base.pixel_pitch_um = 10;
   const ZemaxImportSummary imp = ImportZemaxLightField(g, io, base, dir / "lf.dat");
   WriteCalibrationFile(dir / "imported.toml", imp.data);
   const CalibrationData back = ReadCalibrationFile(dir / "imported.toml");
   EXPECT_EQ(back.angular_map.pixels, imp.data.angular_map.pixels);
-  EXPECT_NE(back.provenance["light_field_inputs"].get<std::string>().find("lf.dat"), std::string::npos);
+  EXPECT_NE(back.provenance["light_field_inputs"].get<std::string>().find("lf.dat"),
+            std::string::npos);
 }
 
 // ---- mrcal path -------------------------------------------------------------------------
@@ -253,7 +259,7 @@ TEST(ZemaxSource, RayListKeepsTheRaysInMicrometres) {
   const NdArray a = ZemaxRayList(f, &skipped);
   ASSERT_EQ(a.shape, (std::vector<size_t>{2, 5}));
   EXPECT_EQ(skipped, 1u);
-  EXPECT_NEAR(a.values[0], 10, 1e-3);   // 0.001 cm = 10 um
+  EXPECT_NEAR(a.values[0], 10, 1e-3);  // 0.001 cm = 10 um
   EXPECT_NEAR(a.values[1], -20, 1e-3);
   EXPECT_NEAR(a.values[2], 0.1, 1e-7);
   EXPECT_NEAR(a.values[3], 0.2, 1e-7);
@@ -309,7 +315,9 @@ TEST(MrcalLightField, ImagerSizeMismatchIsAnError) {
     CalibrateLightField(ReadLightFieldInput(dir.path().string()), {});
     FAIL();
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("imager is 202x160 but the image is 200x160"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("imager is 202x160 but the image is 200x160"),
+              std::string::npos)
+        << e.what();
   }
   std::ofstream(dir / "cam.cameramodel") << "{ 'lensmodel': 'LENSMODEL_NOPE' }\n";
   EXPECT_THROW(CalibrateLightField(ReadLightFieldInput(dir.path().string()), {}), Error);

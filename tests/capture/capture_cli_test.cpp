@@ -6,14 +6,13 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <chrono>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
-#include <sstream>
-#include <chrono>
-#include <thread>
-
 #include <nlohmann/json.hpp>
+#include <sstream>
+#include <thread>
 
 #include "raymatch/core/calibration_file.h"
 #include "raymatch/core/image_io.h"
@@ -49,7 +48,8 @@ std::vector<std::string> FilesBelow(const fs::path& dir) {
   std::vector<std::string> out;
   if (!fs::exists(dir)) return out;
   for (const auto& e : fs::recursive_directory_iterator(dir))
-    if (e.is_regular_file() && e.path().filename() != "stdout.txt" && e.path().filename() != "stderr.txt")
+    if (e.is_regular_file() && e.path().filename() != "stdout.txt" &&
+        e.path().filename() != "stderr.txt")
       out.push_back(e.path().string());
   return out;
 }
@@ -114,30 +114,39 @@ TEST(CaptureCli, BadRequestsLeaveNoFiles) {
   const auto unknown = Raymatch("capture frames --camera nosuch:cam -o " + dir / "o/a.tif", dir);
   EXPECT_EQ(unknown.code, 1);
   EXPECT_NE(unknown.err.find("unknown camera 'nosuch:cam'"), std::string::npos) << unknown.err;
-  const auto v4l2 = Raymatch("capture frames --camera v4l2:/dev/video99 -o " + dir / "o/a.tif", dir);
+  const auto v4l2 =
+      Raymatch("capture frames --camera v4l2:/dev/video99 -o " + dir / "o/a.tif", dir);
   EXPECT_EQ(v4l2.code, 1);
   EXPECT_NE(v4l2.err.find("/dev/video99"), std::string::npos) << v4l2.err;
-  const auto range = Raymatch("capture frames --camera sim:" + scene + " --exposure-us 5 -o " + dir / "o/a.tif", dir);
+  const auto range = Raymatch(
+      "capture frames --camera sim:" + scene + " --exposure-us 5 -o " + dir / "o/a.tif", dir);
   EXPECT_EQ(range.code, 1);
-  EXPECT_NE(range.err.find("outside the camera's range 10 to 1e+08 us"), std::string::npos) << range.err;
-  const auto roi = Raymatch("capture frames --camera sim:" + scene + " --roi 60,0,10,10 -o " + dir / "o/a.tif", dir);
+  EXPECT_NE(range.err.find("outside the camera's range 10 to 1e+08 us"), std::string::npos)
+      << range.err;
+  const auto roi = Raymatch(
+      "capture frames --camera sim:" + scene + " --roi 60,0,10,10 -o " + dir / "o/a.tif", dir);
   EXPECT_EQ(roi.code, 1);
   EXPECT_NE(roi.err.find("ROI"), std::string::npos) << roi.err;
   const std::string blocker = dir.Write("blocker", "a file where a folder should be");
-  const auto unwritable = Raymatch("capture frames --camera sim:" + scene + " -o " + blocker + "/sub/a.tif", dir);
+  const auto unwritable =
+      Raymatch("capture frames --camera sim:" + scene + " -o " + blocker + "/sub/a.tif", dir);
   EXPECT_EQ(unwritable.code, 1);
   EXPECT_NE(unwritable.err.find("blocker"), std::string::npos) << unwritable.err;
   const auto ext = Raymatch("capture frames --camera sim:" + scene + " -o " + dir / "o/a.png", dir);
   EXPECT_EQ(ext.code, 1);
   EXPECT_NE(ext.err.find(".tif"), std::string::npos) << ext.err;
   // A scene without the camera model.
-  const std::string plain = dir.Write("plain.toml", std::string(kSimScene).substr(0, std::string(kSimScene).find("[sim_camera]")));
-  const auto nomodel = Raymatch("capture frames --camera sim:" + plain + " -o " + dir / "o/a.tif", dir);
+  const std::string plain = dir.Write(
+      "plain.toml", std::string(kSimScene).substr(0, std::string(kSimScene).find("[sim_camera]")));
+  const auto nomodel =
+      Raymatch("capture frames --camera sim:" + plain + " -o " + dir / "o/a.tif", dir);
   EXPECT_EQ(nomodel.code, 1);
   EXPECT_NE(nomodel.err.find("[sim_camera]"), std::string::npos) << nomodel.err;
   // Scripted answers that run out name the question.
   const std::string answers = dir.Write("short.txt", "\n");
-  const auto shortrun = Raymatch("capture session cones --camera sim:" + scene + " --answers " + answers + " -o " + dir / "o", dir);
+  const auto shortrun = Raymatch(
+      "capture session cones --camera sim:" + scene + " --answers " + answers + " -o " + dir / "o",
+      dir);
   EXPECT_EQ(shortrun.code, 1);
   EXPECT_NE(shortrun.err.find("ran out"), std::string::npos) << shortrun.err;
   EXPECT_FALSE(fs::exists(dir.path() / "o" / "metadata.toml"));
@@ -147,7 +156,8 @@ TEST(CaptureCli, BadRequestsLeaveNoFiles) {
 TEST(CaptureCli, FramesWithSimulatedCameraAreDeterministic) {
   testing::TempDir dir;
   const std::string scene = dir.Write("sim.toml", kSimScene);
-  const std::string args = "capture frames --camera sim:" + scene + " --exposure-us 2000 --gain 2 --roi 8,8,48,40 -n 2 ";
+  const std::string args =
+      "capture frames --camera sim:" + scene + " --exposure-us 2000 --gain 2 --roi 8,8,48,40 -n 2 ";
   ASSERT_EQ(Raymatch(args + "-o " + dir / "a/f.tif", dir).code, 0);
   ASSERT_EQ(Raymatch(args + "--mean --dark -o " + dir / "b/f.tif < /dev/null", dir).code, 0);
   const Image a0 = ReadImage(dir / "a/f_0000.tif"), a1 = ReadImage(dir / "a/f_0001.tif");
@@ -158,7 +168,8 @@ TEST(CaptureCli, FramesWithSimulatedCameraAreDeterministic) {
   ImageFileInfo info;
   const Image mean = ReadImage(dir / "b/f.tif", &info);
   EXPECT_EQ(info.pixel_type, "float");
-  for (size_t i = 0; i < mean.size(); ++i) ASSERT_FLOAT_EQ(mean.pixels[i], 0.5f * (a0.pixels[i] + a1.pixels[i]));
+  for (size_t i = 0; i < mean.size(); ++i)
+    ASSERT_FLOAT_EQ(mean.pixels[i], 0.5f * (a0.pixels[i] + a1.pixels[i]));
   // Level: 2000 us x 0.1 e-/us = 200 e- in the open field, x gain 2 / 0.25 e-/DN = 1600 DN above
   // black. Shot noise per pixel sqrt(200) x 8 = 113 DN; over 1920 pixels the mean has SE 2.6 DN.
   // The ray count comes from the simulator's fixed-seed pilot run, whose own estimate of hits
@@ -191,12 +202,16 @@ TEST(CaptureCli, SessionsToCalibration) {
   // Light field: pinhole (datasheet + optics defaults from the simulated camera: 10 blank
   // answers, then the pinhole diameter, ready, auto exposure), cones, dark.
   std::string a = std::string(10, '\n') + "2\n\na\n";
-  auto r = Raymatch("capture session pinhole" + cam + "--answers " + dir.Write("a1.txt", a) + " -o " + lf, dir);
+  auto r = Raymatch(
+      "capture session pinhole" + cam + "--answers " + dir.Write("a1.txt", a) + " -o " + lf, dir);
   ASSERT_EQ(r.code, 0) << r.err << Stdout(dir);
-  a = "\n20, 30, 40, 50\n\na\n\n\n\n";  // diameter, dz list, ready, auto (kept for the rest), ready x3
-  r = Raymatch("capture session cones" + cam + "--answers " + dir.Write("a2.txt", a) + " -o " + lf, dir);
+  a = "\n20, 30, 40, 50\n\na\n\n\n\n";  // diameter, dz list, ready, auto (kept for the rest), ready
+                                        // x3
+  r = Raymatch("capture session cones" + cam + "--answers " + dir.Write("a2.txt", a) + " -o " + lf,
+               dir);
   ASSERT_EQ(r.code, 0) << r.err << Stdout(dir);
-  r = Raymatch("capture session dark" + cam + " -o " + lf + " < " + dir.Write("a3.txt", "\n\n"), dir);
+  r = Raymatch("capture session dark" + cam + " -o " + lf + " < " + dir.Write("a3.txt", "\n\n"),
+               dir);
   ASSERT_EQ(r.code, 0) << r.err << Stdout(dir);
   r = Raymatch("calibrate lightfield " + lf + " -o " + dir / "cal/lf.toml", dir);
   ASSERT_EQ(r.code, 0) << r.err << Stdout(dir);
@@ -207,12 +222,15 @@ TEST(CaptureCli, SessionsToCalibration) {
   EXPECT_NEAR(lfc.cone_half_angle_deg, kConeDeg, 0.5) << Stdout(dir);
 
   // Corrector: flats at 5 irises with their cones, then a dark frame.
-  a = std::string(10, '\n') + "\n4, 8, 12, 16, 22\n30\n\na\n" +  // datasheet, pinhole, irises, dz, widest flat
-      "\n\na\n";                                                  // widest flat kept; its cone
-  for (int i = 0; i < 4; ++i) a += "\n\n";                        // the other irises: flat, cone (auto)
-  r = Raymatch("capture session flats" + cam + "--answers " + dir.Write("a4.txt", a) + " -o " + ff, dir);
+  a = std::string(10, '\n') +
+      "\n4, 8, 12, 16, 22\n30\n\na\n" +     // datasheet, pinhole, irises, dz, widest flat
+      "\n\na\n";                            // widest flat kept; its cone
+  for (int i = 0; i < 4; ++i) a += "\n\n";  // the other irises: flat, cone (auto)
+  r = Raymatch("capture session flats" + cam + "--answers " + dir.Write("a4.txt", a) + " -o " + ff,
+               dir);
   ASSERT_EQ(r.code, 0) << r.err << Stdout(dir);
-  r = Raymatch("capture session dark" + cam + " -o " + ff + " < " + dir.Write("a5.txt", "\n\n"), dir);
+  r = Raymatch("capture session dark" + cam + " -o " + ff + " < " + dir.Write("a5.txt", "\n\n"),
+               dir);
   ASSERT_EQ(r.code, 0) << r.err << Stdout(dir);
   r = Raymatch("calibrate corrector " + ff + " --zones 4 --base " + dir / "cal/lf.toml" + " -o " +
                    dir / "cal/cal.toml",
@@ -226,7 +244,8 @@ TEST(CaptureCli, SessionsToCalibration) {
     // noise); sigma must be a real, finite uncertainty for this to mean anything.
     EXPECT_GT(cc.transmission_sigma[k], 0) << "zone " << k;
     EXPECT_NEAR(cc.transmissions[k], kTransmissions[k], 3 * cc.transmission_sigma[k])
-        << "zone " << k << " sigma " << cc.transmission_sigma[k] << "\n" << Stdout(dir);
+        << "zone " << k << " sigma " << cc.transmission_sigma[k] << "\n"
+        << Stdout(dir);
   }
 }
 
@@ -234,15 +253,19 @@ TEST(CaptureCli, SessionsToCalibration) {
 TEST(CaptureCli, FocusScanFolderReadsAsAnExperiment) {
   testing::TempDir dir;
   std::string text = kSimScene;
-  text.insert(text.find("[objective]"), "[[object]]\ntype = \"sphere\"\nradius_um = 10\nmaterial = \"water\"\n");
+  text.insert(text.find("[objective]"),
+              "[[object]]\ntype = \"sphere\"\nradius_um = 10\nmaterial = \"water\"\n");
   const std::string scene = dir.Write("sim.toml", text);
   const std::string folder = dir / "drop";
   // datasheet + optics (10), focus list, diameter, temperature; per plane ready (first: keep).
   const std::string a = std::string(10, '\n') + "-10, 0, 10\n20\n\n\n\n\n\n";
-  auto r = Raymatch("capture session focus-scan --camera sim:" + scene + " --exposure-us 5000 --answers " +
-                        dir.Write("a.txt", a) + " -o " + folder, dir);
+  auto r = Raymatch("capture session focus-scan --camera sim:" + scene +
+                        " --exposure-us 5000 --answers " + dir.Write("a.txt", a) + " -o " + folder,
+                    dir);
   ASSERT_EQ(r.code, 0) << r.err << Stdout(dir);
-  r = Raymatch("capture session dark --camera sim:" + scene + " -o " + folder + " < " + dir.Write("b.txt", "\n\n"), dir);
+  r = Raymatch("capture session dark --camera sim:" + scene + " -o " + folder + " < " +
+                   dir.Write("b.txt", "\n\n"),
+               dir);
   ASSERT_EQ(r.code, 0) << r.err << Stdout(dir);
   const pipeline::ExperimentMetadata m = pipeline::ReadExperimentMetadata(folder);
   EXPECT_EQ(m.diameter_um, 20);
@@ -256,8 +279,10 @@ TEST(CaptureCli, FocusScanFolderReadsAsAnExperiment) {
   Image first;
   while (std::getline(csv, line)) {
     const Image img = ReadImage(folder + "/" + line.substr(line.find(',') + 1));
-    if (planes++ == 0) first = img;
-    else EXPECT_NE(img.pixels, first.pixels);  // the focus changes the image
+    if (planes++ == 0)
+      first = img;
+    else
+      EXPECT_NE(img.pixels, first.pixels);  // the focus changes the image
   }
   EXPECT_EQ(planes, 3);
 }
@@ -268,8 +293,9 @@ TEST(CaptureCli, InterruptLeavesCompleteFramesOnly) {
   testing::TempDir dir;
   const std::string scene = dir.Write("sim.toml", kSimScene);
   const fs::path out = dir.path() / "out";
-  std::vector<std::string> argv = {RAYMATCH_BIN, "capture", "frames", "--camera", "sim:" + scene,
-                                   "--exposure-us", "4000", "-n", "400", "-o", (out / "f.tif").string()};
+  std::vector<std::string> argv = {
+      RAYMATCH_BIN, "capture", "frames", "--camera", "sim:" + scene,          "--exposure-us",
+      "4000",       "-n",      "400",    "-o",       (out / "f.tif").string()};
   const pid_t pid = fork();
   if (pid == 0) {
     if (!std::freopen((dir.path() / "stdout.txt").c_str(), "w", stdout) ||
@@ -287,8 +313,7 @@ TEST(CaptureCli, InterruptLeavesCompleteFramesOnly) {
   auto sidecars = [&] {
     int n = 0;
     std::error_code ec;
-    for (const auto& e : fs::directory_iterator(out, ec))
-      n += e.path().extension() == ".json";
+    for (const auto& e : fs::directory_iterator(out, ec)) n += e.path().extension() == ".json";
     return n;
   };
   while (sidecars() < 2 && std::chrono::steady_clock::now() - t0 < std::chrono::seconds(60))
@@ -318,16 +343,19 @@ TEST(CaptureCli, UnusableMeshLeavesNoOutputFolder) {
   testing::TempDir dir;
   dir.Write("bad.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\n");
   std::string text = kSimScene;
-  text.insert(text.find("[objective]"), "[[object]]\ntype = \"mesh\"\nfile = \"bad.obj\"\nscale_um = 10\n"
-                                        "material = \"water\"\n");
+  text.insert(text.find("[objective]"),
+              "[[object]]\ntype = \"mesh\"\nfile = \"bad.obj\"\nscale_um = 10\n"
+              "material = \"water\"\n");
   const std::string scene = dir.Write("cam.toml", text);
-  const auto r = Raymatch("capture frames --camera sim:" + scene + " --exposure-us 1000 -o " + dir / "out/a.tif", dir);
+  const auto r = Raymatch(
+      "capture frames --camera sim:" + scene + " --exposure-us 1000 -o " + dir / "out/a.tif", dir);
   EXPECT_EQ(r.code, 1) << r.err;
   EXPECT_NE(r.err.find("bad.obj"), std::string::npos) << r.err;
   EXPECT_FALSE(std::filesystem::exists(dir / "out")) << r.err;
   // The control: with a closed mesh the same command writes its frame.
   dir.Write("bad.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 2 3 4\nf 1 4 3\n");
-  const auto ok = Raymatch("capture frames --camera sim:" + scene + " --exposure-us 1000 -o " + dir / "out/a.tif", dir);
+  const auto ok = Raymatch(
+      "capture frames --camera sim:" + scene + " --exposure-us 1000 -o " + dir / "out/a.tif", dir);
   EXPECT_EQ(ok.code, 0) << ok.err;
   EXPECT_TRUE(std::filesystem::exists(dir / "out/a.tif"));
 }

@@ -1,14 +1,14 @@
 // The camera model of the simulated camera, frame files with sidecars, request checks.
+#include "raymatch/capture/sensor_model.h"
+
 #include <gtest/gtest.h>
 
 #include <cmath>
 #include <filesystem>
 #include <fstream>
-
 #include <nlohmann/json.hpp>
 
 #include "raymatch/capture/frames.h"
-#include "raymatch/capture/sensor_model.h"
 #include "raymatch/core/error.h"
 #include "raymatch/core/image_io.h"
 #include "temp_dir.h"
@@ -27,7 +27,8 @@ TEST(SensorModel, DarkFrameHasBlackLevelAndReadNoise) {
   // read noise^2 + 1/12 (quantisation). Tolerances: 5 standard errors over N = 65536 pixels,
   // SE(mean) = 6 / 256 = 0.023 DN, SE(var) = var sqrt(2 / N) = 0.2 DN^2.
   EXPECT_NEAR(s.mean, 64.0, 5 * 6.0 / n) << "mean " << s.mean;
-  EXPECT_NEAR(s.variance, 36.0 + 1.0 / 12, 5 * 36.1 * std::sqrt(2.0 / (n * n))) << "variance " << s.variance;
+  EXPECT_NEAR(s.variance, 36.0 + 1.0 / 12, 5 * 36.1 * std::sqrt(2.0 / (n * n)))
+      << "variance " << s.variance;
   for (float v : dn.pixels) EXPECT_EQ(v, std::round(v));  // integer code values
 }
 
@@ -43,7 +44,7 @@ TEST(SensorModel, GainWellAndBitDepth) {
   EXPECT_EQ(g1.pixels[3], 64 + 2250);  // the well holds 4500 e-
   const Image g4 = ExposeSensor(m, e, 4.0, 1, 0);
   EXPECT_EQ(g4.pixels[1], 64 + 2000);
-  EXPECT_EQ(g4.pixels[2], 4095);       // 64 + 9000 clips at 12 bits
+  EXPECT_EQ(g4.pixels[2], 4095);  // 64 + 9000 clips at 12 bits
   m.bit_depth = 10;
   EXPECT_EQ(ExposeSensor(m, e, 1.0, 1, 0).pixels[2], 1023);
 }
@@ -118,15 +119,15 @@ TEST(Frames, SignalLevelAndSuggestion) {
   const SignalLevel s = MeasureSignal(dn, 64, 4095, 1.0, 1000);
   EXPECT_NEAR(s.median_fraction, 0.3, 1e-9);
   EXPECT_EQ(s.clipped_fraction, 0);
-  dn.pixels[0] = 4095;            // top code value
-  dn.pixels[1] = 64 + 1000;       // at the full well (below the top code value)
-  dn.pixels[2] = 64 + 900;        // bright, not clipped
+  dn.pixels[0] = 4095;       // top code value
+  dn.pixels[1] = 64 + 1000;  // at the full well (below the top code value)
+  dn.pixels[2] = 64 + 900;   // bright, not clipped
   const SignalLevel c = MeasureSignal(dn, 64, 4095, 1.0, 1000);
   EXPECT_DOUBLE_EQ(c.clipped_fraction, 0.02);
   EXPECT_NEAR(c.peak_fraction, (4095 - 64) / 1000.0, 1e-9);
   CameraInfo info;
   EXPECT_DOUBLE_EQ(SuggestExposure(1000, 0.3, false, 0.6, info), 2000);
-  EXPECT_DOUBLE_EQ(SuggestExposure(1000, 0.9, true, 0.6, info), 500);   // clipped: halve
+  EXPECT_DOUBLE_EQ(SuggestExposure(1000, 0.9, true, 0.6, info), 500);     // clipped: halve
   EXPECT_DOUBLE_EQ(SuggestExposure(1000, 0.0, false, 0.6, info), 10000);  // no signal
   info.exposure_min_us = 10, info.exposure_max_us = 1500;
   EXPECT_DOUBLE_EQ(SuggestExposure(1000, 0.3, false, 0.6, info), 1500);  // camera's limit

@@ -1,11 +1,12 @@
 // Pixel-format unpacking against hand-made buffers (issue 12). Each buffer is built by hand from
 // the CSI-2 layout (high bits first, then the low-bit byte, pixel 0 in the least significant
 // bits), not by the code under test.
+#include "raymatch/capture/unpack.h"
+
 #include <gtest/gtest.h>
 
 #include <vector>
 
-#include "raymatch/capture/unpack.h"
 #include "raymatch/core/error.h"
 
 namespace raymatch::capture {

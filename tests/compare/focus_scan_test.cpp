@@ -6,8 +6,8 @@
 #include <cmath>
 #include <fstream>
 #include <functional>
-#include <sstream>
 #include <random>
+#include <sstream>
 
 #include "raymatch/core/image_io.h"
 #include "temp_dir.h"
@@ -70,8 +70,8 @@ TEST(FocusScan, SyntheticScanPassesAndRecoversTheShift) {
   EXPECT_EQ(RunFocusScan(exp, rev, o).verdict, Verdict::kFail);
 }
 
-// A faint ring (30 % of a 1000-photon background, 3 px wide) under shot noise: the low-contrast pairs of
-// issue 15 defect 6.
+// A faint ring (30 % of a 1000-photon background, 3 px wide) under shot noise: the low-contrast
+// pairs of issue 15 defect 6.
 Stack FaintStack(double shift_px, uint64_t seed) {
   Stack s;
   std::mt19937_64 g(seed);
@@ -101,7 +101,8 @@ TEST(FocusScan, NoShiftIsAppliedToNoise) {
   int applied = 0;
   double z2 = 0;
   for (uint64_t seed = 0; seed < 20; ++seed) {
-    const FocusScanResult r = RunFocusScan(FaintStack(0, 2 * seed + 100), FaintStack(0, 2 * seed + 101), o);
+    const FocusScanResult r =
+        RunFocusScan(FaintStack(0, 2 * seed + 100), FaintStack(0, 2 * seed + 101), o);
     ASSERT_TRUE(r.registration_run);
     for (int k = 0; k < 2; ++k) {
       ASSERT_TRUE(std::isfinite(r.shift_sigma_px[k]));
@@ -110,7 +111,8 @@ TEST(FocusScan, NoShiftIsAppliedToNoise) {
       z2 += std::pow(r.shift_estimate_px[k] / r.shift_sigma_px[k], 2);
     }
     if (seed == 0) {
-      EXPECT_NE(r.RegistrationSummary().find("none applied"), std::string::npos) << r.RegistrationSummary();
+      EXPECT_NE(r.RegistrationSummary().find("none applied"), std::string::npos)
+          << r.RegistrationSummary();
       EXPECT_EQ(r.ToJson()["registration"]["applied"][0], r.shift_applied[0]);
     }
   }
@@ -125,7 +127,8 @@ TEST(FocusScan, RealShiftInFaintImagesIsApplied) {
   o.measures = o.primary = {Measure::kMse};
   const FocusScanResult r = RunFocusScan(FaintStack(2.5, 7), FaintStack(0, 8), o);
   EXPECT_TRUE(r.shift_applied[0]);
-  EXPECT_LT(std::abs(r.shift_px[0] + 2.5), 4 * r.shift_sigma_px[0] + 0.02) << r.RegistrationSummary();
+  EXPECT_LT(std::abs(r.shift_px[0] + 2.5), 4 * r.shift_sigma_px[0] + 0.02)
+      << r.RegistrationSummary();
   // With registration off the report says no shift was applied.
   o.register_shift = false;
   const FocusScanResult off = RunFocusScan(FaintStack(2.5, 7), FaintStack(0, 8), o);
@@ -135,7 +138,8 @@ TEST(FocusScan, RealShiftInFaintImagesIsApplied) {
 
 TEST(FocusScan, ReportFilesAreWritten) {
   const std::vector<double> zs = {-10, 0, 10};
-  const FocusScanResult r = RunFocusScan(MakeStack(zs, 1, 0, 1, true), MakeStack(zs, 1, 0, 2, true), {});
+  const FocusScanResult r =
+      RunFocusScan(MakeStack(zs, 1, 0, 1, true), MakeStack(zs, 1, 0, 2, true), {});
   testing::TempDir dir;
   const std::string report = WriteFocusScanReport(r, dir / "out", "test");
   std::ifstream in(report);
@@ -144,10 +148,12 @@ TEST(FocusScan, ReportFilesAreWritten) {
   // Every figure embedded: the montage, one heatmap per measure, a residual map and a radial
   // profile per experimental plane.
   size_t embedded = 0;
-  for (size_t at = 0; (at = ss.str().find("data:image/png;base64,", at)) != std::string::npos; ++at) ++embedded;
+  for (size_t at = 0; (at = ss.str().find("data:image/png;base64,", at)) != std::string::npos; ++at)
+    ++embedded;
   EXPECT_EQ(embedded, 1 + r.measures.size() + 2 * zs.size());
-  for (const char* f : {"compare_scan.json", "best_match.csv", "mse_matrix.csv", "heatmap_ms_ssim.png", "montage.png",
-                        "plane_0_residual.png", "plane_2_profile.png"})
+  for (const char* f :
+       {"compare_scan.json", "best_match.csv", "mse_matrix.csv", "heatmap_ms_ssim.png",
+        "montage.png", "plane_0_residual.png", "plane_2_profile.png"})
     EXPECT_TRUE(std::filesystem::exists(dir / ("out/" + std::string(f)))) << f;
 }
 
@@ -226,7 +232,8 @@ TEST(FocusScan, JsonIndexFieldsAreTypeChecked) {
     EXPECT_NE(what.find(file), std::string::npos) << what;
     EXPECT_NE(what.find(c.field), std::string::npos) << c.json << " -> " << what;
   }
-  const Stack ok = ReadStack(dir.Write("ok.json", R"({"planes": [{"defocus_um": -2.5, "image": "a.tif"}]})"));
+  const Stack ok =
+      ReadStack(dir.Write("ok.json", R"({"planes": [{"defocus_um": -2.5, "image": "a.tif"}]})"));
   ASSERT_EQ(ok.defocus_um.size(), 1u);
   EXPECT_EQ(ok.defocus_um[0], -2.5);
 }
@@ -237,7 +244,8 @@ TEST(FocusScan, CsvIndexDefocusMustBeAFiniteNumber) {
   testing::TempDir dir;
   WriteFloatImage(dir / "a.tif", Plane(0), "");
   for (const char* z : {"nan", "NaN", "inf", "-inf", "1e999", "5um", "5 6", " ", "0x"}) {
-    const std::string file = dir.Write("z.csv", std::string("defocus_um,file\n0,a.tif\n") + z + ",a.tif\n");
+    const std::string file =
+        dir.Write("z.csv", std::string("defocus_um,file\n0,a.tif\n") + z + ",a.tif\n");
     const auto [kind, what] = ErrorOf([&] { ReadStack(file); });
     EXPECT_EQ(kind, FailureKind::kFileError) << z;
     EXPECT_NE(what.find(file + ":3:"), std::string::npos) << z << " -> " << what;

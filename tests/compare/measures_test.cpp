@@ -32,7 +32,8 @@ Image Noisy(const Image& a, double sigma, uint64_t seed) {
   Image b = a;
   for (size_t i = 0; i < b.size(); ++i) {
     RayRng r(seed, 0, i);
-    b.pixels[i] += float(sigma * std::sqrt(-2 * std::log(1 - r.Uniform())) * std::cos(2 * M_PI * r.Uniform()));
+    b.pixels[i] +=
+        float(sigma * std::sqrt(-2 * std::log(1 - r.Uniform())) * std::cos(2 * M_PI * r.Uniform()));
   }
   return b;
 }
@@ -75,7 +76,8 @@ AllMeasures MeasureAll(const Image& a, const Image& b) {
 }
 
 /// Every image in `worse` must be further from `a` than the one before it by every measure.
-std::vector<AllMeasures> ExpectEveryMeasureWorsens(const Image& a, const std::vector<Image>& worse) {
+std::vector<AllMeasures> ExpectEveryMeasureWorsens(const Image& a,
+                                                   const std::vector<Image>& worse) {
   std::vector<AllMeasures> all;
   AllMeasures prev{0, 1, 1, 1};
   for (size_t i = 0; i < worse.size(); ++i) {
@@ -301,8 +303,9 @@ TEST(Measures, CwSsimAgreesWithIndependentReference) {
         const double u = x - 40, v = y - 38;
         const double xs = 40 + ca * u - sa * v, ys = 38 + sa * u + ca * v;
         const double r = std::hypot(xs - 40 - c.shift, ys - 38);
-        b.at(x, y) = float(c.gain * (600 - 400 * std::exp(-std::pow((r - 18) / 4, 2)) +
-                                     300 * std::exp(-std::pow(std::hypot(xs - 70 - c.shift, ys - 20) / 6, 2))));
+        b.at(x, y) = float(
+            c.gain * (600 - 400 * std::exp(-std::pow((r - 18) / 4, 2)) +
+                      300 * std::exp(-std::pow(std::hypot(xs - 70 - c.shift, ys - 20) / 6, 2))));
       }
     if (c.angle_deg == 0 && c.gain == 1.0) b = shifted;
     b = Noisy(b, c.noise, 11);
@@ -320,12 +323,13 @@ TEST(Measures, CwSsimAgreesWithIndependentReference) {
                   (dir / "b.tif").c_str(), r.level, c.orientations, c.k, c.guard);
     const std::vector<double> ref = RunReference("reference_cwssim.py", args);
     ASSERT_EQ(ref.size(), size_t(c.orientations) + 1) << args;
-    SCOPED_TRACE(::testing::Message() << c.w << "x" << c.h << " level " << r.level << " of "
-                                      << r.max_level << ", " << c.orientations
-                                      << " orientations, K " << c.k << ", guard " << c.guard);
+    SCOPED_TRACE(::testing::Message()
+                 << c.w << "x" << c.h << " level " << r.level << " of " << r.max_level << ", "
+                 << c.orientations << " orientations, K " << c.k << ", guard " << c.guard);
     EXPECT_NEAR(r.cw_ssim, ref[0], 1e-6);
     EXPECT_LT(r.cw_ssim, 1.0);
-    for (int k = 0; k < c.orientations; ++k) EXPECT_NEAR(r.per_orientation[k], ref[k + 1], 1e-6) << "orientation " << k;
+    for (int k = 0; k < c.orientations; ++k)
+      EXPECT_NEAR(r.per_orientation[k], ref[k + 1], 1e-6) << "orientation " << k;
   }
 }
 

@@ -21,7 +21,8 @@ namespace fs = std::filesystem;
 /// Number of pixels whose grey value differs between two images of the same size.
 size_t DifferentPixels(const Image& a, const Image& b) {
   size_t n = 0;
-  for (size_t i = 0; i < a.pixels.size() && i < b.pixels.size(); ++i) n += a.pixels[i] != b.pixels[i];
+  for (size_t i = 0; i < a.pixels.size() && i < b.pixels.size(); ++i)
+    n += a.pixels[i] != b.pixels[i];
   return n;
 }
 
@@ -43,7 +44,7 @@ TEST(Plot, XyPlotHasTheRequestedSizeAndShowsItsData) {
   p.series = {s};
   p.title = "t", p.xlabel = "x (um)", p.ylabel = "y";
   WritePlot(dir / "a.png", {p, p}, 400, 300);  // two stacked panels
-  const Image a = ReadImage(dir / "a.png");  // grey: the mean of R, G and B
+  const Image a = ReadImage(dir / "a.png");    // grey: the mean of R, G and B
   EXPECT_EQ(a.width, 400);
   EXPECT_EQ(a.height, 600);
   EXPECT_EQ(FilesIn(dir.path()), 1u) << "a temporary file was left behind";
@@ -95,7 +96,8 @@ TEST(Plot, EveryPixelIsDrawn) {
   WriteMap(dir / "m.png", m);
   const Image out = ReadImage(dir / "m.png");  // 8-bit grey: the mean of R, G and B
   size_t dark_grey = 0, light_grey = 0;
-  for (float v : out.pixels) dark_grey += std::abs(v - 85) <= 2, light_grey += std::abs(v - 170) <= 2;
+  for (float v : out.pixels)
+    dark_grey += std::abs(v - 85) <= 2, light_grey += std::abs(v - 170) <= 2;
   // Each cell is about 150 x 150 px; the colour bar has a few pixels of each grey.
   EXPECT_GT(dark_grey, 15000u);
   EXPECT_GT(light_grey, 15000u);
@@ -111,9 +113,11 @@ TEST(Plot, ConcurrentFiguresAreWhole) {
   const Image alone = ReadImage(dir / "alone.png");
   std::vector<std::thread> threads;
   for (int t = 0; t < 4; ++t)
-    threads.emplace_back([&, t] { WritePlot(dir / ("t" + std::to_string(t) + ".png"), {s}, "t", "x", "y"); });
+    threads.emplace_back(
+        [&, t] { WritePlot(dir / ("t" + std::to_string(t) + ".png"), {s}, "t", "x", "y"); });
   for (std::thread& t : threads) t.join();
-  for (int t = 0; t < 4; ++t) EXPECT_EQ(DifferentPixels(alone, ReadImage(dir / ("t" + std::to_string(t) + ".png"))), 0u) << t;
+  for (int t = 0; t < 4; ++t)
+    EXPECT_EQ(DifferentPixels(alone, ReadImage(dir / ("t" + std::to_string(t) + ".png"))), 0u) << t;
 }
 
 // A figure that cannot be written (its folder is a file) is an error naming it, never a prompt

@@ -63,7 +63,6 @@ TEST(ArrayIo, BadFilesSayWhy) {
   }
 }
 
-
 // Issue 15 defect 4: a header's declared shape is checked against limits and the file size
 // before anything is allocated.
 TEST(ArrayIo, NpyDeclaredShapeIsCheckedBeforeAllocating) {
@@ -73,12 +72,14 @@ TEST(ArrayIo, NpyDeclaredShapeIsCheckedBeforeAllocating) {
     while ((10 + header.size() + 1) % 64) header += ' ';
     header += '\n';
     std::string out = "\x93NUMPY";
-    out += char(1), out += char(0), out += char(header.size() & 0xff), out += char(header.size() >> 8);
+    out += char(1), out += char(0), out += char(header.size() & 0xff),
+        out += char(header.size() >> 8);
     return out + header + std::string(16, '\0');  // two float64 values
   };
-  for (auto [shape, what] : {std::pair{"(100000, 100000)", "more than the limit"},
-                             std::pair{"(4294967296, 4294967296, 4294967296)", "more than the limit"},
-                             std::pair{"(1000, 1000)", "truncated data"}}) {
+  for (auto [shape, what] :
+       {std::pair{"(100000, 100000)", "more than the limit"},
+        std::pair{"(4294967296, 4294967296, 4294967296)", "more than the limit"},
+        std::pair{"(1000, 1000)", "truncated data"}}) {
     try {
       ReadNpy(dir.Write("big.npy", npy(shape)));
       ADD_FAILURE() << shape;
@@ -112,9 +113,9 @@ TEST(ArrayIo, Hdf5DeclaredSizeIsCheckedBeforeAllocating) {
       H5Pclose(pl);
       H5Sclose(sp);
     };
-    dataset("over", {20000, 20000});                     // 4e8 values > 2^28
+    dataset("over", {20000, 20000});                      // 4e8 values > 2^28
     dataset("far_over", {1u << 20, 1u << 20, 1u << 20});  // 2^60 values
-    dataset("small", {4, 3});                            // unwritten chunks read as the fill value 0
+    dataset("small", {4, 3});  // unwritten chunks read as the fill value 0
     H5Fclose(f);
   }
   ASSERT_LT(std::filesystem::file_size(path), 100000u);
@@ -132,7 +133,8 @@ TEST(ArrayIo, Hdf5DeclaredSizeIsCheckedBeforeAllocating) {
   }
   rusage after{};
   getrusage(RUSAGE_SELF, &after);
-  EXPECT_LT(after.ru_maxrss - before.ru_maxrss, 100 * 1024) << "peak RSS grew by " << after.ru_maxrss - before.ru_maxrss << " kB";
+  EXPECT_LT(after.ru_maxrss - before.ru_maxrss, 100 * 1024)
+      << "peak RSS grew by " << after.ru_maxrss - before.ru_maxrss << " kB";
   const NdArray small = ReadHdf5(path, "small");
   EXPECT_EQ(small.shape, (std::vector<size_t>{4, 3}));
   EXPECT_EQ(small.values, std::vector<double>(12, 0.0));
@@ -154,7 +156,8 @@ TEST(AtomicFile, TemporariesAreUnregisteredAfterCommitAndFailure) {
   EXPECT_THROW(WriteTextFileAtomic(dir / "missing/a.txt", "a"), Error);
   EXPECT_THROW(WriteFloatImage(dir / "missing/a.tif", Image(4, 3, 1.f), "test"), Error);
   EXPECT_THROW(WriteHdf5(dir / "missing/a.h5", "n", a), Error);
-  EXPECT_THROW(CommitTemporary(TemporaryPathFor(dir / "b.txt"), dir / "b.txt"), Error);  // nothing to move
+  EXPECT_THROW(CommitTemporary(TemporaryPathFor(dir / "b.txt"), dir / "b.txt"),
+               Error);  // nothing to move
   EXPECT_EQ(RegisteredTemporaries(), before);
   for (const auto& e : std::filesystem::directory_iterator(dir.path()))
     EXPECT_EQ(e.path().filename().string().find(".partial-"), std::string::npos) << e.path();
@@ -171,7 +174,7 @@ TEST(AtomicFile, CreatedFoldersAreRemovedWhileEmpty) {
   EnsureDirectory(dir / "new/x");
   EnsureDirectory(dir / "kept/y");
   WriteTextFileAtomic(dir / "kept/y/file.txt", "x");
-  EnsureDirectory(dir / "old");  // existed: not recorded
+  EnsureDirectory(dir / "old");                   // existed: not recorded
   EXPECT_EQ(RemoveCreatedEmptyDirectories(), 5);  // old/a/b/c, old/a/b, old/a, new/x, new
   EXPECT_TRUE(fs::is_directory(dir / "old"));
   EXPECT_FALSE(fs::exists(dir / "old/a"));

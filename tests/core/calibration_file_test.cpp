@@ -66,7 +66,9 @@ TEST(CalibrationFile, StrictReader) {
     ReadCalibrationFile(dir / "bad.toml");
     FAIL();
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("'optics.na': expected a number in (0, 1)"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("'optics.na': expected a number in (0, 1)"),
+              std::string::npos)
+        << e.what();
   }
   // The edge's tilt: two angles, each within 10 degrees.
   text = ss.str();
@@ -78,8 +80,10 @@ TEST(CalibrationFile, StrictReader) {
     ReadCalibrationFile(dir / "bad.toml");
     FAIL();
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("'light_field.edge_tilt_deg': expected [x, y] in degrees, each within 10"),
-              std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find(
+                  "'light_field.edge_tilt_deg': expected [x, y] in degrees, each within 10"),
+              std::string::npos)
+        << e.what();
   }
   std::filesystem::remove(dir / "cal.angular.tif");
   EXPECT_THROW(ReadCalibrationFile(dir / "cal.toml"), Error);

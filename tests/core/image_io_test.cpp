@@ -64,7 +64,6 @@ TEST(ImageIo, MissingAndBadFilesSayWhich) {
   EXPECT_THROW(WriteFloatImage(dir / "x.bmpx", Image(1, 1), ""), Error);
 }
 
-
 // Issue 15 defect 1: integer pixels came back through a normalised float and were multiplied
 // back, off by up to 3.9e-3 in a 16-bit ramp. Every code value must read back exactly.
 TEST(ImageIo, EverySixteenBitCodeValueReadsBackExactly) {
@@ -106,20 +105,22 @@ std::string TiffClaiming(uint32_t width, uint32_t height) {
   u16(n);
   auto entry = [&](uint16_t tag, uint16_t type, uint32_t value) {
     u16(tag), u16(type), u32(1);
-    if (type == 3) u16(static_cast<uint16_t>(value)), u16(0);
-    else u32(value);
+    if (type == 3)
+      u16(static_cast<uint16_t>(value)), u16(0);
+    else
+      u32(value);
   };
   const uint32_t data = 8 + 2 + n * 12 + 4;
-  entry(256, 4, width);        // ImageWidth
-  entry(257, 4, height);       // ImageLength
-  entry(258, 3, 32);           // BitsPerSample
-  entry(259, 3, 1);            // Compression: none
-  entry(262, 3, 1);            // Photometric: min-is-black
-  entry(273, 4, data);         // StripOffsets
-  entry(277, 3, 1);            // SamplesPerPixel
-  entry(278, 4, height);       // RowsPerStrip
-  entry(279, 4, 16);           // StripByteCounts
-  entry(339, 3, 3);            // SampleFormat: IEEE float
+  entry(256, 4, width);   // ImageWidth
+  entry(257, 4, height);  // ImageLength
+  entry(258, 3, 32);      // BitsPerSample
+  entry(259, 3, 1);       // Compression: none
+  entry(262, 3, 1);       // Photometric: min-is-black
+  entry(273, 4, data);    // StripOffsets
+  entry(277, 3, 1);       // SamplesPerPixel
+  entry(278, 4, height);  // RowsPerStrip
+  entry(279, 4, 16);      // StripByteCounts
+  entry(339, 3, 3);       // SampleFormat: IEEE float
   u32(0);
   t.append(16, '\0');
   return t;
@@ -128,9 +129,9 @@ std::string TiffClaiming(uint32_t width, uint32_t height) {
 // Issue 15 defect 4: a TIFF claiming a huge size made `compare` allocate ~14 GB before failing.
 TEST(ImageIo, DeclaredSizeIsCheckedBeforeAllocating) {
   testing::TempDir dir;
-  for (auto [w, h, what] : {std::tuple{70000u, 1u, "pixels on a side"},
-                            std::tuple{20000u, 20000u, "pixels in all"},
-                            std::tuple{4000u, 4000u, "bytes of pixel data"}}) {
+  for (auto [w, h, what] :
+       {std::tuple{70000u, 1u, "pixels on a side"}, std::tuple{20000u, 20000u, "pixels in all"},
+        std::tuple{4000u, 4000u, "bytes of pixel data"}}) {
     const std::string f = dir.Write("huge.tif", TiffClaiming(w, h));
     try {
       ReadImage(f);

@@ -27,9 +27,9 @@ TEST(TomlReader, SyntaxErrorHasLineAndColumn) {
   EXPECT_NE(e.find("TOML syntax"), std::string::npos) << e;
 }
 
-
 TEST(TomlReader, UnknownKeyIsAnErrorWithItsPosition) {
-  const std::string e = ErrorOf("radius = 1\nradus = 2\n", [](TomlReader& r) { r.Positive("radius"); });
+  const std::string e =
+      ErrorOf("radius = 1\nradus = 2\n", [](TomlReader& r) { r.Positive("radius"); });
   EXPECT_NE(e.find("s.toml:2:1: error: unknown key 'radus'"), std::string::npos) << e;
   EXPECT_NE(e.find("accepted here: radius"), std::string::npos) << e;
 }
@@ -40,7 +40,8 @@ TEST(TomlReader, WrongTypeNamesExpectedAndActual) {
     t.Positive("radius");
   });
   EXPECT_NE(e.find("s.toml:2:10: error: 'obj.radius': expected a number, got a string"),
-            std::string::npos) << e;
+            std::string::npos)
+      << e;
 }
 
 TEST(TomlReader, ImpossibleNumbersAreRejected) {
@@ -65,16 +66,20 @@ TEST(TomlReader, MissingKeyNamesTheTable) {
 }
 
 TEST(TomlReader, ChoicesAndArrays) {
-  EXPECT_NE(ErrorOf("t = \"cube\"\n", [](TomlReader& r) { r.Choice("t", {"sphere", "box"}); })
+  EXPECT_NE(ErrorOf("t = \"cube\"\n",
+                    [](TomlReader& r) {
+                      r.Choice("t", {"sphere", "box"});
+                    })
                 .find("expected one of \"sphere\", \"box\", got \"cube\""),
             std::string::npos);
-  EXPECT_NE(ErrorOf("c = [1, 2]\n", [](TomlReader& r) { r.Vec3("c"); })
-                .find("expected 3 numbers, got 2"),
-            std::string::npos);
-  EXPECT_EQ(ErrorOf("c = [1, 2, 3]\nok = true\n", [](TomlReader& r) {
-              EXPECT_DOUBLE_EQ(r.Vec3("c")[2], 3.0);
-              EXPECT_TRUE(r.Bool("ok", false));
-            }),
+  EXPECT_NE(
+      ErrorOf("c = [1, 2]\n", [](TomlReader& r) { r.Vec3("c"); }).find("expected 3 numbers, got 2"),
+      std::string::npos);
+  EXPECT_EQ(ErrorOf("c = [1, 2, 3]\nok = true\n",
+                    [](TomlReader& r) {
+                      EXPECT_DOUBLE_EQ(r.Vec3("c")[2], 3.0);
+                      EXPECT_TRUE(r.Bool("ok", false));
+                    }),
             "");
 }
 

@@ -1,5 +1,6 @@
 // The five-parameter sphere fit at the sample's photon count per pixel (2500) over independent
-// noise realisations (label "slow": about 7 minutes for the four tests on 2 cores). Checks, per parameter:
+// noise realisations (label "slow": about 7 minutes for the four tests on 2 cores). Checks, per
+// parameter:
 //  * every fit's value within 3 reported sigma of the truth, and their mean within 3 standard
 //    errors of the truth (no bias, issue 26);
 //  * the reported sigma agrees with the scatter over realisations within a factor 1.5, and that
@@ -25,11 +26,13 @@
 namespace raymatch::fit {
 namespace {
 
-std::string Scene(double x, double y, double z, double r, double n, int seed, double photons_per_pixel = 2500) {
+std::string Scene(double x, double y, double z, double r, double n, int seed,
+                  double photons_per_pixel = 2500) {
   std::ostringstream s;
   s << "name = \"drop\"\nseed = " << seed << "\n[source]\ntype = \"cone\"\nhalf_angle_deg = 27\n"
-    << "[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = [" << x << ", " << y << ", " << z
-    << "]\nradius_um = " << r << "\nindex = " << n << "\n[objective]\nfocal_length_mm = 10\nna = 0.42\n"
+    << "[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = [" << x << ", " << y << ", "
+    << z << "]\nradius_um = " << r << "\nindex = " << n
+    << "\n[objective]\nfocal_length_mm = 10\nna = 0.42\n"
     << "working_distance_mm = 20\n[tube_lens]\nfocal_length_mm = 200\n[camera]\npixels = [48, 40]\n"
     << "pixel_pitch_um = 40\n[trace]\nphotons_per_pixel = " << photons_per_pixel << "\n";
   return s.str();
@@ -37,27 +40,31 @@ std::string Scene(double x, double y, double z, double r, double n, int seed, do
 
 /// A sphere (x, y, z, radius, index in t) under a cone of `cone_deg`, 1000 photons per pixel,
 /// with bench/fit_accuracy.py's optics (20x: camera pitch `pitch_um` / 20 at the object).
-std::string BenchScene(const double* t, int seed, double cone_deg, int nx, int ny, double pitch_um) {
+std::string BenchScene(const double* t, int seed, double cone_deg, int nx, int ny,
+                       double pitch_um) {
   std::ostringstream s;
-  s << "name = \"drop\"\nseed = " << seed << "\n[source]\ntype = \"cone\"\nhalf_angle_deg = " << cone_deg
-    << "\n[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = [" << t[0] << ", " << t[1] << ", "
-    << t[2] << "]\nradius_um = " << t[3] << "\nindex = " << t[4]
+  s << "name = \"drop\"\nseed = " << seed
+    << "\n[source]\ntype = \"cone\"\nhalf_angle_deg = " << cone_deg
+    << "\n[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = [" << t[0] << ", " << t[1]
+    << ", " << t[2] << "]\nradius_um = " << t[3] << "\nindex = " << t[4]
     << "\n[objective]\nfocal_length_mm = 10\nna = 0.42\nworking_distance_mm = 20\n[tube_lens]\n"
-    << "focal_length_mm = 200\n[camera]\npixels = [" << nx << ", " << ny << "]\npixel_pitch_um = " << pitch_um
+    << "focal_length_mm = 200\n[camera]\npixels = [" << nx << ", " << ny
+    << "]\npixel_pitch_um = " << pitch_um
     << "\n[trace]\nphotons_per_pixel = 1000\npartial_reflection = \"unpolarized\"\n";
   return s.str();
 }
 
 /// The fit file's five [[parameter]] tables: x, y, z of the drop's centre (+-3, +-3, +-4 um)
 /// and its radius and index within the given bounds.
-std::string FiveParameters(const std::string& r_lo, const std::string& r_hi, const std::string& n_lo,
-                           const std::string& n_hi) {
+std::string FiveParameters(const std::string& r_lo, const std::string& r_hi,
+                           const std::string& n_lo, const std::string& n_hi) {
   return "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -3\nupper = 3\nstep = 0.2\n"
          "[[parameter]]\nkey = \"object.drop.center_um[1]\"\nlower = -3\nupper = 3\nstep = 0.2\n"
          "[[parameter]]\nkey = \"object.drop.center_um[2]\"\nlower = -4\nupper = 4\nstep = 0.4\n"
-         "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = " + r_lo + "\nupper = " + r_hi +
-         "\nstep = 0.2\n[[parameter]]\nkey = \"object.drop.index\"\nlower = " + n_lo + "\nupper = " + n_hi +
-         "\nstep = 0.002\n";
+         "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = " +
+         r_lo + "\nupper = " + r_hi +
+         "\nstep = 0.2\n[[parameter]]\nkey = \"object.drop.index\"\nlower = " + n_lo +
+         "\nupper = " + n_hi + "\nstep = 0.002\n";
 }
 
 TEST(FitStatistics, FiveParameterSphereAtTheSamplePhotonCount) {
@@ -69,7 +76,8 @@ TEST(FitStatistics, FiveParameterSphereAtTheSamplePhotonCount) {
     const std::string ts = dir.Write("truth.toml", Scene(1.3, -0.7, 0.8, 23, 1.33885, 100 + k));
     const simulate::Scene s = simulate::LoadScene(ts);
     const simulate::Simulator sim(s);
-    WriteFloatImage(dir / "exp.tif", sim.TracePlane(-10, 0, sim.RaysPerImage()).counts, "experiment");
+    WriteFloatImage(dir / "exp.tif", sim.TracePlane(-10, 0, sim.RaysPerImage()).counts,
+                    "experiment");
     dir.Write("model.toml", Scene(0, 0, 0, 22.5, 1.335, 1));
     const std::string fit = dir.Write(
         "fit.toml",
@@ -79,9 +87,10 @@ TEST(FitStatistics, FiveParameterSphereAtTheSamplePhotonCount) {
             "[rays]\nray_factor = 2\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n");
     const FitResult r = RunFit(LoadFitSpec(fit));
     ASSERT_TRUE(r.converged) << r.message;
-    std::printf("realisation %d: %zu evaluations, %.0f s; (best - truth)/sigma:", k, r.evaluations.size(),
-                r.total_seconds);
-    for (int i = 0; i < 5; ++i) std::printf(" %+.2f", (r.parameters[i].best - truth[i]) / r.parameters[i].sigma);
+    std::printf("realisation %d: %zu evaluations, %.0f s; (best - truth)/sigma:", k,
+                r.evaluations.size(), r.total_seconds);
+    for (int i = 0; i < 5; ++i)
+      std::printf(" %+.2f", (r.parameters[i].best - truth[i]) / r.parameters[i].sigma);
     std::printf("\n");
     for (int i = 0; i < 5; ++i) {
       const ParameterResult& p = r.parameters[i];
@@ -104,11 +113,13 @@ TEST(FitStatistics, FiveParameterSphereAtTheSamplePhotonCount) {
   // correction) pulled the index and radius several CRB off in one direction and fails this.
   for (int i = 0; i < 5; ++i) {
     double m = 0;
-    for (int k = 0; k < kRealisations; ++k) m += (best[i][k] - truth[i]) / sigma[i][k] / kRealisations;
+    for (int k = 0; k < kRealisations; ++k)
+      m += (best[i][k] - truth[i]) / sigma[i][k] / kRealisations;
     std::printf("parameter %d: mean (best - truth)/sigma %+.2f\n", i, m);
     EXPECT_LT(std::abs(m), 3 / std::sqrt(double(kRealisations))) << "parameter " << i;
   }
-  std::printf("pooled RMS of (best - truth)/sigma %.2f, of (best - truth)/CRB %.2f\n", z_sigma, z_crb);
+  std::printf("pooled RMS of (best - truth)/sigma %.2f, of (best - truth)/CRB %.2f\n", z_sigma,
+              z_crb);
   EXPECT_GT(z_sigma, 1 / 1.5);
   EXPECT_LT(z_sigma, 1.5);
   EXPECT_LT(z_crb, 2.0);
@@ -134,14 +145,14 @@ TEST(FitStatistics, SteepDropAtPhotonMatchedRaysIsUnbiased) {
     const simulate::Simulator sim(s);
     WriteFloatImage(dir / "exp.tif", sim.TracePlane(6, 0, sim.RaysPerImage()).counts, "experiment");
     double start[5];
-    for (int i = 0; i < 5; ++i) start[i] = truth[i] + (k % 2 ? -1 : 1) * (i % 2 ? -1 : 1) * offset[i];
+    for (int i = 0; i < 5; ++i)
+      start[i] = truth[i] + (k % 2 ? -1 : 1) * (i % 2 ? -1 : 1) * offset[i];
     dir.Write("model.toml", scene(start, 1));
-    const std::string fit = dir.Write(
-        "fit.toml",
-        "scene = \"model.toml\"\nseed = " + std::to_string(7 + k) +
-            "\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = 6\n" +
-            FiveParameters("11", "15", "1.37", "1.41") +
-            "[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n");
+    const std::string fit =
+        dir.Write("fit.toml", "scene = \"model.toml\"\nseed = " + std::to_string(7 + k) +
+                                  "\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = 6\n" +
+                                  FiveParameters("11", "15", "1.37", "1.41") +
+                                  "[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n");
     const FitResult r = RunFit(LoadFitSpec(fit));
     ASSERT_TRUE(r.converged) << r.message;
     std::printf("realisation %d: %.0f s; (best - truth)/sigma:", k, r.total_seconds);
@@ -156,7 +167,8 @@ TEST(FitStatistics, SteepDropAtPhotonMatchedRaysIsUnbiased) {
   rms = std::sqrt(rms);
   std::printf("pooled RMS of (best - truth)/sigma %.2f\n", rms);
   for (int i = 0; i < 5; ++i)
-    EXPECT_LT(std::abs(mean[i]), 3 / std::sqrt(double(kRealisations))) << "parameter " << i << " mean " << mean[i];
+    EXPECT_LT(std::abs(mean[i]), 3 / std::sqrt(double(kRealisations)))
+        << "parameter " << i << " mean " << mean[i];
   EXPECT_GT(rms, 1 / 1.5);
   EXPECT_LT(rms, 1.5);
 }
@@ -178,7 +190,8 @@ TEST(FitStatistics, ReadNoiseMakesTheErrorBarsOfADimImageHonest) {
   double rms_with = 0, rms_without = 0;
   for (int k = 0; k < kRealisations; ++k) {
     testing::TempDir dir;
-    const simulate::Simulator sim(simulate::LoadScene(dir.Write("truth.toml", Scene(1.3, 0, 0, 23, 1.335, 200 + k, 20))));
+    const simulate::Simulator sim(
+        simulate::LoadScene(dir.Write("truth.toml", Scene(1.3, 0, 0, 23, 1.335, 200 + k, 20))));
     Image e = sim.TracePlane(-10, 0, sim.RaysPerImage()).counts;
     CameraReadout cam;
     cam.read_noise_e = kRead, cam.dark_dn = 1000;  // gain 1, 16 bits: the offset keeps every value
@@ -188,11 +201,13 @@ TEST(FitStatistics, ReadNoiseMakesTheErrorBarsOfADimImageHonest) {
     dir.Write("model.toml", Scene(1.0, 0, 0, 22.8, 1.335, 1, 20));
     auto fit = [&](const std::string& image_keys) {
       return RunFit(LoadFitSpec(dir.Write(
-          "fit.toml", "scene = \"model.toml\"\nseed = " + std::to_string(7 + k) +
-                          "\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n" + image_keys +
-                          "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 3\nstep = 0.2\n"
-                          "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\nstep = 0.2\n"
-                          "[rays]\nray_factor = 4\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n")));
+          "fit.toml",
+          "scene = \"model.toml\"\nseed = " + std::to_string(7 + k) +
+              "\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n" + image_keys +
+              "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 3\nstep = "
+              "0.2\n"
+              "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\nstep = 0.2\n"
+              "[rays]\nray_factor = 4\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n")));
     };
     const FitResult with = fit("read_noise_e = 6\n");
     const FitResult without = fit("");
@@ -206,14 +221,16 @@ TEST(FitStatistics, ReadNoiseMakesTheErrorBarsOfADimImageHonest) {
     }
     std::printf(", without");
     for (int i = 0; i < 2; ++i) {
-      const double z = (without.parameters[i].best - truth[i]) / without.parameters[i].sigma_statistical;
+      const double z =
+          (without.parameters[i].best - truth[i]) / without.parameters[i].sigma_statistical;
       rms_without += z * z / (2 * kRealisations);
       std::printf(" %+.2f", z);
     }
     std::printf(" (goodness without: %s)\n", without.goodness.verdict.c_str());
   }
   rms_with = std::sqrt(rms_with), rms_without = std::sqrt(rms_without);
-  std::printf("pooled RMS of (best - truth)/sigma: with read noise %.2f, without %.2f\n", rms_with, rms_without);
+  std::printf("pooled RMS of (best - truth)/sigma: with read noise %.2f, without %.2f\n", rms_with,
+              rms_without);
   EXPECT_GT(rms_with, 1 / 1.35);
   EXPECT_LT(rms_with, 1.35);
   EXPECT_GT(rms_without, 1.3);
@@ -239,11 +256,11 @@ TEST(FitStatistics, ScatterOverRayStreamsMatchesTheSimulationShareOfSigma) {
   std::vector<std::vector<double>> best(5);
   std::vector<double> predicted(5, 0.0);
   for (int k = 0; k < kSeeds; ++k) {
-    const std::string fit = dir.Write(
-        "fit.toml", "scene = \"model.toml\"\nseed = " + std::to_string(7 + 1000 * k) +
-                        "\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = -4\n" +
-                        FiveParameters("14", "17", "1.32", "1.35") +
-                        "[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n");
+    const std::string fit =
+        dir.Write("fit.toml", "scene = \"model.toml\"\nseed = " + std::to_string(7 + 1000 * k) +
+                                  "\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = -4\n" +
+                                  FiveParameters("14", "17", "1.32", "1.35") +
+                                  "[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n");
     const FitResult r = RunFit(LoadFitSpec(fit));
     ASSERT_TRUE(r.converged) << r.message;
     for (int i = 0; i < 5; ++i) {
@@ -258,8 +275,8 @@ TEST(FitStatistics, ScatterOverRayStreamsMatchesTheSimulationShareOfSigma) {
     for (double b : best[i]) m += b / kSeeds;
     for (double b : best[i]) v += (b - m) * (b - m) / (kSeeds - 1);
     const double ratio = std::sqrt(v / predicted[i]);
-    std::printf("parameter %d: scatter over ray streams %.3g, predicted %.3g (ratio %.2f)\n", i, std::sqrt(v),
-                std::sqrt(predicted[i]), ratio);
+    std::printf("parameter %d: scatter over ray streams %.3g, predicted %.3g (ratio %.2f)\n", i,
+                std::sqrt(v), std::sqrt(predicted[i]), ratio);
     pooled += ratio * ratio / 5;
     if (i == 4) {  // the index: the derivatives' noise is most of its share
       EXPECT_GT(ratio, 0.6);

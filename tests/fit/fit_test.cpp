@@ -1,5 +1,7 @@
 // raymatch fit: scene keys, fit-file errors, the Fisher information against a closed form, and
 // fits of synthetic images with known truth (tolerances from the fit's own uncertainties).
+#include "raymatch/fit/fit.h"
+
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -10,16 +12,15 @@
 #include <set>
 #include <sstream>
 
+#include "angular_map.h"
 #include "model.h"
 #include "profile.h"
 #include "raymatch/core/calibration_file.h"
 #include "raymatch/core/error.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/toml_reader.h"
-#include "raymatch/fit/fit.h"
 #include "raymatch/simulate/scene.h"
 #include "raymatch/simulate/tracer.h"
-#include "angular_map.h"
 #include "temp_dir.h"
 
 namespace raymatch::fit {
@@ -46,8 +47,8 @@ std::string SceneText(double x, double y, double z, double r, double n, double p
                       int nx = 64, int ny = 56) {
   std::ostringstream s;
   s << "name = \"drop\"\nseed = " << seed << "\n[source]\ntype = \"cone\"\nhalf_angle_deg = 27\n"
-    << "[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = [" << x << ", " << y << ", " << z
-    << "]\nradius_um = " << r << "\nindex = " << n << "\n"
+    << "[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = [" << x << ", " << y << ", "
+    << z << "]\nradius_um = " << r << "\nindex = " << n << "\n"
     << "[objective]\nfocal_length_mm = 10\nna = 0.42\nworking_distance_mm = 20\n"
     << "[tube_lens]\nfocal_length_mm = 200\n[camera]\npixels = [" << nx << ", " << ny
     << "]\npixel_pitch_um = 20\n[trace]\nphotons_per_pixel = " << ppp << "\n";
@@ -55,8 +56,8 @@ std::string SceneText(double x, double y, double z, double r, double n, double p
 }
 
 /// An "experiment": the truth scene traced with its own seed (ray counting is photon counting).
-std::string MakeExperiment(const testing::TempDir& dir, const std::string& name, const std::string& scene,
-                           double defocus) {
+std::string MakeExperiment(const testing::TempDir& dir, const std::string& name,
+                           const std::string& scene, double defocus) {
   const std::string path = dir.Write(name + ".toml", scene);
   const simulate::Scene s = simulate::LoadScene(path);
   const simulate::Simulator sim(s);
@@ -91,7 +92,8 @@ TEST(SceneKeys, MissingOrNonNumericKeysSayWhatExists) {
     }
     return std::string("no error");
   };
-  EXPECT_NE(message("object.drop.radius").find("radius_um"), std::string::npos) << message("object.drop.radius");
+  EXPECT_NE(message("object.drop.radius").find("radius_um"), std::string::npos)
+      << message("object.drop.radius");
   EXPECT_NE(message("object.bubble.radius_um").find("names: drop"), std::string::npos);
   EXPECT_NE(message("object.drop.type").find("not a number"), std::string::npos);
   EXPECT_NE(message("object.drop.center_um").find("give an index"), std::string::npos);
@@ -107,8 +109,10 @@ class FitFile : public ::testing::Test {
     dir_.Write("model.toml", SceneText(0, 0, 0, 23, 1.335, 20, 1));
   }
   std::string Fit(const std::string& params, const std::string& extra = "") {
-    return dir_.Write("fit.toml", "scene = \"model.toml\"\n" + extra + "[[image]]\nfile = \"exp.tif\"\n"
-                                  "defocus_um = -10\n" + params);
+    return dir_.Write("fit.toml", "scene = \"model.toml\"\n" + extra +
+                                      "[[image]]\nfile = \"exp.tif\"\n"
+                                      "defocus_um = -10\n" +
+                                      params);
   }
   /// The camera-noise tests' drop (x 0.4 um, 400 photons per pixel at -10 um): the clean
   /// experiment's image, which the test then spoils, and the model scene at x = 0.
@@ -121,8 +125,8 @@ class FitFile : public ::testing::Test {
   /// Its fit of x and radius (ray factor 4) with the [[image]] keys given, and the truth.
   std::string NoiseTestFit(const std::string& image_keys, const std::string& more_params = "") {
     return dir_.Write("fit.toml", "scene = \"model.toml\"\n" + std::string(kNoiseTestRays) +
-                                      "[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n" + image_keys +
-                                      kNoiseTestDrop + more_params);
+                                      "[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n" +
+                                      image_keys + kNoiseTestDrop + more_params);
   }
   static constexpr const char* kNoiseTestDrop =
       "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
@@ -143,23 +147,31 @@ class FitFile : public ::testing::Test {
 };
 
 TEST_F(FitFile, BadKeysAndBoundsNameTheFileLineAndKey) {
-  const std::string bad_key = ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius\"\nlower = 1\nupper = 2\n"));
+  const std::string bad_key =
+      ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius\"\nlower = 1\nupper = 2\n"));
   EXPECT_NE(bad_key.find("fit.toml:6:"), std::string::npos) << bad_key;
   EXPECT_NE(bad_key.find("radius_um"), std::string::npos) << bad_key;
-  const std::string not_number = ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.type\"\nlower = 1\nupper = 2\n"));
+  const std::string not_number =
+      ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.type\"\nlower = 1\nupper = 2\n"));
   EXPECT_NE(not_number.find("not a number"), std::string::npos) << not_number;
-  const std::string start = ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 24\nupper = 25\n"));
+  const std::string start =
+      ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 24\nupper = 25\n"));
   EXPECT_NE(start.find("outside [lower, upper]"), std::string::npos) << start;
-  const std::string order = ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 25\nupper = 21\n"));
+  const std::string order =
+      ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 25\nupper = 21\n"));
   EXPECT_NE(order.find("upper"), std::string::npos) << order;
   const std::string none = ErrorOf(Fit(""));
   EXPECT_NE(none.find("parameter"), std::string::npos) << none;
-  const std::string unknown = ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\nstpe = 1\n"));
+  const std::string unknown = ErrorOf(
+      Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\nstpe = 1\n"));
   EXPECT_NE(unknown.find("stpe"), std::string::npos) << unknown;
-  const std::string method = ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n", "method = \"newton\"\n"));
+  const std::string method =
+      ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n",
+                  "method = \"newton\"\n"));
   EXPECT_NE(method.find("grid"), std::string::npos) << method;
-  const std::string twice = ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"
-                                        "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"));
+  const std::string twice =
+      ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"
+                  "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"));
   EXPECT_NE(twice.find("twice"), std::string::npos) << twice;
 }
 
@@ -167,7 +179,8 @@ TEST_F(FitFile, BadKeysAndBoundsNameTheFileLineAndKey) {
 // bound). Images without signal, at a flat level far from the photon count the fit traces for,
 // or mostly saturated are refused naming the [[image]] entry, the file and what is wrong.
 TEST_F(FitFile, ImagesWithoutUsableLightAreRefused) {
-  const std::string param = "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n";
+  const std::string param =
+      "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n";
   const Image good = ReadImage(exp_);
   EXPECT_EQ(ErrorOf(Fit(param)), "no error");  // the traced experiment at 20 photons per pixel
   auto with_image = [&](const Image& im, const std::string& extra = "") {
@@ -206,9 +219,11 @@ TEST_F(FitFile, ImagesWithoutUsableLightAreRefused) {
 // image gave "error: dark frame size differs from the image" with no file named.
 TEST_F(FitFile, DarkFrameOfAnotherSizeNamesBothFiles) {
   WriteFloatImage(dir_ / "dark.tif", Image(10, 10, 1.f), "");
-  const std::string e = ErrorOf(dir_.Write(
-      "fit.toml", "scene = \"model.toml\"\n[[image]]\nfile = \"exp.tif\"\ndark = \"dark.tif\"\ndefocus_um = -10\n"
-                  "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"));
+  const std::string e = ErrorOf(
+      dir_.Write("fit.toml",
+                 "scene = \"model.toml\"\n[[image]]\nfile = \"exp.tif\"\ndark = "
+                 "\"dark.tif\"\ndefocus_um = -10\n"
+                 "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"));
   EXPECT_NE(e.find("fit.toml:2:"), std::string::npos) << e;
   EXPECT_NE(e.find("exp.tif"), std::string::npos) << e;
   EXPECT_NE(e.find("dark.tif"), std::string::npos) << e;
@@ -218,11 +233,15 @@ TEST_F(FitFile, DarkFrameOfAnotherSizeNamesBothFiles) {
 // Found by the mutation campaign: an image at defocus 1e300 um was refused only when the scene
 // was traced ("scene.toml: no light reaches the sensor"), naming the wrong file.
 TEST_F(FitFile, FocusPositionsBeyondTenCentimetresAreRefused) {
-  const std::string img = ErrorOf(dir_.Write("fit.toml", "scene = \"model.toml\"\n[[image]]\nfile = \"exp.tif\"\n"
-      "defocus_um = 1e300\n[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"));
+  const std::string img =
+      ErrorOf(dir_.Write("fit.toml",
+                         "scene = \"model.toml\"\n[[image]]\nfile = \"exp.tif\"\n"
+                         "defocus_um = 1e300\n[[parameter]]\nkey = "
+                         "\"object.drop.radius_um\"\nlower = 21\nupper = 25\n"));
   EXPECT_NE(img.find("fit.toml:4:"), std::string::npos) << img;
   EXPECT_NE(img.find("defocus_um"), std::string::npos) << img;
-  const std::string bounds = ErrorOf(Fit("[[parameter]]\nkey = \"image[0].defocus_um\"\nlower = -1e300\nupper = 0\n"));
+  const std::string bounds =
+      ErrorOf(Fit("[[parameter]]\nkey = \"image[0].defocus_um\"\nlower = -1e300\nupper = 0\n"));
   EXPECT_NE(bounds.find("fit.toml:"), std::string::npos) << bounds;
   EXPECT_NE(bounds.find("lower"), std::string::npos) << bounds;
 }
@@ -231,10 +250,14 @@ TEST_F(FitFile, FocusPositionsBeyondTenCentimetresAreRefused) {
 // missing required key 'source'"), naming neither the fit file nor what was wrong.
 TEST_F(FitFile, SceneThatIsAFolderOrMissingIsNamed) {
   for (const char* scene : {".", "nothere.toml"}) {
-    const std::string e = ErrorOf(dir_.Write("fit.toml", std::string("scene = \"") + scene + "\"\n[[image]]\n"
-        "file = \"exp.tif\"\ndefocus_um = -10\n[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"));
+    const std::string e = ErrorOf(
+        dir_.Write("fit.toml", std::string("scene = \"") + scene +
+                                   "\"\n[[image]]\n"
+                                   "file = \"exp.tif\"\ndefocus_um = -10\n[[parameter]]\nkey = "
+                                   "\"object.drop.radius_um\"\nlower = 21\nupper = 25\n"));
     EXPECT_NE(e.find("fit.toml:1:"), std::string::npos) << e;
-    EXPECT_NE(e.find(std::string(scene) == "." ? "is a folder" : "not found"), std::string::npos) << e;
+    EXPECT_NE(e.find(std::string(scene) == "." ? "is a folder" : "not found"), std::string::npos)
+        << e;
   }
   EXPECT_THROW(ParseTomlFile(dir_.path().string()), Error);
 }
@@ -242,8 +265,9 @@ TEST_F(FitFile, SceneThatIsAFolderOrMissingIsNamed) {
 TEST_F(FitFile, ParameterThatDoesNotChangeTheImageIsReportedFlat) {
   // The drop sits far outside the view: moving it sideways changes no pixel.
   dir_.Write("model.toml", SceneText(400, 0, 0, 23, 1.335, 20, 1));
-  const FitSpec spec = LoadFitSpec(Fit("[[parameter]]\nkey = \"object.drop.center_um[1]\"\nlower = -3\nupper = 3\nstep = 0.5\n",
-                                       "[rays]\nfractions = [0.25]\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n"));
+  const FitSpec spec = LoadFitSpec(
+      Fit("[[parameter]]\nkey = \"object.drop.center_um[1]\"\nlower = -3\nupper = 3\nstep = 0.5\n",
+          "[rays]\nfractions = [0.25]\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n"));
   for (Method m : {Method::kLevenbergMarquardt, Method::kPattern}) {
     FitSpec s = spec;
     s.method = m;
@@ -289,7 +313,8 @@ TEST(PoissonDeviance, ZeroAtEqualImagesAndChiSquareNearby) {
 // optimum). The full statistical study at the sample's photon count is the slow test below.
 TEST_F(FitFile, FiveParameterSphereRecoversTheTruth) {
   const double truth[5] = {1.3, -0.7, 0.8, 23, 1.33885};
-  exp_ = MakeExperiment(dir_, "exp", SceneText(1.3, -0.7, 0.8, 23, 1.33885, 400 * kPhotonScale, 9), -10);
+  exp_ = MakeExperiment(dir_, "exp", SceneText(1.3, -0.7, 0.8, 23, 1.33885, 400 * kPhotonScale, 9),
+                        -10);
   dir_.Write("model.toml", SceneText(0, 0, 0, 22.5, 1.335, 400 * kPhotonScale, 1));
   const std::string params =
       "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -3\nupper = 3\nstep = 0.2\n"
@@ -300,7 +325,9 @@ TEST_F(FitFile, FiveParameterSphereRecoversTheTruth) {
   // Ray factor 4: the simulation's own noise along the weakly determined z-radius-index valley
   // must stay below the experiment's (at factor 2 and 100 photons per pixel the fixed ray
   // pattern pulled the index several sigma away).
-  const FitSpec spec = LoadFitSpec(Fit(params, "seed = 3\n[rays]\nray_factor = 4\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n"));
+  const FitSpec spec = LoadFitSpec(
+      Fit(params,
+          "seed = 3\n[rays]\nray_factor = 4\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n"));
   const FitResult r = RunFit(spec);
   ASSERT_TRUE(r.converged) << StatusName(r.status) << ": " << r.message;
   for (int i = 0; i < 5; ++i) {
@@ -331,14 +358,15 @@ TEST_F(FitFile, FiveParameterSphereRecoversTheTruth) {
 // and every sigma must be inflated by sqrt of the reduced deviance or block chi-square.
 TEST_F(FitFile, ModelWithoutThePsfRaisesTheMismatchWarningAndInflatesSigmas) {
   std::string blurred = SceneText(0.3, -0.2, 0, 23, 1.335, 400 * kPhotonScale, 9);
-  blurred.replace(blurred.find("pixel_pitch_um = 20\n"), 20, "pixel_pitch_um = 20\npsf_sigma_um = 1.0\n");
+  blurred.replace(blurred.find("pixel_pitch_um = 20\n"), 20,
+                  "pixel_pitch_um = 20\npsf_sigma_um = 1.0\n");
   exp_ = MakeExperiment(dir_, "exp", blurred, -10);
   dir_.Write("model.toml", SceneText(0, 0, 0, 23, 1.335, 400 * kPhotonScale, 1));
-  const FitSpec spec = LoadFitSpec(Fit(
-      "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
-      "[[parameter]]\nkey = \"object.drop.center_um[1]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
-      "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\nstep = 0.2\n",
-      "seed = 3\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n"));
+  const FitSpec spec = LoadFitSpec(
+      Fit("[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
+          "[[parameter]]\nkey = \"object.drop.center_um[1]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
+          "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\nstep = 0.2\n",
+          "seed = 3\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n"));
   const FitResult r = RunFit(spec);
   ASSERT_FALSE(r.parameters.empty());
   const GoodnessOfFit& g = r.goodness;
@@ -376,7 +404,8 @@ TEST(FitModelNuisances, EdgeAndPsfAsKeysGiveTheTracersOwnExpectedImage) {
   const double ppp = 2000 * kPhotonScale;
   std::ostringstream scene;
   scene << "calibration = \"cal.toml\"\n[light_field_edge]\nhalf_angle_deg = 27\nwidth_deg = 1.5\n"
-        << "tilt_deg = [0.8, -0.5]\n[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = [1, 0, 0]\n"
+        << "tilt_deg = [0.8, -0.5]\n[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = "
+           "[1, 0, 0]\n"
         << "radius_um = 14\nindex = 1.36\n[camera]\npixels = [48, 40]\npsf_sigma_um = 1.2\n"
         << "[trace]\nphotons_per_pixel = " << ppp << "\n";
   dir.Write("model.toml", scene.str());
@@ -386,9 +415,11 @@ TEST(FitModelNuisances, EdgeAndPsfAsKeysGiveTheTracersOwnExpectedImage) {
   WriteFloatImage(dir / "exp.tif", flat, "flat, a little structure (not a saturated constant)");
   const std::string fit = dir.Write(
       "fit.toml",
-      "scene = \"model.toml\"\n[rays]\nfit_exposure = false\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = -6\n"
+      "scene = \"model.toml\"\n[rays]\nfit_exposure = false\n[[image]]\nfile = "
+      "\"exp.tif\"\ndefocus_um = -6\n"
       "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
-      "[[parameter]]\nkey = \"light_field_edge.half_angle_deg\"\nlower = 24\nupper = 30\nstep = 0.2\n"
+      "[[parameter]]\nkey = \"light_field_edge.half_angle_deg\"\nlower = 24\nupper = 30\nstep = "
+      "0.2\n"
       "[[parameter]]\nkey = \"light_field_edge.tilt_deg[1]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
       "[[parameter]]\nkey = \"camera.psf_sigma_um\"\nlower = 0\nupper = 1.5\nstep = 0.05\n");
   const FitSpec spec = LoadFitSpec(fit);
@@ -456,9 +487,11 @@ TEST_F(FitFile, AdditiveBackgroundLevelAndSlopeAreRecovered) {
   const FitResult without = RunFit(LoadFitSpec(NoiseTestFit("")));
   EXPECT_TRUE(without.goodness.mismatch) << without.goodness.verdict;
   // Keys of images that do not exist, or fields an image has not, are refused by name.
-  EXPECT_NE(ErrorOf(Fit("[[parameter]]\nkey = \"image[0].background\"\nlower = 0\nupper = 1\nstep = 0.1\n"))
-                .find("image[i].background_photons"),
-            std::string::npos);
+  EXPECT_NE(
+      ErrorOf(
+          Fit("[[parameter]]\nkey = \"image[0].background\"\nlower = 0\nupper = 1\nstep = 0.1\n"))
+          .find("image[i].background_photons"),
+      std::string::npos);
 }
 
 // Camera read noise: the experiment's photons plus Gaussian read noise of 20 electrons rms per
@@ -474,7 +507,8 @@ TEST_F(FitFile, ReadNoiseEntersTheLikelihood) {
   std::normal_distribution<double> noise(0, read);
   for (float& v : e.pixels) v = float(v + noise(rng));
   WriteFloatImage(dir_ / "exp.tif", e, "drop plus read noise");
-  const FitResult with = RunFit(LoadFitSpec(NoiseTestFit("read_noise_e = " + std::to_string(read) + "\n")));
+  const FitResult with =
+      RunFit(LoadFitSpec(NoiseTestFit("read_noise_e = " + std::to_string(read) + "\n")));
   const FitResult without = RunFit(LoadFitSpec(NoiseTestFit("")));
   EXPECT_FALSE(with.goodness.mismatch) << with.goodness.verdict;
   EXPECT_LT(std::abs(with.goodness.z), 3) << with.goodness.verdict;
@@ -507,7 +541,8 @@ TEST_F(FitFile, SaturatedPixelsAreLeftOut) {
   EXPECT_EQ(with.goodness.pixels + clipped, size_t(e.width) * size_t(e.height));
   for (int i = 0; i < 2; ++i) {
     ASSERT_GT(with.parameters[i].sigma, 0);
-    EXPECT_NEAR(with.parameters[i].best, kNoiseTestTruth[i], 3 * with.parameters[i].sigma) << with.parameters[i].key;
+    EXPECT_NEAR(with.parameters[i].best, kNoiseTestTruth[i], 3 * with.parameters[i].sigma)
+        << with.parameters[i].key;
   }
   const FitResult without = RunFit(LoadFitSpec(NoiseTestFit("")));
   EXPECT_TRUE(without.goodness.mismatch) << without.goodness.verdict;
@@ -527,14 +562,15 @@ TEST_F(FitFile, PolishRunsOnlyWhereNoFinalStepsFollow) {
     std::string head = kNoiseTestRays;
     head.insert(head.find("[uncertainty]"), rays);
     const FitSpec spec = LoadFitSpec(dir_.Write(
-        "fit.toml", "scene = \"model.toml\"\n" + head + "[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n" +
-                        kNoiseTestDrop));
+        "fit.toml", "scene = \"model.toml\"\n" + head +
+                        "[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n" + kNoiseTestDrop));
     const FitResult r = RunFit(spec);
     EXPECT_EQ(stages(r).count(Stage::kPolish), rays.empty() ? 0u : 1u) << rays;
     EXPECT_EQ(spec.rays.polish, rays == "polish = true\n");
     for (int i = 0; i < 2; ++i) {
       ASSERT_GT(r.parameters[i].sigma, 0) << rays;
-      EXPECT_NEAR(r.parameters[i].best, kNoiseTestTruth[i], 3 * r.parameters[i].sigma) << r.parameters[i].key << " " << rays;
+      EXPECT_NEAR(r.parameters[i].best, kNoiseTestTruth[i], 3 * r.parameters[i].sigma)
+          << r.parameters[i].key << " " << rays;
     }
   }
 }
@@ -546,7 +582,8 @@ TEST_F(FitFile, PolishRunsOnlyWhereNoFinalStepsFollow) {
 // from the curvature's +-1. In units t = (A - A^) / sigma the slope is
 // g(t) = (1/2) dDelta/dt = sigma (M - N / (A^ + t sigma)). From samples at t = -2..2 the
 // monotone cubic interpolation of g must give the ends within 0.01 sigma (scipy's PCHIP: 0.003;
-// quadratics through three samples per side are 0.09 off, and fail); a quadratic deviance (g = t) gives
+// quadratics through three samples per side are 0.09 off, and fail); a quadratic deviance (g = t)
+// gives
 // +-1 exactly, and a slope that stops rising leaves that side open.
 TEST(ProfileLikelihood, PoissonAmplitudeIntervalMatchesTheClosedForm) {
   const double N = 10, M = 1, a_hat = N / M, sigma = std::sqrt(N) / M;
@@ -578,7 +615,8 @@ TEST(ProfileLikelihood, PoissonAmplitudeIntervalMatchesTheClosedForm) {
 // none. The drop's x and radius at 400 photons per pixel have sigmas of a few nanometres, over
 // which the image is linear: the profile interval must be best +- sigma within the noise of the
 // score along the path (the ray streams' staircase projected on the averaged derivatives;
-// measured 0.03 here, up to 0.17 sigma for z and the index of the benchmark's case B), tolerance 0.1.
+// measured 0.03 here, up to 0.17 sigma for z and the index of the benchmark's case B), tolerance
+// 0.1.
 TEST_F(FitFile, ProfileLikelihoodIntervalsWhereAsked) {
   WriteFloatImage(dir_ / "exp.tif", NoiseTestExperiment(), "drop");
   for (const std::string mode : {"always", "auto", "never"}) {
@@ -595,7 +633,8 @@ TEST_F(FitFile, ProfileLikelihoodIntervalsWhereAsked) {
         EXPECT_TRUE(p.profile_reason.empty() && p.profile_t.empty()) << p.key;
         continue;
       }
-      EXPECT_NE(p.profile_reason.find(mode == "auto" ? "correlation" : "requested"), std::string::npos)
+      EXPECT_NE(p.profile_reason.find(mode == "auto" ? "correlation" : "requested"),
+                std::string::npos)
           << p.profile_reason;
       ASSERT_EQ(p.profile_t.size(), 5u) << p.key;
       EXPECT_NEAR(p.profile_lower_sigmas, -1, 0.1) << p.key << " " << mode;
@@ -613,7 +652,8 @@ TEST_F(FitFile, ProfileLikelihoodIntervalsWhereAsked) {
   const FitSpec spec = LoadFitSpec(NoiseTestFit(""));
   EXPECT_EQ(spec.profile, ProfileMode::kAuto);
   const FitResult r = RunFit(spec);
-  for (const ParameterResult& p : r.parameters) EXPECT_TRUE(p.profile_t.empty()) << p.profile_reason;
+  for (const ParameterResult& p : r.parameters)
+    EXPECT_TRUE(p.profile_t.empty()) << p.profile_reason;
 }
 
 // The score of the Poisson deviance, sum_q G_q (1 - e_q / T_q), must vanish on average at the
@@ -644,13 +684,16 @@ TEST(FiniteRays, TemplateOfCountPlusOneRayMakesThePoissonScoreUnbiased) {
 // deviance (1/16 of the rays, binned 4x4) and with MS-SSIM at 1/1024 of the rays.
 TEST(GridScan, MergingDropsDefocusAndTiltLandOnTheTruth) {
   testing::TempDir dir;
-  const std::string mesh = std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample/merging/merging_drops.obj";
+  const std::string mesh =
+      std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample/merging/merging_drops.obj";
   auto scene = [&](double rot_y, int seed) {
     std::ostringstream s;
     s << "name = \"merge\"\nseed = " << seed << "\n[source]\ntype = \"cone\"\nhalf_angle_deg = 27\n"
-      << "[[object]]\nname = \"merge\"\ntype = \"mesh\"\nfile = \"" << mesh << "\"\nrotation_deg = [0, "
-      << rot_y << ", 0]\nindex = 1.3371\n[objective]\nfocal_length_mm = 10\nna = 0.42\n"
-      << "working_distance_mm = 20\n[tube_lens]\nfocal_length_mm = 200\n[camera]\npixels = [80, 56]\n"
+      << "[[object]]\nname = \"merge\"\ntype = \"mesh\"\nfile = \"" << mesh
+      << "\"\nrotation_deg = [0, " << rot_y
+      << ", 0]\nindex = 1.3371\n[objective]\nfocal_length_mm = 10\nna = 0.42\n"
+      << "working_distance_mm = 20\n[tube_lens]\nfocal_length_mm = 200\n[camera]\npixels = [80, "
+         "56]\n"
       << "pixel_pitch_um = 20\n[trace]\nphotons_per_pixel = " << 2500 * kPhotonScale << "\n";
     return s.str();
   };
@@ -659,12 +702,16 @@ TEST(GridScan, MergingDropsDefocusAndTiltLandOnTheTruth) {
   for (const char* error : {"poisson", "ms-ssim"}) {
     const std::string fraction = std::string(error) == "poisson" ? "0.0625" : "0.0009765625";
     const std::string fit = dir.Write(
-        "fit.toml", std::string("scene = \"model.toml\"\nmethod = \"grid\"\nerror = \"") + error + "\"\n" +
-                        "[[image]]\nfile = \"exp.tif\"\ndefocus_um = 4\n"
-                        "[[parameter]]\nkey = \"image[0].defocus_um\"\nlower = 2\nupper = 10\npoints = 5\n"
-                        "[[parameter]]\nkey = \"object.merge.rotation_deg[1]\"\nlower = 70\nupper = 86\npoints = 5\n"
-                        "[rays]\nfractions = [" + fraction + "]\n"
-                        "[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\ncramer_rao = false\n");
+        "fit.toml",
+        std::string("scene = \"model.toml\"\nmethod = \"grid\"\nerror = \"") + error + "\"\n" +
+            "[[image]]\nfile = \"exp.tif\"\ndefocus_um = 4\n"
+            "[[parameter]]\nkey = \"image[0].defocus_um\"\nlower = 2\nupper = 10\npoints = 5\n"
+            "[[parameter]]\nkey = \"object.merge.rotation_deg[1]\"\nlower = 70\nupper = 86\npoints "
+            "= 5\n"
+            "[rays]\nfractions = [" +
+            fraction +
+            "]\n"
+            "[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\ncramer_rao = false\n");
     const FitResult r = RunFit(LoadFitSpec(fit));
     ASSERT_EQ(r.grid_errors.size(), 25u);
     if (std::string(error) == "poisson") {

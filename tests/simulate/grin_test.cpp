@@ -306,7 +306,9 @@ TEST(Grin, NextCellIsTheCellBeyondTheFace) {
     // Points from a cell before the grid to one beyond it on every axis.
     Vec3 p;
     for (int a = 0; a < 3; ++a)
-      (a == 0 ? p.x : a == 1 ? p.y : p.z) = o[a] + h[a] * (count[a] + 1) * (rng.Uniform() * 1.2 - 0.1) - h[a];
+      (a == 0   ? p.x
+       : a == 1 ? p.y
+                : p.z) = o[a] + h[a] * (count[a] + 1) * (rng.Uniform() * 1.2 - 0.1) - h[a];
     const GridCell g = f.Cell(p);
     for (int a = 0; a < 3; ++a)
       for (int side : {-1, 1}) {
@@ -358,7 +360,7 @@ TEST(Grin, CellStepsThroughAGridSmallerThanItsObject) {
   f->values.assign(size_t(9) * 7 * 11, 1.4);
   s.objects[0].index_field = f;
   s.trace.grin.uniform_tolerance = -1;  // curved steps everywhere
-  s.trace.grin.max_steps = 10000;        // a few hundred cells at most: a stuck ray ends early
+  s.trace.grin.max_steps = 10000;       // a few hundred cells at most: a stuck ray ends early
   const PlaneResult b = Simulator(s).TracePlane(4, 0, 100000);
   EXPECT_LT(RelativeL1(a, b), 1e-3);
   EXPECT_GT(b.counters.grin_steps, 0u);
@@ -483,7 +485,8 @@ TEST(Grin, GradientsMatchFiniteDifferences) {
   fields[0].type = IndexFieldType::kLuneburg, fields[0].n0 = 1.2, fields[0].radius_um = 7;
   fields[1].type = IndexFieldType::kFishEye, fields[1].n0 = 1.8, fields[1].radius_um = 5;
   fields[2].type = IndexFieldType::kParabolic, fields[2].n0 = 1.5, fields[2].g_per_um = 0.05;
-  fields[3].type = IndexFieldType::kLinearN2, fields[3].n0 = 1.4, fields[3].k_per_um = {0.01, 0.02, -0.03};
+  fields[3].type = IndexFieldType::kLinearN2, fields[3].n0 = 1.4,
+  fields[3].k_per_um = {0.01, 0.02, -0.03};
   IndexField& rz = fields[4];
   rz.type = IndexFieldType::kGridRZ, rz.nx = 9, rz.ny = 1, rz.nz = 11;
   rz.spacing_um = {1, 1, 1}, rz.origin_um = {0, 0, -5};
@@ -496,7 +499,9 @@ TEST(Grin, GradientsMatchFiniteDifferences) {
   for (const IndexField& f : fields)
     for (int k = 0; k < 200; ++k) {
       // Points at cell centres +- 0.3 cell, so +-h stays inside one cell.
-      auto c = [&](double lo) { return std::floor(lo + 6 * rng.Uniform()) + 0.5 + 0.6 * (rng.Uniform() - 0.5); };
+      auto c = [&](double lo) {
+        return std::floor(lo + 6 * rng.Uniform()) + 0.5 + 0.6 * (rng.Uniform() - 0.5);
+      };
       const Vec3 p(c(-3), c(-3), c(-4));
       if (f.type == IndexFieldType::kGridRZ &&
           std::abs(std::hypot(p.x, p.y) - std::floor(std::hypot(p.x, p.y)) - 0.5) > 0.45)

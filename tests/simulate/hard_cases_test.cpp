@@ -178,9 +178,10 @@ TEST(HardCases, MeshHeadersClaimingHugeCountsAreRejected) {
   const std::string ply =
       "ply\nformat binary_little_endian 1.0\nelement vertex 1000000000\nproperty float x\n"
       "property float y\nproperty float z\nelement face 1000000000\n"
-      "property list uchar int vertex_indices\nend_header\n" + std::string(64, '\0');
-  for (const auto& [name, text, what] :
-       {std::tuple{"huge.stl", stl, "STL triangles"}, std::tuple{"huge.ply", ply, "PLY elements"}}) {
+      "property list uchar int vertex_indices\nend_header\n" +
+      std::string(64, '\0');
+  for (const auto& [name, text, what] : {std::tuple{"huge.stl", stl, "STL triangles"},
+                                         std::tuple{"huge.ply", ply, "PLY elements"}}) {
     Scene s = Base();
     ObjectSpec o;
     o.shape = ShapeType::kMesh;
@@ -203,9 +204,10 @@ TEST(HardCases, MeshHeadersClaimingHugeCountsAreRejected) {
 // into other text failed an assertion there (abort). All are now errors naming the file.
 TEST(HardCases, CorruptPlyFilesAreRefusedNotHungOrCrashed) {
   const std::string corpus = std::string(RAYMATCH_SOURCE_DIR) + "/fuzz/corpus/mesh/";
-  for (const auto& [name, what] : {std::pair{"hang_unknown_ply_header_line.ply", "not a PLY header line"},
-                                   std::pair{"crash_face_index_in_postprocessing.ply", "names vertex"},
-                                   std::pair{"abort_assimp_assertion.ply", "internal check"}}) {
+  for (const auto& [name, what] :
+       {std::pair{"hang_unknown_ply_header_line.ply", "not a PLY header line"},
+        std::pair{"crash_face_index_in_postprocessing.ply", "names vertex"},
+        std::pair{"abort_assimp_assertion.ply", "internal check"}}) {
     Scene s = Base();
     ObjectSpec o;
     o.shape = ShapeType::kMesh;
@@ -283,9 +285,9 @@ TEST(HardCases, ObjectsFromATenthOfAMicronToTenMillimetres) {
     const PlaneResult r = Simulator(s).TracePlane(0, 0, N);
     ExpectSane(r);
     const double p0 = 0.0917757;  // REFERENCE.md section 3, n = 1.5 (unpolarised P0 is exact)
-    EXPECT_LT(std::abs(testing::BinomialZ(r.counters.path_class[0],
-                                          r.counters.rays_hitting_objects, p0)),
-              4.5)
+    EXPECT_LT(
+        std::abs(testing::BinomialZ(r.counters.path_class[0], r.counters.rays_hitting_objects, p0)),
+        4.5)
         << "R = " << R;
   }
 }

@@ -31,7 +31,8 @@ TEST_P(PointImaging, PointFocusesToOnePixelAndStopPassesTheNaCone) {
   s.source.half_angle_deg = 40;
   const uint64_t N = 400000;
   const PlaneResult r = Simulator(s).TracePlane(0, 0, N);
-  const int col = static_cast<int>(std::floor(3.3 + 32)), row = static_cast<int>(std::floor(32 + 2.1));
+  const int col = static_cast<int>(std::floor(3.3 + 32)),
+            row = static_cast<int>(std::floor(32 + 2.1));
   const double det = F(r, Fate::kDetected);
   EXPECT_EQ(r.counts.at(col, row), det) << "all hits in one pixel";
   const double p = (1 - std::sqrt(1 - 0.42 * 0.42)) / (1 - std::cos(40 * kPi / 180));
@@ -103,8 +104,8 @@ TEST(LightField, AngularMapControlsTheAcceptedLight) {
   s.source.field_radius_um = 60;
   s.source.angular_extent = 0.5;
   s.source.angular_map = Image(20, 20);
-  s.source.angular_map.at(10, 9) = 1;   // u in [0, 0.05], v in [0, 0.05]
-  s.source.angular_map.at(19, 9) = 1;   // u in [0.45, 0.5]
+  s.source.angular_map.at(10, 9) = 1;  // u in [0, 0.05], v in [0, 0.05]
+  s.source.angular_map.at(19, 9) = 1;  // u in [0.45, 0.5]
   const uint64_t N = 2000000;
   const PlaneResult r = Simulator(s).TracePlane(0, 0, N);
   EXPECT_LT(std::abs(testing::BinomialZ(F(r, Fate::kOutsideNa), N, 0.5)), 4.0);
@@ -133,7 +134,8 @@ TEST(Shapes, RotatedRoundEllipsoidEqualsSphere) {
   s.objects = {o};
   const PlaneResult b = Simulator(s).TracePlane(3, 0, 200000);
   double diff = 0;
-  for (size_t i = 0; i < a.counts.size(); ++i) diff += std::abs(a.counts.pixels[i] - b.counts.pixels[i]);
+  for (size_t i = 0; i < a.counts.size(); ++i)
+    diff += std::abs(a.counts.pixels[i] - b.counts.pixels[i]);
   EXPECT_LE(diff, 4) << "pixels differ by " << diff << " hits";
   EXPECT_GT(a.counters.interface_events, 10000u);
 }
@@ -154,7 +156,8 @@ TEST(Shapes, BoxRotatedAboutItsAxisOfSymmetryIsUnchanged) {
   s.objects = {o};
   const PlaneResult b = Simulator(s).TracePlane(0, 0, 200000);
   double diff = 0;
-  for (size_t i = 0; i < a.counts.size(); ++i) diff += std::abs(a.counts.pixels[i] - b.counts.pixels[i]);
+  for (size_t i = 0; i < a.counts.size(); ++i)
+    diff += std::abs(a.counts.pixels[i] - b.counts.pixels[i]);
   EXPECT_LE(diff, 4);
 }
 

@@ -2,15 +2,15 @@
 // as RayRng, and the same images, counters and near lists bit for bit, for every source, effect
 // and selection mode it takes, on every instruction set this CPU has (Highway's run-time
 // dispatch is pointed at each in turn).
-#include <gtest/gtest.h>
+#include "packet.h"
 
+#include <gtest/gtest.h>
 #include <hwy/targets.h>
 
 #include <algorithm>
 #include <cstring>
 #include <set>
 
-#include "packet.h"
 #include "raymatch/core/rng.h"
 #include "raymatch/simulate/shapes.h"
 #include "raymatch/simulate/tracer.h"
@@ -181,13 +181,15 @@ TEST(Packet, CameraPsfAndLightFieldEdgeMatchScalar) {
       for (int y = 0; y < 24; ++y)
         for (int x = 0; x < 24; ++x) {
           const double u = (2 * (x + 0.5) / 24 - 1) * 0.5, v = (1 - 2 * (y + 0.5) / 24) * 0.5;
-          s.source.angular_map.at(x, y) = std::hypot(u, v) < 0.35 ? float(1 + (x * 7 + y * 3) % 5) : 0.f;
+          s.source.angular_map.at(x, y) =
+              std::hypot(u, v) < 0.35 ? float(1 + (x * 7 + y * 3) % 5) : 0.f;
         }
       s.source.map_na_limit = 0.35;
       s.source.edge_half_angle_deg = 22, s.source.edge_width_deg = 1.5;
     }
     const Simulator sim(s);
-    ASSERT_TRUE(std::find(sim.Effects().begin(), sim.Effects().end(), "simd_packets") != sim.Effects().end());
+    ASSERT_TRUE(std::find(sim.Effects().begin(), sim.Effects().end(), "simd_packets") !=
+                sim.Effects().end());
     ExpectPacketsMatchScalar(s, corrector ? 4 : -6, 300000);
   }
 }

@@ -81,7 +81,9 @@ TEST(BallLens, FocusesAtEffectiveFocalLength) {
   }
   // Solve [[S4 S3 S2],[S3 S2 S1],[S2 S1 S0]] [a b c] = [T2 T1 T0] by Cramer's rule.
   auto det3 = [](double a, double b, double c, double d, double e, double f, double g, double hh,
-                 double i) { return a * (e * i - f * hh) - b * (d * i - f * g) + c * (d * hh - e * g); };
+                 double i) {
+    return a * (e * i - f * hh) - b * (d * i - f * g) + c * (d * hh - e * g);
+  };
   const double D = det3(S[4], S[3], S[2], S[3], S[2], S[1], S[2], S[1], S[0]);
   const double a = det3(T[2], S[3], S[2], T[1], S[2], S[1], T[0], S[1], S[0]) / D;
   const double b = det3(S[4], T[2], S[2], S[3], T[1], S[1], S[2], T[0], S[0]) / D;

@@ -76,7 +76,8 @@ TEST(RaySubset, FarRaysByRangesAddUpToTheSplitOfTheWhole) {
     EXPECT_EQ(c.rays, b.rays);
     std::vector<uint64_t> part;
     sim.SplitRaysBySphere(3, m, n, Vec3(2, -1, 1), 16, &part, nullptr);
-    EXPECT_EQ(part, std::vector<uint64_t>(std::lower_bound(near.begin(), near.end(), m), near.end()));
+    EXPECT_EQ(part,
+              std::vector<uint64_t>(std::lower_bound(near.begin(), near.end(), m), near.end()));
   }
 }
 

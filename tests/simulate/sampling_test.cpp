@@ -68,8 +68,8 @@ TEST(Distribution1D, BinsAtExactCdfValuesAndAcrossEmptyBins) {
     double u;
     int bin;
     double x;
-  } cases[] = {{0.0, 0, 0.0},      {0.1, 0, 0.4 / 4},  {0.25, 2, 2.0 / 4},
-               {0.5, 2, 2.5 / 4},  {0.75, 3, 3.0 / 4}, {0.875, 3, 3.5 / 4}};
+  } cases[] = {{0.0, 0, 0.0},     {0.1, 0, 0.4 / 4},  {0.25, 2, 2.0 / 4},
+               {0.5, 2, 2.5 / 4}, {0.75, 3, 3.0 / 4}, {0.875, 3, 3.5 / 4}};
   for (const auto& c : cases) {
     int bin = -1;
     const double x = d.Sample(c.u, &bin);

@@ -7,12 +7,12 @@
 #include <fstream>
 #include <sstream>
 
+#include "angular_map.h"
 #include "raymatch/core/array_io.h"
 #include "raymatch/core/calibration_file.h"
 #include "raymatch/simulate/tracer.h"
 #include "sources.h"
 #include "stats.h"
-#include "angular_map.h"
 #include "temp_dir.h"
 
 namespace raymatch::simulate {
@@ -104,8 +104,10 @@ TEST(SceneFile, ErrorsSayWhereAndWhat) {
 // valid in water, not in air); the acceptance sine is NA / n.
 TEST(SceneFile, CameraReadoutIsReadWithKeyedErrors) {
   testing::TempDir dir;
-  const std::string readout = "pixel_pitch_um = 20\n[camera.readout]\ngain_e_per_dn = 1.1\ndark_dn = 64\n";
-  const Scene s = LoadScene(dir.Write("scene.toml", Replace(kGood, "pixel_pitch_um = 20\n", readout)));
+  const std::string readout =
+      "pixel_pitch_um = 20\n[camera.readout]\ngain_e_per_dn = 1.1\ndark_dn = 64\n";
+  const Scene s =
+      LoadScene(dir.Write("scene.toml", Replace(kGood, "pixel_pitch_um = 20\n", readout)));
   ASSERT_TRUE(s.camera.readout.has_value());
   EXPECT_EQ(s.camera.readout->gain_e_per_dn, 1.1);
   EXPECT_EQ(s.camera.readout->dark_dn, 64);
@@ -114,7 +116,8 @@ TEST(SceneFile, CameraReadoutIsReadWithKeyedErrors) {
   EXPECT_NE(LoadError(Replace(kGood, "pixel_pitch_um = 20\n", readout + "bit_depth = 17\n"))
                 .find("'camera.readout.bit_depth'"),
             std::string::npos);
-  EXPECT_NE(LoadError(Replace(kGood, "pixel_pitch_um = 20\n", "pixel_pitch_um = 20\n[camera.readout]\ndark_dn = 1\n"))
+  EXPECT_NE(LoadError(Replace(kGood, "pixel_pitch_um = 20\n",
+                              "pixel_pitch_um = 20\n[camera.readout]\ndark_dn = 1\n"))
                 .find("'camera.readout.gain_e_per_dn'"),
             std::string::npos);
   EXPECT_NE(LoadError(Replace(kGood, "pixel_pitch_um = 20\n", readout + "offset = 3\n"))
@@ -124,9 +127,9 @@ TEST(SceneFile, CameraReadoutIsReadWithKeyedErrors) {
 
 TEST(SceneFile, NaIsQuotedInTheMedium) {
   testing::TempDir dir;
-  const Scene s = LoadScene(dir.Write(
-      "scene.toml", Replace(Replace(kGood, "na = 0.42", "na = 1.0"), "name = \"t\"",
-                            "name = \"t\"\nmedium_index = 1.33")));
+  const Scene s = LoadScene(
+      dir.Write("scene.toml", Replace(Replace(kGood, "na = 0.42", "na = 1.0"), "name = \"t\"",
+                                      "name = \"t\"\nmedium_index = 1.33")));
   EXPECT_DOUBLE_EQ(s.optics.na, 1.0);
   EXPECT_DOUBLE_EQ(AcceptanceSin(s), 1.0 / 1.33);
   EXPECT_NE(LoadError(Replace(Replace(kGood, "na = 0.42", "na = 1.4"), "name = \"t\"",
@@ -169,7 +172,8 @@ TEST(SceneFile, CalibrationFileSuppliesSourceCorrectorAndOptics) {
   c.objective_focal_mm = 10, c.working_distance_mm = 20, c.na = 0.42, c.tube_focal_mm = 180;
   c.pixel_pitch_um = 12, c.wavelength_um = 0.405;
   WriteCalibrationFile(dir / "cal.toml", c);
-  const Scene s = LoadScene(dir.Write("s.toml", "calibration = \"cal.toml\"\n[camera]\npixels = [16, 16]\n"));
+  const Scene s =
+      LoadScene(dir.Write("s.toml", "calibration = \"cal.toml\"\n[camera]\npixels = [16, 16]\n"));
   EXPECT_EQ(s.source.type, SourceType::kLightField);
   EXPECT_EQ(s.source.angular_extent, 0.3);
   EXPECT_TRUE(s.optics.corrector.enabled);
@@ -177,7 +181,9 @@ TEST(SceneFile, CalibrationFileSuppliesSourceCorrectorAndOptics) {
   EXPECT_EQ(s.optics.tube_focal_mm, 180);
   EXPECT_EQ(s.camera.pixel_pitch_um, 12);
   EXPECT_EQ(s.wavelength_um, 0.405);
-  EXPECT_NE(LoadError("calibration = \"missing.toml\"\n[camera]\npixels = [4, 4]\n").find("scene.toml:1:15: error: 'calibration'"), std::string::npos);
+  EXPECT_NE(LoadError("calibration = \"missing.toml\"\n[camera]\npixels = [4, 4]\n")
+                .find("scene.toml:1:15: error: 'calibration'"),
+            std::string::npos);
 }
 
 // [light_field_edge] continues a calibrated map beyond its NA cut under the soft edge
@@ -200,7 +206,9 @@ TEST(SceneFile, LightFieldEdgeSendsTheSoftEdgesShareOfRaysBeyondTheNa) {
   WriteCalibrationFile(dir / "cal.toml", c);
   const double kPi = 3.14159265358979323846;
   for (const auto& [edge, width] : {std::pair{26.0, 1.0}, std::pair{29.0, 2.0}}) {
-    auto E = [&](double s) { return 0.5 * (1 - std::tanh((std::asin(s) * 180 / kPi - edge) / width)); };
+    auto E = [&](double s) {
+      return 0.5 * (1 - std::tanh((std::asin(s) * 180 / kPi - edge) / width));
+    };
     double a_out = 0;
     const int steps = 200000;
     const double ring = c.na_limit - 1.5 * (2 * c.angular_extent / n);  // the continued ring
@@ -209,9 +217,10 @@ TEST(SceneFile, LightFieldEdgeSendsTheSoftEdgesShareOfRaysBeyondTheNa) {
       a_out += 2 * kPi * s * E(s) / E(ring) * (1 - c.na_limit) / steps;
     }
     const double p = a_out / (kPi * c.na_limit * c.na_limit + a_out);
-    const Scene s = LoadScene(dir.Write("s.toml", "calibration = \"cal.toml\"\n[light_field_edge]\nhalf_angle_deg = " +
-                                                      std::to_string(edge) + "\nwidth_deg = " + std::to_string(width) +
-                                                      "\n[camera]\npixels = [16, 16]\n"));
+    const Scene s = LoadScene(dir.Write(
+        "s.toml",
+        "calibration = \"cal.toml\"\n[light_field_edge]\nhalf_angle_deg = " + std::to_string(edge) +
+            "\nwidth_deg = " + std::to_string(width) + "\n[camera]\npixels = [16, 16]\n"));
     EXPECT_EQ(s.source.edge_half_angle_deg, edge);
     const Simulator sim(s);
     const uint64_t rays = 400000;
@@ -222,7 +231,8 @@ TEST(SceneFile, LightFieldEdgeSendsTheSoftEdgesShareOfRaysBeyondTheNa) {
   // Without a cut (na_limit 0) the edge has nothing to continue: an error naming the table.
   c.na_limit = 0;
   WriteCalibrationFile(dir / "cal0.toml", c);
-  EXPECT_NE(LoadError("calibration = \"" + (dir / "cal0.toml") + "\"\n[light_field_edge]\nhalf_angle_deg = 26\n"
+  EXPECT_NE(LoadError("calibration = \"" + (dir / "cal0.toml") +
+                      "\"\n[light_field_edge]\nhalf_angle_deg = 26\n"
                       "width_deg = 1\n[camera]\npixels = [4, 4]\n")
                 .find("light_field_edge.half_angle_deg"),
             std::string::npos);
@@ -242,8 +252,8 @@ TEST(SceneFile, LightFieldEdgeTiltMovesTheEdgeAndThePartsAddUp) {
   ss.type = SourceType::kLightField;
   ss.angular_extent = 0.5;
   ss.map_na_limit = 0.42;
-  ss.angular_map =
-      testing::NaCutAngularMap(n, ss.angular_extent, ss.map_na_limit, [](double, double) { return 1.0; });
+  ss.angular_map = testing::NaCutAngularMap(n, ss.angular_extent, ss.map_na_limit,
+                                            [](double, double) { return 1.0; });
   ss.edge_half_angle_deg = 26, ss.edge_width_deg = 1.0, ss.edge_tilt_deg = {1.2, -0.4};
   const double kPi = 3.14159265358979323846, deg = kPi / 180;
   const double tu = std::sin(1.2 * deg), tv = std::sin(-0.4 * deg), s_na = 0.42;
@@ -333,13 +343,15 @@ TEST(RayListSource, WeightsAndPositionsAreHonoured) {
   testing::TempDir dir;
   NdArray a;
   a.shape = {2, 5};
-  a.values = {10.25, -5.25, 0.0, 0.0, 3.0,  // object-plane pixel (52, 42) of 64 x 64 at 0.5 um
-              -8.25, 6.25, 0.1, 0.05, 1.0};  // pixel (15, 19)
+  a.values = {10.25, -5.25, 0.0, 0.0,  3.0,   // object-plane pixel (52, 42) of 64 x 64 at 0.5 um
+              -8.25, 6.25,  0.1, 0.05, 1.0};  // pixel (15, 19)
   WriteNpy(dir / "rays.npy", a);
-  const std::string optics = "[objective]\nfocal_length_mm = 10\nna = 0.42\n[tube_lens]\nfocal_length_mm = 200\n";
+  const std::string optics =
+      "[objective]\nfocal_length_mm = 10\nna = 0.42\n[tube_lens]\nfocal_length_mm = 200\n";
   const std::string list = "[source]\ntype = \"ray_list\"\nfile = \"";
-  const Scene s = LoadScene(dir.Write("scene.toml", list + "rays.npy\"\n" + optics +
-                                                        "[camera]\npixels = [64, 64]\npixel_pitch_um = 10\n"));
+  const Scene s =
+      LoadScene(dir.Write("scene.toml", list + "rays.npy\"\n" + optics +
+                                            "[camera]\npixels = [64, 64]\npixel_pitch_um = 10\n"));
   const Simulator sim(s);
   EXPECT_EQ(sim.Effects().at(0), "source:ray_list");  // the sidecar names the source
   const uint64_t n = 40000;
@@ -359,8 +371,7 @@ TEST(RayListSource, WeightsAndPositionsAreHonoured) {
             std::string::npos);
   a.shape = {5, 2};
   WriteNpy(dir / "shape.npy", a);
-  EXPECT_NE(LoadError(list + (dir / "shape.npy") + "\"\n" + optics + camera)
-                .find("shape (N, 5)"),
+  EXPECT_NE(LoadError(list + (dir / "shape.npy") + "\"\n" + optics + camera).find("shape (N, 5)"),
             std::string::npos);
 }
 

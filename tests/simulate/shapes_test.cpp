@@ -117,7 +117,8 @@ TEST(VolumeFraction, IsoSurfaceOfASphere) {
 TEST(MeshChecks, OpenSelfIntersectingAndInwardMeshes) {
   // A cube without its top face: 4 open edges.
   TriangleMesh cube;
-  cube.vertices = {{0, 0, 0}, {1, 0, 0}, {1, 1, 0}, {0, 1, 0}, {0, 0, 1}, {1, 0, 1}, {1, 1, 1}, {0, 1, 1}};
+  cube.vertices = {{0, 0, 0}, {1, 0, 0}, {1, 1, 0}, {0, 1, 0},
+                   {0, 0, 1}, {1, 0, 1}, {1, 1, 1}, {0, 1, 1}};
   cube.triangles = {{0, 2, 1}, {0, 3, 2}, {0, 1, 5}, {0, 5, 4}, {1, 2, 6},
                     {1, 6, 5}, {2, 3, 7}, {2, 7, 6}, {3, 0, 4}, {3, 4, 7}};
   TriangleMesh open = cube;

@@ -8,12 +8,12 @@
 
 namespace raymatch::testing {
 
+using simulate::IndexField;
+using simulate::IndexFieldType;
 using simulate::ObjectSpec;
 using simulate::PartialReflection;
 using simulate::Scene;
 using simulate::ShapeType;
-using simulate::IndexField;
-using simulate::IndexFieldType;
 
 /// 64x64 camera with 20 um pixels (1 um at the object); partial reflection off; fixed seed.
 inline Scene MicroscopeScene(uint64_t seed = 12345) {

@@ -9,8 +9,6 @@ namespace raymatch::testing {
 inline double BinomialSigma(double p, double n) { return std::sqrt(p * (1 - p) / n); }
 
 /// z-score of an observed count k out of n against probability p.
-inline double BinomialZ(double k, double n, double p) {
-  return (k / n - p) / BinomialSigma(p, n);
-}
+inline double BinomialZ(double k, double n, double p) { return (k / n - p) / BinomialSigma(p, n); }
 
 }  // namespace raymatch::testing

@@ -10,22 +10,22 @@
 namespace raymatch::calibrate {
 
 struct CorrectorOptions {
-  int zones = 9;              ///< central disc + rings, equal widths in radius to 1.02 x the NA edge
-  double distance_mm = 0;     ///< corrector plane from the focal plane; 0 = working distance
-  double smoothness = 0;      ///< weight of a second-difference penalty on T (0 = none)
+  int zones = 9;           ///< central disc + rings, equal widths in radius to 1.02 x the NA edge
+  double distance_mm = 0;  ///< corrector plane from the focal plane; 0 = working distance
+  double smoothness = 0;   ///< weight of a second-difference penalty on T (0 = none)
 };
 
 /// The linear least-squares problem and its solution (also usable directly, e.g. in tests).
 struct TransmissionFit {
   std::vector<double> transmissions, sigma;  ///< per zone; T_0 = 1 (sigma 0)
   double gain = 0, gain_sigma = 0;
-  std::vector<double> model, residual;       ///< per flat field (photons per pixel)
+  std::vector<double> model, residual;  ///< per flat field (photons per pixel)
   double reduced_chi2 = 0;
-  double chi2_z = 0;         ///< chi^2 as a normal deviate (Wilson-Hilferty), 0 without dof
-  double sigma_scale = 1;    ///< factor applied to the uncertainties: sqrt(reduced chi^2) when
-                             ///< chi^2 is 3 sd above or below its expectation, else 1
-  std::string verdict;       ///< why sigma_scale is not 1 (empty when it is)
-  std::vector<int> undetermined;             ///< zones no flat field illuminates
+  double chi2_z = 0;              ///< chi^2 as a normal deviate (Wilson-Hilferty), 0 without dof
+  double sigma_scale = 1;         ///< factor applied to the uncertainties: sqrt(reduced chi^2) when
+                                  ///< chi^2 is 3 sd above or below its expectation, else 1
+  std::string verdict;            ///< why sigma_scale is not 1 (empty when it is)
+  std::vector<int> undetermined;  ///< zones no flat field illuminates
   std::string message;
 };
 
@@ -42,9 +42,9 @@ TransmissionFit FitTransmissions(const std::vector<std::vector<double>>& W,
 int CorrectorZone(double s, double na, int zones);
 
 struct CorrectorSummary {
-  CalibrationData data;            ///< input calibration (if any) with the corrector added
+  CalibrationData data;  ///< input calibration (if any) with the corrector added
   TransmissionFit fit;
-  std::vector<double> signal;      ///< S_k, photons per pixel
+  std::vector<double> signal;                ///< S_k, photons per pixel
   std::vector<std::vector<double>> weights;  ///< W[k][j]
   std::vector<std::string> warnings;
   std::string BriefReport() const;

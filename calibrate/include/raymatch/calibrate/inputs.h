@@ -8,9 +8,9 @@
 namespace raymatch::calibrate {
 
 struct CameraInfo {
-  double pixel_pitch_um = 0;   ///< sensor pitch
-  int bit_depth = 16;          ///< data bits; saturation at 2^bit_depth - 1
-  double gain_e_per_dn = 1;    ///< photons (electrons) per code value
+  double pixel_pitch_um = 0;  ///< sensor pitch
+  int bit_depth = 16;         ///< data bits; saturation at 2^bit_depth - 1
+  double gain_e_per_dn = 1;   ///< photons (electrons) per code value
   double well_capacity_e = 0;
   double read_noise_e = 0;
 };

@@ -9,8 +9,8 @@
 namespace raymatch::calibrate {
 
 struct LightFieldOptions {
-  int map_size = 64;              ///< angular map cells per side
-  double extent = 0;              ///< half-width in direction cosines; 0 = min(1, 1.15 NA)
+  int map_size = 64;  ///< angular map cells per side
+  double extent = 0;  ///< half-width in direction cosines; 0 = min(1, 1.15 NA)
   /// Parametric extrapolation beyond the objective NA, where nothing is measured: the mean
   /// radiance of the last measured ring continues to this half-angle (deg), then stops.
   /// 0 = none (the map is zero beyond the NA, and the file says so).
@@ -30,7 +30,7 @@ struct ConeFit {
 };
 
 struct LightFieldSummary {
-  CalibrationData data;        ///< light-field part and optics, with provenance
+  CalibrationData data;  ///< light-field part and optics, with provenance
   double pinhole_x_um = 0, pinhole_y_um = 0, pinhole_diameter_um = 0;
   ConeFit cone;
   std::vector<std::string> warnings;

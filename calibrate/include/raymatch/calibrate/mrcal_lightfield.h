@@ -20,9 +20,9 @@ namespace raymatch::calibrate {
 bool MrcalAvailable();
 
 struct DirectionMapStats {
-  size_t pixels_used = 0;          ///< pixels whose direction fell inside the map
-  double median_pixel_area_uv = 0; ///< solid extent of a pixel in du dv
-  double max_s = 0;                ///< largest sqrt(u^2 + v^2) seen by the camera
+  size_t pixels_used = 0;           ///< pixels whose direction fell inside the map
+  double median_pixel_area_uv = 0;  ///< solid extent of a pixel in du dv
+  double max_s = 0;                 ///< largest sqrt(u^2 + v^2) seen by the camera
 };
 
 /// Angular radiance per du dv (photons per unit du dv) from one image in photons: every pixel

@@ -13,19 +13,19 @@ namespace raymatch::calibrate {
 
 /// The 208-byte little-endian header, field by field in file order.
 struct ZemaxSourceHeader {
-  int32_t identifier = 1010;        ///< always 1010
+  int32_t identifier = 1010;  ///< always 1010
   uint32_t num_rays = 0;
-  std::string description;          ///< at most 99 characters (NUL-padded char[100])
-  float source_flux = 1;            ///< total flux of the source (flux_type units)
-  float ray_set_flux = 1;           ///< flux of the rays in this file
-  float wavelength_um = 0.462;      ///< used when ray_format = 0
+  std::string description;      ///< at most 99 characters (NUL-padded char[100])
+  float source_flux = 1;        ///< total flux of the source (flux_type units)
+  float ray_set_flux = 1;       ///< flux of the rays in this file
+  float wavelength_um = 0.462;  ///< used when ray_format = 0
   float inclination_begin = 0, inclination_end = 90;  ///< deg (informational)
   float azimuth_begin = 0, azimuth_end = 360;         ///< deg (informational)
-  int32_t dimension_units = 4;      ///< 0 m, 1 in, 2 cm, 3 ft, 4 mm
+  int32_t dimension_units = 4;                        ///< 0 m, 1 in, 2 cm, 3 ft, 4 mm
   std::array<float, 3> location{}, rotation{}, scale{{1, 1, 1}};
   std::array<float, 4> unused{};
-  int32_t ray_format = 0;           ///< 0 flux only (7 floats/ray), 2 spectral (8 floats/ray)
-  int32_t flux_type = 0;            ///< 0 watts, 1 lumens
+  int32_t ray_format = 0;  ///< 0 flux only (7 floats/ray), 2 spectral (8 floats/ray)
+  int32_t flux_type = 0;   ///< 0 watts, 1 lumens
   std::array<int32_t, 2> reserved{};
 };
 
@@ -54,9 +54,9 @@ ZemaxSourceFile ReadZemaxSourceFile(const std::string& path);
 struct ZemaxExportOptions {
   uint64_t num_rays = 1000000;
   uint64_t seed = 1;
-  double field_radius_um = 0;  ///< uniform disc at z = 0; 0 = the calibration's field radius
-  double flux = 1;             ///< total source flux (W); each ray carries flux / num_rays
-  int32_t dimension_units = 4; ///< mm
+  double field_radius_um = 0;   ///< uniform disc at z = 0; 0 = the calibration's field radius
+  double flux = 1;              ///< total source flux (W); each ray carries flux / num_rays
+  int32_t dimension_units = 4;  ///< mm
 };
 
 /// Samples rays from the calibration's light field: positions uniform in the field disc at
@@ -67,8 +67,8 @@ struct ZemaxExportOptions {
 ZemaxSourceFile SampleZemaxSource(const CalibrationData& cal, const ZemaxExportOptions& o);
 
 struct ZemaxImportOptions {
-  int map_size = 64;     ///< angular map cells per side
-  double extent = 0;     ///< half-width in direction cosines; 0 = from the rays (max |l|, |m|)
+  int map_size = 64;  ///< angular map cells per side
+  double extent = 0;  ///< half-width in direction cosines; 0 = from the rays (max |l|, |m|)
 };
 
 struct ZemaxImportSummary {

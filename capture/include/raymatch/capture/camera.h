@@ -4,11 +4,10 @@
 // Units: exposure in microseconds, analogue gain as a factor (1 = unity), ROI in sensor pixels.
 #include <cstdint>
 #include <memory>
+#include <nlohmann/json.hpp>
 #include <optional>
 #include <string>
 #include <vector>
-
-#include <nlohmann/json.hpp>
 
 #include "raymatch/core/image.h"
 
@@ -23,17 +22,17 @@ struct Roi {
 
 /// What a camera is and can do, for `capture list` and for checking requests.
 struct CameraInfo {
-  std::string id;                  ///< what --camera takes: "sim:FILE", "libcamera:ID", "v4l2:/dev/videoN"
-  std::string backend;             ///< "sim", "libcamera", "v4l2"
+  std::string id;       ///< what --camera takes: "sim:FILE", "libcamera:ID", "v4l2:/dev/videoN"
+  std::string backend;  ///< "sim", "libcamera", "v4l2"
   std::string model;
-  int width = 0, height = 0;       ///< full sensor (or device) size, pixels
-  double pixel_pitch_um = 0;       ///< 0 = not reported
+  int width = 0, height = 0;               ///< full sensor (or device) size, pixels
+  double pixel_pitch_um = 0;               ///< 0 = not reported
   std::vector<std::string> pixel_formats;  ///< raw formats first; all the device offers
-  std::string raw_format;          ///< the format capture uses (deepest raw); "" = none usable
-  int bit_depth = 0;               ///< data bits of raw_format
+  std::string raw_format;  ///< the format capture uses (deepest raw); "" = none usable
+  int bit_depth = 0;       ///< data bits of raw_format
   double exposure_min_us = 0, exposure_max_us = 0;  ///< 0, 0 = not reported
   double gain_min = 0, gain_max = 0;                ///< analogue gain; 0, 0 = not reported
-  std::string notes;               ///< e.g. "no raw format: cannot capture for calibration"
+  std::string notes;  ///< e.g. "no raw format: cannot capture for calibration"
   /// Values a session may offer as defaults for metadata.toml's [camera] and [optics] keys
   /// (the simulated camera knows them all; a real camera at most pixel_pitch_um and bit_depth).
   nlohmann::json datasheet = nlohmann::json::object();
@@ -43,7 +42,10 @@ struct CameraInfo {
 enum class BayerMode {
   kMosaic,  ///< the colour-filter mosaic as recorded: every pixel its own channel, no demosaic
   kBin,     ///< 2 x 2 sums: half-size mono image of all four channels (saturates at 4 x max)
-  kPlane0, kPlane1, kPlane2, kPlane3,  ///< one colour plane, half size (unpack.h SplitBayer)
+  kPlane0,
+  kPlane1,
+  kPlane2,
+  kPlane3,  ///< one colour plane, half size (unpack.h SplitBayer)
 };
 
 /// One request. Raw frames only: no auto exposure, no auto gain, no white balance.
@@ -57,14 +59,14 @@ struct CaptureSettings {
 /// One frame in code values (float holding integers), with what the camera reported.
 struct Frame {
   Image dn;
-  int bit_depth = 0;                    ///< data bits: code values 0 .. 2^bit_depth - 1 (x4 binned)
+  int bit_depth = 0;  ///< data bits: code values 0 .. 2^bit_depth - 1 (x4 binned)
   std::string pixel_format;
-  double exposure_us = 0;               ///< as applied (reported by the camera when it does)
+  double exposure_us = 0;  ///< as applied (reported by the camera when it does)
   double analogue_gain = 0;
-  std::optional<double> black_level_dn; ///< sensor black level, code values
-  std::optional<double> temperature_c;  ///< sensor temperature when reported
-  std::string timestamp_utc;            ///< when the frame was received
-  int64_t sensor_timestamp_ns = 0;      ///< the driver's start-of-exposure time stamp (0 = none)
+  std::optional<double> black_level_dn;  ///< sensor black level, code values
+  std::optional<double> temperature_c;   ///< sensor temperature when reported
+  std::string timestamp_utc;             ///< when the frame was received
+  int64_t sensor_timestamp_ns = 0;       ///< the driver's start-of-exposure time stamp (0 = none)
   nlohmann::json extra = nlohmann::json::object();  ///< backend details (sim: rays, seed, stage)
 };
 
@@ -72,11 +74,11 @@ struct Frame {
 /// camera renders it. The guided session passes on what the user says they set.
 struct StageState {
   bool lamp_on = true;
-  bool pinhole = false;              ///< a pinhole at the object plane (else: the open field)
+  bool pinhole = false;  ///< a pinhole at the object plane (else: the open field)
   double pinhole_diameter_um = 2;
-  double focus_um = 0;               ///< focal plane position (+ = towards the camera, conventions.md)
-  double iris_deg = 0;               ///< illumination half-angle limited to this; 0 = iris open
-  bool objects = false;              ///< the scene's objects are in the field (focus scans)
+  double focus_um = 0;   ///< focal plane position (+ = towards the camera, conventions.md)
+  double iris_deg = 0;   ///< illumination half-angle limited to this; 0 = iris open
+  bool objects = false;  ///< the scene's objects are in the field (focus scans)
 };
 
 class Camera {

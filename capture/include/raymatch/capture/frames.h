@@ -6,10 +6,9 @@
 // capture leaves complete frames only.
 #include <filesystem>
 #include <iosfwd>
+#include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
-
-#include <nlohmann/json.hpp>
 
 #include "raymatch/capture/camera.h"
 
@@ -17,10 +16,10 @@ namespace raymatch::capture {
 
 /// N frames with the same settings, reduced to one image.
 struct FrameSet {
-  Image image;                 ///< one frame's code values, or the mean of `count` frames
-  bool mean = false;           ///< image is a float mean
+  Image image;        ///< one frame's code values, or the mean of `count` frames
+  bool mean = false;  ///< image is a float mean
   int count = 1;
-  std::vector<Frame> frames;   ///< per-frame records (pixels of all but the last released)
+  std::vector<Frame> frames;  ///< per-frame records (pixels of all but the last released)
 };
 
 /// Captures `count` frames (>= 1) and, when `mean`, averages them (double accumulation).
@@ -31,7 +30,8 @@ nlohmann::json FrameSidecar(const CameraInfo& info, const FrameSet& set, const s
 
 /// Writes `path` (.tif/.tiff: uint16 for single frames, float32 for means) and `path` with
 /// .json; both atomic. Throws Error naming the file on failure (nothing is left behind).
-void WriteFrameSet(const std::filesystem::path& path, const FrameSet& set, const nlohmann::json& sidecar);
+void WriteFrameSet(const std::filesystem::path& path, const FrameSet& set,
+                   const nlohmann::json& sidecar);
 
 /// Throws Error naming `path` when it is not a .tif/.tiff path in a folder that exists (or can be
 /// created) and is writable, before anything is captured.
@@ -55,15 +55,16 @@ double SuggestExposure(double exposure_us, double level, bool clipped, double ta
 /// `raymatch capture frames`: what to capture and where.
 struct FramesOptions {
   CaptureSettings settings;
-  int count = 1;               ///< frames
-  bool mean = false;           ///< write their mean (float) instead of each frame
-  bool dark = false;           ///< also a dark frame set (lamp off), NAME_dark.tif
+  int count = 1;                 ///< frames
+  bool mean = false;             ///< write their mean (float) instead of each frame
+  bool dark = false;             ///< also a dark frame set (lamp off), NAME_dark.tif
   std::filesystem::path output;  ///< DIR/NAME.tif
 };
 
 /// Captures and writes; returns one line per file written: its path and statistics (mean,
-/// standard deviation, min, max in code values, pixels at the top code value). `prompt_in`/`prompt_out` ask the user to
-/// block the light before the dark frames (EOF on `prompt_in` is taken as "ready").
+/// standard deviation, min, max in code values, pixels at the top code value).
+/// `prompt_in`/`prompt_out` ask the user to block the light before the dark frames (EOF on
+/// `prompt_in` is taken as "ready").
 std::vector<std::string> CaptureFramesToFiles(Camera& cam, const FramesOptions& o,
                                               std::istream& prompt_in, std::ostream& prompt_out);
 

@@ -8,11 +8,11 @@
 namespace raymatch::capture {
 
 struct SensorModel {
-  int bit_depth = 12;              ///< code values 0 .. 2^bit_depth - 1
-  double gain_e_per_dn = 1;        ///< electrons per code value at analogue gain 1
-  double black_level_dn = 64;      ///< offset added to every pixel, code values
-  double read_noise_e = 6;         ///< Gaussian read noise, electrons (rms)
-  double well_capacity_e = 4500;   ///< electrons a pixel holds; more are lost (clipped)
+  int bit_depth = 12;             ///< code values 0 .. 2^bit_depth - 1
+  double gain_e_per_dn = 1;       ///< electrons per code value at analogue gain 1
+  double black_level_dn = 64;     ///< offset added to every pixel, code values
+  double read_noise_e = 6;        ///< Gaussian read noise, electrons (rms)
+  double well_capacity_e = 4500;  ///< electrons a pixel holds; more are lost (clipped)
   /// Throws Error naming the field when a value is impossible.
   void Validate() const;
   double max_dn() const { return double((int64_t(1) << bit_depth) - 1); }

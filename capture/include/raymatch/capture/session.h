@@ -18,10 +18,10 @@ SessionKind ParseSessionKind(const std::string& name);
 
 struct SessionOptions {
   SessionKind kind = SessionKind::kPinhole;
-  std::string folder;             ///< output folder (created; metadata.toml there is extended)
-  CaptureSettings settings;       ///< starting exposure (us), analogue gain, ROI
-  int average = 1;                ///< frames averaged per image (>1: float mean TIFFs)
-  double target_signal = 0.6;     ///< exposure suggestions aim at this fraction of the well
+  std::string folder;          ///< output folder (created; metadata.toml there is extended)
+  CaptureSettings settings;    ///< starting exposure (us), analogue gain, ROI
+  int average = 1;             ///< frames averaged per image (>1: float mean TIFFs)
+  double target_signal = 0.6;  ///< exposure suggestions aim at this fraction of the well
 };
 
 /// Where the answers come from. Interactive: questions on `out`, answers typed on `in`.

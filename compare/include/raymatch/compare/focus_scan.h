@@ -2,11 +2,10 @@
 // The focus-scan test (paper sections II.B-C): every experimental plane against every simulated
 // plane, for every measure; a measure passes when each experimental plane's best match is the
 // simulated plane of the same defocus, within one step.
+#include <nlohmann/json.hpp>
 #include <optional>
 #include <string>
 #include <vector>
-
-#include <nlohmann/json.hpp>
 
 #include "raymatch/compare/measures.h"
 
@@ -40,14 +39,14 @@ Image PrepareExperiment(const Image& raw, const PrepareOptions& options, const I
                         const Image* flat);
 
 enum class Measure { kMse, kSsim, kMsSsim, kCwSsim, kPoissonChi2 };
-const char* MeasureName(Measure m);            ///< "mse", "ssim", "ms_ssim", "cw_ssim", "poisson_chi2"
-bool HigherIsBetter(Measure m);                ///< similarity (true) or distance (false)
+const char* MeasureName(Measure m);  ///< "mse", "ssim", "ms_ssim", "cw_ssim", "poisson_chi2"
+bool HigherIsBetter(Measure m);      ///< similarity (true) or distance (false)
 
 struct FocusScanOptions {
-  PrepareOptions prepare;                       ///< applied to the experimental stack
-  double data_range = 0;                        ///< L; 0 = the largest pixel of both stacks
-  bool register_shift = true;                   ///< sub-pixel phase correlation at the middle plane
-  bool normalize_background = true;             ///< scale simulation to the experiment's median
+  PrepareOptions prepare;            ///< applied to the experimental stack
+  double data_range = 0;             ///< L; 0 = the largest pixel of both stacks
+  bool register_shift = true;        ///< sub-pixel phase correlation at the middle plane
+  bool normalize_background = true;  ///< scale simulation to the experiment's median
   /// MS-SSIM and CW-SSIM settings; data_range is set by the scan (the L above), and
   /// num_scales / level 0 mean one below the maximum for the image size (the paper's choice).
   MsSsimOptions ms_ssim;
@@ -64,7 +63,7 @@ struct MeasureScan {
   std::vector<int> best;                    ///< best simulation plane per experiment plane
   std::vector<int> expected;                ///< simulation plane nearest in defocus
   bool passes = false;
-  bool primary = false;                     ///< one of FocusScanOptions::primary (in the verdict)
+  bool primary = false;  ///< one of FocusScanOptions::primary (in the verdict)
 };
 
 enum class Verdict { kPass = 0, kWarning = 1, kFail = 2 };
@@ -73,7 +72,7 @@ struct FocusScanResult {
   std::vector<double> exp_defocus_um, sim_defocus_um;
   std::vector<MeasureScan> measures;
   double data_range = 0;
-  std::array<double, 2> shift_px{};   ///< applied to the experiment (x, y); 0 where not significant
+  std::array<double, 2> shift_px{};  ///< applied to the experiment (x, y); 0 where not significant
   /// The registration's estimate before the significance test, its shot-noise standard error
   /// (infinite where the images hold no measurable gradient) and per axis whether it was
   /// applied (|estimate| > 3 sigma). Nothing applied when registration is off.
@@ -82,9 +81,9 @@ struct FocusScanResult {
   std::array<bool, 2> shift_applied{};
   bool registration_run = false;
   std::string RegistrationSummary() const;  ///< one line for reports
-  double sim_scale = 1;               ///< factor applied to the simulation
-  MsSsimOptions ms_ssim;              ///< settings used (data_range = L, num_scales resolved)
-  CwSsimOptions cw_ssim;              ///< settings used (data_range = L, level resolved)
+  double sim_scale = 1;                     ///< factor applied to the simulation
+  MsSsimOptions ms_ssim;                    ///< settings used (data_range = L, num_scales resolved)
+  CwSsimOptions cw_ssim;                    ///< settings used (data_range = L, level resolved)
   Verdict verdict = Verdict::kFail;
   std::string message;
   std::vector<Image> exp_images, sim_images;  ///< prepared, for reports

@@ -51,19 +51,19 @@ inline constexpr double kPsnrCapDb = 999.0;
 // SSIM (Wang et al. 2004) exactly as MATLAB's ssim() by default.
 
 struct SsimOptions {
-  double data_range = 0;   ///< L, required (> 0): C1 = (k1 L)^2, C2 = (k2 L)^2.
-  double sigma = 1.5;      ///< Gaussian window sigma, pixels. Filter size 2*ceil(3 sigma)+1.
-  double k1 = 0.01;        ///< Luminance constant.
-  double k2 = 0.03;        ///< Contrast/structure constant.
-  bool keep_map = false;   ///< Keep the per-pixel SSIM map in the result.
-  void Validate() const;   ///< Throws CompareError(kInvalidInput) naming the bad field.
+  double data_range = 0;  ///< L, required (> 0): C1 = (k1 L)^2, C2 = (k2 L)^2.
+  double sigma = 1.5;     ///< Gaussian window sigma, pixels. Filter size 2*ceil(3 sigma)+1.
+  double k1 = 0.01;       ///< Luminance constant.
+  double k2 = 0.03;       ///< Contrast/structure constant.
+  bool keep_map = false;  ///< Keep the per-pixel SSIM map in the result.
+  void Validate() const;  ///< Throws CompareError(kInvalidInput) naming the bad field.
 };
 
 struct SsimResult {
-  double ssim = 0;          ///< Mean of the SSIM map over all pixels ('same'-size map).
+  double ssim = 0;            ///< Mean of the SSIM map over all pixels ('same'-size map).
   double mean_luminance = 0;  ///< Mean of the luminance term l(x,y).
-  double mean_cs = 0;       ///< Mean of the contrast-structure term cs(x,y).
-  Image map;                ///< Per-pixel SSIM (only when keep_map).
+  double mean_cs = 0;         ///< Mean of the contrast-structure term cs(x,y).
+  Image map;                  ///< Per-pixel SSIM (only when keep_map).
 };
 
 /// MATLAB ssim(): separable Gaussian window (sigma, 2*ceil(3 sigma)+1 taps, normalised to
@@ -84,11 +84,11 @@ enum class MsSsimWeights {
 const char* MsSsimWeightsName(MsSsimWeights w);
 
 struct MsSsimOptions {
-  double data_range = 0;      ///< L, required (> 0).
-  int num_scales = 0;         ///< Number of scales M; 0 = default: MaxMsSsimScales() - 1.
+  double data_range = 0;  ///< L, required (> 0).
+  int num_scales = 0;     ///< Number of scales M; 0 = default: MaxMsSsimScales() - 1.
   MsSsimWeights weights = MsSsimWeights::kMatlab;
   std::vector<double> custom_weights;  ///< Used with kCustom; size must equal M.
-  double sigma = 1.5;         ///< Gaussian window sigma at every scale, pixels.
+  double sigma = 1.5;                  ///< Gaussian window sigma at every scale, pixels.
   double k1 = 0.01, k2 = 0.03;
   void Validate() const;
 };
@@ -102,9 +102,9 @@ struct MsSsimScale {
 };
 
 struct MsSsimResult {
-  double ms_ssim = 0;      ///< prod_{j<M} cs_j^w_j * ssim_M^w_M (see MsSsim()).
-  int num_scales = 0;      ///< M actually used.
-  int max_scales = 0;      ///< MaxMsSsimScales() for this image size.
+  double ms_ssim = 0;  ///< prod_{j<M} cs_j^w_j * ssim_M^w_M (see MsSsim()).
+  int num_scales = 0;  ///< M actually used.
+  int max_scales = 0;  ///< MaxMsSsimScales() for this image size.
   std::vector<MsSsimScale> scales;
 };
 
@@ -154,9 +154,9 @@ struct CwSsimOptions {
 };
 
 struct CwSsimResult {
-  double cw_ssim = 0;                ///< Mean over orientations of the band CW-SSIM values.
-  int level = 0;                     ///< Level used.
-  int max_level = 0;                 ///< MaxCwSsimLevel() for this image size.
+  double cw_ssim = 0;                   ///< Mean over orientations of the band CW-SSIM values.
+  int level = 0;                        ///< Level used.
+  int max_level = 0;                    ///< MaxCwSsimLevel() for this image size.
   std::vector<double> per_orientation;  ///< Gaussian-weighted CW-SSIM of each band.
 };
 
@@ -175,9 +175,9 @@ CwSsimResult CwSsim(const Image& a, const Image& b, const CwSsimOptions& options
 
 /// The complex bands of one pyramid level, for reuse when one image is compared with many.
 struct CwSsimBands {
-  int width = 0, height = 0;                    ///< Band size after the guard band, pixels.
-  int band_rows = 0;                            ///< Band rows before the guard band (sigma).
-  std::vector<std::vector<double>> re, im;      ///< [orientation][row-major pixel].
+  int width = 0, height = 0;                ///< Band size after the guard band, pixels.
+  int band_rows = 0;                        ///< Band rows before the guard band (sigma).
+  std::vector<std::vector<double>> re, im;  ///< [orientation][row-major pixel].
 };
 /// Builds the bands that CwSsim() compares (after scaling by 255/L and cropping guard bands).
 CwSsimBands ComputeCwSsimBands(const Image& img, const CwSsimOptions& options, int level);

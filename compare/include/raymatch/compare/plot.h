@@ -6,9 +6,9 @@
 //
 // Figures are written atomically (a registered `*.partial-*` temporary, checked to be a whole
 // PNG, renamed into place: core/atomic_file.h). PLplot's state is global, so the helpers draw one
-// figure at a time in the process (a mutex; safe to call from several threads). Throws raymatch::Error (a std::runtime_error) naming the
-// file when it cannot be written (with the reason: disk full, no permission) or when PLplot's
-// cairo PNG device is not available.
+// figure at a time in the process (a mutex; safe to call from several threads). Throws
+// raymatch::Error (a std::runtime_error) naming the file when it cannot be written (with the
+// reason: disk full, no permission) or when PLplot's cairo PNG device is not available.
 #include <array>
 #include <string>
 #include <vector>
@@ -84,8 +84,8 @@ void WriteMap(const std::string& path, const MapPlot& plot);
 /// Images shown as tiles in rows and columns, all on one intensity scale [lo, hi] with one
 /// colour bar (e.g. experiment above simulation in a focus scan).
 struct ImageGrid {
-  std::vector<std::vector<Image>> rows;   ///< rows[r][c]; all images the same size
-  std::vector<std::string> row_labels;    ///< one per row (left of the row)
+  std::vector<std::vector<Image>> rows;  ///< rows[r][c]; all images the same size
+  std::vector<std::string> row_labels;   ///< one per row (left of the row)
   /// tile_labels[r][c] is written above tile (r, c); missing or empty: none.
   std::vector<std::vector<std::string>> tile_labels;
   double lo = 0, hi = 1;

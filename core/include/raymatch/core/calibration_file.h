@@ -3,10 +3,9 @@
 // the angular light-field map), written by `raymatch calibrate` and read by the simulator
 // (docs/calibration-format.md). Either the light field or the corrector may be absent.
 #include <array>
+#include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
-
-#include <nlohmann/json.hpp>
 
 #include "raymatch/core/image.h"
 
@@ -16,19 +15,19 @@ struct CalibrationData {
   // Light field: angular radiance over direction cosines (u, v) in
   // [-angular_extent, angular_extent]^2, columns = u increasing, rows = v decreasing from the top
   // (docs/conventions.md); spatially uniform field: a disc of field_radius_um at the object plane
-// (0 = not measured: the simulator sizes it to cover the view).
-  Image angular_map;                 ///< empty when the file has no light field
+  // (0 = not measured: the simulator sizes it to cover the view).
+  Image angular_map;  ///< empty when the file has no light field
   double angular_extent = 0;
   double field_radius_um = 0;
-  double na_limit = 0;               ///< the measured map is cut at this NA (the objective's;
-                                     ///< 0 = not cut, e.g. measured with an mrcal camera)
-  double cone_half_angle_deg = 0;    ///< fitted edge half-angle of the cone (informational)
+  double na_limit = 0;             ///< the measured map is cut at this NA (the objective's;
+                                   ///< 0 = not cut, e.g. measured with an mrcal camera)
+  double cone_half_angle_deg = 0;  ///< fitted edge half-angle of the cone (informational)
   // Optional spatial map (relative irradiance at the object plane, from a flat-field image) over
   // a rectangle field_size_um centred on the optical axis; columns x increasing, rows y
   // decreasing from the top (object-plane orientation, docs/conventions.md). Empty = uniform.
   Image spatial_map;
   double field_size_um[2] = {0, 0};
-  std::string light_field_note;      ///< e.g. "measured up to NA 0.42; beyond: extrapolated"
+  std::string light_field_note;  ///< e.g. "measured up to NA 0.42; beyond: extrapolated"
   // The light field beyond na_limit, which no image through the objective shows: a soft edge
   // (1 - tanh((theta - edge_half_angle_deg) / edge_width_deg)) / 2 continuing the map's
   // outermost measured ring (docs/calibration-format.md). 0 = none (the map as it is), set by
@@ -44,7 +43,7 @@ struct CalibrationData {
   // Optics.
   double objective_focal_mm = 0, working_distance_mm = 0, na = 0, tube_focal_mm = 0;
   double pixel_pitch_um = 0, wavelength_um = 0;
-  nlohmann::json provenance;         ///< version, date, command line, input checksums
+  nlohmann::json provenance;  ///< version, date, command line, input checksums
 
   bool has_light_field() const { return !angular_map.empty(); }
   bool has_corrector() const { return !transmissions.empty(); }

@@ -35,10 +35,10 @@ class Error : public std::runtime_error {
 
 }  // namespace raymatch
 
-#define RAYMATCH_CHECK(cond)                                                          \
-  do {                                                                                \
-    if (!(cond)) {                                                                    \
+#define RAYMATCH_CHECK(cond)                                                        \
+  do {                                                                              \
+    if (!(cond)) {                                                                  \
       std::fprintf(stderr, "%s:%d: CHECK failed: %s\n", __FILE__, __LINE__, #cond); \
-      std::abort();                                                                   \
-    }                                                                                 \
+      std::abort();                                                                 \
+    }                                                                               \
   } while (0)

@@ -13,7 +13,7 @@ struct ImageFileInfo {
   std::string format;      ///< OIIO format name ("tiff", "png", ...).
   std::string pixel_type;  ///< "uint8", "uint16", "float", ...
   int channels = 1;
-  double type_max = 1.0;   ///< Largest code value of an integer type (255, 65535), 1 for float.
+  double type_max = 1.0;  ///< Largest code value of an integer type (255, 65535), 1 for float.
 };
 
 /// Limits on declared image sizes, checked before any pixel memory is allocated.

@@ -1,9 +1,8 @@
 #pragma once
 // How a file was made: tool version, UTC date, command line, host, input checksums.
+#include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
-
-#include <nlohmann/json.hpp>
 
 namespace raymatch {
 

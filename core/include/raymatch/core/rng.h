@@ -4,9 +4,9 @@
 // Every ray owns a stream addressed by (seed, stream, ray index): the numbers a ray draws do not
 // depend on which thread traces it or in what order, so images are bit-identical for any thread
 // count. Each call to Next() consumes one 32-bit word; a block of four is made per Philox call.
-#include <cstdint>
-
 #include <Random123/philox.h>
+
+#include <cstdint>
 
 namespace raymatch {
 

@@ -8,13 +8,13 @@
 // traces `ray_factor` times more rays than the experiment recorded photons and is scaled down,
 // so its own shot noise adds mu/ray_factor to the variance. With common random numbers every
 // evaluation reuses the same ray streams, so the error function is not re-noised at every step.
+#include <toml++/toml.h>
+
 #include <array>
 #include <functional>
 #include <optional>
 #include <string>
 #include <vector>
-
-#include <toml++/toml.h>
 
 #include "raymatch/core/error.h"
 #include "raymatch/core/image.h"
@@ -43,8 +43,8 @@ const char* StageName(Stage s);  ///< "grid", "poll", "lm", "polish", "fisher", 
 struct FitImage {
   std::string file;
   double defocus_um = 0;
-  std::string dark_file;      ///< subtracted in code values when given
-  double gain_e_per_dn = 1;   ///< photons per code value after dark subtraction
+  std::string dark_file;     ///< subtracted in code values when given
+  double gain_e_per_dn = 1;  ///< photons per code value after dark subtraction
   /// The camera's read noise (electrons rms, of the dark-subtracted image): the Poisson
   /// likelihood uses the shifted-Poisson approximation, e + r^2 ~ Poisson(mu + r^2), which
   /// matches the Poisson-Gaussian mean and variance (docs/fit.md, "Camera noise"). 0 = none.
@@ -53,30 +53,30 @@ struct FitImage {
   /// 2^bit_depth - 1). Saturated pixels, and with a dark frame pixels clipped at 0, are left
   /// out of the likelihood (their count is in fit.json).
   double saturation_dn = 0;
-  Image usable;               ///< 1 where a pixel enters the likelihood, 0 where left out; empty: all
+  Image usable;  ///< 1 where a pixel enters the likelihood, 0 where left out; empty: all
   size_t excluded_pixels = 0;
-  Image photons;              ///< prepared image (filled by LoadFitSpec)
+  Image photons;  ///< prepared image (filled by LoadFitSpec)
   FileLocation where;
 };
 
 /// A free parameter: a numeric value of the scene (or an image's defocus) by its key.
 struct Parameter {
-  std::string key;            ///< e.g. "object.drop.center_um[2]", "image[0].defocus_um"
+  std::string key;  ///< e.g. "object.drop.center_um[2]", "image[0].defocus_um"
   double lower = 0, upper = 0, start = 0;
-  double step = 0;            ///< typical change: pattern mesh, grid spacing, FD step base
-  int points = 0;             ///< grid: samples from lower to upper (0: from step)
-  std::string unit;           ///< from the key's suffix (_um, _deg, ...) for reports
+  double step = 0;   ///< typical change: pattern mesh, grid spacing, FD step base
+  int points = 0;    ///< grid: samples from lower to upper (0: from step)
+  std::string unit;  ///< from the key's suffix (_um, _deg, ...) for reports
   FileLocation where;
 };
 
 struct RaySchedule {
-  double ray_factor = 1;                     ///< simulated rays per experimental photon
+  double ray_factor = 1;                               ///< simulated rays per experimental photon
   std::vector<double> fractions{1.0 / 16, 0.25, 1.0};  ///< coarse-to-fine; last = final
   bool common_random_numbers = true;
   /// Photons per pixel of the experiment's flat background (0: the scene's trace value, or
   /// when the scene gives none, the median of the first image's border frame).
   double photons_per_pixel = 0;
-  bool reuse_background = true;              ///< trace rays that miss every object only once
+  bool reuse_background = true;  ///< trace rays that miss every object only once
   /// Scale each simulated image to the experiment's total photons (the exposure's maximum-
   /// likelihood value, profiled out); false: the photon count is taken as known.
   bool fit_exposure = true;
@@ -104,10 +104,10 @@ struct RaySchedule {
 enum class ProfileMode { kAuto, kAlways, kNever };
 
 struct FitSpec {
-  std::string file;                          ///< the fit file
+  std::string file;  ///< the fit file
   std::string scene_file;
-  std::string calibration_file;              ///< set in the scene when not empty
-  toml::table scene;                         ///< the parsed scene (values changed per evaluation)
+  std::string calibration_file;  ///< set in the scene when not empty
+  toml::table scene;             ///< the parsed scene (values changed per evaluation)
   std::vector<FitImage> images;
   std::vector<Parameter> parameters;
   ErrorFunction error = ErrorFunction::kPoisson;
@@ -115,15 +115,15 @@ struct FitSpec {
   RaySchedule rays;
   uint64_t seed = 1;
   int max_evaluations = 2000;
-  int repeat_seeds = 3;                      ///< repeated final fits with independent seeds
+  int repeat_seeds = 3;  ///< repeated final fits with independent seeds
   bool cramer_rao = true;
-  int slice_points = 7;                      ///< error-function slices per parameter (0: none)
+  int slice_points = 7;  ///< error-function slices per parameter (0: none)
   /// Profile-likelihood intervals: kAuto where the curvature interval may not be trustworthy
   /// (a correlation above `profile_correlation`, a curvature that is not positive definite, a
   /// sigma above the parameter's step), kAlways for every parameter, kNever.
   ProfileMode profile = ProfileMode::kAuto;
   double profile_correlation = 0.9;
-  bool uncertainties = true;                 ///< false: search only (benchmarks)
+  bool uncertainties = true;  ///< false: search only (benchmarks)
   int threads = 0;
 };
 
@@ -143,17 +143,18 @@ struct Evaluation {
   std::vector<double> theta;
   double error = 0;
   double ray_fraction = 1;
-  int bin = 1;                ///< pixel binning the error was computed on
-  uint64_t rays = 0;          ///< rays traced in this evaluation (all images)
+  int bin = 1;        ///< pixel binning the error was computed on
+  uint64_t rays = 0;  ///< rays traced in this evaluation (all images)
   uint64_t seed = 0;
   double seconds = 0;
-  Stage stage = Stage::kLm;   ///< which step of the fit asked for it (StageName() in fit.json)
+  Stage stage = Stage::kLm;  ///< which step of the fit asked for it (StageName() in fit.json)
 };
 
 struct ParameterResult {
   std::string key, unit;
   double start = 0, best = 0, lower = 0, upper = 0;
-  double sigma_curvature = 0;  ///< from the Poisson likelihood's curvature (Gauss-Newton) at the optimum
+  double sigma_curvature =
+      0;  ///< from the Poisson likelihood's curvature (Gauss-Newton) at the optimum
   /// The reported uncertainty: sigma_curvature x sqrt(1 + 1/(ray_factor x final fraction)),
   /// since the simulation's own shot noise (variance mu / (ray_factor x fraction)) adds to the
   /// experiment's in the fitted values.
@@ -165,8 +166,8 @@ struct ParameterResult {
   double sigma_derivatives = 0;
   /// sigma before the model-mismatch inflation (equal to sigma when the fit is consistent).
   double sigma_statistical = 0;
-  double sigma_repeat = 0;     ///< scatter of repeated fits with independent simulation seeds
-  double sigma_cramer_rao = 0; ///< Cramer-Rao bound of the image(s), noise-free expectation
+  double sigma_repeat = 0;      ///< scatter of repeated fits with independent simulation seeds
+  double sigma_cramer_rao = 0;  ///< Cramer-Rao bound of the image(s), noise-free expectation
   /// Expected precision including the simulation's own shot noise:
   /// CRB x sqrt(1 + 1/(ray_factor x final fraction)).
   double sigma_expected = 0;
@@ -199,31 +200,33 @@ struct ParameterResult {
 /// Chao and Strawderman, J. Am. Stat. Assoc. 67, 429 (1972)), so E[e/T] = 1 up to exp(-k mu).
 /// This is the light form of the Barlow-Beeston treatment of finite Monte Carlo templates
 /// (Comput. Phys. Commun. 77, 219 (1993); Conway, arXiv:1103.0354) for a score-equation fit.
-inline double TemplateMean(double photons, double photons_per_ray, bool finite_ray_correction = true) {
+inline double TemplateMean(double photons, double photons_per_ray,
+                           bool finite_ray_correction = true) {
   return photons + (finite_ray_correction ? 1.0 : 0.0) * photons_per_ray;
 }
 
 struct GoodnessOfFit {
-  double deviance = 0;           ///< Poisson deviance at the optimum (the fit's error)
-  double expected = 0;           ///< its expectation for a correct model (experiment's and
-                                 ///< simulation's Poisson noise, fitted parameters removed)
-  double sd = 0;                 ///< its standard deviation
-  double z = 0;                  ///< (deviance - expected) / sd
-  double reduced = 1;            ///< deviance / expected
+  double deviance = 0;  ///< Poisson deviance at the optimum (the fit's error)
+  double expected = 0;  ///< its expectation for a correct model (experiment's and
+                        ///< simulation's Poisson noise, fitted parameters removed)
+  double sd = 0;        ///< its standard deviation
+  double z = 0;         ///< (deviance - expected) / sd
+  double reduced = 1;   ///< deviance / expected
   size_t pixels = 0;
   /// Residual structure: Pearson residuals summed over blocks of block_px x block_px pixels,
   /// each block normalised to unit variance; their chi-square against the block count.
   int block_px = 8;
   size_t blocks = 0;
   double block_chi2 = 0, block_z = 0, block_reduced = 1;
-  /// Correlation of neighbouring Pearson residuals (right and lower neighbours): 0 +- 1/sqrt(pairs).
+  /// Correlation of neighbouring Pearson residuals (right and lower neighbours): 0 +-
+  /// 1/sqrt(pairs).
   double neighbour_correlation = 0, neighbour_z = 0;
-  bool mismatch = false;         ///< any of the three z above 3 (one-sided, p < 0.0014 each;
-                                 ///< the neighbour test also needs a correlation above 0.05)
+  bool mismatch = false;  ///< any of the three z above 3 (one-sided, p < 0.0014 each;
+                          ///< the neighbour test also needs a correlation above 0.05)
   /// Factor applied to every sigma: sqrt of the larger of the reduced deviance and the reduced
   /// block chi-square when `mismatch`, else 1.
   double sigma_inflation = 1;
-  std::string verdict;           ///< "consistent with the noise" or "model mismatch: ..."
+  std::string verdict;  ///< "consistent with the noise" or "model mismatch: ..."
 };
 
 struct FitResult {
@@ -231,17 +234,17 @@ struct FitResult {
   FitStatus status = FitStatus::kNone;  ///< StatusName() in fit.json, the terminal and the report
   std::string message;
   std::vector<ParameterResult> parameters;
-  std::vector<std::vector<double>> correlation;     ///< from the curvature covariance
-  std::vector<std::vector<double>> crb_correlation; ///< from the inverse Fisher information
+  std::vector<std::vector<double>> correlation;      ///< from the curvature covariance
+  std::vector<std::vector<double>> crb_correlation;  ///< from the inverse Fisher information
   double best_error = 0;
-  GoodnessOfFit goodness;      ///< Poisson error only (empty otherwise)
+  GoodnessOfFit goodness;  ///< Poisson error only (empty otherwise)
   std::vector<Evaluation> evaluations;
-  std::vector<Image> best_images;   ///< expected photons per image at the optimum
-  std::vector<Image> residuals;     ///< (sim - exp)/sqrt(sim (1 + 1/ray_factor))
-  uint64_t photon_matched_rays = 0; ///< rays per image at ray fraction 1 before ray_factor
-  double region_radius_um = 0;      ///< region the objects can occupy (rays outside reused)
+  std::vector<Image> best_images;    ///< expected photons per image at the optimum
+  std::vector<Image> residuals;      ///< (sim - exp)/sqrt(sim (1 + 1/ray_factor))
+  uint64_t photon_matched_rays = 0;  ///< rays per image at ray fraction 1 before ray_factor
+  double region_radius_um = 0;       ///< region the objects can occupy (rays outside reused)
   std::array<double, 3> region_center_um{};
-  double near_ray_fraction = 0;     ///< share of rays re-traced per evaluation
+  double near_ray_fraction = 0;  ///< share of rays re-traced per evaluation
   /// Grid landscape (method grid): axes values and errors in row-major order (last axis fastest).
   std::vector<std::vector<double>> grid_axes;
   std::vector<double> grid_errors;
@@ -250,8 +253,8 @@ struct FitResult {
 };
 
 struct FitOptions {
-  int threads = 0;             ///< 0: the fit file's value, then all cores
-  bool progress = false;       ///< progress lines on stderr
+  int threads = 0;        ///< 0: the fit file's value, then all cores
+  bool progress = false;  ///< progress lines on stderr
 };
 
 /// Runs the fit. Throws Error on bad input or when no evaluation succeeds.

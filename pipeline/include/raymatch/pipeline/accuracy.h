@@ -7,13 +7,13 @@
 namespace raymatch::pipeline {
 
 struct AccuracyOptions {
-  std::string scene_file;          ///< simulation scene (photon-matched via photons_per_pixel)
-  std::string experiment_csv;      ///< optional experimental stack (defocus_um,file)
-  std::string dark_file;           ///< experiment dark frame
+  std::string scene_file;      ///< simulation scene (photon-matched via photons_per_pixel)
+  std::string experiment_csv;  ///< optional experimental stack (defocus_um,file)
+  std::string dark_file;       ///< experiment dark frame
   double gain_e_per_dn = 1;
-  double defocus_um = 0;           ///< the plane studied
-  int max_divisor = 1024;          ///< fractions 1 ... 1/max_divisor (powers of two)
-  double reference_factor = 4;     ///< reference = this x the photon-matched ray count
+  double defocus_um = 0;        ///< the plane studied
+  int max_divisor = 1024;       ///< fractions 1 ... 1/max_divisor (powers of two)
+  double reference_factor = 4;  ///< reference = this x the photon-matched ray count
   int threads = 0;
   std::string output_dir = "accuracy";
 };

@@ -9,18 +9,18 @@
 namespace raymatch::pipeline {
 
 struct PipelineOptions {
-  std::string pipeline_file;     ///< pipeline TOML (docs/pipeline.md)
-  std::string output_dir;        ///< overrides the file's `output` when set
-  double ray_fraction = 0;       ///< overrides [simulation] ray_fraction when > 0
+  std::string pipeline_file;  ///< pipeline TOML (docs/pipeline.md)
+  std::string output_dir;     ///< overrides the file's `output` when set
+  double ray_fraction = 0;    ///< overrides [simulation] ray_fraction when > 0
   int threads = 0;
-  bool progress = false;         ///< progress bars on stderr (`raymatch run`: on a TTY or --progress)
-  bool steps = true;             ///< one line per step on stderr (`raymatch run -q`: off)
-  bool force = false;            ///< recompute every step
+  bool progress = false;  ///< progress bars on stderr (`raymatch run`: on a TTY or --progress)
+  bool steps = true;      ///< one line per step on stderr (`raymatch run -q`: off)
+  bool force = false;     ///< recompute every step
 };
 
 struct PipelineSummary {
-  std::string report;            ///< index.html
-  int verdict = 2;               ///< compare-scan verdict: 0 pass, 1 warning, 2 fail
+  std::string report;  ///< index.html
+  int verdict = 2;     ///< compare-scan verdict: 0 pass, 1 warning, 2 fail
   double cone_half_angle_deg = 0;
   std::vector<double> transmissions, transmission_sigma;
   std::vector<double> exp_defocus_um;
@@ -36,20 +36,20 @@ struct PipelineSummary {
 /// exist; fit files must exist.
 struct PipelineFile {
   std::string output = "out/pipeline";  ///< relative to the working directory
-  std::string lightfield, flatfield;     ///< [calibration] lightfield, corrector
+  std::string lightfield, flatfield;    ///< [calibration] lightfield, corrector
   /// [calibration] sphere: a drop's focus-scan folder for `calibrate sphere` (empty: none), and
   /// sphere_planes_um: the planes it fits (empty: its default pair).
   std::string sphere;
   std::vector<double> sphere_planes_um;
-  std::string experiment;                ///< [experiment] scan
-  std::string merging;                   ///< [experiment] mesh_object (empty: none)
+  std::string experiment;  ///< [experiment] scan
+  std::string merging;     ///< [experiment] mesh_object (empty: none)
   double extrapolate_to_deg = 0;
   int zones = 9;
   double smoothness = 0;
-  double ray_fraction = 1;               ///< of the photon-matched ray count
+  double ray_fraction = 1;  ///< of the photon-matched ray count
   uint64_t seed = 1;
   std::string partial_reflection = "unpolarized";
-  std::vector<std::string> fits;         ///< fit files (docs/fit.md) run with this calibration
+  std::vector<std::string> fits;  ///< fit files (docs/fit.md) run with this calibration
 };
 
 /// Strict reader of a pipeline file; throws Error "file:line:col: error: ..." (unknown keys,
@@ -60,11 +60,11 @@ PipelineFile ReadPipelineFile(const std::string& path);
 /// dark frame, the nominal size and the camera gain (paths joined to the folder, not checked).
 struct ExperimentMetadata {
   std::string scan_csv, dark;
-  double diameter_um = 0;         ///< nominal diameter
+  double diameter_um = 0;  ///< nominal diameter
   double temperature_K = 293.15;
-  double gain = 1;                ///< photons per code value after dark subtraction
-  double read_noise_e = 0;        ///< [camera] read_noise_e (0 when not given)
-  int bit_depth = 16;             ///< [camera] bit_depth: saturation at 2^bits - 1
+  double gain = 1;          ///< photons per code value after dark subtraction
+  double read_noise_e = 0;  ///< [camera] read_noise_e (0 when not given)
+  int bit_depth = 16;       ///< [camera] bit_depth: saturation at 2^bits - 1
 };
 ExperimentMetadata ReadExperimentMetadata(const std::string& folder);
 

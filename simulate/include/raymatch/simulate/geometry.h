@@ -13,8 +13,8 @@
 namespace raymatch::simulate {
 
 struct Hit {
-  double t = 0;   ///< distance along the (unit) direction
-  Vec3 normal;    ///< outward unit normal
+  double t = 0;  ///< distance along the (unit) direction
+  Vec3 normal;   ///< outward unit normal
   int object = -1;
 };
 
@@ -27,7 +27,7 @@ struct SphereShape {
 struct FramedShape {
   Vec3 center;
   Mat3 rot, rot_t;
-  Vec3 half;      ///< semi-axes (ellipsoid) or half-sizes (box)
+  Vec3 half;  ///< semi-axes (ellipsoid) or half-sizes (box)
   Vec3 inv_half;
   int object;
 };
@@ -52,7 +52,9 @@ class Geometry {
   bool Intersect(const Vec3& o, const Vec3& d, Hit* hit) const;
 
   bool has_meshes() const { return scene_ != nullptr; }
-  bool empty() const { return spheres_.empty() && ellipsoids_.empty() && boxes_.empty() && !scene_; }
+  bool empty() const {
+    return spheres_.empty() && ellipsoids_.empty() && boxes_.empty() && !scene_;
+  }
   /// Offset used to leave a surface of object i without re-hitting it (micrometres).
   double epsilon(int object) const { return eps_[object]; }
   const std::vector<MeshInfo>& meshes() const { return mesh_info_; }
@@ -77,7 +79,7 @@ class Geometry {
   std::vector<SphereShape> spheres_;
   std::vector<FramedShape> ellipsoids_, boxes_;
   std::vector<double> eps_;
-  std::vector<int> mesh_object_;             // geomID -> object
+  std::vector<int> mesh_object_;              // geomID -> object
   std::vector<std::vector<float>> vertices_;  // per mesh, xyz
   std::vector<std::vector<unsigned>> indices_;
   std::vector<MeshInfo> mesh_info_;

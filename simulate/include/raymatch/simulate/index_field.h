@@ -43,11 +43,11 @@ class IndexField {
  public:
   IndexFieldType type = IndexFieldType::kLuneburg;
   // Analytic parameters (REFERENCE.md section 5):
-  double n0 = 1.0;        ///< Luneburg: index at the surface (n = n0 sqrt(2 - (r/R)^2));
-                          ///< fish-eye: centre index; parabolic: axis index; linear n^2: at origin
-  double radius_um = 1;   ///< Luneburg R, fish-eye a
-  double g_per_um = 0;    ///< parabolic gradient constant g
-  Vec3 k_per_um;          ///< linear n^2: n^2 = n0^2 + k . p
+  double n0 = 1.0;       ///< Luneburg: index at the surface (n = n0 sqrt(2 - (r/R)^2));
+                         ///< fish-eye: centre index; parabolic: axis index; linear n^2: at origin
+  double radius_um = 1;  ///< Luneburg R, fish-eye a
+  double g_per_um = 0;   ///< parabolic gradient constant g
+  Vec3 k_per_um;         ///< linear n^2: n^2 = n0^2 + k . p
   // Grids: values[iz][ir] (rz) or values[iz][iy][ix] (3D), C order.
   std::vector<double> values;
   int nx = 0, ny = 0, nz = 0;   ///< rz: nx = number of r samples, ny = 1
@@ -96,9 +96,9 @@ inline void IndexField::EvalInCell(const GridCell& g, const Vec3& p, double* n, 
 
 /// Tolerances for the gradient-index integrator.
 struct GrinSettings {
-  double tolerance_um = 1e-5;   ///< position error allowed per step (embedded error estimate)
-  double max_step_um = 0;       ///< cap on the step length (0: the field's own cap, else none)
-  int max_steps = 2000000;      ///< per ray segment; beyond it the ray ends (grin_step_cap)
+  double tolerance_um = 1e-5;  ///< position error allowed per step (embedded error estimate)
+  double max_step_um = 0;      ///< cap on the step length (0: the field's own cap, else none)
+  int max_steps = 2000000;     ///< per ray segment; beyond it the ray ends (grin_step_cap)
   /// Grid fields: cross runs of cells whose corner values differ by at most this (index units)
   /// in one straight step; < 0 turns it off. The deflection neglected is below
   /// tolerance x path / spacing (1e-10 rad over 100 um at 0.1 um spacing for the default).

@@ -46,7 +46,7 @@ class Distribution2D {
 
  private:
   std::vector<Distribution1D> rows_;  // conditional in x for each row
-  Distribution1D marginal_;            // over rows
+  Distribution1D marginal_;           // over rows
 };
 
 /// Uniform point in the unit disc by rejection from the square (4/pi tries on average). Cheaper

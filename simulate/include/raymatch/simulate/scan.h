@@ -4,27 +4,26 @@
 // For each plane: <name>_z<defocus>um.tif (32-bit float counts, ImageJ/Fiji/Python readable),
 // a PNG preview (0 .. 2x the median count), and a JSON sidecar saying how it was made. The index
 // <name>_scan.json / <name>_scan.csv lists the planes. All files are written atomically.
+#include <nlohmann/json.hpp>
 #include <optional>
 #include <string>
 #include <vector>
-
-#include <nlohmann/json.hpp>
 
 #include "raymatch/simulate/tracer.h"
 
 namespace raymatch::simulate {
 
 struct ScanOptions {
-  std::string output_dir;             ///< created if missing
+  std::string output_dir;  ///< created if missing
   RunControl control;
-  std::optional<uint64_t> rays;       ///< overrides the scene's ray count / photon target
+  std::optional<uint64_t> rays;  ///< overrides the scene's ray count / photon target
   bool write_png = true;
 };
 
 struct ScanPlaneOutput {
   double defocus_um = 0;
-  std::string image, png, sidecar;    ///< paths written
-  std::string code_values;            ///< <stem>_dn.tif with [camera.readout], else empty
+  std::string image, png, sidecar;  ///< paths written
+  std::string code_values;          ///< <stem>_dn.tif with [camera.readout], else empty
   double mean_counts = 0;
   double seconds = 0;
 };

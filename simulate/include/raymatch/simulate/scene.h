@@ -5,13 +5,13 @@
 // travels along +z. The optical axis is the z axis. z = 0 is the scene's reference plane (the
 // object plane where sources define their field). Angles in degrees in files, radians inside.
 // Refractive indices are absolute (relative to vacuum).
+#include <toml++/toml.h>
+
 #include <array>
 #include <memory>
 #include <optional>
 #include <string>
 #include <vector>
-
-#include <toml++/toml.h>
 
 #include "raymatch/core/camera_readout.h"
 #include "raymatch/core/error.h"
@@ -30,12 +30,12 @@ enum class FieldShape { kDisc, kRect };
 struct SourceSpec {
   SourceType type = SourceType::kCone;
   FieldShape field_shape = FieldShape::kDisc;
-  double field_radius_um = 0;            ///< disc field radius; 0 = automatic (covers the view)
-  std::array<double, 2> field_size_um{}; ///< rect field width, height
-  Vec3 field_center_um{};                ///< centre of the field (z ignored)
-  double half_angle_deg = 0;             ///< cone: max angle to +z (uniform radiance inside)
-  double tilt_deg = 0, azimuth_deg = 0;  ///< collimated: direction polar angle and azimuth
-  Vec3 position_um{};                    ///< point: emission point
+  double field_radius_um = 0;             ///< disc field radius; 0 = automatic (covers the view)
+  std::array<double, 2> field_size_um{};  ///< rect field width, height
+  Vec3 field_center_um{};                 ///< centre of the field (z ignored)
+  double half_angle_deg = 0;              ///< cone: max angle to +z (uniform radiance inside)
+  double tilt_deg = 0, azimuth_deg = 0;   ///< collimated: direction polar angle and azimuth
+  Vec3 position_um{};                     ///< point: emission point
   // Light field: a tabulated angular radiance map over direction cosines (u, v) in
   // [-angular_extent, angular_extent]^2 (columns: u increasing; rows: v decreasing from the top),
   // and an optional spatial map over the field rectangle.
@@ -78,55 +78,55 @@ struct ObjectSpec {
   std::string name;
   ShapeType shape = ShapeType::kSphere;
   Vec3 center_um{};
-  double radius_um = 0;                  ///< sphere
-  Vec3 semi_axes_um{};                   ///< ellipsoid semi-axes, box half-sizes
-  Vec3 rotation_deg{};                   ///< ellipsoid, box, mesh: Euler x-y-z (docs)
-  std::string mesh_file;                 ///< mesh: OBJ/PLY/STL path (resolved)
-  double mesh_scale_um = 1;              ///< mesh: micrometres per mesh unit
+  double radius_um = 0;      ///< sphere
+  Vec3 semi_axes_um{};       ///< ellipsoid semi-axes, box half-sizes
+  Vec3 rotation_deg{};       ///< ellipsoid, box, mesh: Euler x-y-z (docs)
+  std::string mesh_file;     ///< mesh: OBJ/PLY/STL path (resolved)
+  double mesh_scale_um = 1;  ///< mesh: micrometres per mesh unit
   /// Generated mesh in object-local micrometres (surface of revolution, iso-surface); when set
   /// it is used instead of mesh_file.
   std::shared_ptr<const TriangleMesh> mesh;
-  std::string shape_description;         ///< how a generated mesh was made
-  double index = 1.0;                    ///< absolute refractive index
-  std::string material;                  ///< "constant" or "water (IAPWS R9-97, T=..., rho=...)"
-  double density_kg_m3 = 0;              ///< water: the density used (0 for a constant index)
+  std::string shape_description;  ///< how a generated mesh was made
+  double index = 1.0;             ///< absolute refractive index
+  std::string material;           ///< "constant" or "water (IAPWS R9-97, T=..., rho=...)"
+  double density_kg_m3 = 0;       ///< water: the density used (0 for a constant index)
   /// water: "given" (density_kg_m3 in the file) or "defaulted" (Tanaka et al. 2001 at T);
   /// empty for a constant index.
   std::string density_source;
   /// Gradient-index field inside the object (null: homogeneous, never integrated).
   std::shared_ptr<const IndexField> index_field;
-  FileLocation where;                    ///< for messages
+  FileLocation where;  ///< for messages
 };
 
 enum class ObjectiveModel { kSingle, kTwoLens };
 
 struct CorrectorSpec {
   bool enabled = false;
-  double distance_mm = 0;               ///< plane distance from the focal plane (0 = default)
-  std::vector<double> ring_outer_mm;    ///< outer radius of the disc and each ring, ascending
-  std::vector<double> transmissions;    ///< one per zone, in [0, 1]
+  double distance_mm = 0;             ///< plane distance from the focal plane (0 = default)
+  std::vector<double> ring_outer_mm;  ///< outer radius of the disc and each ring, ascending
+  std::vector<double> transmissions;  ///< one per zone, in [0, 1]
 };
 
 struct OpticsSpec {
   ObjectiveModel model = ObjectiveModel::kSingle;
-  double objective_focal_mm = 10;       ///< effective focal length f
+  double objective_focal_mm = 10;  ///< effective focal length f
   /// Numerical aperture NA = n sin(theta_max), n the medium the objective looks into
   /// (Scene::medium_index: dipping/immersion), so it accepts sin(theta) <= NA / n in that medium
   /// (docs/conventions.md). Must be below n.
   double na = 0.42;
-  double working_distance_mm = 20;      ///< two-lens: front focal plane to first lens
-  double back_focal_mm = 0;             ///< two-lens: last lens to back focal plane (stop)
+  double working_distance_mm = 20;  ///< two-lens: front focal plane to first lens
+  double back_focal_mm = 0;         ///< two-lens: last lens to back focal plane (stop)
   double tube_focal_mm = 200;
-  double tube_distance_mm = 150;        ///< objective stop (back focal plane) to tube lens
+  double tube_distance_mm = 150;  ///< objective stop (back focal plane) to tube lens
   CorrectorSpec corrector;
 };
 
 struct CameraSpec {
-  int nx = 0, ny = 0;                   ///< pixels (columns, rows)
-  double pixel_pitch_um = 0;            ///< sensor pixel pitch
-  std::array<double, 2> offset_um{};    ///< sensor centre offset from the axis, sensor frame
-  double sensor_shift_mm = 0;           ///< sensor displacement along z from the tube focus
-  bool flip = true;                     ///< true: store the image upright (undo the inversion)
+  int nx = 0, ny = 0;                 ///< pixels (columns, rows)
+  double pixel_pitch_um = 0;          ///< sensor pixel pitch
+  std::array<double, 2> offset_um{};  ///< sensor centre offset from the axis, sensor frame
+  double sensor_shift_mm = 0;         ///< sensor displacement along z from the tube focus
+  bool flip = true;                   ///< true: store the image upright (undo the inversion)
   /// Gaussian point-spread function (sigma, at the object plane) applied to each detected ray:
   /// a convolution of the photon distribution that keeps exact Poisson statistics. 0 = none.
   double psf_sigma_um = 0;
@@ -138,18 +138,18 @@ struct CameraSpec {
 enum class PartialReflection { kOff, kUnpolarized, kPolarized };
 
 struct TraceSpec {
-  uint64_t rays = 0;                    ///< rays per image; 0 = derive from photons_per_pixel
-  double photons_per_pixel = 0;         ///< target mean hits per pixel in the flat field
+  uint64_t rays = 0;             ///< rays per image; 0 = derive from photons_per_pixel
+  double photons_per_pixel = 0;  ///< target mean hits per pixel in the flat field
   PartialReflection partial_reflection = PartialReflection::kUnpolarized;
-  int max_interactions = 100;           ///< interface events per ray before it is abandoned
-  int threads = 0;                      ///< 0 = all cores
+  int max_interactions = 100;  ///< interface events per ray before it is abandoned
+  int threads = 0;             ///< 0 = all cores
   uint64_t seed = 1;
-  GrinSettings grin;                    ///< gradient-index integration tolerances
+  GrinSettings grin;  ///< gradient-index integration tolerances
 };
 
 struct Scene {
   std::string name = "image";
-  std::string file;                      ///< the scene file this came from
+  std::string file;  ///< the scene file this came from
   double wavelength_um = 0.462;
   double medium_index = 1.0;
   SourceSpec source;
@@ -157,8 +157,8 @@ struct Scene {
   OpticsSpec optics;
   CameraSpec camera;
   TraceSpec trace;
-  std::vector<double> defocus_um{0.0};   ///< focal-plane positions (see docs: sign convention)
-  std::vector<std::string> warnings;     ///< non-fatal notes from loading (printed by apps)
+  std::vector<double> defocus_um{0.0};  ///< focal-plane positions (see docs: sign convention)
+  std::vector<std::string> warnings;    ///< non-fatal notes from loading (printed by apps)
 };
 
 /// Reads and validates a scene file. Throws raymatch::Error "file:line:col: error: ..." for

@@ -13,7 +13,7 @@
 namespace raymatch::simulate {
 
 struct TriangleMesh {
-  std::vector<Vec3> vertices;                   ///< object-local micrometres
+  std::vector<Vec3> vertices;  ///< object-local micrometres
   std::vector<std::array<unsigned, 3>> triangles;
 };
 
@@ -58,7 +58,7 @@ struct MeshReport {
   size_t nonmanifold_edges = 0;   ///< edges used by more than two triangles
   size_t self_intersections = 0;  ///< triangle edges piercing another triangle
   double signed_volume_um3 = 0;
-  bool flipped = false;           ///< winding was inward and was reversed
+  bool flipped = false;  ///< winding was inward and was reversed
   bool ok() const { return open_edges == 0 && nonmanifold_edges == 0 && self_intersections == 0; }
   std::string Summary() const;
 };

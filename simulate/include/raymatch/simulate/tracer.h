@@ -25,14 +25,14 @@ struct RaySelection;  // simulate/src/tracer_impl.h: which of a plane's rays to 
 
 /// What became of a ray. Every traced ray ends in exactly one fate.
 enum class Fate : int {
-  kDetected = 0,        ///< reached a sensor pixel
-  kOutsideNa,           ///< blocked by the aperture stop, a lens rim or the corrector rim
-  kMissedSensor,        ///< passed the optics but fell outside the sensor
-  kAbsorbedCorrector,   ///< removed by a corrector ring's transmission draw
-  kInteractionCap,      ///< more interface events than max_interactions
-  kEscaped,             ///< left the objects travelling away from the objective (z' <= 0)
-  kLostInside,          ///< no exit surface found from inside an object (numerical failure)
-  kGrinStepCap,         ///< gradient-index integration exceeded grin max_steps in one segment
+  kDetected = 0,       ///< reached a sensor pixel
+  kOutsideNa,          ///< blocked by the aperture stop, a lens rim or the corrector rim
+  kMissedSensor,       ///< passed the optics but fell outside the sensor
+  kAbsorbedCorrector,  ///< removed by a corrector ring's transmission draw
+  kInteractionCap,     ///< more interface events than max_interactions
+  kEscaped,            ///< left the objects travelling away from the objective (z' <= 0)
+  kLostInside,         ///< no exit surface found from inside an object (numerical failure)
+  kGrinStepCap,        ///< gradient-index integration exceeded grin max_steps in one segment
   kCount
 };
 const char* FateName(Fate f);
@@ -48,9 +48,9 @@ struct TraceCounters {
   uint64_t mesh_queries = 0;         ///< Embree BVH queries
   uint64_t shape_queries = 0;        ///< nearest-hit searches over analytic/mesh objects
   uint64_t rays_hitting_objects = 0;
-  uint64_t grin_steps = 0;           ///< accepted gradient-index integration steps
-  uint64_t grin_segments = 0;        ///< ray segments integrated through index fields
-  uint64_t grin_uniform_steps = 0;   ///< straight steps across uniform grid cells
+  uint64_t grin_steps = 0;          ///< accepted gradient-index integration steps
+  uint64_t grin_segments = 0;       ///< ray segments integrated through index fields
+  uint64_t grin_uniform_steps = 0;  ///< straight steps across uniform grid cells
   /// Debye-style path classes of the first departure from the first object hit:
   /// [0] reflected externally, [k>=1] transmitted with k-1 internal reflections (7 = 6 or more).
   std::array<uint64_t, kNumPathClasses> path_class{};
@@ -59,15 +59,15 @@ struct TraceCounters {
 };
 
 struct PlaneResult {
-  Image counts;          ///< hits per pixel (float32 holding integers)
+  Image counts;  ///< hits per pixel (float32 holding integers)
   double defocus_um = 0;
   uint64_t rays = 0;
   TraceCounters counters;
   double seconds = 0;
-  int threads = 0;       ///< worker threads per process
-  int ranks = 1;         ///< MPI ranks that traced the image together (core/cluster.h)
-  bool simd = false;     ///< the plane went through the SIMD packet path (Simulator::Effects
-                         ///< says whether a scene can; RunControl::simd whether it may)
+  int threads = 0;    ///< worker threads per process
+  int ranks = 1;      ///< MPI ranks that traced the image together (core/cluster.h)
+  bool simd = false;  ///< the plane went through the SIMD packet path (Simulator::Effects
+                      ///< says whether a scene can; RunControl::simd whether it may)
 };
 
 /// The SIMD instruction set the packet path uses on this CPU (chosen at run time), e.g. "AVX3"
@@ -76,9 +76,9 @@ const char* SimdTarget();
 
 /// Controls that do not change the physics.
 struct RunControl {
-  int threads = 0;          ///< 0: scene's value, then all cores
-  bool progress = false;    ///< progress bar on stderr
-  std::string label;        ///< shown in the progress bar
+  int threads = 0;        ///< 0: scene's value, then all cores
+  bool progress = false;  ///< progress bar on stderr
+  std::string label;      ///< shown in the progress bar
   /// Trace in SIMD packets where the scene allows (the same image bit for bit); false: one ray
   /// at a time, for comparisons.
   bool simd = true;
@@ -117,9 +117,9 @@ class Simulator {
   /// SplitRaysBySphere and TraceRangeExcept in one sampling pass: traces the rays [first, last)
   /// whose straight line misses the sphere and appends the others' indices (ascending) to
   /// `near`. With TraceRays on those indices the two images add up to the range's image.
-  PlaneResult TraceFarRays(double defocus_um, uint32_t plane_index, uint64_t first,
-                           uint64_t last, const Vec3& center_um, double radius_um,
-                           std::vector<uint64_t>* near, const RunControl& control = {}) const;
+  PlaneResult TraceFarRays(double defocus_um, uint32_t plane_index, uint64_t first, uint64_t last,
+                           const Vec3& center_um, double radius_um, std::vector<uint64_t>* near,
+                           const RunControl& control = {}) const;
 
   /// Splits the rays [0, rays) of a plane by whether the straight line of each (as the source
   /// emits it, before any object) passes within `radius_um` of `center_um`. Either output may
@@ -130,20 +130,21 @@ class Simulator {
     SplitRaysBySphere(plane_index, 0, rays, center_um, radius_um, near, far);
   }
   /// The same for the rays [first, last); indices are appended.
-  void SplitRaysBySphere(uint32_t plane_index, uint64_t first, uint64_t last,
-                         const Vec3& center_um, double radius_um, std::vector<uint64_t>* near,
+  void SplitRaysBySphere(uint32_t plane_index, uint64_t first, uint64_t last, const Vec3& center_um,
+                         double radius_um, std::vector<uint64_t>* near,
                          std::vector<uint64_t>* far) const;
 
   /// Rays per image that give `photons_per_pixel` mean hits in the flat field, from a fixed-seed
   /// pilot run without objects (the experimenter's flat-field signal x well capacity).
-  uint64_t RaysForPhotonTarget(double photons_per_pixel, double* hits_per_pixel_per_ray = nullptr) const;
+  uint64_t RaysForPhotonTarget(double photons_per_pixel,
+                               double* hits_per_pixel_per_ray = nullptr) const;
 
   /// One ray through the objects only (no source, no optics), with the scene's physics and the
   /// random stream of `ray_index`: where and in which direction it leaves the last surface.
   /// For tests and accuracy studies.
   struct ObjectExit {
     Vec3 origin, direction;
-    bool ended = false;           ///< ended inside (then `fate` says why)
+    bool ended = false;  ///< ended inside (then `fate` says why)
     Fate fate = Fate::kDetected;
     TraceCounters counters;
   };
@@ -159,15 +160,15 @@ class Simulator {
   std::vector<std::string> Effects() const;
   const Scene& scene() const { return scene_; }
   double source_plane_z_um() const;
-  double object_pixel_um() const;   ///< pixel pitch referred to the object plane
-  double field_radius_um() const;   ///< the source field radius in use (given or automatic)
+  double object_pixel_um() const;  ///< pixel pitch referred to the object plane
+  double field_radius_um() const;  ///< the source field radius in use (given or automatic)
   /// A light field's radiance integrated over direction cosines (map units; 0 for other
   /// sources): a continued light field's parts inside and beyond the NA (SourceSpec::edge_part)
   /// need rays in the ratio of their weights.
   double source_weight() const;
   /// A bounding sphere (centre, radius; micrometres) of each object, in scene order.
   std::vector<std::pair<Vec3, double>> ObjectBounds() const;
-  bool has_mesh_bvh() const;        ///< an Embree BVH was built
+  bool has_mesh_bvh() const;  ///< an Embree BVH was built
 
   struct Impl;  ///< defined in simulate/src/tracer_impl.h only
 

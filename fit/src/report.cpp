@@ -73,12 +73,60 @@ static std::string GoodnessHtml(const GoodnessOfFit& g) {
   return h.str();
 }
 
-std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std::string& dir_s) {
-  const fs::path dir(dir_s);
-  EnsureDirectory(dir);
-  const size_t P = spec.parameters.size();
+namespace {
 
-  // fit.json
+nlohmann::json GoodnessJson(const GoodnessOfFit& g) {
+  return {{"deviance", J(g.deviance)},
+          {"expected_deviance", J(g.expected)},
+          {"expected_deviance_sd", J(g.sd)},
+          {"deviance_z", J(g.z)},
+          {"reduced_deviance", J(g.reduced)},
+          {"pixels", g.pixels},
+          {"block_pixels", g.block_px},
+          {"blocks", g.blocks},
+          {"block_chi2", J(g.block_chi2)},
+          {"block_z", J(g.block_z)},
+          {"neighbour_correlation", J(g.neighbour_correlation)},
+          {"neighbour_z", J(g.neighbour_z)},
+          {"model_mismatch", g.mismatch},
+          {"sigma_inflation", J(g.sigma_inflation)},
+          {"verdict", g.verdict}};
+}
+
+nlohmann::json ProfileJson(const ParameterResult& p) {
+  if (p.profile_reason.empty() || p.profile_t.empty()) return nullptr;
+  return {{"reason", p.profile_reason},
+          {"lower", J(p.profile_lower)},
+          {"upper", J(p.profile_upper)},
+          {"lower_sigmas", J(p.profile_lower_sigmas)},
+          {"upper_sigmas", J(p.profile_upper_sigmas)},
+          {"lower_open", p.profile_lower_open},
+          {"upper_open", p.profile_upper_open},
+          {"t_sigma", p.profile_t},
+          {"delta_deviance", p.profile_delta}};
+}
+
+nlohmann::json ParameterJson(const ParameterResult& p) {
+  return {{"key", p.key},
+          {"unit", p.unit},
+          {"start", p.start},
+          {"best", J(p.best)},
+          {"lower", p.lower},
+          {"upper", p.upper},
+          {"at_bound", p.at_bound},
+          {"sigma", J(p.sigma)},
+          {"sigma_statistical", J(p.sigma_statistical)},
+          {"sigma_curvature", J(p.sigma_curvature)},
+          {"sigma_derivatives", J(p.sigma_derivatives)},
+          {"sigma_repeat_seeds", J(p.sigma_repeat)},
+          {"sigma_cramer_rao", J(p.sigma_cramer_rao)},
+          {"sigma_expected_with_simulation_noise", J(p.sigma_expected)},
+          {"slice", {{"x", p.slice_x}, {"error", p.slice_error}}},
+          {"profile_likelihood", ProfileJson(p)}};
+}
+
+/// fit.json: everything the fit did and found.
+nlohmann::json FitJson(const FitSpec& spec, const FitResult& res) {
   nlohmann::json j;
   j["provenance"] = ProvenanceJson();
   j["fit_file"] = spec.file;
@@ -92,24 +140,7 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
   j["converged"] = res.converged;
   j["message"] = res.message;
   j["best_error"] = J(res.best_error);
-  if (res.goodness.pixels > 0) {
-    const GoodnessOfFit& g = res.goodness;
-    j["goodness_of_fit"] = {{"deviance", J(g.deviance)},
-                            {"expected_deviance", J(g.expected)},
-                            {"expected_deviance_sd", J(g.sd)},
-                            {"deviance_z", J(g.z)},
-                            {"reduced_deviance", J(g.reduced)},
-                            {"pixels", g.pixels},
-                            {"block_pixels", g.block_px},
-                            {"blocks", g.blocks},
-                            {"block_chi2", J(g.block_chi2)},
-                            {"block_z", J(g.block_z)},
-                            {"neighbour_correlation", J(g.neighbour_correlation)},
-                            {"neighbour_z", J(g.neighbour_z)},
-                            {"model_mismatch", g.mismatch},
-                            {"sigma_inflation", J(g.sigma_inflation)},
-                            {"verdict", g.verdict}};
-  }
+  if (res.goodness.pixels > 0) j["goodness_of_fit"] = GoodnessJson(res.goodness);
   j["rays"] = {{"ray_factor", spec.rays.ray_factor},
                {"fractions", spec.rays.fractions},
                {"common_random_numbers", spec.rays.common_random_numbers},
@@ -128,40 +159,26 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
          {"read_noise_e", im.read_noise_e},
          {"saturation_dn", im.saturation_dn},
          {"excluded_pixels", im.excluded_pixels}});  // saturated or clipped: not in the likelihood
-  auto Profile = [](const ParameterResult& p) -> nlohmann::json {
-    if (p.profile_reason.empty() || p.profile_t.empty()) return nullptr;
-    return {{"reason", p.profile_reason},
-            {"lower", J(p.profile_lower)},
-            {"upper", J(p.profile_upper)},
-            {"lower_sigmas", J(p.profile_lower_sigmas)},
-            {"upper_sigmas", J(p.profile_upper_sigmas)},
-            {"lower_open", p.profile_lower_open},
-            {"upper_open", p.profile_upper_open},
-            {"t_sigma", p.profile_t},
-            {"delta_deviance", p.profile_delta}};
-  };
-  for (const ParameterResult& p : res.parameters)
-    j["parameters"].push_back({{"key", p.key},
-                               {"unit", p.unit},
-                               {"start", p.start},
-                               {"best", J(p.best)},
-                               {"lower", p.lower},
-                               {"upper", p.upper},
-                               {"at_bound", p.at_bound},
-                               {"sigma", J(p.sigma)},
-                               {"sigma_statistical", J(p.sigma_statistical)},
-                               {"sigma_curvature", J(p.sigma_curvature)},
-                               {"sigma_derivatives", J(p.sigma_derivatives)},
-                               {"sigma_repeat_seeds", J(p.sigma_repeat)},
-                               {"sigma_cramer_rao", J(p.sigma_cramer_rao)},
-                               {"sigma_expected_with_simulation_noise", J(p.sigma_expected)},
-                               {"slice", {{"x", p.slice_x}, {"error", p.slice_error}}},
-                               {"profile_likelihood", Profile(p)}});
+  for (const ParameterResult& p : res.parameters) j["parameters"].push_back(ParameterJson(p));
   j["correlation_curvature"] = Matrix(res.correlation);
   j["correlation_cramer_rao"] = Matrix(res.crb_correlation);
   if (!res.grid_axes.empty()) j["grid"] = {{"axes", res.grid_axes}, {"errors", res.grid_errors}};
   for (const auto& [k, v] : res.seconds) j["seconds"][k] = v;
   j["seconds"]["total"] = res.total_seconds;
+  for (const Evaluation& e : res.evaluations)
+    j["evaluations"].push_back({{"stage", StageName(e.stage)},
+                                {"theta", e.theta},
+                                {"ray_fraction", e.ray_fraction},
+                                {"bin", e.bin},
+                                {"rays", e.rays},
+                                {"seed", e.seed},
+                                {"error", J(e.error)},
+                                {"seconds", e.seconds}});
+  return j;
+}
+
+/// evaluations.csv: one row per evaluation of the error function.
+std::string EvaluationsCsv(const FitSpec& spec, const FitResult& res) {
   std::ostringstream csv;
   csv.precision(10);
   csv << "index,stage";
@@ -169,24 +186,17 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
   csv << ",ray_fraction,bin,rays,seed,error,seconds\n";
   size_t idx = 0;
   for (const Evaluation& e : res.evaluations) {
-    nlohmann::json ev = {{"stage", StageName(e.stage)},
-                         {"theta", e.theta},
-                         {"ray_fraction", e.ray_fraction},
-                         {"bin", e.bin},
-                         {"rays", e.rays},
-                         {"seed", e.seed},
-                         {"error", J(e.error)},
-                         {"seconds", e.seconds}};
-    j["evaluations"].push_back(ev);
     csv << idx++ << "," << StageName(e.stage);
     for (double v : e.theta) csv << "," << v;
     csv << "," << e.ray_fraction << "," << e.bin << "," << e.rays << "," << e.seed << "," << e.error
         << "," << e.seconds << "\n";
   }
-  WriteTextFileAtomic(dir / "fit.json", j.dump(2) + "\n");
-  WriteTextFileAtomic(dir / "evaluations.csv", csv.str());
+  return csv.str();
+}
 
-  // Images: best expected image and residual map per experimental image.
+/// Per experimental image: the best expected image and the residual map (TIFF + PNG); returns
+/// the report's HTML for them.
+std::string WriteImages(const FitSpec& spec, const FitResult& res, const fs::path& dir) {
   std::string imgs;
   for (size_t k = 0; k < res.best_images.size(); ++k) {
     const std::string stem = "image" + std::to_string(k);
@@ -213,33 +223,40 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
             EmbeddedPng((dir / (stem + "_best.png")).string()) + "</td><td>" +
             EmbeddedPng((dir / (stem + "_residual.png")).string()) + "</td></tr></table>\n";
   }
+  return imgs;
+}
 
-  // Plots: slices per parameter; grid landscape (1 or 2 axes).
+/// The error along one parameter through the optimum, with the optimum marked.
+void WriteSlicePlot(const FitSpec& spec, const ParameterResult& p, const fs::path& png) {
+  compare::Series s;
+  s.x = p.slice_x, s.y = p.slice_error;
+  compare::Series dot;
+  dot.points = true;
+  dot.x = {p.best};
+  // On the curve at the best value (the slice is centred on it; between two samples, linear).
+  double at_best = p.slice_error.front();
+  for (size_t k = 1; k < p.slice_x.size(); ++k)
+    if (p.slice_x[k - 1] <= p.best && p.best <= p.slice_x[k]) {
+      const double w = p.slice_x[k] > p.slice_x[k - 1]
+                           ? (p.best - p.slice_x[k - 1]) / (p.slice_x[k] - p.slice_x[k - 1])
+                           : 0;
+      at_best = p.slice_error[k - 1] + w * (p.slice_error[k] - p.slice_error[k - 1]);
+    }
+  if (p.best > p.slice_x.back()) at_best = p.slice_error.back();
+  dot.y = {at_best};
+  compare::WritePlot(png.string(), {s, dot}, "error along " + p.key + " through the optimum",
+                     p.key + (p.unit.empty() ? "" : " (" + p.unit + ")"),
+                     ErrorFunctionName(spec.error));
+}
+
+/// Slices per parameter and the grid landscape (1 or 2 axes); returns the report's HTML for them.
+std::string WritePlots(const FitSpec& spec, const FitResult& res, const fs::path& dir) {
   std::string plots;
-  for (size_t i = 0; i < P; ++i) {
-    const ParameterResult& p = res.parameters[i];
-    if (p.slice_x.size() < 2) continue;
-    const std::string png = "slice_" + std::to_string(i) + ".png";
-    compare::Series s;
-    s.x = p.slice_x, s.y = p.slice_error;
-    compare::Series dot;
-    dot.points = true;
-    dot.x = {p.best};
-    // On the curve at the best value (the slice is centred on it; between two samples, linear).
-    double at_best = p.slice_error.front();
-    for (size_t k = 1; k < p.slice_x.size(); ++k)
-      if (p.slice_x[k - 1] <= p.best && p.best <= p.slice_x[k]) {
-        const double w = p.slice_x[k] > p.slice_x[k - 1]
-                             ? (p.best - p.slice_x[k - 1]) / (p.slice_x[k] - p.slice_x[k - 1])
-                             : 0;
-        at_best = p.slice_error[k - 1] + w * (p.slice_error[k] - p.slice_error[k - 1]);
-      }
-    if (p.best > p.slice_x.back()) at_best = p.slice_error.back();
-    dot.y = {at_best};
-    compare::WritePlot(
-        (dir / png).string(), {s, dot}, "error along " + p.key + " through the optimum",
-        p.key + (p.unit.empty() ? "" : " (" + p.unit + ")"), ErrorFunctionName(spec.error));
-    plots += EmbeddedPng((dir / png).string()) + "\n";
+  for (size_t i = 0; i < res.parameters.size(); ++i) {
+    if (res.parameters[i].slice_x.size() < 2) continue;
+    const fs::path png = dir / ("slice_" + std::to_string(i) + ".png");
+    WriteSlicePlot(spec, res.parameters[i], png);
+    plots += EmbeddedPng(png.string()) + "\n";
   }
   if (res.grid_axes.size() == 1) {
     compare::Series s;
@@ -263,19 +280,13 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
              " from " + Num(*lo) + " (dark) to " + Num(*hi) + " (yellow).</p>" +
              EmbeddedPng((dir / "landscape.png").string()) + "\n";
   }
+  return plots;
+}
 
+/// The parameter table and the correlation matrix of report.html.
+std::string ParametersHtml(const FitSpec& spec, const FitResult& res) {
   std::ostringstream h;
-  h << "<!doctype html><html><head><meta charset=\"utf-8\"><title>raymatch fit</title><style>"
-       "body{font-family:sans-serif;max-width:1100px;margin:2em "
-       "auto}table{border-collapse:collapse}"
-       "td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}img{image-rendering:pixelated;"
-       "max-width:100%}</style></head><body>\n<h1>raymatch fit</h1>\n<p>"
-    << Esc(spec.file) << ": " << MethodName(spec.method) << " on " << ErrorFunctionName(spec.error)
-    << ", status <b>" << Esc(StatusName(res.status)) << "</b>: " << Esc(res.message) << ". "
-    << res.evaluations.size() << " evaluations in " << Num(res.total_seconds, 3)
-    << " s; best error " << Num(res.best_error) << ".</p>\n"
-    << GoodnessHtml(res.goodness)
-    << "<h2>Parameters</h2><table><tr><th>key</th><th>unit</th><th>start</th><th>best</th>"
+  h << "<h2>Parameters</h2><table><tr><th>key</th><th>unit</th><th>start</th><th>best</th>"
        "<th>sigma (reported)</th><th>curvature only</th><th>repeat seeds (simulation noise)</th>"
        "<th>Cramer-Rao bound</th><th>CRB incl. simulation noise</th><th>profile-likelihood 68 % "
        "interval</th><th>bounds</th></tr>\n";
@@ -296,13 +307,38 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
     h << "<h2>Correlations (curvature covariance)</h2><table><tr><th></th>";
     for (const Parameter& p : spec.parameters) h << "<th>" << Esc(p.key) << "</th>";
     h << "</tr>";
-    for (size_t i = 0; i < P; ++i) {
+    for (size_t i = 0; i < res.correlation.size(); ++i) {
       h << "<tr><th>" << Esc(spec.parameters[i].key) << "</th>";
-      for (size_t k = 0; k < P; ++k) h << "<td>" << Num(res.correlation[i][k], 3) << "</td>";
+      for (size_t k = 0; k < res.correlation[i].size(); ++k)
+        h << "<td>" << Num(res.correlation[i][k], 3) << "</td>";
       h << "</tr>";
     }
     h << "</table>\n";
   }
+  return h.str();
+}
+
+}  // namespace
+
+std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std::string& dir_s) {
+  const fs::path dir(dir_s);
+  EnsureDirectory(dir);
+  WriteTextFileAtomic(dir / "fit.json", FitJson(spec, res).dump(2) + "\n");
+  WriteTextFileAtomic(dir / "evaluations.csv", EvaluationsCsv(spec, res));
+  const std::string imgs = WriteImages(spec, res, dir);
+  const std::string plots = WritePlots(spec, res, dir);
+
+  std::ostringstream h;
+  h << "<!doctype html><html><head><meta charset=\"utf-8\"><title>raymatch fit</title><style>"
+       "body{font-family:sans-serif;max-width:1100px;margin:2em "
+       "auto}table{border-collapse:collapse}"
+       "td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}img{image-rendering:pixelated;"
+       "max-width:100%}</style></head><body>\n<h1>raymatch fit</h1>\n<p>"
+    << Esc(spec.file) << ": " << MethodName(spec.method) << " on " << ErrorFunctionName(spec.error)
+    << ", status <b>" << Esc(StatusName(res.status)) << "</b>: " << Esc(res.message) << ". "
+    << res.evaluations.size() << " evaluations in " << Num(res.total_seconds, 3)
+    << " s; best error " << Num(res.best_error) << ".</p>\n"
+    << GoodnessHtml(res.goodness) << ParametersHtml(spec, res);
   h << "<h2>Images</h2>\n"
     << imgs << "<h2>Error function</h2>\n"
     << plots << "<h2>Time</h2><table>";

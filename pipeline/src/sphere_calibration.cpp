@@ -35,6 +35,145 @@ struct Free {  // a fitted key: its start value is the scene's
   double lower, upper, step;
 };
 
+/// The planes: given (each must be in the scan), or the two nearest -R/2 and +R/2.
+std::vector<size_t> ChoosePlanes(const compare::Stack& scan, const std::string& scan_csv,
+                                 double radius, const std::vector<double>& given_um) {
+  std::vector<size_t> planes;
+  auto nearest = [&](double d) {
+    size_t best = 0;
+    for (size_t i = 1; i < scan.defocus_um.size(); ++i)
+      if (std::abs(scan.defocus_um[i] - d) < std::abs(scan.defocus_um[best] - d)) best = i;
+    return best;
+  };
+  if (given_um.empty()) {
+    planes = {nearest(-radius / 2), nearest(radius / 2)};
+    if (planes[0] == planes[1]) planes.pop_back();
+  } else {
+    for (double d : given_um) {
+      const size_t i = nearest(d);
+      if (std::abs(scan.defocus_um[i] - d) > 1e-6)
+        throw Error(FileLocation{scan_csv},
+                    "no plane at defocus " + std::to_string(d) + " um in the scan");
+      planes.push_back(i);
+    }
+  }
+  return planes;
+}
+
+struct Start {  // the scene's start values and the fitted keys
+  double n_water = 0, psf_sigma_um = 0, edge_deg = 0, width_deg = 1.0;
+  std::vector<Free> free;
+};
+
+// Start values: the nominal drop on the axis, water's index (IAPWS R9-97) at the metadata's
+// temperature and the calibration's wavelength, the edge 1 deg beyond the NA and 1 deg wide,
+// a diffraction-limited PSF (Gaussian approximation of the Airy core, sigma = 0.21 lambda/NA).
+Start StartValues(const CalibrationData& base, const ExperimentMetadata& ex, double radius,
+                  const SphereCalibrationOptions& o) {
+  Start s;
+  s.n_water = simulate::WaterRefractiveIndex(
+                  ex.temperature_K,
+                  simulate::WaterDensityTanaka(std::clamp(ex.temperature_K, 273.15, 313.15)),
+                  base.wavelength_um)
+                  .n;
+  const double na_deg = std::asin(base.na_limit) / kDeg;
+  s.psf_sigma_um = 0.21 * base.wavelength_um / base.na;
+  s.edge_deg = na_deg + 1;
+  s.free = {{"object.drop.center_um[0]", -radius / 4, radius / 4, 0.2},
+            {"object.drop.center_um[1]", -radius / 4, radius / 4, 0.2},
+            {"object.drop.center_um[2]", -radius / 4, radius / 4, 0.4},
+            {"object.drop.radius_um", 0.9 * radius, 1.1 * radius, 0.2},
+            {"object.drop.index", s.n_water - 0.03, s.n_water + 0.03, 0.002},
+            {"light_field_edge.half_angle_deg", na_deg - 2, na_deg + 8, 0.2}};
+  if (o.fit_width) s.free.push_back({"light_field_edge.width_deg", 0.2, 4, 0.2});
+  if (o.fit_psf) s.free.push_back({"camera.psf_sigma_um", 0, 4 * s.psf_sigma_um, 0.05});
+  if (o.fit_tilt)
+    for (int a = 0; a < 2; ++a)
+      s.free.push_back({"light_field_edge.tilt_deg[" + std::to_string(a) + "]", -3, 3, 0.2});
+  return s;
+}
+
+/// The scene at the start values and the fit file, in the work folder.
+void WriteSceneAndFitFile(const fs::path& work, const SphereCalibrationOptions& o,
+                          const ExperimentMetadata& ex, const compare::Stack& scan,
+                          const std::vector<size_t>& planes, double radius, const Start& start) {
+  const toml::table scene{
+      {"name", "sphere_calibration"},
+      {"seed", 1},
+      {"calibration", fs::absolute(o.base).string()},
+      {"object", toml::array{toml::table{{"name", "drop"},
+                                         {"type", "sphere"},
+                                         {"center_um", toml::array{0, 0, 0}},
+                                         {"radius_um", Sig10(radius)},
+                                         {"index", Sig10(start.n_water)}}}},
+      {"light_field_edge", toml::table{{"half_angle_deg", Sig10(start.edge_deg)},
+                                       {"width_deg", Sig10(start.width_deg)},
+                                       {"tilt_deg", toml::array{0, 0}}}},
+      {"camera", toml::table{{"pixels", toml::array{scan.images[0].width, scan.images[0].height}},
+                             {"psf_sigma_um", Sig10(start.psf_sigma_um)}}},
+      {"trace", toml::table{{"partial_reflection", "unpolarized"}}}};
+  WriteToml(work / "scene.toml",
+            "# Written by `raymatch calibrate sphere`: the drop of " +
+                fs::absolute(o.scan_folder).string() + " at its start values.\n# index: water, " +
+                "IAPWS R9-97 at " + std::to_string(ex.temperature_K) + " K.",
+            scene);
+  toml::array images, parameters;
+  for (size_t i : planes) {
+    toml::table im{{"file", fs::absolute(scan.files[i]).string()},
+                   {"defocus_um", Sig10(scan.defocus_um[i])},
+                   {"gain_e_per_dn", Sig10(ex.gain)},
+                   {"read_noise_e", Sig10(ex.read_noise_e)},
+                   {"saturation_dn", std::ldexp(1.0, ex.bit_depth) - 1}};
+    if (!ex.dark.empty()) im.insert("dark", fs::absolute(ex.dark).string());
+    images.push_back(std::move(im));
+  }
+  for (const Free& f : start.free)
+    parameters.push_back(toml::table{{"key", f.key},
+                                     {"lower", Sig10(f.lower)},
+                                     {"upper", Sig10(f.upper)},
+                                     {"step", Sig10(f.step)}});
+  toml::array fractions;
+  for (double f : o.fractions) fractions.push_back(Sig10(f));
+  const toml::table fit{{"scene", "scene.toml"},
+                        {"method", "lm"},
+                        {"error", "poisson"},
+                        {"seed", int64_t(o.seed)},
+                        {"image", std::move(images)},
+                        {"parameter", std::move(parameters)},
+                        {"rays", toml::table{{"ray_factor", Sig10(o.ray_factor)},
+                                             {"fractions", std::move(fractions)}}},
+                        {"uncertainty", toml::table{{"repeat_seeds", 0}, {"slice_points", 0}}}};
+  WriteToml(work / "fit.toml",
+            "# Written by `raymatch calibrate sphere` (docs/calibration.md): the drop's five "
+            "parameters and\n# the light field's edge beyond the NA and the PSF, from " +
+                std::to_string(planes.size()) + " planes jointly.",
+            fit);
+}
+
+/// The base calibration with the fitted edge, PSF and tilt, and a record of the fit.
+void WriteCalibratedFile(const SphereCalibrationOptions& o, const CalibrationData& base,
+                         const compare::Stack& scan, const std::vector<size_t>& planes,
+                         const fit::FitResult& fr, const SphereCalibrationResult& res) {
+  CalibrationData out = base;
+  out.edge_half_angle_deg = res.edge_half_angle_deg;
+  out.edge_width_deg = res.edge_width_deg;
+  out.psf_sigma_um = res.psf_sigma_um;
+  out.edge_tilt_deg = {res.edge_tilt_deg[0], res.edge_tilt_deg[1]};
+  out.provenance = ProvenanceJson();
+  for (auto& [k, v] : base.provenance.items())
+    if (!out.provenance.contains(k)) out.provenance[k] = v;
+  std::ostringstream rec;
+  rec.precision(6);
+  rec << "fit of " << fs::absolute(o.scan_folder).string() << " planes";
+  for (size_t i : planes) rec << " " << scan.defocus_um[i];
+  rec << " um: " << fit::StatusName(fr.status) << "; " << fr.goodness.verdict << ";";
+  for (const auto& v : res.values)
+    rec << " " << v.key << " = " << v.value << " +- " << v.sigma << ";";
+  out.provenance["sphere_calibration"] = rec.str();
+  out.provenance["sphere_calibration_base"] = fs::absolute(o.base).string();
+  WriteCalibrationFile(o.output, out);
+}
+
 }  // namespace
 
 std::string SphereCalibrationResult::Brief() const {
@@ -62,108 +201,16 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
   const compare::Stack scan = compare::ReadStack(ex.scan_csv);
   const double radius = ex.diameter_um / 2;
 
-  // The planes: given, or the two nearest -R/2 and +R/2.
-  std::vector<size_t> planes;
-  auto nearest = [&](double d) {
-    size_t best = 0;
-    for (size_t i = 1; i < scan.defocus_um.size(); ++i)
-      if (std::abs(scan.defocus_um[i] - d) < std::abs(scan.defocus_um[best] - d)) best = i;
-    return best;
-  };
-  if (o.planes_um.empty()) {
-    planes = {nearest(-radius / 2), nearest(radius / 2)};
-    if (planes[0] == planes[1]) planes.pop_back();
-  } else {
-    for (double d : o.planes_um) {
-      const size_t i = nearest(d);
-      if (std::abs(scan.defocus_um[i] - d) > 1e-6)
-        throw Error(FileLocation{ex.scan_csv},
-                    "no plane at defocus " + std::to_string(d) + " um in the scan");
-      planes.push_back(i);
-    }
-  }
-
-  // Start values: the nominal drop on the axis, water's index (IAPWS R9-97) at the metadata's
-  // temperature and the calibration's wavelength, the edge 1 deg beyond the NA and 1 deg wide,
-  // a diffraction-limited PSF (Gaussian approximation of the Airy core, sigma = 0.21 lambda/NA).
-  const double n_water =
-      simulate::WaterRefractiveIndex(
-          ex.temperature_K,
-          simulate::WaterDensityTanaka(std::clamp(ex.temperature_K, 273.15, 313.15)),
-          base.wavelength_um)
-          .n;
-  const double na_deg = std::asin(base.na_limit) / kDeg;
-  const double psf0 = 0.21 * base.wavelength_um / base.na, edge0 = na_deg + 1, width0 = 1.0;
-  std::vector<Free> free{{"object.drop.center_um[0]", -radius / 4, radius / 4, 0.2},
-                         {"object.drop.center_um[1]", -radius / 4, radius / 4, 0.2},
-                         {"object.drop.center_um[2]", -radius / 4, radius / 4, 0.4},
-                         {"object.drop.radius_um", 0.9 * radius, 1.1 * radius, 0.2},
-                         {"object.drop.index", n_water - 0.03, n_water + 0.03, 0.002},
-                         {"light_field_edge.half_angle_deg", na_deg - 2, na_deg + 8, 0.2}};
-  if (o.fit_width) free.push_back({"light_field_edge.width_deg", 0.2, 4, 0.2});
-  if (o.fit_psf) free.push_back({"camera.psf_sigma_um", 0, 4 * psf0, 0.05});
-  if (o.fit_tilt)
-    for (int a = 0; a < 2; ++a)
-      free.push_back({"light_field_edge.tilt_deg[" + std::to_string(a) + "]", -3, 3, 0.2});
-
+  const std::vector<size_t> planes = ChoosePlanes(scan, ex.scan_csv, radius, o.planes_um);
+  const Start start = StartValues(base, ex, radius, o);
   const fs::path work = o.work_dir.empty() ? fs::path(o.output).parent_path() /
                                                  (fs::path(o.output).stem().string() + "_sphere")
                                            : fs::path(o.work_dir);
   EnsureDirectory(work);
-  const toml::table scene{
-      {"name", "sphere_calibration"},
-      {"seed", 1},
-      {"calibration", fs::absolute(o.base).string()},
-      {"object", toml::array{toml::table{{"name", "drop"},
-                                         {"type", "sphere"},
-                                         {"center_um", toml::array{0, 0, 0}},
-                                         {"radius_um", Sig10(radius)},
-                                         {"index", Sig10(n_water)}}}},
-      {"light_field_edge", toml::table{{"half_angle_deg", Sig10(edge0)},
-                                       {"width_deg", Sig10(width0)},
-                                       {"tilt_deg", toml::array{0, 0}}}},
-      {"camera", toml::table{{"pixels", toml::array{scan.images[0].width, scan.images[0].height}},
-                             {"psf_sigma_um", Sig10(psf0)}}},
-      {"trace", toml::table{{"partial_reflection", "unpolarized"}}}};
-  WriteToml(work / "scene.toml",
-            "# Written by `raymatch calibrate sphere`: the drop of " +
-                fs::absolute(o.scan_folder).string() + " at its start values.\n# index: water, " +
-                "IAPWS R9-97 at " + std::to_string(ex.temperature_K) + " K.",
-            scene);
-  toml::array images, parameters;
-  for (size_t i : planes) {
-    toml::table im{{"file", fs::absolute(scan.files[i]).string()},
-                   {"defocus_um", Sig10(scan.defocus_um[i])},
-                   {"gain_e_per_dn", Sig10(ex.gain)},
-                   {"read_noise_e", Sig10(ex.read_noise_e)},
-                   {"saturation_dn", std::ldexp(1.0, ex.bit_depth) - 1}};
-    if (!ex.dark.empty()) im.insert("dark", fs::absolute(ex.dark).string());
-    images.push_back(std::move(im));
-  }
-  for (const Free& f : free)
-    parameters.push_back(toml::table{{"key", f.key},
-                                     {"lower", Sig10(f.lower)},
-                                     {"upper", Sig10(f.upper)},
-                                     {"step", Sig10(f.step)}});
-  toml::array fractions;
-  for (double f : o.fractions) fractions.push_back(Sig10(f));
-  const toml::table fit{{"scene", "scene.toml"},
-                        {"method", "lm"},
-                        {"error", "poisson"},
-                        {"seed", int64_t(o.seed)},
-                        {"image", std::move(images)},
-                        {"parameter", std::move(parameters)},
-                        {"rays", toml::table{{"ray_factor", Sig10(o.ray_factor)},
-                                             {"fractions", std::move(fractions)}}},
-                        {"uncertainty", toml::table{{"repeat_seeds", 0}, {"slice_points", 0}}}};
-  WriteToml(work / "fit.toml",
-            "# Written by `raymatch calibrate sphere` (docs/calibration.md): the drop's five "
-            "parameters and\n# the light field's edge beyond the NA and the PSF, from " +
-                std::to_string(planes.size()) + " planes jointly.",
-            fit);
+  WriteSceneAndFitFile(work, o, ex, scan, planes, radius, start);
 
   std::ostringstream msg;
-  msg << "sphere calibration: " << free.size() << " parameters from " << planes.size()
+  msg << "sphere calibration: " << start.free.size() << " parameters from " << planes.size()
       << " planes (";
   for (size_t k = 0; k < planes.size(); ++k) msg << (k ? ", " : "") << scan.defocus_um[planes[k]];
   msg << " um) of " << o.scan_folder;
@@ -188,27 +235,10 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
       if (p.key == "light_field_edge.tilt_deg[" + std::to_string(a) + "]")
         res.edge_tilt_deg[a] = p.best;
   }
-  if (!o.fit_width) res.edge_width_deg = width0;
-  if (!o.fit_psf) res.psf_sigma_um = psf0;
+  if (!o.fit_width) res.edge_width_deg = start.width_deg;
+  if (!o.fit_psf) res.psf_sigma_um = start.psf_sigma_um;
 
-  CalibrationData out = base;
-  out.edge_half_angle_deg = res.edge_half_angle_deg;
-  out.edge_width_deg = res.edge_width_deg;
-  out.psf_sigma_um = res.psf_sigma_um;
-  out.edge_tilt_deg = {res.edge_tilt_deg[0], res.edge_tilt_deg[1]};
-  out.provenance = ProvenanceJson();
-  for (auto& [k, v] : base.provenance.items())
-    if (!out.provenance.contains(k)) out.provenance[k] = v;
-  std::ostringstream rec;
-  rec.precision(6);
-  rec << "fit of " << fs::absolute(o.scan_folder).string() << " planes";
-  for (size_t i : planes) rec << " " << scan.defocus_um[i];
-  rec << " um: " << fit::StatusName(fr.status) << "; " << fr.goodness.verdict << ";";
-  for (const auto& v : res.values)
-    rec << " " << v.key << " = " << v.value << " +- " << v.sigma << ";";
-  out.provenance["sphere_calibration"] = rec.str();
-  out.provenance["sphere_calibration_base"] = fs::absolute(o.base).string();
-  WriteCalibrationFile(o.output, out);
+  WriteCalibratedFile(o, base, scan, planes, fr, res);
   res.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   return res;
 }

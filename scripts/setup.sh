@@ -7,9 +7,10 @@ cd "$(dirname "$0")/.."
 
 PACKAGES=(
   build-essential cmake ninja-build pkg-config
-  libembree-dev libopenimageio-dev openimageio-tools libtbb-dev libcli11-dev libtomlplusplus-dev
+  libembree-dev libtbb-dev libcli11-dev libtomlplusplus-dev
   libeigen3-dev nlohmann-json3-dev librandom123-dev libassimp-dev libhdf5-dev libhwy-dev
-  libopencv-dev  # also: OpenImageIO's CMake config names OpenCV's headers
+  libtiff-dev libpng-dev libopenexr-dev  # image files
+  libopencv-dev
   libopenvdb-dev  # iso-surfaces of volume-fraction grids
   libceres-dev  # calibration fits
   libboost-dev  # Boost.Math's monotone interpolation (fit's profile likelihood)

@@ -1,7 +1,8 @@
-// V4L2 video devices. Listing uses the V4L2 ioctls directly (capabilities, formats, frame
-// sizes, control ranges: OpenCV does not enumerate them); frames come through OpenCV's V4L2
-// capture in raw mode (CAP_PROP_FORMAT = -1: the driver's buffer as delivered, no conversion),
-// which this file unpacks with unpack.h. Exposure: V4L2_CID_EXPOSURE_ABSOLUTE counts 100 us.
+// V4L2 video devices through the V4L2 ioctls directly: listing (capabilities, formats, frame
+// sizes, control ranges) and mmap streaming of the driver's raw buffers, which this file unpacks
+// with unpack.h. Exposure: V4L2_CID_EXPOSURE_ABSOLUTE counts 100 us. (OpenCV's videoio did the
+// streaming until issue 24; its Debian build loads 244 shared libraries into every raymatch
+// process, and its raw mode delivers the same buffers.)
 #include <fcntl.h>
 #include <linux/videodev2.h>
 #include <poll.h>
@@ -14,7 +15,6 @@
 #include <cmath>
 #include <cstring>
 #include <filesystem>
-#include <opencv2/videoio.hpp>
 
 #include "backends.h"
 #include "raymatch/capture/unpack.h"
@@ -109,8 +109,7 @@ bool Probe(const std::string& dev, CameraInfo* info, uint32_t* raw_fourcc, std::
   return true;
 }
 
-// Direct V4L2 streaming (mmap buffers) for formats OpenCV's capture will not set (e.g. Y16,
-// packed CSI-2 Bayer on some drivers): the ioctls of the V4L2 capture example, nothing more.
+// V4L2 streaming (mmap buffers): the ioctls of the V4L2 capture example, nothing more.
 class DirectStream {
  public:
   DirectStream(const std::string& dev, uint32_t fourcc, int width, int height) : dev_(dev) {
@@ -185,56 +184,20 @@ class V4l2Camera : public Camera {
     if (ctrl_.fd < 0)
       throw Error("camera " + info_.id + ": cannot open " + dev_ + " (" + std::strerror(errno) +
                   ")");
-    if (!cap_.open(dev_, cv::CAP_V4L2))
-      throw Error("camera " + info_.id + ": OpenCV's V4L2 capture cannot open " + dev_);
-    cap_.set(cv::CAP_PROP_FOURCC, double(fourcc_));
-    cap_.set(cv::CAP_PROP_FRAME_WIDTH, info_.width);
-    cap_.set(cv::CAP_PROP_FRAME_HEIGHT, info_.height);
-    cap_.set(cv::CAP_PROP_CONVERT_RGB, 0);
-    cap_.set(cv::CAP_PROP_FORMAT, -1);  // raw buffers
-    if (uint32_t(cap_.get(cv::CAP_PROP_FOURCC)) != fourcc_) {
-      // OpenCV's capture will not deliver this format: stream it with the ioctls directly.
-      cap_.release();
-      direct_ = std::make_unique<DirectStream>(dev_, fourcc_, info_.width, info_.height);
-    }
+    stream_ = std::make_unique<DirectStream>(dev_, fourcc_, info_.width, info_.height);
   }
   const CameraInfo& info() const override { return info_; }
 
   Frame Capture(const CaptureSettings& s) override {
     ValidateSettings(info_, s);
     SetControls(s);
-    if (direct_) return CaptureDirect(s);
-    // The first frames after a change may still have the old exposure: drop two.
-    cv::Mat raw;
-    for (int i = 0; i < 3; ++i)
-      if (!cap_.read(raw) || raw.empty())
-        throw Error("camera " + info_.id + ": no frame from " + dev_);
-    const int w = int(cap_.get(cv::CAP_PROP_FRAME_WIDTH)),
-              h = int(cap_.get(cv::CAP_PROP_FRAME_HEIGHT));
-    const size_t bytes = raw.total() * raw.elemSize();
-    const int64_t stride = h > 0 ? int64_t(bytes) / h : 0;
-    Frame f;
-    f.dn = CropRoi(UnpackRaw({raw.data, bytes}, w, h, stride, packing_), s.roi);
-    f.bit_depth = info_.bit_depth;
-    f.pixel_format = info_.raw_format;
-    f.exposure_us = s.exposure_us;
-    f.analogue_gain = s.analogue_gain;
-    f.timestamp_utc = UtcTimestamp();
-    f.sensor_timestamp_ns = int64_t(cap_.get(cv::CAP_PROP_POS_MSEC) * 1e6);
-    f.extra = {{"device", dev_}, {"stride_bytes", stride}, {"bayer_order", int(order_)}};
-    ApplyBayerMode(&f, s.bayer, order_ != BayerOrder::kNone, int(order_));
-    return f;
-  }
-
- private:
-  Frame CaptureDirect(const CaptureSettings& s) {
     std::vector<uint8_t> bytes;
     int64_t ts = 0;
     const double timeout = 5 + 3 * s.exposure_us * 1e-6;
     for (int i = 0; i < 3; ++i)
-      bytes = direct_->Next(timeout, &ts);  // two frames may predate the settings
+      bytes = stream_->Next(timeout, &ts);  // two frames may predate the settings
     Frame f;
-    f.dn = CropRoi(UnpackRaw(bytes, direct_->width_, direct_->height_, direct_->stride_, packing_),
+    f.dn = CropRoi(UnpackRaw(bytes, stream_->width_, stream_->height_, stream_->stride_, packing_),
                    s.roi);
     f.bit_depth = info_.bit_depth;
     f.pixel_format = info_.raw_format;
@@ -243,13 +206,14 @@ class V4l2Camera : public Camera {
     f.timestamp_utc = UtcTimestamp();
     f.sensor_timestamp_ns = ts;
     f.extra = {{"device", dev_},
-               {"stride_bytes", direct_->stride_},
+               {"stride_bytes", stream_->stride_},
                {"bayer_order", int(order_)},
-               {"path", "direct V4L2 ioctls (mmap streaming)"}};
+               {"path", "V4L2 ioctls (mmap streaming)"}};
     ApplyBayerMode(&f, s.bayer, order_ != BayerOrder::kNone, int(order_));
     return f;
   }
 
+ private:
   // Exposure and gain through the device's controls (any open file of the device may set them):
   // manual exposure, V4L2_CID_EXPOSURE_ABSOLUTE in 100 us, V4L2_CID_ANALOGUE_GAIN in the
   // driver's steps with unity at the control's default.
@@ -281,8 +245,7 @@ class V4l2Camera : public Camera {
   uint32_t fourcc_;
   RawPacking packing_ = RawPacking::kRaw16Le;
   BayerOrder order_ = BayerOrder::kNone;
-  cv::VideoCapture cap_;
-  std::unique_ptr<DirectStream> direct_;
+  std::unique_ptr<DirectStream> stream_;
   Fd ctrl_;                ///< the device, for controls
   double gain_unity_ = 1;  ///< driver gain steps at unity gain (the control's default)
 };

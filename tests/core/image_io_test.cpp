@@ -1,8 +1,14 @@
 #include "raymatch/core/image_io.h"
 
+#include <ImfChannelList.h>
+#include <ImfFrameBuffer.h>
+#include <ImfHeader.h>
+#include <ImfOutputFile.h>
 #include <gtest/gtest.h>
+#include <tiffio.h>
 
 #include <filesystem>
+#include <fstream>
 #include <tuple>
 
 #include "raymatch/core/error.h"
@@ -145,6 +151,151 @@ TEST(ImageIo, DeclaredSizeIsCheckedBeforeAllocating) {
   // The same header with the data it claims is read.
   std::string ok = TiffClaiming(2, 2);
   EXPECT_EQ(ReadImage(dir.Write("ok.tif", ok)).pixels, (std::vector<float>(4, 0.f)));
+}
+
+// Writes a TIFF the way other programs do (tiles, separate planes, compression) with libtiff
+// itself; `value(x, y, c)` gives the samples, stored as T.
+template <class T, class F>
+void WriteTiffWith(const std::string& path, int w, int h, int spp, uint16_t format, bool tiled,
+                   bool separate, uint16_t compression, F value) {
+  TIFF* t = TIFFOpen(path.c_str(), "w");
+  ASSERT_NE(t, nullptr);
+  TIFFSetField(t, TIFFTAG_IMAGEWIDTH, uint32_t(w));
+  TIFFSetField(t, TIFFTAG_IMAGELENGTH, uint32_t(h));
+  TIFFSetField(t, TIFFTAG_SAMPLESPERPIXEL, uint16_t(spp));
+  TIFFSetField(t, TIFFTAG_BITSPERSAMPLE, uint16_t(8 * sizeof(T)));
+  TIFFSetField(t, TIFFTAG_SAMPLEFORMAT, format);
+  TIFFSetField(t, TIFFTAG_PHOTOMETRIC, spp >= 3 ? PHOTOMETRIC_RGB : PHOTOMETRIC_MINISBLACK);
+  TIFFSetField(t, TIFFTAG_PLANARCONFIG, separate ? PLANARCONFIG_SEPARATE : PLANARCONFIG_CONTIG);
+  TIFFSetField(t, TIFFTAG_COMPRESSION, compression);
+  const int planes = separate ? spp : 1, per = separate ? 1 : spp;
+  if (tiled) {
+    const int tw = 16, th = 16;
+    TIFFSetField(t, TIFFTAG_TILEWIDTH, uint32_t(tw));
+    TIFFSetField(t, TIFFTAG_TILELENGTH, uint32_t(th));
+    std::vector<T> tile(size_t(tw) * th * per);
+    for (int p = 0; p < planes; ++p)
+      for (int y0 = 0; y0 < h; y0 += th)
+        for (int x0 = 0; x0 < w; x0 += tw) {
+          for (int y = 0; y < th; ++y)
+            for (int x = 0; x < tw; ++x)
+              for (int c = 0; c < per; ++c)
+                tile[(size_t(y) * tw + x) * per + c] = value(x0 + x, y0 + y, separate ? p : c);
+          ASSERT_GE(TIFFWriteTile(t, tile.data(), x0, y0, 0, uint16_t(p)), 0);
+        }
+  } else {
+    TIFFSetField(t, TIFFTAG_ROWSPERSTRIP, 3u);
+    std::vector<T> row(size_t(w) * per);
+    for (int p = 0; p < planes; ++p)
+      for (int y = 0; y < h; ++y) {
+        for (int x = 0; x < w; ++x)
+          for (int c = 0; c < per; ++c) row[size_t(x) * per + c] = value(x, y, separate ? p : c);
+        ASSERT_GE(TIFFWriteScanline(t, row.data(), uint32_t(y), uint16_t(p)), 0);
+      }
+  }
+  TIFFClose(t);
+}
+
+// The reader is libtiff's (issue 24): files from other programs, tiled, with separate colour
+// planes or compressed, give the same values as the plain strips raymatch writes.
+TEST(ImageIo, TiledPlanarAndCompressedTiffsGiveTheirValues) {
+  testing::TempDir dir;
+  const int w = 37, h = 21;  // not a multiple of the 16 x 16 tiles or the 3-row strips
+  auto grey = [](int x, int y, int) { return uint16_t(1000 * y + 7 * x); };
+  Image expect(w, h);
+  for (int y = 0; y < h; ++y)
+    for (int x = 0; x < w; ++x) expect.at(x, y) = float(grey(x, y, 0));
+  for (bool tiled : {false, true})
+    for (uint16_t comp : {COMPRESSION_NONE, COMPRESSION_LZW, COMPRESSION_ADOBE_DEFLATE}) {
+      const std::string f = dir / ("g" + std::to_string(tiled) + std::to_string(comp) + ".tif");
+      WriteTiffWith<uint16_t>(f, w, h, 1, SAMPLEFORMAT_UINT, tiled, false, comp, grey);
+      ImageFileInfo info;
+      EXPECT_EQ(ReadImage(f, &info).pixels, expect.pixels) << f;
+      EXPECT_EQ(info.pixel_type, "uint16");
+    }
+  // RGB (+ alpha, ignored): the mean of R, G and B, whether interleaved or in planes.
+  auto rgba = [](int x, int y, int c) { return uint8_t(c == 3 ? 255 : 10 * c + x + y); };
+  for (int y = 0; y < h; ++y)
+    for (int x = 0; x < w; ++x) expect.at(x, y) = float(10 + x + y);
+  for (bool tiled : {false, true})
+    for (bool separate : {false, true}) {
+      const std::string f = dir / ("c" + std::to_string(tiled) + std::to_string(separate) + ".tif");
+      WriteTiffWith<uint8_t>(f, w, h, 4, SAMPLEFORMAT_UINT, tiled, separate, COMPRESSION_NONE,
+                             rgba);
+      ImageFileInfo info;
+      EXPECT_EQ(ReadImage(f, &info).pixels, expect.pixels) << f;
+      EXPECT_EQ(info.channels, 4);
+    }
+  // Doubles and signed integers keep their values.
+  WriteTiffWith<double>(dir / "d.tif", w, h, 1, SAMPLEFORMAT_IEEEFP, true, false,
+                        COMPRESSION_ADOBE_DEFLATE, [](int x, int y, int) { return 0.25 * x - y; });
+  WriteTiffWith<int16_t>(dir / "s.tif", w, h, 1, SAMPLEFORMAT_INT, false, false, COMPRESSION_NONE,
+                         [](int x, int y, int) { return int16_t(100 * x - 1000 * y); });
+  const Image d = ReadImage(dir / "d.tif"), i16 = ReadImage(dir / "s.tif");
+  EXPECT_FLOAT_EQ(d.at(36, 20), 0.25f * 36 - 20);
+  EXPECT_FLOAT_EQ(i16.at(3, 20), -19700.f);
+}
+
+TEST(ImageIo, ExrFloatRoundTripAndColourChannels) {
+  testing::TempDir dir;
+  Image img(7, 5);
+  for (size_t i = 0; i < img.size(); ++i) img.pixels[i] = 1.5f * i - 3.25f;
+  WriteFloatImage(dir / "y.exr", img, "a comment");
+  ImageFileInfo info;
+  EXPECT_EQ(ReadImage(dir / "y.exr", &info).pixels, img.pixels);
+  EXPECT_EQ(info.format, "openexr");
+  // An RGB file of another program, with a data window that does not start at (0, 0).
+  Imf::Header hd(Imath::Box2i({0, 0}, {9, 9}), Imath::Box2i({2, 3}, {4, 4}));
+  for (const char* c : {"R", "G", "B"}) hd.channels().insert(c, Imf::Channel(Imf::FLOAT));
+  std::vector<float> rgb(3 * 3 * 2);
+  for (size_t k = 0; k < rgb.size(); ++k) rgb[k] = float(k);
+  {
+    Imf::OutputFile out((dir / "rgb.exr").c_str(), hd);
+    Imf::FrameBuffer fb;
+    const size_t xs = 3 * sizeof(float), ys = 3 * xs;
+    char* base = reinterpret_cast<char*>(rgb.data()) - 2 * xs - 3 * ys;
+    const char* names[3] = {"R", "G", "B"};
+    for (int c = 0; c < 3; ++c)
+      fb.insert(names[c], Imf::Slice(Imf::FLOAT, base + c * sizeof(float), xs, ys));
+    out.setFrameBuffer(fb);
+    out.writePixels(2);
+  }
+  const Image back = ReadImage(dir / "rgb.exr");
+  ASSERT_EQ(back.width, 3);
+  ASSERT_EQ(back.height, 2);
+  for (size_t p = 0; p < 6; ++p) EXPECT_FLOAT_EQ(back.pixels[p], float(3 * p + 1)) << p;
+}
+
+// libpng reports errors by longjmp: a truncated file must become an Error naming it, with no
+// file left open and no crash; likewise a file whose name says PNG but whose bytes do not.
+TEST(ImageIo, TruncatedAndMislabelledFilesAreRefusedByName) {
+  testing::TempDir dir;
+  Image ramp(64, 64);
+  for (size_t i = 0; i < ramp.size(); ++i) ramp.pixels[i] = float(i % 4096);
+  WriteUint16Image(dir / "r.png", ramp, "");
+  WriteFloatImage(dir / "r.exr", ramp, "");
+  WriteFloatImage(dir / "r.tif", ramp, "");
+  for (const char* name : {"r.png", "r.exr", "r.tif"}) {
+    std::ifstream in(dir / name, std::ios::binary);
+    std::string bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    const std::string cut =
+        dir.Write(std::string("cut_") + name, bytes.substr(0, bytes.size() / 2));
+    try {
+      ReadImage(cut);
+      ADD_FAILURE() << name << " was read";
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find("cut_" + std::string(name) + ": error:"),
+                std::string::npos)
+          << e.what();
+    }
+  }
+  const std::string fake = dir.Write("fake.png", "GIF89a and more");
+  try {
+    ReadImage(fake);
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("not a TIFF, PNG or OpenEXR file"), std::string::npos);
+  }
 }
 
 }  // namespace

@@ -1,7 +1,7 @@
 #pragma once
-// Image files through OpenImageIO. Writers are atomic: the file appears complete or not at all.
+// Image files: TIFF (libtiff), PNG (libpng) and OpenEXR. Writers are atomic: the file appears
+// complete or not at all.
 #include <cstdint>
-#include <map>
 #include <string>
 
 #include "raymatch/core/image.h"
@@ -10,7 +10,7 @@ namespace raymatch {
 
 /// What a file held before conversion to float.
 struct ImageFileInfo {
-  std::string format;      ///< OIIO format name ("tiff", "png", ...).
+  std::string format;      ///< "tiff", "png" or "openexr".
   std::string pixel_type;  ///< "uint8", "uint16", "float", ...
   int channels = 1;
   double type_max = 1.0;  ///< Largest code value of an integer type (255, 65535), 1 for float.
@@ -32,10 +32,9 @@ void CheckDeclaredImageSize(const std::string& path, int64_t width, int64_t heig
 /// Throws Error naming the file when it cannot be read or holds NaN/Inf.
 Image ReadImage(const std::string& path, ImageFileInfo* info = nullptr);
 
-/// Writes a 32-bit float single-channel image (TIFF or EXR by extension). `description` goes to
-/// the ImageDescription tag (TIFF) / comment, `attributes` to extra string metadata.
-void WriteFloatImage(const std::string& path, const Image& img, const std::string& description,
-                     const std::map<std::string, std::string>& attributes = {});
+/// Writes a 32-bit float single-channel image (uncompressed TIFF or ZIP-compressed EXR, by
+/// extension). `description` goes to the TIFF's ImageDescription tag or the EXR's comments.
+void WriteFloatImage(const std::string& path, const Image& img, const std::string& description);
 
 /// Writes a 16-bit unsigned single-channel TIFF or PNG (camera-like data): values rounded and
 /// clamped to [0, 65535]. `description` goes to ImageDescription (TIFF).

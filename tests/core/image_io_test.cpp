@@ -5,6 +5,7 @@
 #include <ImfHeader.h>
 #include <ImfOutputFile.h>
 #include <gtest/gtest.h>
+#include <png.h>
 #include <tiffio.h>
 
 #include <filesystem>
@@ -264,6 +265,49 @@ TEST(ImageIo, ExrFloatRoundTripAndColourChannels) {
   ASSERT_EQ(back.width, 3);
   ASSERT_EQ(back.height, 2);
   for (size_t p = 0; p < 6; ++p) EXPECT_FLOAT_EQ(back.pixels[p], float(3 * p + 1)) << p;
+}
+
+// A PNG written by libpng itself: `color` PNG_COLOR_TYPE_*, 8-bit rows of `row_bytes` from
+// `pixel(x, y)` (a palette index or a grey value), optionally Adam7-interlaced.
+void WritePngWith(const std::string& path, int w, int h, int color, bool interlaced,
+                  const std::vector<png_color>& palette, int (*pixel)(int, int)) {
+  FILE* fp = std::fopen(path.c_str(), "wb");
+  ASSERT_NE(fp, nullptr);
+  png_structp png = png_create_write_struct(PNG_LIBPNG_VER_STRING, nullptr, nullptr, nullptr);
+  png_infop info = png_create_info_struct(png);
+  png_init_io(png, fp);
+  png_set_IHDR(png, info, w, h, 8, color, interlaced ? PNG_INTERLACE_ADAM7 : PNG_INTERLACE_NONE,
+               PNG_COMPRESSION_TYPE_DEFAULT, PNG_FILTER_TYPE_DEFAULT);
+  if (!palette.empty()) png_set_PLTE(png, info, palette.data(), int(palette.size()));
+  png_write_info(png, info);
+  std::vector<png_byte> rows(size_t(w) * h);
+  std::vector<png_bytep> ptr(h);
+  for (int y = 0; y < h; ++y) {
+    for (int x = 0; x < w; ++x) rows[size_t(y) * w + x] = png_byte(pixel(x, y));
+    ptr[y] = rows.data() + size_t(y) * w;
+  }
+  png_write_image(png, ptr.data());
+  png_write_end(png, nullptr);
+  png_destroy_write_struct(&png, &info);
+  std::fclose(fp);
+}
+
+// Palette images come back as the mean of their colours' R, G and B; interlaced ones in order.
+TEST(ImageIo, PalettedAndInterlacedPngsGiveTheirValues) {
+  testing::TempDir dir;
+  const int w = 13, h = 9;
+  const std::vector<png_color> pal = {{0, 0, 0}, {30, 60, 90}, {255, 255, 0}};
+  WritePngWith(dir / "pal.png", w, h, PNG_COLOR_TYPE_PALETTE, false, pal,
+               [](int x, int y) { return (x + y) % 3; });
+  const Image p = ReadImage(dir / "pal.png");
+  EXPECT_FLOAT_EQ(p.at(0, 0), 0.f);
+  EXPECT_FLOAT_EQ(p.at(1, 0), 60.f);
+  EXPECT_FLOAT_EQ(p.at(1, 1), 170.f);
+  WritePngWith(dir / "adam7.png", w, h, PNG_COLOR_TYPE_GRAY, true, {},
+               [](int x, int y) { return 17 * y + x; });
+  const Image a = ReadImage(dir / "adam7.png");
+  for (int y = 0; y < h; ++y)
+    for (int x = 0; x < w; ++x) ASSERT_FLOAT_EQ(a.at(x, y), float(17 * y + x)) << x << ", " << y;
 }
 
 // libpng reports errors by longjmp: a truncated file must become an Error naming it, with no

@@ -293,10 +293,12 @@ Geometry::Geometry(const std::vector<ObjectSpec>& objects) {
     }
     eps_.push_back((o.shape == ShapeType::kMesh ? kMeshEpsilon : kAnalyticEpsilon) *
                    std::max(size, Length(o.center_um) * 1e-3 + size));
-    extent_um_ = std::max(extent_um_, Length(o.center_um) + size);
+    // A moving object's bounds hold it wherever it is during the exposure (sweep_um).
+    extent_um_ = std::max(extent_um_, Length(o.center_um) + size + o.sweep_um);
     bound_center_.push_back(o.center_um);
-    bound_radius_.push_back(size);
-    if (o.shape != ShapeType::kMesh) min_z = std::min(min_z, o.center_um.z - size);
+    bound_radius_.push_back(size + o.sweep_um);
+    if (o.shape != ShapeType::kMesh) min_z = std::min(min_z, o.center_um.z - size - o.sweep_um);
+    if (o.shape == ShapeType::kMesh) min_z -= o.sweep_um;
   }
   min_z_um_ = objects.empty() ? 0 : min_z;
 

@@ -52,16 +52,15 @@ PacketPlan MakePacketPlan(const Simulator::Impl& im, const Scene& scene, Partial
     // A line farther than this from every bounding sphere cannot meet an object; the margin
     // (1e-6 of the radius + 1 nm) is far above the rounding of either test.
     const Vec3& c = im.geometry.bound_center(k);
-    const double r = im.geometry.bound_radius(k) * (1 + 1e-6) + 1e-3;
     near.bound_c[k][0] = c.x, near.bound_c[k][1] = c.y, near.bound_c[k][2] = c.z;
-    near.bound_r2[k] = r * r;
+    near.bound_r2[k] = NearBoundR2(im.geometry, k);
   }
   near.split = sel.split;
   near.split_c[0] = sel.split_center.x, near.split_c[1] = sel.split_center.y;
   near.split_c[2] = sel.split_center.z, near.split_r2 = sel.split_r2;
   // The sphere stage: one homogeneous sphere, refraction, TIR and the unpolarised Fresnel
-  // branch (the polarised branch and everything else stay on the scalar path).
-  if (scene.objects.size() == 1 && scene.objects[0].shape == ShapeType::kSphere &&
+  // branch (the polarised branch, moving spheres and everything else stay on the scalar path).
+  if (!im.motion && scene.objects.size() == 1 && scene.objects[0].shape == ShapeType::kSphere &&
       !scene.objects[0].index_field && !im.geometry.has_meshes() &&
       pr != PartialReflection::kPolarized) {
     const ObjectSpec& o = scene.objects[0];

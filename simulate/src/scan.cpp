@@ -108,7 +108,8 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
         {"rays_hitting_objects", r.counters.rays_hitting_objects},
         {"grin_segments", r.counters.grin_segments},
         {"grin_steps", r.counters.grin_steps},
-        {"grin_uniform_steps", r.counters.grin_uniform_steps}}},
+        {"grin_uniform_steps", r.counters.grin_uniform_steps},
+        {"motion_draws", r.counters.motion_draws}}},
       {"image",
        {{"width", r.counts.width},
         {"height", r.counts.height},
@@ -122,6 +123,24 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
       {"medium_index", s.medium_index},
       {"objects", objects},
   };
+  if (s.has_motion()) {
+    const ExposureSpec& e = s.exposure;
+    static const char* shapes[] = {"none", "tophat", "gaussian", "file"};  // PulseShape order
+    nlohmann::json ex = {
+        {"pulse", shapes[int(e.shape)]},  // not "shape": tifffile reads a description
+                                          // with a "shape" key as its own array metadata
+        {"velocity_um_per_us",
+         {s.velocity_um_per_us.x, s.velocity_um_per_us.y, s.velocity_um_per_us.z}},
+        {"max_offset_us", e.max_offset_us()},
+        {"path_um", Length(s.velocity_um_per_us) * 2 * e.max_offset_us()},
+        {"convention",
+         "objects' center_um is their position at the pulse's centre (top-hat: midpoint; "
+         "Gaussian: peak, drawn within +-3 FWHM; file: power-weighted mean time)"}};
+    if (e.shape == PulseShape::kTopHat) ex["duration_us"] = e.duration_us;
+    if (e.shape == PulseShape::kGaussian) ex["fwhm_us"] = e.fwhm_us;
+    if (e.shape == PulseShape::kFile) ex["file"] = e.file;
+    j["exposure"] = ex;
+  }
   return j;
 }
 

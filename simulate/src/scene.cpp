@@ -270,6 +270,8 @@ ObjectSpec ReadObject(TomlReader r, Scene& scene, int i) {
       r.Choice("type", {"sphere", "ellipsoid", "box", "mesh", "revolution", "volume_fraction"});
   const auto c = r.Vec3("center_um", {0, 0, 0});
   o.center_um = {c[0], c[1], c[2]};
+  const auto v = r.Vec3("velocity_um_per_us", {0, 0, 0});
+  o.velocity_um_per_us = {v[0], v[1], v[2]};
   auto read_axes = [&](const char* key) {
     const auto v = r.Vec3(key);
     if (!(v[0] > 0 && v[1] > 0 && v[2] > 0)) r.Fail(key, "expected three positive lengths");
@@ -462,6 +464,48 @@ double Magnification(const OpticsSpec& o) { return -o.tube_focal_mm / o.objectiv
 
 Scene LoadScene(const std::string& path) { return LoadScene(ParseTomlFile(path), path); }
 
+/// [exposure] and the objects' velocities: moving objects share one velocity (motion is traced
+/// in their frame), and a moving object needs a pulse to move during.
+void ReadMotion(TomlReader& r, const std::string& path, Scene* s) {
+  if (r.Has("exposure")) {
+    TomlReader e = r.Table("exposure");
+    const std::string shape = e.Choice("shape", {"tophat", "gaussian", "file"}, "tophat");
+    if (shape == "tophat") {
+      s->exposure.shape = PulseShape::kTopHat;
+      s->exposure.duration_us = e.Positive("duration_us");
+    } else if (shape == "gaussian") {
+      s->exposure.shape = PulseShape::kGaussian;
+      s->exposure.fwhm_us = e.Positive("fwhm_us");
+    } else {
+      const std::string file = Resolve(path, e.String("file"));
+      try {
+        s->exposure = TabulatedExposure(file);
+      } catch (const Error& err) {
+        e.Fail("file", err.what());
+      }
+    }
+    e.Finish();
+  }
+  const ObjectSpec* mover = nullptr;
+  for (const ObjectSpec& o : s->objects)
+    if (Dot(o.velocity_um_per_us, o.velocity_um_per_us) > 0) mover = &o;
+  if (!mover) return;
+  if (s->exposure.shape == PulseShape::kNone)
+    throw Error(mover->where, "object '" + mover->name +
+                                  "' has a velocity_um_per_us but the scene has no [exposure] "
+                                  "table (shape = \"tophat\" with duration_us, \"gaussian\" "
+                                  "with fwhm_us, or \"file\")");
+  for (const ObjectSpec& o : s->objects)
+    if (Length(o.velocity_um_per_us - mover->velocity_um_per_us) > 0)
+      throw Error(o.where, "objects '" + o.name + "' and '" + mover->name +
+                               "' move with different velocities: motion is traced in the "
+                               "objects' frame, so every object needs the same "
+                               "velocity_um_per_us (a static one included)");
+  s->velocity_um_per_us = mover->velocity_um_per_us;
+  const double sweep = Length(s->velocity_um_per_us) * s->exposure.max_offset_us();
+  for (ObjectSpec& o : s->objects) o.sweep_um = sweep;
+}
+
 Scene LoadScene(const toml::table& t, const std::string& path) {
   Scene s;
   s.file = path;
@@ -594,6 +638,8 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
   }
   if (s.trace.rays == 0 && s.trace.photons_per_pixel == 0) s.trace.rays = 1000000;
 
+  ReadMotion(r, path, &s);
+
   if (r.Has("scan")) {
     TomlReader sc = r.Table("scan");
     s.defocus_um = sc.Numbers("defocus_um", 1, 10000);
@@ -621,7 +667,7 @@ void ValidateScene(const Scene& s) {
     const double extent = o.shape == ShapeType::kSphere ? o.radius_um
                           : o.shape == ShapeType::kMesh ? 0
                                                         : Length(o.semi_axes_um);
-    if (o.center_um.z + extent >= first_plane_um)
+    if (o.center_um.z + extent + o.sweep_um >= first_plane_um)
       throw Error(o.where, "object '" + o.name +
                                "' reaches the objective or corrector plane; move it or the focus");
   }

@@ -46,6 +46,14 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Op
     near_out->push_back(ray);  // as SplitRaysBySphere
     return;
   }
+  // Motion: a ray that can meet the objects draws its emission time and meets them where they
+  // are then: it is traced through them shifted by -v t (their frame), and back by +v t after.
+  const bool moved = im.motion && im.NearAnObject(p, d);
+  Vec3 shift;
+  if (moved) {
+    shift = im.velocity * im.exposure.Offset(rng.Uniform());
+    ++c.motion_draws;
+  }
   Vec3 o = p;
   // (1 / d.z, a product: the packet path reuses the reciprocal for the slopes below)
   if constexpr (!std::is_same_v<Source, PointSource>) {
@@ -57,7 +65,11 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Op
 
   Fate fate = Fate::kDetected;
   bool done = false;
-  if (has_objects) done = TraceObjects<kPR, kMesh>(im, trace, rng, o, d, pol, c, &fate);
+  if (has_objects) {
+    if (moved) o = o - shift;
+    done = TraceObjects<kPR, kMesh>(im, trace, rng, o, d, pol, c, &fate);
+    if (moved) o = o + shift;
+  }
   if (!done && d.z <= 0) {
     fate = Fate::kEscaped;
     done = true;

@@ -41,7 +41,7 @@ void ForEachCounter(C& c, F&& f) {
   for (auto& v : c.fates) f(v);
   f(c.interface_events), f(c.fresnel_evaluations), f(c.corrector_tests), f(c.mesh_queries);
   f(c.shape_queries), f(c.rays_hitting_objects), f(c.grin_steps), f(c.grin_segments);
-  f(c.grin_uniform_steps);
+  f(c.grin_uniform_steps), f(c.motion_draws);
   for (auto& v : c.path_class) f(v);
 }
 
@@ -86,6 +86,9 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
     im.size.push_back(o.shape == ShapeType::kSphere ? o.radius_um : Length(o.semi_axes_um));
     im.has_grin = im.has_grin || o.index_field != nullptr;
   }
+  im.motion = scene.has_motion();
+  im.velocity = scene.velocity_um_per_us;
+  im.exposure = scene.exposure;
   im.optics = MakeOptics(scene);
   // Source plane: before every object (and never after z = 0, where fields are defined).
   const double min_z = im.geometry.empty() ? 0.0 : im.geometry.min_z_um();
@@ -153,6 +156,10 @@ std::vector<std::string> Simulator::Effects() const {
                                                              : "objective:two_ideal_lenses");
   e.push_back("tube_lens");
   if (scene_.camera.psf_sigma_um > 0) e.push_back("camera_psf:gaussian");
+  if (impl_->motion) {
+    static const char* pulse[] = {"", "tophat", "gaussian", "file"};  // PulseShape order
+    e.push_back(std::string("motion:") + pulse[int(scene_.exposure.shape)]);
+  }
   e.push_back(impl_->packets.ok ? std::string("simd_packets")
                                 : std::string("scalar_only:") + impl_->packets.reason);
   return e;

@@ -13,6 +13,14 @@
 
 namespace raymatch::simulate {
 
+/// The squared radius of object k's bounding sphere as the near tests use it (the packet path's
+/// and the scalar path's motion test): the margin (1e-6 of the radius + 1 nm) is far above the
+/// rounding of either test.
+inline double NearBoundR2(const Geometry& g, int k) {
+  const double r = g.bound_radius(k) * (1 + 1e-6) + 1e-3;
+  return r * r;
+}
+
 /// Whether the straight line through p along unit d passes within sqrt(r2) of c: the one test
 /// that splits a plane's rays into those that can meet the fit's region and the others
 /// (SplitRaysBySphere and TraceFarRays must agree ray for ray).
@@ -70,7 +78,18 @@ struct Simulator::Impl {
   double field_radius_um = 0;     // resolved source field radius (automatic or given)
   double medium;
   double source_z;
+  /// Motion during the exposure (Scene::has_motion): the objects' common velocity and the pulse.
+  bool motion = false;
+  Vec3 velocity;
+  ExposureSpec exposure;
   explicit Impl(const Scene& s) : geometry(s.objects) {}
+  /// Whether the line through p along d can meet an object (the packet path's near test, lane
+  /// for lane: a ray it calls far meets nothing, whenever it was emitted).
+  bool NearAnObject(const Vec3& p, const Vec3& d) const {
+    for (int k = 0; k < int(index.size()); ++k)
+      if (LinePassesWithin(p, d, geometry.bound_center(k), NearBoundR2(geometry, k))) return true;
+    return false;
+  }
 };
 
 }  // namespace raymatch::simulate

@@ -95,8 +95,37 @@ struct ObjectSpec {
   std::string density_source;
   /// Gradient-index field inside the object (null: homogeneous, never integrated).
   std::shared_ptr<const IndexField> index_field;
+  /// Velocity during the exposure, micrometres per microsecond (= m/s); center_um is the
+  /// object's position at the pulse's centre (ExposureSpec). Meshes and fields move with it.
+  Vec3 velocity_um_per_us{};
+  /// How far the object can move from center_um during the exposure (|v| x the largest offset
+  /// of the pulse): its bounds grow by this much. 0 without motion. Set by LoadScene.
+  double sweep_um = 0;
   FileLocation where;  ///< for messages
 };
+
+enum class PulseShape { kNone, kTopHat, kGaussian, kFile };
+
+/// [exposure]: the illumination pulse's time profile. Each ray that can meet a moving object
+/// draws its emission time from its own stream (Offset); objects are traced where they are at
+/// that time. Times are offsets from the pulse's centre: the top-hat's midpoint, the Gaussian's
+/// peak, a tabulated profile's power-weighted mean time.
+struct ExposureSpec {
+  PulseShape shape = PulseShape::kNone;
+  double duration_us = 0;  ///< top-hat
+  double fwhm_us = 0;      ///< Gaussian (truncated at +-3 FWHM: 7 sigma)
+  std::string file;        ///< tabulated: CSV of time_us, relative power (piecewise linear)
+  std::vector<double> time_us, power;  ///< tabulated profile, times relative to its centre
+  std::vector<double> cumulative;      ///< tabulated: energy up to each sample (last = total)
+  /// The largest |t - centre| a ray can draw.
+  double max_offset_us() const;
+  /// The emission time's offset from the pulse's centre for a uniform u in [0, 1).
+  double Offset(double u) const;
+};
+
+/// A tabulated pulse from a CSV file (time_us, relative power; piecewise linear between lines),
+/// its times made relative to the power-weighted mean. Throws Error naming the file and line.
+ExposureSpec TabulatedExposure(const std::string& path);
 
 enum class ObjectiveModel { kSingle, kTwoLens };
 
@@ -157,6 +186,11 @@ struct Scene {
   OpticsSpec optics;
   CameraSpec camera;
   TraceSpec trace;
+  ExposureSpec exposure;  ///< [exposure]; only used when an object moves
+  /// The objects' common velocity when any moves (raymatch traces motion in the objects' frame,
+  /// so moving objects share one velocity); zero otherwise.
+  Vec3 velocity_um_per_us{};
+  bool has_motion() const { return Dot(velocity_um_per_us, velocity_um_per_us) > 0; }
   std::vector<double> defocus_um{0.0};  ///< focal-plane positions (see docs: sign convention)
   std::vector<std::string> warnings;    ///< non-fatal notes from loading (printed by apps)
 };

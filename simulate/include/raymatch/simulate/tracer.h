@@ -51,6 +51,7 @@ struct TraceCounters {
   uint64_t grin_steps = 0;          ///< accepted gradient-index integration steps
   uint64_t grin_segments = 0;       ///< ray segments integrated through index fields
   uint64_t grin_uniform_steps = 0;  ///< straight steps across uniform grid cells
+  uint64_t motion_draws = 0;        ///< emission times drawn (rays that can meet moving objects)
   /// Debye-style path classes of the first departure from the first object hit:
   /// [0] reflected externally, [k>=1] transmitted with k-1 internal reflections (7 = 6 or more).
   std::array<uint64_t, kNumPathClasses> path_class{};

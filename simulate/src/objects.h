@@ -183,10 +183,11 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
 
 /// Traces a ray through the objects until it leaves them all (or ends). Updates o, d (and the
 /// polarisation) to the ray leaving the last surface; returns true with *fate set when the ray
-/// ended inside the objects (interaction cap, numerical loss, step cap).
+/// ended inside the objects (interaction cap, numerical loss, step cap). `ray_index`: the
+/// homogeneous objects' indices at this ray's wavelength (spectral scenes), else their own.
 template <PartialReflection kPR, bool kMesh>
 bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng, Vec3& o, Vec3& d,
-                  Vec3& pol, TraceCounters& c, Fate* fate_out) {
+                  Vec3& pol, TraceCounters& c, Fate* fate_out, const double* ray_index = nullptr) {
   const Geometry& geo = im.geometry;
   Fate fate = Fate::kDetected;
   bool done = false;
@@ -196,7 +197,7 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
   auto index_at = [&](int obj, const Vec3& x) {
     if (obj < 0) return im.medium;
     if (im.has_grin && im.field[obj]) return im.field[obj]->Index(x - im.center[obj]);
-    return im.index[obj];
+    return ray_index ? ray_index[obj] : im.index[obj];
   };
   int events = 0, internal_reflections = 0;
   bool classified = false;

@@ -59,10 +59,11 @@ PacketPlan MakePacketPlan(const Simulator::Impl& im, const Scene& scene, Partial
   near.split_c[0] = sel.split_center.x, near.split_c[1] = sel.split_center.y;
   near.split_c[2] = sel.split_center.z, near.split_r2 = sel.split_r2;
   // The sphere stage: one homogeneous sphere, refraction, TIR and the unpolarised Fresnel
-  // branch (the polarised branch, moving spheres and everything else stay on the scalar path).
-  if (!im.motion && scene.objects.size() == 1 && scene.objects[0].shape == ShapeType::kSphere &&
-      !scene.objects[0].index_field && !im.geometry.has_meshes() &&
-      pr != PartialReflection::kPolarized) {
+  // branch (the polarised branch, moving or dispersive spheres and everything else stay on the
+  // scalar path).
+  if (!im.motion && !im.spectral && scene.objects.size() == 1 &&
+      scene.objects[0].shape == ShapeType::kSphere && !scene.objects[0].index_field &&
+      !im.geometry.has_meshes() && pr != PartialReflection::kPolarized) {
     const ObjectSpec& o = scene.objects[0];
     packet::SphereParams sp;
     sp.center[0] = o.center_um.x, sp.center[1] = o.center_um.y, sp.center[2] = o.center_um.z;

@@ -60,6 +60,21 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
                            : "defaulted (Tanaka et al. 2001, Metrologia 38:301, at temperature_K)";
       obj["density_given"] = o.density_source == "given";
     }
+    if (s.source.spectrum.type != SpectrumType::kNone) {
+      if (o.dispersion.law == DispersionLaw::kNone || o.index_field) {
+        obj["over_the_spectrum"] = o.index_field
+                                       ? "monochromatic: index fields at wavelength_um"
+                                       : "monochromatic: a constant index (no dispersion law)";
+      } else {  // the index at 2000 quantiles of the spectrum
+        double sum = 0, lo = 1e300, hi = -1e300;
+        const int K = 2000;
+        for (int k = 0; k < K; ++k) {
+          const double n = o.dispersion.IndexAt(s.source.spectrum.Sample((k + 0.5) / K));
+          sum += n, lo = std::min(lo, n), hi = std::max(hi, n);
+        }
+        obj["over_the_spectrum"] = {{"mean_index", sum / K}, {"min_index", lo}, {"max_index", hi}};
+      }
+    }
     objects.push_back(obj);
   }
   // Debye path classes of the first departure from the first object hit: p = 0 reflected
@@ -109,7 +124,8 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
         {"grin_segments", r.counters.grin_segments},
         {"grin_steps", r.counters.grin_steps},
         {"grin_uniform_steps", r.counters.grin_uniform_steps},
-        {"motion_draws", r.counters.motion_draws}}},
+        {"motion_draws", r.counters.motion_draws},
+        {"wavelength_draws", r.counters.wavelength_draws}}},
       {"image",
        {{"width", r.counts.width},
         {"height", r.counts.height},
@@ -123,6 +139,22 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
       {"medium_index", s.medium_index},
       {"objects", objects},
   };
+  if (s.source.spectrum.type != SpectrumType::kNone) {
+    const SpectrumSpec& sp = s.source.spectrum;
+    static const char* types[] = {"none", "gaussian", "lines", "file"};  // SpectrumType order
+    nlohmann::json j_sp = {
+        {"type", types[int(sp.type)]},
+        {"mean_um", sp.mean_um()},
+        {"traced", s.is_spectral() ? "each ray near an object draws its wavelength"
+                                   : "monochromatic: no object has a "
+                                     "dispersion law"}};
+    if (sp.type == SpectrumType::kGaussian) j_sp["center_um"] = sp.center_um;
+    if (sp.type == SpectrumType::kGaussian) j_sp["fwhm_um"] = sp.fwhm_um;
+    if (sp.type == SpectrumType::kLines) j_sp["wavelengths_um"] = sp.wavelengths_um;
+    if (sp.type == SpectrumType::kLines) j_sp["weights"] = sp.weights;
+    if (sp.type == SpectrumType::kFile) j_sp["file"] = sp.file;
+    j["spectrum"] = j_sp;
+  }
   if (s.has_motion()) {
     const ExposureSpec& e = s.exposure;
     static const char* shapes[] = {"none", "tophat", "gaussian", "file"};  // PulseShape order

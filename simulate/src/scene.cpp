@@ -55,8 +55,49 @@ void ReadField(TomlReader& r, SourceSpec& s) {
   s.field_center_um = {c[0], c[1], 0};
 }
 
+/// [source] spectrum = { type = "gaussian", center_um, fwhm_um } | { type = "lines",
+/// wavelengths_um, weights } | { file = "led.csv" } (wavelength_um, power[, efficiency]).
+SpectrumSpec ReadSpectrum(TomlReader r, const std::string& scene_file) {
+  SpectrumSpec s;
+  const std::string type = r.Choice("type", {"gaussian", "lines", "file"}, "file");
+  if (type == "gaussian") {
+    s.type = SpectrumType::kGaussian;
+    s.center_um = r.InRange("center_um", 0.2, 2.0, 0);
+    s.fwhm_um = r.InRange("fwhm_um", 0, 0.2, 0, true);
+    if (!r.Has("center_um") || !r.Has("fwhm_um"))
+      r.Fail(r.Has("center_um") ? "fwhm_um" : "center_um",
+             "required: center_um (0.2-2 um) and fwhm_um (up to 0.2 um)");
+  } else if (type == "lines") {
+    s.type = SpectrumType::kLines;
+    s.wavelengths_um = r.Numbers("wavelengths_um", 1, 1000);
+    s.weights = r.Numbers("weights", s.wavelengths_um.size(), s.wavelengths_um.size());
+    double sum = 0;
+    for (size_t k = 0; k < s.weights.size(); ++k) {
+      if (!(s.wavelengths_um[k] >= 0.2 && s.wavelengths_um[k] <= 2.0))
+        r.Fail("wavelengths_um", "expected wavelengths from 0.2 to 2 um");
+      if (!(s.weights[k] >= 0)) r.Fail("weights", "expected weights >= 0");
+      sum += s.weights[k];
+    }
+    if (!(sum > 0)) r.Fail("weights", "expected a positive weight");
+    for (double& w : s.weights) w /= sum;
+  } else {
+    s.type = SpectrumType::kFile;
+    s.file = Resolve(scene_file, r.String("file"));
+    try {
+      s.table = ReadPiecewiseLinearCsv(s.file, "wavelength_um,relative_power[,efficiency]");
+    } catch (const Error& e) {
+      r.Fail("file", e.what());
+    }
+    if (!(s.table.x.front() >= 0.2 && s.table.x.back() <= 2.0))
+      r.Fail("file", "wavelengths from 0.2 to 2 um expected in " + s.file);
+  }
+  r.Finish();
+  return s;
+}
+
 SourceSpec ReadSource(TomlReader r, const std::string& file) {
   SourceSpec s;
+  if (r.Has("spectrum")) s.spectrum = ReadSpectrum(r.Table("spectrum"), file);
   const std::string type =
       r.Choice("type", {"collimated", "cone", "point", "lightfield", "ray_list"});
   if (type == "collimated") {
@@ -115,7 +156,52 @@ SourceSpec ReadSource(TomlReader r, const std::string& file) {
   return s;
 }
 
+/// A dispersion law instead of a constant index: cauchy = [A, B, ...] (n = A + B / l^2 + ...)
+/// or sellmeier_b + sellmeier_c_um2 (n^2 = 1 + sum B l^2 / (l^2 - C)), l in um.
+bool ReadDispersionLaw(TomlReader& r, const Scene& scene, ObjectSpec& o) {
+  const bool cauchy = r.Has("cauchy"), sellmeier = r.Has("sellmeier_b");
+  if (!cauchy && !sellmeier) {
+    if (r.Has("sellmeier_c_um2")) r.Fail("sellmeier_c_um2", "give sellmeier_b too");
+    return false;
+  }
+  for (const char* k : {"index", "material"})
+    if (r.Has(k)) r.Fail(k, "give one of index, material, cauchy or sellmeier_b/_c_um2");
+  if (cauchy && sellmeier) r.Fail("sellmeier_b", "give either cauchy or sellmeier_b, not both");
+  Dispersion& d = o.dispersion;
+  std::ostringstream os;
+  os.precision(8);
+  if (cauchy) {
+    d.law = DispersionLaw::kCauchy;
+    d.coefficients = r.Numbers("cauchy", 1, 6);
+    os << "Cauchy (n = A + B/l^2 + ...; l in um)";
+  } else {
+    d.law = DispersionLaw::kSellmeier;
+    d.sellmeier_b = r.Numbers("sellmeier_b", 1, 6);
+    d.sellmeier_c_um2 = r.Numbers("sellmeier_c_um2", d.sellmeier_b.size(), d.sellmeier_b.size());
+    os << "Sellmeier (n^2 = 1 + sum B l^2/(l^2 - C); l in um)";
+  }
+  // The index over the illumination's wavelengths: each must be a real index above 1.
+  std::vector<double> ls = {scene.wavelength_um};
+  const SpectrumSpec& sp = scene.source.spectrum;
+  if (sp.type == SpectrumType::kLines) ls = sp.wavelengths_um;
+  if (sp.type == SpectrumType::kGaussian)
+    ls = {sp.Sample(0), sp.Sample(0.5), sp.Sample(std::nextafter(1.0, 0.0))};
+  if (sp.type == SpectrumType::kFile) ls = {sp.table.x.front(), sp.table.x.back()};
+  for (double l : ls) {
+    const double n = d.IndexAt(l);
+    if (!(n >= 1.0 && n <= 5.0))
+      r.Fail(cauchy ? "cauchy" : "sellmeier_b", "gives n = " + std::to_string(n) + " at " +
+                                                    std::to_string(l) +
+                                                    " um, within the spectrum (expected 1 to 5)");
+  }
+  o.index = d.IndexAt(scene.wavelength_um);
+  os << ": n=" << o.index << " at " << scene.wavelength_um << " um";
+  o.material = os.str();
+  return true;
+}
+
 void ReadMaterial(TomlReader& r, const Scene& scene, ObjectSpec& o) {
+  if (ReadDispersionLaw(r, scene, o)) return;
   if (r.Has("index") && r.Has("material"))
     r.Fail("material", "give either 'index' or 'material', not both");
   if (r.Has("index")) {
@@ -141,6 +227,9 @@ void ReadMaterial(TomlReader& r, const Scene& scene, ObjectSpec& o) {
     o.density_source = "defaulted";
   }
   o.density_kg_m3 = rho;
+  o.dispersion.law = DispersionLaw::kWater;
+  o.dispersion.temperature_K = T;
+  o.dispersion.density_kg_m3 = rho;
   const WaterIndex w = WaterRefractiveIndex(T, rho, scene.wavelength_um);
   o.index = w.n;
   std::ostringstream os;
@@ -529,11 +618,22 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
   s.wavelength_um = r.InRange("wavelength_um", 0.2, 2.0, cal ? cal->wavelength_um : 0.462);
   s.medium_index = r.InRange("medium_index", 1.0, 3.0, 1.0);
   s.trace.seed = static_cast<uint64_t>(r.Integer("seed", 1, 0, INT64_MAX));
-  if (r.Has("source") || !cal || !cal->has_light_field()) {
+  // A [source] table with only a spectrum keeps the calibration's light field.
+  const bool spectrum_only = r.Has("source") && cal && cal->has_light_field() &&
+                             !r.Table("source").Has("type") && r.Table("source").Has("spectrum");
+  if (!spectrum_only && (r.Has("source") || !cal || !cal->has_light_field())) {
     s.source = ReadSource(r.Table("source"), path);
   } else {
     s.source = CalibratedSource(*cal, cal_file);
+    if (spectrum_only) {
+      TomlReader src = r.Table("source");
+      s.source.spectrum = ReadSpectrum(src.Table("spectrum"), path);
+      src.Finish();
+    }
   }
+  // With a spectrum, indices are quoted at its mean unless wavelength_um is given.
+  if (s.source.spectrum.type != SpectrumType::kNone && !r.Has("wavelength_um"))
+    s.wavelength_um = s.source.spectrum.mean_um();
   if (r.Has("light_field_edge")) {
     TomlReader e = r.Table("light_field_edge");
     if (!(s.source.type == SourceType::kLightField && s.source.map_na_limit > 0))
@@ -648,6 +748,13 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
   r.Finish();
   ValidateScene(s);
   return s;
+}
+
+bool Scene::is_spectral() const {
+  if (source.spectrum.type == SpectrumType::kNone) return false;
+  for (const ObjectSpec& o : objects)
+    if (o.dispersion.law != DispersionLaw::kNone) return true;
+  return false;
 }
 
 void ValidateScene(const Scene& s) {

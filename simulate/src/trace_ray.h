@@ -48,11 +48,25 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Op
   }
   // Motion: a ray that can meet the objects draws its emission time and meets them where they
   // are then: it is traced through them shifted by -v t (their frame), and back by +v t after.
-  const bool moved = im.motion && im.NearAnObject(p, d);
+  // The spectrum likewise: such a ray draws its wavelength (after its time), which sets the
+  // index of every dispersive object for it.
+  const bool near = (im.motion || im.spectral) && im.NearAnObject(p, d);
+  const bool moved = near && im.motion;
   Vec3 shift;
   if (moved) {
     shift = im.velocity * im.exposure.Offset(rng.Uniform());
     ++c.motion_draws;
+  }
+  const double* ray_index = nullptr;
+  if (near && im.spectral) {
+    const double lambda = im.spectrum.Sample(rng.Uniform());
+    acc.ray_index.resize(im.index.size());
+    for (size_t k = 0; k < im.index.size(); ++k)
+      acc.ray_index[k] = im.dispersion[k].law == DispersionLaw::kNone
+                             ? im.index[k]
+                             : im.dispersion[k].IndexAt(lambda);
+    ray_index = acc.ray_index.data();
+    ++c.wavelength_draws;
   }
   Vec3 o = p;
   // (1 / d.z, a product: the packet path reuses the reciprocal for the slopes below)
@@ -67,7 +81,7 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Op
   bool done = false;
   if (has_objects) {
     if (moved) o = o - shift;
-    done = TraceObjects<kPR, kMesh>(im, trace, rng, o, d, pol, c, &fate);
+    done = TraceObjects<kPR, kMesh>(im, trace, rng, o, d, pol, c, &fate, ray_index);
     if (moved) o = o + shift;
   }
   if (!done && d.z <= 0) {

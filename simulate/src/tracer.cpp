@@ -41,7 +41,7 @@ void ForEachCounter(C& c, F&& f) {
   for (auto& v : c.fates) f(v);
   f(c.interface_events), f(c.fresnel_evaluations), f(c.corrector_tests), f(c.mesh_queries);
   f(c.shape_queries), f(c.rays_hitting_objects), f(c.grin_steps), f(c.grin_segments);
-  f(c.grin_uniform_steps), f(c.motion_draws);
+  f(c.grin_uniform_steps), f(c.motion_draws), f(c.wavelength_draws);
   for (auto& v : c.path_class) f(v);
 }
 
@@ -89,6 +89,9 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
   im.motion = scene.has_motion();
   im.velocity = scene.velocity_um_per_us;
   im.exposure = scene.exposure;
+  im.spectral = scene.is_spectral();
+  im.spectrum = scene.source.spectrum;
+  for (const ObjectSpec& o : scene.objects) im.dispersion.push_back(o.dispersion);
   im.optics = MakeOptics(scene);
   // Source plane: before every object (and never after z = 0, where fields are defined).
   const double min_z = im.geometry.empty() ? 0.0 : im.geometry.min_z_um();
@@ -156,6 +159,12 @@ std::vector<std::string> Simulator::Effects() const {
                                                              : "objective:two_ideal_lenses");
   e.push_back("tube_lens");
   if (scene_.camera.psf_sigma_um > 0) e.push_back("camera_psf:gaussian");
+  if (impl_->spectral) {
+    static const char* type[] = {"", "gaussian", "lines", "file"};  // SpectrumType order
+    e.push_back(std::string("spectrum:") + type[int(scene_.source.spectrum.type)]);
+  }
+  if (impl_->motion || impl_->spectral)  // the packet path's sphere stage is for static spheres
+    e.push_back(std::string("scalar_near_objects:") + (impl_->motion ? "motion" : "spectrum"));
   if (impl_->motion) {
     static const char* pulse[] = {"", "tophat", "gaussian", "file"};  // PulseShape order
     e.push_back(std::string("motion:") + pulse[int(scene_.exposure.shape)]);

@@ -61,6 +61,7 @@ struct Accum {
   TraceCounters counters;
   std::unique_ptr<packet::Rays> rays;  // the packet path's batch (made on first use)
   SphereQueue sphere_queue;
+  std::vector<double> ray_index;  // spectral scenes: each object's index at the ray's wavelength
 };
 
 struct Simulator::Impl {
@@ -82,6 +83,10 @@ struct Simulator::Impl {
   bool motion = false;
   Vec3 velocity;
   ExposureSpec exposure;
+  /// The spectrum (Scene::is_spectral): each object's index law for the ray's wavelength.
+  bool spectral = false;
+  SpectrumSpec spectrum;
+  std::vector<Dispersion> dispersion;  // per object; law kNone: its constant index
   explicit Impl(const Scene& s) : geometry(s.objects) {}
   /// Whether the line through p along d can meet an object (the packet path's near test, lane
   /// for lane: a ray it calls far meets nothing, whenever it was emitted).

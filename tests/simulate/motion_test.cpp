@@ -143,8 +143,8 @@ TEST(Motion, TabulatedPulseIsCentredOnItsPowerWeightedMeanTime) {
   TempDir dir;
   const std::string csv = dir.Write("ramp.csv", "time_us,power\n0,0\n1,1\n");
   const ExposureSpec e = simulate::TabulatedExposure(csv);
-  EXPECT_NEAR(e.time_us.front(), -2.0 / 3, 1e-12);
-  EXPECT_NEAR(e.time_us.back(), 1.0 / 3, 1e-12);
+  EXPECT_NEAR(e.profile.x.front(), -2.0 / 3, 1e-12);
+  EXPECT_NEAR(e.profile.x.back(), 1.0 / 3, 1e-12);
   const int K = 40;
   std::vector<double> t, w;
   double sum = 0;

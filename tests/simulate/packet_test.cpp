@@ -135,6 +135,23 @@ TEST(Packet, MovingDropMatchesScalar) {
   EXPECT_GT(r.counters.motion_draws, 0u);
 }
 
+// The spectrum likewise: only rays near the dispersive drop draw a wavelength.
+TEST(Packet, DispersiveDropUnderASpectrumMatchesScalar) {
+  Scene s = DropScene(PartialReflection::kUnpolarized);
+  AddCorrector(&s);
+  s.source.spectrum.type = simulate::SpectrumType::kGaussian;
+  s.source.spectrum.center_um = 0.462, s.source.spectrum.fwhm_um = 0.03;
+  s.objects[0].dispersion.law = simulate::DispersionLaw::kCauchy;
+  s.objects[0].dispersion.coefficients = {1.32, 0.004};
+  s.velocity_um_per_us = s.objects[0].velocity_um_per_us = {0, 0, 5};  // and motion
+  s.exposure.shape = simulate::PulseShape::kTopHat;
+  s.exposure.duration_us = 0.4;
+  s.objects[0].sweep_um = 1;
+  const PlaneResult r = ExpectPacketsMatchScalar(s, -3, 300000);
+  EXPECT_GT(r.counters.wavelength_draws, 0u);
+  EXPECT_EQ(r.counters.wavelength_draws, r.counters.motion_draws);
+}
+
 TEST(Packet, SphereStageHardCasesMatchScalar) {
   // The sphere stage (rays that meet the scene's one homogeneous sphere): a bubble in water
   // (total internal reflection from outside), and a high-index sphere with a low interaction cap

@@ -152,7 +152,7 @@ TEST(SceneFile, MotionNeedsAPulseAndOneVelocity) {
   dir.Write("bad.csv", "time_us,power\n0,1\n0,2\n");
   EXPECT_NE(LoadError(std::string(kGood) + "[exposure]\nshape = \"file\"\nfile = \"" +
                       (dir / "bad.csv") + "\"\n")
-                .find("bad.csv:3:1: error: times must increase"),
+                .find("bad.csv:3:1: error: the first column must increase"),
             std::string::npos);
 }
 

@@ -24,6 +24,38 @@ namespace raymatch::simulate {
 enum class SourceType { kCollimated, kCone, kPoint, kLightField, kRayList };
 enum class FieldShape { kDisc, kRect };
 
+/// A density tabulated at increasing x, linear between the samples (a pulse's power over time, a
+/// spectrum's power over wavelength): inverse-CDF sampling and its mean.
+struct PiecewiseLinear {
+  std::vector<double> x, p;
+  std::vector<double> cumulative;  ///< integral of p up to each x (last = total)
+  double mean = 0;                 ///< integral of x p / integral of p
+  double Sample(double u) const;   ///< x for a uniform u in [0, 1)
+};
+
+/// Reads lines "x,p[,q]" (a header line allowed; p >= 0, x increasing; an optional third column
+/// multiplies p, e.g. a camera's quantum efficiency) into a PiecewiseLinear. Throws Error naming
+/// the file and line; `what` names the columns in messages.
+PiecewiseLinear ReadPiecewiseLinearCsv(const std::string& path, const std::string& what);
+
+/// Gaussian with the given centre and FWHM cut at +-3 FWHM: inverse CDF for u in [0, 1).
+double TruncatedGaussianSample(double center, double fwhm, double u);
+
+enum class SpectrumType { kNone, kGaussian, kLines, kFile };
+
+/// [source] spectrum: the illumination's wavelengths. Each ray that can meet a dispersive object
+/// draws its wavelength from its own stream; objects with a dispersion law (water, Cauchy,
+/// Sellmeier) then have that wavelength's index for it. Ideal lenses are achromatic.
+struct SpectrumSpec {
+  SpectrumType type = SpectrumType::kNone;
+  double center_um = 0, fwhm_um = 0;            ///< gaussian (drawn within +-3 FWHM)
+  std::vector<double> wavelengths_um, weights;  ///< lines (weights normalised to sum 1)
+  std::string file;                             ///< file: wavelength_um, power[, efficiency]
+  PiecewiseLinear table;                        ///< file
+  double Sample(double u) const;                ///< wavelength (um) for u in [0, 1)
+  double mean_um() const;                       ///< power-weighted mean wavelength
+};
+
 /// Illumination. Collimated, cone and light-field sources define rays by where they cross the
 /// reference plane z = 0 and their direction, then start them on a source plane before every
 /// object (back-traced along straight lines, paper Fig. 1b).
@@ -68,6 +100,18 @@ struct SourceSpec {
   /// the edge's keys leave the inside rays' paths unchanged (Simulator::source_weight()).
   enum class EdgePart { kAll, kInside, kBeyond };
   EdgePart edge_part = EdgePart::kAll;
+  SpectrumSpec spectrum;  ///< none: monochromatic at Scene::wavelength_um
+};
+
+enum class DispersionLaw { kNone, kWater, kCauchy, kSellmeier };
+
+/// How an object's index depends on the wavelength (none: a constant `index`, monochromatic).
+struct Dispersion {
+  DispersionLaw law = DispersionLaw::kNone;
+  double temperature_K = 0, density_kg_m3 = 0;  ///< water (IAPWS R9-97)
+  std::vector<double> coefficients;             ///< Cauchy: n = A + B / l^2 + C / l^4 (l in um)
+  std::vector<double> sellmeier_b, sellmeier_c_um2;  ///< n^2 = 1 + sum B l^2 / (l^2 - C)
+  double IndexAt(double wavelength_um) const;
 };
 
 enum class ShapeType { kSphere, kEllipsoid, kBox, kMesh };
@@ -93,6 +137,8 @@ struct ObjectSpec {
   /// water: "given" (density_kg_m3 in the file) or "defaulted" (Tanaka et al. 2001 at T);
   /// empty for a constant index.
   std::string density_source;
+  /// The index over the spectrum ([source] spectrum); `index` is its value at wavelength_um.
+  Dispersion dispersion;
   /// Gradient-index field inside the object (null: homogeneous, never integrated).
   std::shared_ptr<const IndexField> index_field;
   /// Velocity during the exposure, micrometres per microsecond (= m/s); center_um is the
@@ -112,11 +158,10 @@ enum class PulseShape { kNone, kTopHat, kGaussian, kFile };
 /// peak, a tabulated profile's power-weighted mean time.
 struct ExposureSpec {
   PulseShape shape = PulseShape::kNone;
-  double duration_us = 0;  ///< top-hat
-  double fwhm_us = 0;      ///< Gaussian (truncated at +-3 FWHM: 7 sigma)
-  std::string file;        ///< tabulated: CSV of time_us, relative power (piecewise linear)
-  std::vector<double> time_us, power;  ///< tabulated profile, times relative to its centre
-  std::vector<double> cumulative;      ///< tabulated: energy up to each sample (last = total)
+  double duration_us = 0;   ///< top-hat
+  double fwhm_us = 0;       ///< Gaussian (truncated at +-3 FWHM: 7 sigma)
+  std::string file;         ///< tabulated: CSV of time_us, relative power (piecewise linear)
+  PiecewiseLinear profile;  ///< tabulated, times relative to its power-weighted mean
   /// The largest |t - centre| a ray can draw.
   double max_offset_us() const;
   /// The emission time's offset from the pulse's centre for a uniform u in [0, 1).
@@ -191,6 +236,8 @@ struct Scene {
   /// so moving objects share one velocity); zero otherwise.
   Vec3 velocity_um_per_us{};
   bool has_motion() const { return Dot(velocity_um_per_us, velocity_um_per_us) > 0; }
+  /// A spectrum and at least one object whose index depends on the wavelength.
+  bool is_spectral() const;
   std::vector<double> defocus_um{0.0};  ///< focal-plane positions (see docs: sign convention)
   std::vector<std::string> warnings;    ///< non-fatal notes from loading (printed by apps)
 };

@@ -52,6 +52,7 @@ struct TraceCounters {
   uint64_t grin_segments = 0;       ///< ray segments integrated through index fields
   uint64_t grin_uniform_steps = 0;  ///< straight steps across uniform grid cells
   uint64_t motion_draws = 0;        ///< emission times drawn (rays that can meet moving objects)
+  uint64_t wavelength_draws = 0;    ///< wavelengths drawn (rays that can meet dispersive objects)
   /// Debye-style path classes of the first departure from the first object hit:
   /// [0] reflected externally, [k>=1] transmitted with k-1 internal reflections (7 = 6 or more).
   std::array<uint64_t, kNumPathClasses> path_class{};

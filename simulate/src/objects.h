@@ -194,10 +194,11 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
   // Objects the ray is inside, innermost last (nested objects: a bubble in a drop).
   int stack[kMaxNesting];
   int depth = 0;
+  const double* const index = ray_index ? ray_index : im.index.data();
   auto index_at = [&](int obj, const Vec3& x) {
     if (obj < 0) return im.medium;
     if (im.has_grin && im.field[obj]) return im.field[obj]->Index(x - im.center[obj]);
-    return ray_index ? ray_index[obj] : im.index[obj];
+    return index[obj];
   };
   int events = 0, internal_reflections = 0;
   bool classified = false;

@@ -8,6 +8,7 @@
 #include <sstream>
 
 #include "raymatch/simulate/tracer.h"
+#include "raymatch/simulate/water.h"
 #include "stats.h"
 #include "temp_dir.h"
 #include "test_scenes.h"
@@ -41,12 +42,9 @@ double MarginalFocus(double R, double n, double h) {
   return z + x / std::tan(dev);
 }
 
-TEST(BallLens, FocusesAtEffectiveFocalLength) {
-  const double R = 23, n = 1.5, h = 0.15 * R;
-  const double efl = n * 2 * R / (4 * (n - 1));
-  const double marginal = MarginalFocus(R, n, h);
-  Scene s = BaseScene();
-  s.objects = {Sphere(R, n)};
+/// The best-RMS focus of a collimated pencil of radius h through the scene's object: planes
+/// efl - 6 ... efl + 6 um, a least-squares parabola through the RMS spot radius squared.
+double BestRmsFocus(Scene s, double efl, double h) {
   s.source.type = SourceType::kCollimated;
   s.source.field_shape = FieldShape::kDisc;
   s.source.field_radius_um = h;
@@ -63,7 +61,7 @@ TEST(BallLens, FocusesAtEffectiveFocalLength) {
         const double c = r.counts.at(x, y), px = (x + 0.5) * 0.1, py = (y + 0.5) * 0.1;
         w += c, mx += c * px, my += c * py, mxx += c * px * px, myy += c * py * py;
       }
-    ASSERT_GT(w, 30000) << "spot left the sensor at z = " << z;
+    EXPECT_GT(w, 30000) << "spot left the sensor at z = " << z;
     mx /= w, my /= w;
     zs.push_back(z);
     rms2.push_back(mxx / w - mx * mx + myy / w - my * my);
@@ -87,11 +85,54 @@ TEST(BallLens, FocusesAtEffectiveFocalLength) {
   const double D = det3(S[4], S[3], S[2], S[3], S[2], S[1], S[2], S[1], S[0]);
   const double a = det3(T[2], S[3], S[2], T[1], S[2], S[1], T[0], S[1], S[0]) / D;
   const double b = det3(S[4], T[2], S[2], S[3], T[1], S[1], S[2], T[0], S[0]) / D;
-  const double z0 = efl - b / (2 * a);
-  ASSERT_GT(a, 0);
+  EXPECT_GT(a, 0);
+  return efl - b / (2 * a);
+}
+
+TEST(BallLens, FocusesAtEffectiveFocalLength) {
+  const double R = 23, n = 1.5, h = 0.15 * R;
+  const double efl = n * 2 * R / (4 * (n - 1));
+  const double marginal = MarginalFocus(R, n, h);
+  Scene s = BaseScene();
+  s.objects = {Sphere(R, n)};
+  const double z0 = BestRmsFocus(s, efl, h);
   EXPECT_LT(marginal, efl);  // spherical aberration: marginal rays focus closer
   EXPECT_GE(z0, marginal - 0.1) << "EFL " << efl << " marginal " << marginal;
   EXPECT_LE(z0, efl + 0.1) << "EFL " << efl << " marginal " << marginal;
+}
+
+// Issue 22: a water ball lens under a spectrum focuses each wavelength where its own index puts
+// it. One-line spectra at 400 and 700 nm (IAPWS R9-97, 20 C: n 1.3435 and 1.3310) through the
+// spectral path (each ray draws its wavelength): the best foci lie in each index's bracket
+// [marginal focus, EFL], and their shift lies between the marginal foci's shift and the EFLs'
+// (closed form: EFL = n R / (2 (n - 1))), +-0.15 um (shot noise and pixels of both foci).
+TEST(BallLens, WaterFocusShiftsWithTheWavelengthAsItsIndex) {
+  const double R = 23, h = 0.15 * R;
+  simulate::Dispersion water;
+  water.law = simulate::DispersionLaw::kWater;
+  water.temperature_K = 293.15;
+  water.density_kg_m3 = simulate::WaterDensityTanaka(293.15);
+  double focus[2], efl[2], marginal[2];
+  const double lines[2] = {0.40, 0.70};
+  for (int k = 0; k < 2; ++k) {
+    const double n = water.IndexAt(lines[k]);
+    efl[k] = n * R / (2 * (n - 1));
+    marginal[k] = MarginalFocus(R, n, h);
+    Scene s = BaseScene();
+    s.objects = {Sphere(R, water.IndexAt(0.55))};  // its constant index: not the one traced
+    s.objects[0].dispersion = water;
+    s.source.spectrum.type = simulate::SpectrumType::kLines;
+    s.source.spectrum.wavelengths_um = {lines[k]};
+    s.source.spectrum.weights = {1};
+    ASSERT_TRUE(s.is_spectral());
+    focus[k] = BestRmsFocus(s, efl[k], h);
+    EXPECT_GE(focus[k], marginal[k] - 0.1) << lines[k];
+    EXPECT_LE(focus[k], efl[k] + 0.1) << lines[k];
+  }
+  const double shift = focus[1] - focus[0];
+  EXPECT_GT(efl[1] - efl[0], 1.0);  // 1.27 um: red focuses farther
+  EXPECT_GE(shift, std::min(efl[1] - efl[0], marginal[1] - marginal[0]) - 0.15) << shift;
+  EXPECT_LE(shift, std::max(efl[1] - efl[0], marginal[1] - marginal[0]) + 0.15) << shift;
 }
 
 // ---- Debye-series fractions for a sphere in collimated light (REFERENCE.md section 3).

@@ -46,6 +46,62 @@ static const char* PrName(PartialReflection p) {
                                                 : "polarized";
 }
 
+namespace {
+
+/// An object's index over the spectrum: mean, least and largest at 2000 quantiles, or why it is
+/// monochromatic.
+nlohmann::json OverTheSpectrum(const ObjectSpec& o, const Scene& s) {
+  if (o.index_field) return "monochromatic: index fields at wavelength_um";
+  if (o.dispersion.law == DispersionLaw::kNone)
+    return "monochromatic: a constant index (no dispersion law)";
+  double sum = 0, lo = 1e300, hi = -1e300;
+  const int K = 2000;
+  for (int k = 0; k < K; ++k) {
+    const double n = o.dispersion.IndexAt(s.source.spectrum.Sample((k + 0.5) / K));
+    sum += n, lo = std::min(lo, n), hi = std::max(hi, n);
+  }
+  return {{"mean_index", sum / K}, {"min_index", lo}, {"max_index", hi}};
+}
+
+/// The sidecar's "spectrum" block.
+nlohmann::json SpectrumJson(const Scene& s) {
+  const SpectrumSpec& sp = s.source.spectrum;
+  static const char* types[] = {"none", "gaussian", "lines", "file"};  // SpectrumType order
+  nlohmann::json j_sp = {{"type", types[int(sp.type)]},
+                         {"mean_um", sp.mean_um()},
+                         {"traced", s.is_spectral() ? "each ray near an object draws its wavelength"
+                                                    : "monochromatic: no object has a "
+                                                      "dispersion law"}};
+  if (sp.type == SpectrumType::kGaussian) j_sp["center_um"] = sp.center_um;
+  if (sp.type == SpectrumType::kGaussian) j_sp["fwhm_um"] = sp.fwhm_um;
+  if (sp.type == SpectrumType::kLines) j_sp["wavelengths_um"] = sp.wavelengths_um;
+  if (sp.type == SpectrumType::kLines) j_sp["weights"] = sp.weights;
+  if (sp.type == SpectrumType::kFile) j_sp["file"] = sp.file;
+  return j_sp;
+}
+
+/// The sidecar's "exposure" block (motion during the pulse).
+nlohmann::json ExposureJson(const Scene& s) {
+  const ExposureSpec& e = s.exposure;
+  static const char* shapes[] = {"none", "tophat", "gaussian", "file"};  // PulseShape order
+  nlohmann::json ex = {
+      {"pulse", shapes[int(e.shape)]},  // not "shape": tifffile reads a description
+                                        // with a "shape" key as its own array metadata
+      {"velocity_um_per_us",
+       {s.velocity_um_per_us.x, s.velocity_um_per_us.y, s.velocity_um_per_us.z}},
+      {"max_offset_us", e.max_offset_us()},
+      {"path_um", Length(s.velocity_um_per_us) * 2 * e.max_offset_us()},
+      {"convention",
+       "objects' center_um is their position at the pulse's centre (top-hat: midpoint; "
+       "Gaussian: peak, drawn within +-3 FWHM; file: power-weighted mean time)"}};
+  if (e.shape == PulseShape::kTopHat) ex["duration_us"] = e.duration_us;
+  if (e.shape == PulseShape::kGaussian) ex["fwhm_us"] = e.fwhm_us;
+  if (e.shape == PulseShape::kFile) ex["file"] = e.file;
+  return ex;
+}
+
+}  // namespace
+
 nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_t plane_index) {
   const Scene& s = sim.scene();
   nlohmann::json fates = nlohmann::json::object();
@@ -60,21 +116,8 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
                            : "defaulted (Tanaka et al. 2001, Metrologia 38:301, at temperature_K)";
       obj["density_given"] = o.density_source == "given";
     }
-    if (s.source.spectrum.type != SpectrumType::kNone) {
-      if (o.dispersion.law == DispersionLaw::kNone || o.index_field) {
-        obj["over_the_spectrum"] = o.index_field
-                                       ? "monochromatic: index fields at wavelength_um"
-                                       : "monochromatic: a constant index (no dispersion law)";
-      } else {  // the index at 2000 quantiles of the spectrum
-        double sum = 0, lo = 1e300, hi = -1e300;
-        const int K = 2000;
-        for (int k = 0; k < K; ++k) {
-          const double n = o.dispersion.IndexAt(s.source.spectrum.Sample((k + 0.5) / K));
-          sum += n, lo = std::min(lo, n), hi = std::max(hi, n);
-        }
-        obj["over_the_spectrum"] = {{"mean_index", sum / K}, {"min_index", lo}, {"max_index", hi}};
-      }
-    }
+    if (s.source.spectrum.type != SpectrumType::kNone)
+      obj["over_the_spectrum"] = OverTheSpectrum(o, s);
     objects.push_back(obj);
   }
   // Debye path classes of the first departure from the first object hit: p = 0 reflected
@@ -139,40 +182,8 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
       {"medium_index", s.medium_index},
       {"objects", objects},
   };
-  if (s.source.spectrum.type != SpectrumType::kNone) {
-    const SpectrumSpec& sp = s.source.spectrum;
-    static const char* types[] = {"none", "gaussian", "lines", "file"};  // SpectrumType order
-    nlohmann::json j_sp = {
-        {"type", types[int(sp.type)]},
-        {"mean_um", sp.mean_um()},
-        {"traced", s.is_spectral() ? "each ray near an object draws its wavelength"
-                                   : "monochromatic: no object has a "
-                                     "dispersion law"}};
-    if (sp.type == SpectrumType::kGaussian) j_sp["center_um"] = sp.center_um;
-    if (sp.type == SpectrumType::kGaussian) j_sp["fwhm_um"] = sp.fwhm_um;
-    if (sp.type == SpectrumType::kLines) j_sp["wavelengths_um"] = sp.wavelengths_um;
-    if (sp.type == SpectrumType::kLines) j_sp["weights"] = sp.weights;
-    if (sp.type == SpectrumType::kFile) j_sp["file"] = sp.file;
-    j["spectrum"] = j_sp;
-  }
-  if (s.has_motion()) {
-    const ExposureSpec& e = s.exposure;
-    static const char* shapes[] = {"none", "tophat", "gaussian", "file"};  // PulseShape order
-    nlohmann::json ex = {
-        {"pulse", shapes[int(e.shape)]},  // not "shape": tifffile reads a description
-                                          // with a "shape" key as its own array metadata
-        {"velocity_um_per_us",
-         {s.velocity_um_per_us.x, s.velocity_um_per_us.y, s.velocity_um_per_us.z}},
-        {"max_offset_us", e.max_offset_us()},
-        {"path_um", Length(s.velocity_um_per_us) * 2 * e.max_offset_us()},
-        {"convention",
-         "objects' center_um is their position at the pulse's centre (top-hat: midpoint; "
-         "Gaussian: peak, drawn within +-3 FWHM; file: power-weighted mean time)"}};
-    if (e.shape == PulseShape::kTopHat) ex["duration_us"] = e.duration_us;
-    if (e.shape == PulseShape::kGaussian) ex["fwhm_us"] = e.fwhm_us;
-    if (e.shape == PulseShape::kFile) ex["file"] = e.file;
-    j["exposure"] = ex;
-  }
+  if (s.source.spectrum.type != SpectrumType::kNone) j["spectrum"] = SpectrumJson(s);
+  if (s.has_motion()) j["exposure"] = ExposureJson(s);
   return j;
 }
 

@@ -553,6 +553,37 @@ double Magnification(const OpticsSpec& o) { return -o.tube_focal_mm / o.objectiv
 
 Scene LoadScene(const std::string& path) { return LoadScene(ParseTomlFile(path), path); }
 
+/// [camera]: pixels, pitch (default the calibration's), offset, sensor shift, flip, PSF, read-out.
+void ReadCamera(TomlReader r, const CalibrationData* cal, CameraSpec* c) {
+  const auto px = r.Numbers("pixels", 2, 2);
+  if (px[0] < 1 || px[1] < 1 || px[0] > 65536 || px[1] > 65536 || px[0] != std::floor(px[0]) ||
+      px[1] != std::floor(px[1]))
+    r.Fail("pixels", "expected two whole numbers in [1, 65536] (columns, rows)");
+  c->nx = static_cast<int>(px[0]);
+  c->ny = static_cast<int>(px[1]);
+  c->pixel_pitch_um = r.Positive("pixel_pitch_um", cal ? cal->pixel_pitch_um : 0.0);
+  if (!(c->pixel_pitch_um > 0)) r.Positive("pixel_pitch_um");  // required: report it
+  if (r.Has("offset_um")) {
+    const auto v = r.Numbers("offset_um", 2, 2);
+    c->offset_um = {v[0], v[1]};
+  }
+  c->sensor_shift_mm = r.Number("sensor_shift_mm", 0);
+  c->flip = r.Bool("flip", true);
+  c->psf_sigma_um = r.InRange("psf_sigma_um", 0, 100, c->psf_sigma_um);
+  if (r.Has("readout")) {
+    TomlReader ro = r.Table("readout");
+    CameraReadout readout;
+    readout.gain_e_per_dn = ro.Positive("gain_e_per_dn");
+    readout.bit_depth = static_cast<int>(ro.Integer("bit_depth", 12, 1, 16));
+    readout.dark_dn = ro.InRange("dark_dn", 0, readout.max_code(), 0);
+    readout.read_noise_e = ro.InRange("read_noise_e", 0, 1e6, 0);
+    readout.well_capacity_e = ro.InRange("well_capacity_e", 0, 1e12, 0);
+    ro.Finish();
+    c->readout = readout;
+  }
+  r.Finish();
+}
+
 /// [exposure] and the objects' velocities: moving objects share one velocity (motion is traced
 /// in their frame), and a moving object needs a pulse to move during.
 void ReadMotion(TomlReader& r, const std::string& path, Scene* s) {
@@ -676,34 +707,7 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
     s.optics.corrector.transmissions = cal->transmissions;
   }
 
-  TomlReader cam = r.Table("camera");
-  const auto px = cam.Numbers("pixels", 2, 2);
-  if (px[0] < 1 || px[1] < 1 || px[0] > 65536 || px[1] > 65536 || px[0] != std::floor(px[0]) ||
-      px[1] != std::floor(px[1]))
-    cam.Fail("pixels", "expected two whole numbers in [1, 65536] (columns, rows)");
-  s.camera.nx = static_cast<int>(px[0]);
-  s.camera.ny = static_cast<int>(px[1]);
-  s.camera.pixel_pitch_um = cam.Positive("pixel_pitch_um", cal ? cal->pixel_pitch_um : 0.0);
-  if (!(s.camera.pixel_pitch_um > 0)) cam.Positive("pixel_pitch_um");  // required: report it
-  if (cam.Has("offset_um")) {
-    const auto v = cam.Numbers("offset_um", 2, 2);
-    s.camera.offset_um = {v[0], v[1]};
-  }
-  s.camera.sensor_shift_mm = cam.Number("sensor_shift_mm", 0);
-  s.camera.flip = cam.Bool("flip", true);
-  s.camera.psf_sigma_um = cam.InRange("psf_sigma_um", 0, 100, s.camera.psf_sigma_um);
-  if (cam.Has("readout")) {
-    TomlReader ro = cam.Table("readout");
-    CameraReadout c;
-    c.gain_e_per_dn = ro.Positive("gain_e_per_dn");
-    c.bit_depth = static_cast<int>(ro.Integer("bit_depth", 12, 1, 16));
-    c.dark_dn = ro.InRange("dark_dn", 0, c.max_code(), 0);
-    c.read_noise_e = ro.InRange("read_noise_e", 0, 1e6, 0);
-    c.well_capacity_e = ro.InRange("well_capacity_e", 0, 1e12, 0);
-    ro.Finish();
-    s.camera.readout = c;
-  }
-  cam.Finish();
+  ReadCamera(r.Table("camera"), cal ? &*cal : nullptr, &s.camera);
 
   if (r.Has("trace")) {
     TomlReader tr = r.Table("trace");

@@ -11,6 +11,7 @@
 
 #include "raymatch/simulate/scene.h"
 #include "raymatch/simulate/tracer.h"
+#include "stats.h"
 #include "temp_dir.h"
 #include "test_scenes.h"
 
@@ -47,27 +48,6 @@ PlaneResult Trace(const Scene& s, uint64_t rays = kRays) {
   return Simulator(s).TracePlane(0, 0, rays, rc);
 }
 
-/// Reduced chi-square of a - sum_k w_k b_k over the central 32 x 32 pixels (the drop and its
-/// path), with variance a + sum_k w_k^2 b_k (Poisson on both sides); also the number of pixels.
-std::pair<double, double> ChiSquare(const Image& a, const std::vector<Image>& b,
-                                    const std::vector<double>& w) {
-  double chi2 = 0, n = 0;
-  for (size_t i = 0; i < a.size(); ++i) {
-    if (std::abs(int(i % a.width) - a.width / 2) >= 16 ||
-        std::abs(int(i / a.width) - a.height / 2) >= 16)
-      continue;
-    double mean = 0, var = a.pixels[i];
-    for (size_t k = 0; k < b.size(); ++k) {
-      mean += w[k] * b[k].pixels[i];
-      var += w[k] * w[k] * b[k].pixels[i];
-    }
-    if (var <= 0) continue;
-    chi2 += (a.pixels[i] - mean) * (a.pixels[i] - mean) / var;
-    n += 1;
-  }
-  return {chi2 / n, n};
-}
-
 /// Static images of the drop at times t_k (velocity v), seeds 100 + k.
 std::vector<Image> StaticAlongPath(Vec3 v, const std::vector<double>& t) {
   std::vector<Image> out;
@@ -89,9 +69,9 @@ void ExpectMeanOfStatic(const Scene& moving, const std::vector<double>& t,
   const PlaneResult m = Trace(moving);
   EXPECT_GT(m.counters.motion_draws, kRays / 20);
   const std::vector<Image> stat = StaticAlongPath(moving.velocity_um_per_us, t);
-  const auto [chi2, n] = ChiSquare(m.counts, stat, w);
+  const auto [chi2, n] = CentralChiSquare(m.counts, stat, w);
   EXPECT_LT(std::abs(chi2 - 1), 5 * std::sqrt(2 / n)) << "reduced chi-square " << chi2;
-  const auto [chi2_static, n2] = ChiSquare(m.counts, StaticAlongPath({}, {0}), {1.0});
+  const auto [chi2_static, n2] = CentralChiSquare(m.counts, StaticAlongPath({}, {0}), {1.0});
   EXPECT_GT(chi2_static, 1 + 10 * std::sqrt(2 / n2)) << "motion not visible: " << chi2_static;
 }
 

@@ -8,6 +8,7 @@
 #include "raymatch/simulate/scene.h"
 #include "raymatch/simulate/tracer.h"
 #include "raymatch/simulate/water.h"
+#include "stats.h"
 #include "temp_dir.h"
 #include "test_scenes.h"
 
@@ -50,27 +51,6 @@ PlaneResult Trace(const Scene& s) {
   return Simulator(s).TracePlane(25, 0, kRays, rc);  // 22 um past the drop: n shows
 }
 
-/// Reduced chi-square of a - sum_k w_k b_k over the central 32 x 32 pixels, variance
-/// a + sum_k w_k^2 b_k; and the number of pixels.
-std::pair<double, double> ChiSquare(const Image& a, const std::vector<Image>& b,
-                                    const std::vector<double>& w) {
-  double chi2 = 0, n = 0;
-  for (size_t i = 0; i < a.size(); ++i) {
-    if (std::abs(int(i % a.width) - a.width / 2) >= 16 ||
-        std::abs(int(i / a.width) - a.height / 2) >= 16)
-      continue;
-    double mean = 0, var = a.pixels[i];
-    for (size_t k = 0; k < b.size(); ++k) {
-      mean += w[k] * b[k].pixels[i];
-      var += w[k] * w[k] * b[k].pixels[i];
-    }
-    if (var <= 0) continue;
-    chi2 += (a.pixels[i] - mean) * (a.pixels[i] - mean) / var;
-    n += 1;
-  }
-  return {chi2 / n, n};
-}
-
 TEST(Spectrum, TwoLinesGiveTheWeightedSumOfMonochromaticImages) {
   Scene s = Drop(7, 0);
   SpectrumSpec& sp = s.source.spectrum;
@@ -84,10 +64,10 @@ TEST(Spectrum, TwoLinesGiveTheWeightedSumOfMonochromaticImages) {
   EXPECT_GT(r.counters.wavelength_draws, kRays / 100);  // the rays near the drop
   const Image blue = Trace(Drop(101, Cauchy().IndexAt(0.4))).counts;
   const Image red = Trace(Drop(102, Cauchy().IndexAt(0.7))).counts;
-  const auto [chi2, n] = ChiSquare(r.counts, {blue, red}, {0.3, 0.7});
+  const auto [chi2, n] = CentralChiSquare(r.counts, {blue, red}, {0.3, 0.7});
   EXPECT_LT(std::abs(chi2 - 1), 5 * std::sqrt(2 / n)) << "reduced chi-square " << chi2;
   // The test can tell: the image of the stronger line alone is not the same.
-  const auto [chi2_red, n2] = ChiSquare(r.counts, {red}, {1.0});
+  const auto [chi2_red, n2] = CentralChiSquare(r.counts, {red}, {1.0});
   EXPECT_GT(chi2_red, 1 + 10 * std::sqrt(2 / n2)) << chi2_red;
 }
 

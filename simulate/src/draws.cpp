@@ -20,6 +20,16 @@ constexpr double kGaussianCutFwhm = 3;                // Gaussians are drawn wit
 
 }  // namespace
 
+const char* SpectrumTypeName(SpectrumType t) {
+  static const char* names[] = {"none", "gaussian", "lines", "file"};  // SpectrumType order
+  return names[int(t)];
+}
+
+const char* PulseName(PulseShape s) {
+  static const char* names[] = {"none", "tophat", "gaussian", "file"};  // PulseShape order
+  return names[int(s)];
+}
+
 double PiecewiseLinear::Sample(double u) const {
   // Find the segment holding the integral u P, then solve the trapezoid's quadratic in it.
   const double target = u * cumulative.back();
@@ -78,8 +88,8 @@ PiecewiseLinear ReadPiecewiseLinearCsv(const std::string& path, const std::strin
 double TruncatedGaussianSample(double center, double fwhm, double u) {
   // Inverse CDF of the normal distribution cut at +-a sigma: u -> Phi^-1(Phi(-a) + u (1 -
   // 2 Phi(-a))), with Phi^-1(q) = sqrt(2) erf^-1(2 q - 1).
-  const double sigma = fwhm / kFwhmPerSigma, a = kGaussianCutFwhm * kFwhmPerSigma;
-  const double lo = 0.5 * std::erfc(a / std::sqrt(2.0));
+  const double sigma = fwhm / kFwhmPerSigma;
+  static const double lo = 0.5 * std::erfc(kGaussianCutFwhm * kFwhmPerSigma / std::sqrt(2.0));
   const double q = lo + u * (1 - 2 * lo);
   return center + sigma * std::sqrt(2.0) * boost::math::erf_inv(2 * q - 1);
 }

@@ -253,7 +253,7 @@ Geometry::Geometry(const std::vector<ObjectSpec>& objects) {
   for (size_t i = 0; i < objects.size(); ++i) {
     const ObjectSpec& o = objects[i];
     const int id = static_cast<int>(i);
-    double size = 0;
+    double size = 0, lowest_z = 1e300;  // the object's lowest z (meshes: their lowest vertex)
     switch (o.shape) {
       case ShapeType::kSphere:
         spheres_.push_back({o.center_um, o.radius_um, o.radius_um * o.radius_um, id});
@@ -281,7 +281,7 @@ Geometry::Geometry(const std::vector<ObjectSpec>& objects) {
         for (size_t k = 0; k < v.size(); k += 3) {
           const Vec3 p(v[k], v[k + 1], v[k + 2]);
           r2 = std::max(r2, Dot(p - o.center_um, p - o.center_um));
-          min_z = std::min(min_z, p.z);
+          lowest_z = std::min(lowest_z, p.z);
         }
         size = std::sqrt(r2);
         vertices_.push_back(std::move(v));
@@ -297,8 +297,8 @@ Geometry::Geometry(const std::vector<ObjectSpec>& objects) {
     extent_um_ = std::max(extent_um_, Length(o.center_um) + size + o.sweep_um);
     bound_center_.push_back(o.center_um);
     bound_radius_.push_back(size + o.sweep_um);
-    if (o.shape != ShapeType::kMesh) min_z = std::min(min_z, o.center_um.z - size - o.sweep_um);
-    if (o.shape == ShapeType::kMesh) min_z -= o.sweep_um;
+    if (o.shape != ShapeType::kMesh) lowest_z = o.center_um.z - size;
+    min_z = std::min(min_z, lowest_z - o.sweep_um);
   }
   min_z_um_ = objects.empty() ? 0 : min_z;
 

@@ -66,8 +66,7 @@ nlohmann::json OverTheSpectrum(const ObjectSpec& o, const Scene& s) {
 /// The sidecar's "spectrum" block.
 nlohmann::json SpectrumJson(const Scene& s) {
   const SpectrumSpec& sp = s.source.spectrum;
-  static const char* types[] = {"none", "gaussian", "lines", "file"};  // SpectrumType order
-  nlohmann::json j_sp = {{"type", types[int(sp.type)]},
+  nlohmann::json j_sp = {{"type", SpectrumTypeName(sp.type)},
                          {"mean_um", sp.mean_um()},
                          {"traced", s.is_spectral() ? "each ray near an object draws its wavelength"
                                                     : "monochromatic: no object has a "
@@ -83,10 +82,9 @@ nlohmann::json SpectrumJson(const Scene& s) {
 /// The sidecar's "exposure" block (motion during the pulse).
 nlohmann::json ExposureJson(const Scene& s) {
   const ExposureSpec& e = s.exposure;
-  static const char* shapes[] = {"none", "tophat", "gaussian", "file"};  // PulseShape order
   nlohmann::json ex = {
-      {"pulse", shapes[int(e.shape)]},  // not "shape": tifffile reads a description
-                                        // with a "shape" key as its own array metadata
+      {"pulse", PulseName(e.shape)},  // not "shape": tifffile reads a description
+                                      // with a "shape" key as its own array metadata
       {"velocity_um_per_us",
        {s.velocity_um_per_us.x, s.velocity_um_per_us.y, s.velocity_um_per_us.z}},
       {"max_offset_us", e.max_offset_us()},

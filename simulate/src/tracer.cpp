@@ -160,14 +160,12 @@ std::vector<std::string> Simulator::Effects() const {
   e.push_back("tube_lens");
   if (scene_.camera.psf_sigma_um > 0) e.push_back("camera_psf:gaussian");
   if (impl_->spectral) {
-    static const char* type[] = {"", "gaussian", "lines", "file"};  // SpectrumType order
-    e.push_back(std::string("spectrum:") + type[int(scene_.source.spectrum.type)]);
+    e.push_back(std::string("spectrum:") + SpectrumTypeName(scene_.source.spectrum.type));
   }
   if (impl_->motion || impl_->spectral)  // the packet path's sphere stage is for static spheres
     e.push_back(std::string("scalar_near_objects:") + (impl_->motion ? "motion" : "spectrum"));
   if (impl_->motion) {
-    static const char* pulse[] = {"", "tophat", "gaussian", "file"};  // PulseShape order
-    e.push_back(std::string("motion:") + pulse[int(scene_.exposure.shape)]);
+    e.push_back(std::string("motion:") + PulseName(scene_.exposure.shape));
   }
   e.push_back(impl_->packets.ok ? std::string("simd_packets")
                                 : std::string("scalar_only:") + impl_->packets.reason);

@@ -42,6 +42,7 @@ PiecewiseLinear ReadPiecewiseLinearCsv(const std::string& path, const std::strin
 double TruncatedGaussianSample(double center, double fwhm, double u);
 
 enum class SpectrumType { kNone, kGaussian, kLines, kFile };
+const char* SpectrumTypeName(SpectrumType t);  ///< "none", "gaussian", "lines", "file"
 
 /// [source] spectrum: the illumination's wavelengths. Each ray that can meet a dispersive object
 /// draws its wavelength from its own stream; objects with a dispersion law (water, Cauchy,
@@ -151,6 +152,7 @@ struct ObjectSpec {
 };
 
 enum class PulseShape { kNone, kTopHat, kGaussian, kFile };
+const char* PulseName(PulseShape s);  ///< "none", "tophat", "gaussian", "file"
 
 /// [exposure]: the illumination pulse's time profile. Each ray that can meet a moving object
 /// draws its emission time from its own stream (Offset); objects are traced where they are at

@@ -36,11 +36,11 @@ namespace fs = std::filesystem;
 // ---------------------------------------------------------------------------------------------
 // Sample types and the channel average every reader ends in.
 
-enum class Sample { kU8, kI8, kU16, kI16, kU32, kI32, kF16, kF32, kF64 };
+enum class Sample { kU8, kI8, kU16, kI16, kU32, kI32, kF32, kF64 };
 
 const char* SampleName(Sample s) {
-  static constexpr std::array<const char*, 9> kNames = {
-      "uint8", "int8", "uint16", "int16", "uint32", "int32", "half", "float", "double"};
+  static constexpr std::array<const char*, 8> kNames = {"uint8",  "int8",  "uint16", "int16",
+                                                        "uint32", "int32", "float",  "double"};
   return kNames[size_t(s)];
 }
 
@@ -70,7 +70,7 @@ double Load(const unsigned char* p) {
   return static_cast<double>(v);
 }
 
-/// Value k of a row of samples of type s (host byte order; half is not stored in rows).
+/// Value k of a row of samples of type s (host byte order).
 double ValueAt(Sample s, const unsigned char* row, size_t k) {
   switch (s) {
     case Sample::kU8:
@@ -328,17 +328,17 @@ struct PngMessage {
 
 void PngWarning(png_structp, png_const_charp) {}
 
-/// Decodes into `rows` (allocated here before any libpng call that can fail); false on a libpng
-/// error (its message in `m`). Nothing with a destructor lives across setjmp in this function.
-bool PngDecode(FILE* fp, PngMessage* m, std::vector<unsigned char>* pixels, int* width, int* height,
-               int* channels, int* bits, const std::string& path) {
+/// Decodes into `pixels`, rows addressed through `row_ptrs` (both the caller's: nothing with a
+/// destructor lives across setjmp in this function); false on a libpng error (its message in
+/// `m`).
+bool PngDecode(FILE* fp, PngMessage* m, std::vector<unsigned char>* pixels,
+               std::vector<png_bytep>* row_ptrs, int* width, int* height, int* channels, int* bits,
+               const std::string& path) {
   png_structp png = png_create_read_struct(PNG_LIBPNG_VER_STRING, m, PngError, PngWarning);
   if (!png) return false;
   png_infop info = png_create_info_struct(png);
-  std::vector<png_bytep>* row_ptrs = new std::vector<png_bytep>;
   if (!info || setjmp(png_jmpbuf(png))) {
     png_destroy_read_struct(&png, &info, nullptr);
-    delete row_ptrs;
     return false;
   }
   png_init_io(png, fp);
@@ -358,7 +358,6 @@ bool PngDecode(FILE* fp, PngMessage* m, std::vector<unsigned char>* pixels, int*
     CheckDeclaredImageSize(path, w, h, *channels, *bits / 8, "deflate");
   } catch (...) {
     png_destroy_read_struct(&png, &info, nullptr);
-    delete row_ptrs;
     throw;
   }
   const size_t row_bytes = png_get_rowbytes(png, info);
@@ -368,7 +367,6 @@ bool PngDecode(FILE* fp, PngMessage* m, std::vector<unsigned char>* pixels, int*
   png_read_image(png, row_ptrs->data());
   png_read_end(png, nullptr);
   png_destroy_read_struct(&png, &info, nullptr);
-  delete row_ptrs;
   return true;
 }
 
@@ -377,8 +375,9 @@ Image ReadPng(const std::string& path, ImageFileInfo* info) {
   if (!fp) throw Error(FileLocation{path}, "cannot read image: cannot open the file");
   PngMessage m;
   std::vector<unsigned char> px;
+  std::vector<png_bytep> rows;
   int w = 0, h = 0, nc = 1, bits = 8;
-  if (!PngDecode(fp.get(), &m, &px, &w, &h, &nc, &bits, path))
+  if (!PngDecode(fp.get(), &m, &px, &rows, &w, &h, &nc, &bits, path))
     throw Error(FileLocation{path}, std::string("cannot read image: ") + m.text);
   const Sample s = bits == 16 ? Sample::kU16 : Sample::kU8;
   ChannelMean mean(w, h, nc);

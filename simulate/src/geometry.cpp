@@ -248,11 +248,13 @@ void LoadMesh(const ObjectSpec& o, std::vector<float>* verts, std::vector<unsign
 
 }  // namespace
 
-Geometry::Geometry(const std::vector<ObjectSpec>& objects) {
+Geometry::Geometry(const std::vector<ObjectSpec>& objects, double max_offset_us) {
   double min_z = 1e300;
+  std::vector<Vec3> mesh_travel;  // per mesh: its displacement at the pulse's last offset
   for (size_t i = 0; i < objects.size(); ++i) {
     const ObjectSpec& o = objects[i];
     const int id = static_cast<int>(i);
+    const double sweep = o.SweepUm(max_offset_us);
     double size = 0, lowest_z = 1e300;  // the object's lowest z (meshes: their lowest vertex)
     switch (o.shape) {
       case ShapeType::kSphere:
@@ -288,17 +290,18 @@ Geometry::Geometry(const std::vector<ObjectSpec>& objects) {
         indices_.push_back(std::move(idx));
         mesh_object_.push_back(id);
         mesh_info_.push_back(info);
+        mesh_travel.push_back(o.velocity_um_per_us * max_offset_us);
         break;
       }
     }
     eps_.push_back((o.shape == ShapeType::kMesh ? kMeshEpsilon : kAnalyticEpsilon) *
                    std::max(size, Length(o.center_um) * 1e-3 + size));
-    // A moving object's bounds hold it wherever it is during the exposure (sweep_um).
-    extent_um_ = std::max(extent_um_, Length(o.center_um) + size + o.sweep_um);
+    // A moving object's bounds hold it wherever it is during the exposure (its sweep).
+    extent_um_ = std::max(extent_um_, Length(o.center_um) + size + sweep);
     bound_center_.push_back(o.center_um);
-    bound_radius_.push_back(size + o.sweep_um);
+    bound_radius_.push_back(size + sweep);
     if (o.shape != ShapeType::kMesh) lowest_z = o.center_um.z - size;
-    min_z = std::min(min_z, lowest_z - o.sweep_um);
+    min_z = std::min(min_z, lowest_z - sweep);
   }
   min_z_um_ = objects.empty() ? 0 : min_z;
 
@@ -311,9 +314,28 @@ Geometry::Geometry(const std::vector<ObjectSpec>& objects) {
     rtcSetSceneFlags(scene, RTC_SCENE_FLAG_ROBUST);
     for (size_t m = 0; m < vertices_.size(); ++m) {
       RTCGeometry g = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_TRIANGLE);
-      rtcSetSharedGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
-                                 vertices_[m].data(), 0, 3 * sizeof(float),
-                                 vertices_[m].size() / 3);
+      const size_t nv = vertices_[m].size() / 3;
+      const Vec3 travel = mesh_travel[m];
+      if (Dot(travel, travel) > 0) {
+        // A moving mesh: Embree's linear motion blur between its positions at the pulse's first
+        // (-max) and last (+max) offsets; a ray at time (t + max) / (2 max) meets it where it
+        // is at t (the interpolation is exact for uniform motion).
+        rtcSetGeometryTimeStepCount(g, 2);
+        for (unsigned step = 0; step < 2; ++step) {
+          const Vec3 by = step == 0 ? -travel : travel;
+          std::vector<float>& v = moving_vertices_.emplace_back(vertices_[m]);
+          for (size_t k = 0; k < nv; ++k) {
+            v[3 * k] = float(v[3 * k] + by.x);
+            v[3 * k + 1] = float(v[3 * k + 1] + by.y);
+            v[3 * k + 2] = float(v[3 * k + 2] + by.z);
+          }
+          rtcSetSharedGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, step, RTC_FORMAT_FLOAT3, v.data(),
+                                     0, 3 * sizeof(float), nv);
+        }
+      } else {
+        rtcSetSharedGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
+                                   vertices_[m].data(), 0, 3 * sizeof(float), nv);
+      }
       rtcSetSharedGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, indices_[m].data(),
                                  0, 3 * sizeof(unsigned), indices_[m].size() / 3);
       rtcCommitGeometry(g);
@@ -331,7 +353,7 @@ Geometry::~Geometry() {
   if (device_) rtcReleaseDevice(static_cast<RTCDevice>(device_));
 }
 
-bool Geometry::IntersectMesh(const Vec3& o, const Vec3& d, Hit* hit) const {
+bool Geometry::IntersectMesh(const Vec3& o, const Vec3& d, Hit* hit, float time) const {
   RTCIntersectContext ctx;
   rtcInitIntersectContext(&ctx);
   RTCRayHit rh;
@@ -341,7 +363,7 @@ bool Geometry::IntersectMesh(const Vec3& o, const Vec3& d, Hit* hit) const {
   rh.ray.tfar = std::numeric_limits<float>::infinity();
   rh.ray.mask = 0xFFFFFFFFu;
   rh.ray.flags = 0;
-  rh.ray.time = 0.f;
+  rh.ray.time = time;
   rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
   rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
   rtcIntersect1(static_cast<RTCScene>(scene_), &ctx, &rh);

@@ -23,6 +23,11 @@ inline Vec3 RandomPerpendicular(const Vec3& d, double u) {
 
 enum class GrinOutcome { kHit, kStepCap, kNoSurface };
 
+/// Object obj's centre at the ray's time (moving scenes), else its center_um.
+inline Vec3 ObjectCenter(const Simulator::Impl& im, int obj, const ObjectShifts* moved) {
+  return moved ? im.center[obj] + moved->of(obj) : im.center[obj];
+}
+
 /// A spherically symmetric field (n depends on |p - centre| only: Luneburg, fish-eye) conserves
 /// the ray's angular momentum L = (r - c) x T (Bouguer's formula, Born & Wolf sec. 3.2.1) and
 /// the eikonal |T| = n. Near a tangent exit a position error e moves the exit by e / alpha
@@ -57,10 +62,10 @@ inline void ProjectOnInvariants(const IndexField& f, const Vec3& center, const V
 template <bool kMesh>
 GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cfg, int obj,
                                const Vec3& o, const Vec3& d, Hit* hit, Vec3* hp, Vec3* dout,
-                               TraceCounters& c) {
+                               TraceCounters& c, const ObjectShifts* shifts = nullptr) {
   const IndexField& f = *im.field[obj];
   const UniformCells* uniform = im.uniform[obj].empty() ? nullptr : &im.uniform[obj];
-  const Vec3& center = im.center[obj];
+  const Vec3 center = ObjectCenter(im, obj, shifts);  // the field moves with its object
   const Geometry& geo = im.geometry;
   const double surface_tol = std::min(1e-3, 1e-5 * im.size[obj]);
   GrinPoint s = MakeGrinPoint(f, center, o, d);
@@ -88,7 +93,7 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
   // where a path reaches the bound (the same surface queries as computing it at every step).
   double clear = 0;
   auto clearance = [&](double path) {
-    if (path >= clear) clear = geo.SurfaceClearance(s.r);
+    if (path >= clear) clear = geo.SurfaceClearance(s.r, shifts);
     return clear;
   };
   auto moved = [&](double chord) { clear -= chord * (1 + 1e-12) + 1e-12; };
@@ -115,7 +120,7 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
         if (free >= clearance(free)) {
           ++c.shape_queries;
           if constexpr (kMesh) ++c.mesh_queries;
-          crosses = geo.Intersect<kMesh>(s.r, dir, &h) && h.t <= free;
+          crosses = geo.Intersect<kMesh>(s.r, dir, &h, shifts) && h.t <= free;
         }
         if (crosses) {
           *hit = h;
@@ -144,7 +149,7 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
       if (L >= clearance(L)) {
         ++c.shape_queries;
         if constexpr (kMesh) ++c.mesh_queries;
-        crosses = L > 0 && geo.Intersect<kMesh>(s.r, chord / L, &h) && h.t <= L;
+        crosses = L > 0 && geo.Intersect<kMesh>(s.r, chord / L, &h, shifts) && h.t <= L;
       }
       if (!crosses) {
         if (central) ProjectOnInvariants(f, center, angular_momentum, &s1);
@@ -187,7 +192,8 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
 /// homogeneous objects' indices at this ray's wavelength (spectral scenes), else their own.
 template <PartialReflection kPR, bool kMesh>
 bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng, Vec3& o, Vec3& d,
-                  Vec3& pol, TraceCounters& c, Fate* fate_out, const double* ray_index = nullptr) {
+                  Vec3& pol, TraceCounters& c, Fate* fate_out, const double* ray_index = nullptr,
+                  const ObjectShifts* moved = nullptr) {
   const Geometry& geo = im.geometry;
   Fate fate = Fate::kDetected;
   bool done = false;
@@ -197,7 +203,7 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
   const double* const index = ray_index ? ray_index : im.index.data();
   auto index_at = [&](int obj, const Vec3& x) {
     if (obj < 0) return im.medium;
-    if (im.has_grin && im.field[obj]) return im.field[obj]->Index(x - im.center[obj]);
+    if (im.has_grin && im.field[obj]) return im.field[obj]->Index(x - ObjectCenter(im, obj, moved));
     return index[obj];
   };
   int events = 0, internal_reflections = 0;
@@ -207,7 +213,8 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
     Vec3 hp;
     const int cur = depth ? stack[depth - 1] : -1;
     if (im.has_grin && cur >= 0 && im.field[cur]) {
-      const GrinOutcome g = IntegrateToSurface<kMesh>(im, trace.grin, cur, o, d, &h, &hp, &d, c);
+      const GrinOutcome g =
+          IntegrateToSurface<kMesh>(im, trace.grin, cur, o, d, &h, &hp, &d, c, moved);
       if (g != GrinOutcome::kHit) {
         fate = g == GrinOutcome::kStepCap ? Fate::kGrinStepCap : Fate::kLostInside;
         done = true;
@@ -216,7 +223,7 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
     } else {
       ++c.shape_queries;
       if constexpr (kMesh) ++c.mesh_queries;
-      if (!geo.Intersect<kMesh>(o, d, &h)) break;
+      if (!geo.Intersect<kMesh>(o, d, &h, moved)) break;
       hp = o + d * h.t;
     }
     if (events == 0) ++c.rays_hitting_objects;

@@ -85,10 +85,7 @@ nlohmann::json ExposureJson(const Scene& s) {
   nlohmann::json ex = {
       {"pulse", PulseName(e.shape)},  // not "shape": tifffile reads a description
                                       // with a "shape" key as its own array metadata
-      {"velocity_um_per_us",
-       {s.velocity_um_per_us.x, s.velocity_um_per_us.y, s.velocity_um_per_us.z}},
       {"max_offset_us", e.max_offset_us()},
-      {"path_um", Length(s.velocity_um_per_us) * 2 * e.max_offset_us()},
       {"convention",
        "objects' center_um is their position at the pulse's centre (top-hat: midpoint; "
        "Gaussian: peak, drawn within +-3 FWHM; file: power-weighted mean time)"}};
@@ -116,6 +113,11 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
     }
     if (s.source.spectrum.type != SpectrumType::kNone)
       obj["over_the_spectrum"] = OverTheSpectrum(o, s);
+    if (s.has_motion()) {  // each object's own motion (the exposure block: the pulse)
+      const Vec3& v = o.velocity_um_per_us;
+      obj["velocity_um_per_us"] = {v.x, v.y, v.z};
+      obj["path_um"] = 2 * o.SweepUm(s.exposure.max_offset_us());
+    }
     objects.push_back(obj);
   }
   // Debye path classes of the first departure from the first object hit: p = 0 reflected

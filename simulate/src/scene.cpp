@@ -584,8 +584,7 @@ void ReadCamera(TomlReader r, const CalibrationData* cal, CameraSpec* c) {
   r.Finish();
 }
 
-/// [exposure] and the objects' velocities: moving objects share one velocity (motion is traced
-/// in their frame), and a moving object needs a pulse to move during.
+/// [exposure] and the objects' velocities: a moving object needs a pulse to move during.
 void ReadMotion(TomlReader& r, const std::string& path, Scene* s) {
   if (r.Has("exposure")) {
     TomlReader e = r.Table("exposure");
@@ -606,24 +605,13 @@ void ReadMotion(TomlReader& r, const std::string& path, Scene* s) {
     }
     e.Finish();
   }
-  const ObjectSpec* mover = nullptr;
   for (const ObjectSpec& o : s->objects)
-    if (Dot(o.velocity_um_per_us, o.velocity_um_per_us) > 0) mover = &o;
-  if (!mover) return;
-  if (s->exposure.shape == PulseShape::kNone)
-    throw Error(mover->where, "object '" + mover->name +
-                                  "' has a velocity_um_per_us but the scene has no [exposure] "
-                                  "table (shape = \"tophat\" with duration_us, \"gaussian\" "
-                                  "with fwhm_us, or \"file\")");
-  for (const ObjectSpec& o : s->objects)
-    if (Length(o.velocity_um_per_us - mover->velocity_um_per_us) > 0)
-      throw Error(o.where, "objects '" + o.name + "' and '" + mover->name +
-                               "' move with different velocities: motion is traced in the "
-                               "objects' frame, so every object needs the same "
-                               "velocity_um_per_us (a static one included)");
-  s->velocity_um_per_us = mover->velocity_um_per_us;
-  const double sweep = Length(s->velocity_um_per_us) * s->exposure.max_offset_us();
-  for (ObjectSpec& o : s->objects) o.sweep_um = sweep;
+    if (Dot(o.velocity_um_per_us, o.velocity_um_per_us) > 0 &&
+        s->exposure.shape == PulseShape::kNone)
+      throw Error(o.where, "object '" + o.name +
+                               "' has a velocity_um_per_us but the scene has no [exposure] "
+                               "table (shape = \"tophat\" with duration_us, \"gaussian\" "
+                               "with fwhm_us, or \"file\")");
 }
 
 Scene LoadScene(const toml::table& t, const std::string& path) {
@@ -754,6 +742,13 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
   return s;
 }
 
+bool Scene::has_motion() const {
+  if (exposure.shape == PulseShape::kNone) return false;
+  for (const ObjectSpec& o : objects)
+    if (Dot(o.velocity_um_per_us, o.velocity_um_per_us) > 0) return true;
+  return false;
+}
+
 bool Scene::is_spectral() const {
   if (source.spectrum.type == SpectrumType::kNone) return false;
   for (const ObjectSpec& o : objects)
@@ -778,7 +773,7 @@ void ValidateScene(const Scene& s) {
     const double extent = o.shape == ShapeType::kSphere ? o.radius_um
                           : o.shape == ShapeType::kMesh ? 0
                                                         : Length(o.semi_axes_um);
-    if (o.center_um.z + extent + o.sweep_um >= first_plane_um)
+    if (o.center_um.z + extent + o.SweepUm(s.exposure.max_offset_us()) >= first_plane_um)
       throw Error(o.where, "object '" + o.name +
                                "' reaches the objective or corrector plane; move it or the focus");
   }

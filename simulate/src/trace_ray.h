@@ -46,15 +46,21 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Op
     near_out->push_back(ray);  // as SplitRaysBySphere
     return;
   }
-  // Motion: a ray that can meet the objects draws its emission time and meets them where they
-  // are then: it is traced through them shifted by -v t (their frame), and back by +v t after.
+  // Motion: a ray that can meet the objects draws its emission time and meets each object
+  // where it is then (displaced by v_k t; a mesh through Embree's motion blur at that time).
   // The spectrum likewise: such a ray draws its wavelength (after its time), which sets the
   // index of every dispersive object for it.
   const bool near = (im.motion || im.spectral) && im.NearAnObject(p, d);
-  const bool moved = near && im.motion;
-  Vec3 shift;
-  if (moved) {
-    shift = im.velocity * im.exposure.Offset(rng.Uniform());
+  ObjectShifts shifts;
+  const ObjectShifts* moved = nullptr;
+  if (near && im.motion) {
+    const double t = im.exposure.Offset(rng.Uniform());
+    const double max = im.exposure.max_offset_us();
+    acc.ray_shift.resize(im.velocity.size());
+    for (size_t k = 0; k < im.velocity.size(); ++k) acc.ray_shift[k] = im.velocity[k] * t;
+    shifts.shift = acc.ray_shift.data();
+    shifts.mesh_time = float(std::clamp((t + max) / (2 * max), 0.0, 1.0));
+    moved = &shifts;
     ++c.motion_draws;
   }
   const double* ray_index = nullptr;
@@ -80,9 +86,7 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Op
   Fate fate = Fate::kDetected;
   bool done = false;
   if (has_objects) {
-    if (moved) o = o - shift;
-    done = TraceObjects<kPR, kMesh>(im, trace, rng, o, d, pol, c, &fate, ray_index);
-    if (moved) o = o + shift;
+    done = TraceObjects<kPR, kMesh>(im, trace, rng, o, d, pol, c, &fate, ray_index, moved);
   }
   if (!done && d.z <= 0) {
     fate = Fate::kEscaped;

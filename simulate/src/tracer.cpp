@@ -87,7 +87,7 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
     im.has_grin = im.has_grin || o.index_field != nullptr;
   }
   im.motion = scene.has_motion();
-  im.velocity = scene.velocity_um_per_us;
+  for (const ObjectSpec& o : scene.objects) im.velocity.push_back(o.velocity_um_per_us);
   im.exposure = scene.exposure;
   im.spectral = scene.is_spectral();
   im.spectrum = scene.source.spectrum;

@@ -62,6 +62,7 @@ struct Accum {
   std::unique_ptr<packet::Rays> rays;  // the packet path's batch (made on first use)
   SphereQueue sphere_queue;
   std::vector<double> ray_index;  // spectral scenes: each object's index at the ray's wavelength
+  std::vector<Vec3> ray_shift;    // moving scenes: each object's displacement at the ray's time
 };
 
 struct Simulator::Impl {
@@ -79,15 +80,15 @@ struct Simulator::Impl {
   double field_radius_um = 0;     // resolved source field radius (automatic or given)
   double medium;
   double source_z;
-  /// Motion during the exposure (Scene::has_motion): the objects' common velocity and the pulse.
+  /// Motion during the exposure (Scene::has_motion): each object's velocity and the pulse.
   bool motion = false;
-  Vec3 velocity;
+  std::vector<Vec3> velocity;  // per object, um/us
   ExposureSpec exposure;
   /// The spectrum (Scene::is_spectral): each object's index law for the ray's wavelength.
   bool spectral = false;
   SpectrumSpec spectrum;
   std::vector<Dispersion> dispersion;  // per object; law kNone: its constant index
-  explicit Impl(const Scene& s) : geometry(s.objects) {}
+  explicit Impl(const Scene& s) : geometry(s.objects, s.exposure.max_offset_us()) {}
   /// Whether the line through p along d can meet an object (the packet path's near test, lane
   /// for lane: a ray it calls far meets nothing, whenever it was emitted).
   bool NearAnObject(const Vec3& p, const Vec3& d) const {

@@ -4,6 +4,7 @@
 // Analytic shapes (sphere, ellipsoid, box) are intersected in closed form in double precision.
 // Triangle meshes go through an Embree 3 BVH, which is built only when the scene has meshes.
 // Normals returned are unit length and point out of the object.
+#include <deque>
 #include <memory>
 #include <vector>
 
@@ -39,17 +40,31 @@ struct MeshInfo {
   size_t degenerate_removed = 0;
 };
 
+/// Where each object is at a ray's emission time (motion during the exposure): object k is
+/// displaced by shift[k] from its center_um; meshes move by Embree's linear motion blur, whose
+/// time mesh_time in [0, 1] spans the pulse's offsets [-max, +max] (Geometry's max_offset_us).
+struct ObjectShifts {
+  const Vec3* shift = nullptr;  ///< per object, micrometres
+  float mesh_time = 0.5f;
+  Vec3 of(int object) const { return shift[object]; }
+};
+
 class Geometry {
  public:
-  explicit Geometry(const std::vector<ObjectSpec>& objects);
+  /// `max_offset_us`: the largest |t - centre| of the pulse (ExposureSpec::max_offset_us); a
+  /// moving object (ObjectSpec::velocity_um_per_us) is bounded over its whole path, and a moving
+  /// mesh gets two Embree time steps at -max and +max.
+  explicit Geometry(const std::vector<ObjectSpec>& objects, double max_offset_us = 0);
   ~Geometry();
   Geometry(const Geometry&) = delete;
   Geometry& operator=(const Geometry&) = delete;
 
   /// Nearest hit with t > 0 along unit direction `d`; false when none.
-  /// kMesh: include the Embree query (false when the scene has no meshes).
+  /// kMesh: include the Embree query (false when the scene has no meshes). `moved`: where the
+  /// objects are at this ray's time (null: at their centres).
   template <bool kMesh>
-  bool Intersect(const Vec3& o, const Vec3& d, Hit* hit) const;
+  bool Intersect(const Vec3& o, const Vec3& d, Hit* hit,
+                 const ObjectShifts* moved = nullptr) const;
 
   bool has_meshes() const { return scene_ != nullptr; }
   bool empty() const {
@@ -62,10 +77,13 @@ class Geometry {
   double extent_um() const { return extent_um_; }
   /// A lower bound of the distance from `p` to every object surface: exact when all objects
   /// are spheres, 0 (no bound) otherwise. A path shorter than it cannot cross a surface.
-  double SurfaceClearance(const Vec3& p) const {
+  double SurfaceClearance(const Vec3& p, const ObjectShifts* moved = nullptr) const {
     if (!ellipsoids_.empty() || !boxes_.empty() || scene_) return 0;
     double d = 1e300;
-    for (const auto& s : spheres_) d = std::min(d, std::abs(Length(p - s.center) - s.radius));
+    for (const auto& s : spheres_) {
+      const Vec3 c = moved ? s.center + moved->of(s.object) : s.center;
+      d = std::min(d, std::abs(Length(p - c) - s.radius));
+    }
     return d;
   }
   double min_z_um() const { return min_z_um_; }
@@ -74,7 +92,7 @@ class Geometry {
   double bound_radius(int object) const { return bound_radius_[object]; }
 
  private:
-  bool IntersectMesh(const Vec3& o, const Vec3& d, Hit* hit) const;
+  bool IntersectMesh(const Vec3& o, const Vec3& d, Hit* hit, float time) const;
 
   std::vector<SphereShape> spheres_;
   std::vector<FramedShape> ellipsoids_, boxes_;
@@ -82,6 +100,7 @@ class Geometry {
   std::vector<int> mesh_object_;              // geomID -> object
   std::vector<std::vector<float>> vertices_;  // per mesh, xyz
   std::vector<std::vector<unsigned>> indices_;
+  std::deque<std::vector<float>> moving_vertices_;  // moving meshes: at -max and +max
   std::vector<MeshInfo> mesh_info_;
   void* device_ = nullptr;  // RTCDevice
   void* scene_ = nullptr;   // RTCScene
@@ -119,24 +138,29 @@ inline bool IntersectSphere(const Vec3& o, const Vec3& d, const Vec3& c, double 
 }
 
 template <bool kMesh>
-bool Geometry::Intersect(const Vec3& o, const Vec3& d, Hit* hit) const {
+bool Geometry::Intersect(const Vec3& o, const Vec3& d, Hit* hit,
+                         const ObjectShifts* moved) const {
   bool found = false;
   double best = 1e300;
+  // A moving object is met in its own frame: the ray's origin shifted by -its displacement
+  // (a translation: t and the normal are the same in both frames).
+  auto frame = [&](int object) { return moved ? o - moved->of(object) : o; };
   for (const SphereShape& s : spheres_) {
     double t;
-    if (IntersectSphere(o, d, s.center, s.radius2, &t) && t < best) {
+    const Vec3 os = frame(s.object);
+    if (IntersectSphere(os, d, s.center, s.radius2, &t) && t < best) {
       best = t;
       hit->object = s.object;
       // Normalise rather than divide by the radius: a hit point off the surface by rounding
       // would give |n| != 1, and reflections would then change |d| and compound the error.
-      hit->normal = Normalize((o + d * t) - s.center);
+      hit->normal = Normalize((os + d * t) - s.center);
       found = true;
     }
   }
   for (const FramedShape& e : ellipsoids_) {
     // Map to the unit sphere: p' = inv_half * rot_t (p - c). Distances scale, so solve with a
     // non-unit direction and convert t back.
-    const Vec3 ol = Mul(e.rot_t * (o - e.center), e.inv_half);
+    const Vec3 ol = Mul(e.rot_t * (frame(e.object) - e.center), e.inv_half);
     const Vec3 dl = Mul(e.rot_t * d, e.inv_half);
     const double len = Length(dl);
     double tl;
@@ -152,7 +176,7 @@ bool Geometry::Intersect(const Vec3& o, const Vec3& d, Hit* hit) const {
     }
   }
   for (const FramedShape& b : boxes_) {
-    const Vec3 ol = b.rot_t * (o - b.center);
+    const Vec3 ol = b.rot_t * (frame(b.object) - b.center);
     const Vec3 dl = b.rot_t * d;
     double tn = -1e300, tf = 1e300;
     int axis_n = 0, axis_f = 0;
@@ -184,7 +208,7 @@ bool Geometry::Intersect(const Vec3& o, const Vec3& d, Hit* hit) const {
   }
   if constexpr (kMesh) {
     Hit mh;
-    if (IntersectMesh(o, d, &mh) && mh.t < best) {
+    if (IntersectMesh(o, d, &mh, moved ? moved->mesh_time : 0.f) && mh.t < best) {
       *hit = mh;
       best = mh.t;
       found = true;

@@ -145,9 +145,11 @@ struct ObjectSpec {
   /// Velocity during the exposure, micrometres per microsecond (= m/s); center_um is the
   /// object's position at the pulse's centre (ExposureSpec). Meshes and fields move with it.
   Vec3 velocity_um_per_us{};
-  /// How far the object can move from center_um during the exposure (|v| x the largest offset
-  /// of the pulse): its bounds grow by this much. 0 without motion. Set by LoadScene.
-  double sweep_um = 0;
+  /// How far the object can move from center_um during the exposure: |v| x the pulse's largest
+  /// offset (ExposureSpec::max_offset_us); its bounds grow by this much.
+  double SweepUm(double max_offset_us) const {
+    return Length(velocity_um_per_us) * max_offset_us;
+  }
   FileLocation where;  ///< for messages
 };
 
@@ -234,10 +236,8 @@ struct Scene {
   CameraSpec camera;
   TraceSpec trace;
   ExposureSpec exposure;  ///< [exposure]; only used when an object moves
-  /// The objects' common velocity when any moves (raymatch traces motion in the objects' frame,
-  /// so moving objects share one velocity); zero otherwise.
-  Vec3 velocity_um_per_us{};
-  bool has_motion() const { return Dot(velocity_um_per_us, velocity_um_per_us) > 0; }
+  /// Whether an object moves during the exposure (a velocity_um_per_us and a pulse).
+  bool has_motion() const;
   /// A spectrum and at least one object whose index depends on the wavelength.
   bool is_spectral() const;
   std::vector<double> defocus_um{0.0};  ///< focal-plane positions (see docs: sign convention)

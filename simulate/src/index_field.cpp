@@ -61,8 +61,10 @@ void IndexField::Eval(const Vec3& p, double* n, Vec3* grad) const {
       bool in_r, in_z;
       Locate((r - origin_um.x) / spacing_um.x, nx, &ir, &fr, &in_r);
       Locate((p.z - origin_um.z) / spacing_um.z, nz, &iz, &fz, &in_z);
+      const double* grid_values = grid();
       auto v = [&](int a, int b) {  // a: z index, b: r index
-        return values[size_t(std::min(a, nz - 1)) * nx + std::min(b, nx - 1)];
+        const double x = grid_values[size_t(std::min(a, nz - 1)) * nx + std::min(b, nx - 1)];
+        return mapped_ ? map_offset_ + map_scale_ * x : x;
       };
       const double v00 = v(iz, ir), v01 = v(iz, ir + 1), v10 = v(iz + 1, ir),
                    v11 = v(iz + 1, ir + 1);
@@ -81,6 +83,16 @@ void IndexField::Eval(const Vec3& p, double* n, Vec3* grad) const {
       return;
     }
   }
+}
+
+IndexField IndexField::AffineView() const {
+  IndexField v;
+  v.type = type, v.n0 = n0, v.radius_um = radius_um, v.g_per_um = g_per_um, v.k_per_um = k_per_um;
+  v.nx = nx, v.ny = ny, v.nz = nz, v.origin_um = origin_um, v.spacing_um = spacing_um;
+  v.min_n = min_n, v.max_n = max_n;
+  v.shared_ = grid();
+  v.mapped_ = true;
+  return v;
 }
 
 double IndexField::MaxStepUm() const {
@@ -171,10 +183,13 @@ void IndexField::Fill(GridCell* g) const {
 }
 
 void IndexField::Corners(GridCell* g) const {
-  const double* b = values.data() + g->base;
+  const double* b = grid() + g->base;
   const size_t sx = g->stride[0], sy = g->stride[1], sz = g->stride[2];
-  const double v000 = b[0], v100 = b[sx], v010 = b[sy], v110 = b[sy + sx], v001 = b[sz],
-               v101 = b[sz + sx], v011 = b[sz + sy], v111 = b[sz + sy + sx];
+  double v000 = b[0], v100 = b[sx], v010 = b[sy], v110 = b[sy + sx], v001 = b[sz],
+         v101 = b[sz + sx], v011 = b[sz + sy], v111 = b[sz + sy + sx];
+  if (mapped_)  // equal corners stay equal: an axis of stride 0 still gives exact zeros
+    for (double* v : {&v000, &v100, &v010, &v110, &v001, &v101, &v011, &v111})
+      *v = map_offset_ + map_scale_ * *v;
   // Differences along x on the four x edges; grouped so that an axis of stride 0 gives exact
   // zeros for every coefficient that involves it.
   const double dx00 = v100 - v000, dx10 = v110 - v010, dx01 = v101 - v001, dx11 = v111 - v011;

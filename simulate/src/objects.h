@@ -59,11 +59,12 @@ inline void ProjectOnInvariants(const IndexField& f, const Vec3& center, const V
 /// than 1e-3 um or 1e-5 of the object size, then the ray leaves at the chord's hit point with
 /// the direction T/|T| at the step's end. Across uniform cells of a grid the ray goes straight
 /// in one step (exact there), to the surface if it is nearer.
+/// `f`: object obj's field as this ray sees it (its own, or a view at the ray's wavelength).
 template <bool kMesh>
-GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cfg, int obj,
-                               const Vec3& o, const Vec3& d, Hit* hit, Vec3* hp, Vec3* dout,
-                               TraceCounters& c, const ObjectShifts* shifts = nullptr) {
-  const IndexField& f = *im.field[obj];
+GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const IndexField& f,
+                               const GrinSettings& cfg, int obj, const Vec3& o, const Vec3& d,
+                               Hit* hit, Vec3* hp, Vec3* dout, TraceCounters& c,
+                               const ObjectShifts* shifts = nullptr) {
   const UniformCells* uniform = im.uniform[obj].empty() ? nullptr : &im.uniform[obj];
   const Vec3 center = ObjectCenter(im, obj, shifts);  // the field moves with its object
   const Geometry& geo = im.geometry;
@@ -188,22 +189,23 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const GrinSettings& cf
 
 /// Traces a ray through the objects until it leaves them all (or ends). Updates o, d (and the
 /// polarisation) to the ray leaving the last surface; returns true with *fate set when the ray
-/// ended inside the objects (interaction cap, numerical loss, step cap). `ray_index`: the
-/// homogeneous objects' indices at this ray's wavelength (spectral scenes), else their own.
+/// ended inside the objects (interaction cap, numerical loss, step cap). `seen`: the objects'
+/// indices, fields and positions at this ray's wavelength and time (RayObjects).
 template <PartialReflection kPR, bool kMesh>
 bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng, Vec3& o, Vec3& d,
-                  Vec3& pol, TraceCounters& c, Fate* fate_out, const double* ray_index = nullptr,
-                  const ObjectShifts* moved = nullptr) {
+                  Vec3& pol, TraceCounters& c, Fate* fate_out, const RayObjects& seen = {}) {
   const Geometry& geo = im.geometry;
   Fate fate = Fate::kDetected;
   bool done = false;
   // Objects the ray is inside, innermost last (nested objects: a bubble in a drop).
   int stack[kMaxNesting];
   int depth = 0;
-  const double* const index = ray_index ? ray_index : im.index.data();
+  const double* const index = seen.index ? seen.index : im.index.data();
+  const IndexField* const* const field = seen.field ? seen.field : im.field.data();
+  const ObjectShifts* const moved = seen.moved;
   auto index_at = [&](int obj, const Vec3& x) {
     if (obj < 0) return im.medium;
-    if (im.has_grin && im.field[obj]) return im.field[obj]->Index(x - ObjectCenter(im, obj, moved));
+    if (im.has_grin && field[obj]) return field[obj]->Index(x - ObjectCenter(im, obj, moved));
     return index[obj];
   };
   int events = 0, internal_reflections = 0;
@@ -212,9 +214,9 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
     Hit h;
     Vec3 hp;
     const int cur = depth ? stack[depth - 1] : -1;
-    if (im.has_grin && cur >= 0 && im.field[cur]) {
+    if (im.has_grin && cur >= 0 && field[cur]) {
       const GrinOutcome g =
-          IntegrateToSurface<kMesh>(im, trace.grin, cur, o, d, &h, &hp, &d, c, moved);
+          IntegrateToSurface<kMesh>(im, *field[cur], trace.grin, cur, o, d, &h, &hp, &d, c, moved);
       if (g != GrinOutcome::kHit) {
         fate = g == GrinOutcome::kStepCap ? Fate::kGrinStepCap : Fate::kLostInside;
         done = true;

@@ -13,6 +13,7 @@
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/provenance.h"
 #include "raymatch/simulate/geometry.h"
+#include "raymatch/simulate/water.h"
 
 namespace fs = std::filesystem;
 
@@ -51,13 +52,33 @@ namespace {
 /// An object's index over the spectrum: mean, least and largest at 2000 quantiles, or why it is
 /// monochromatic.
 nlohmann::json OverTheSpectrum(const ObjectSpec& o, const Scene& s) {
-  if (o.index_field) return "monochromatic: index fields at wavelength_um";
+  const SpectrumSpec& sp = s.source.spectrum;
+  const int K = 2000;  // the spectrum's quantile midpoints
+  if (o.index_field && o.index_field->water) {
+    const IndexField& f = *o.index_field;
+    const WaterMapTable map(f.water->density_kg_m3, f.water->temperature_K, f.water->wavelength_um,
+                            sp.Sample(0), sp.Sample(std::nextafter(1.0, 0.0)));
+    double lo = 1e300, hi = -1e300;
+    for (int k = 0; k < K; ++k) {
+      const AffineIndexMap m = map.At(sp.Sample((k + 0.5) / K));
+      lo = std::min(lo, m.offset + m.scale * f.min_n),
+      hi = std::max(hi, m.offset + m.scale * f.max_n);
+    }
+    return {{"traced",
+             "each ray near the object sees the density grid's IAPWS R9-97 index at its own "
+             "wavelength (an affine map of the grid's index at wavelength_um)"},
+            {"min_index", lo},
+            {"max_index", hi},
+            {"map_max_error", map.max_error()}};
+  }
+  if (o.index_field)
+    return "monochromatic: an index field at wavelength_um (only water density grids follow "
+           "the wavelength)";
   if (o.dispersion.law == DispersionLaw::kNone)
     return "monochromatic: a constant index (no dispersion law)";
   double sum = 0, lo = 1e300, hi = -1e300;
-  const int K = 2000;
   for (int k = 0; k < K; ++k) {
-    const double n = o.dispersion.IndexAt(s.source.spectrum.Sample((k + 0.5) / K));
+    const double n = o.dispersion.IndexAt(sp.Sample((k + 0.5) / K));
     sum += n, lo = std::min(lo, n), hi = std::max(hi, n);
   }
   return {{"mean_index", sum / K}, {"min_index", lo}, {"max_index", hi}};

@@ -320,13 +320,21 @@ std::shared_ptr<const IndexField> ReadIndexField(TomlReader r, Scene& scene, con
       } else {
         T = r.InRange("temperature_K", 200, 800, 293.15);
       }
+      // A subsample of the grid's states (at most ~4096, every k-th value) for rays of other
+      // wavelengths under a spectrum (WaterMapTable).
+      auto states = std::make_shared<IndexField::WaterStates>();
+      states->wavelength_um = scene.wavelength_um;
+      const size_t every = std::max<size_t>(1, f->values.size() / 4096);
       size_t out_of_range = 0;
       for (size_t i = 0; i < f->values.size(); ++i) {
-        const WaterIndex w =
-            WaterRefractiveIndex(temps.empty() ? T : temps[i], f->values[i], scene.wavelength_um);
+        const double Ti = temps.empty() ? T : temps[i];
+        if (i % every == 0)
+          states->density_kg_m3.push_back(f->values[i]), states->temperature_K.push_back(Ti);
+        const WaterIndex w = WaterRefractiveIndex(Ti, f->values[i], scene.wavelength_um);
         out_of_range += !w.in_range;
         f->values[i] = w.n;
       }
+      f->water = std::move(states);
       if (out_of_range)
         scene.warnings.push_back(r.Where("file").ToString() + ": " + std::to_string(out_of_range) +
                                  " grid values lie outside the IAPWS R9-97 range (0-1060 kg/m^3, "
@@ -752,7 +760,8 @@ bool Scene::has_motion() const {
 bool Scene::is_spectral() const {
   if (source.spectrum.type == SpectrumType::kNone) return false;
   for (const ObjectSpec& o : objects)
-    if (o.dispersion.law != DispersionLaw::kNone) return true;
+    if (o.dispersion.law != DispersionLaw::kNone || (o.index_field && o.index_field->water))
+      return true;
   return false;
 }
 

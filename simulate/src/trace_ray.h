@@ -63,7 +63,8 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Op
     moved = &shifts;
     ++c.motion_draws;
   }
-  const double* ray_index = nullptr;
+  RayObjects seen;
+  seen.moved = moved;
   if (near && im.spectral) {
     const double lambda = im.spectrum.Sample(rng.Uniform());
     acc.ray_index.resize(im.index.size());
@@ -71,7 +72,23 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Op
       acc.ray_index[k] = im.dispersion[k].law == DispersionLaw::kNone
                              ? im.index[k]
                              : im.dispersion[k].IndexAt(lambda);
-    ray_index = acc.ray_index.data();
+    seen.index = acc.ray_index.data();
+    if (im.spectral_fields) {
+      if (acc.ray_field.empty()) {  // this thread's views of the water fields, made once
+        acc.field_views.reserve(im.field.size());
+        for (size_t k = 0; k < im.field.size(); ++k) {
+          const bool mapped = !im.water_map[k].empty();
+          acc.field_views.push_back(mapped ? im.field[k]->AffineView() : IndexField());
+          acc.ray_field.push_back(mapped ? &acc.field_views[k] : im.field[k]);
+        }
+      }
+      for (size_t k = 0; k < im.field.size(); ++k)
+        if (!im.water_map[k].empty()) {
+          const AffineIndexMap m = im.water_map[k].At(lambda);
+          acc.field_views[k].SetMap(m.offset, m.scale);
+        }
+      seen.field = acc.ray_field.data();
+    }
     ++c.wavelength_draws;
   }
   Vec3 o = p;
@@ -86,7 +103,7 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Op
   Fate fate = Fate::kDetected;
   bool done = false;
   if (has_objects) {
-    done = TraceObjects<kPR, kMesh>(im, trace, rng, o, d, pol, c, &fate, ray_index, moved);
+    done = TraceObjects<kPR, kMesh>(im, trace, rng, o, d, pol, c, &fate, seen);
   }
   if (!done && d.z <= 0) {
     fate = Fate::kEscaped;

@@ -91,7 +91,19 @@ Simulator::Simulator(const Scene& scene) : scene_(scene), impl_(std::make_unique
   im.exposure = scene.exposure;
   im.spectral = scene.is_spectral();
   im.spectrum = scene.source.spectrum;
-  for (const ObjectSpec& o : scene.objects) im.dispersion.push_back(o.dispersion);
+  for (const ObjectSpec& o : scene.objects) {
+    im.dispersion.push_back(o.dispersion);
+    // A water density field under a spectrum: its index at each wavelength of the spectrum's
+    // range as an affine map of the one its grid holds.
+    const bool water_field = im.spectral && o.index_field && o.index_field->water;
+    im.water_map.push_back(
+        water_field ? WaterMapTable(
+                          o.index_field->water->density_kg_m3, o.index_field->water->temperature_K,
+                          o.index_field->water->wavelength_um, scene.source.spectrum.Sample(0),
+                          scene.source.spectrum.Sample(std::nextafter(1.0, 0.0)))
+                    : WaterMapTable());
+    im.spectral_fields = im.spectral_fields || water_field;
+  }
   im.optics = MakeOptics(scene);
   // Source plane: before every object (and never after z = 0, where fields are defined).
   const double min_z = im.geometry.empty() ? 0.0 : im.geometry.min_z_um();

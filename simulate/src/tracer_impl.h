@@ -8,6 +8,7 @@
 #include "raymatch/simulate/geometry.h"
 #include "raymatch/simulate/index_field.h"
 #include "raymatch/simulate/tracer.h"
+#include "raymatch/simulate/water.h"
 #include "sources.h"
 #include "stages.h"
 
@@ -63,6 +64,18 @@ struct Accum {
   SphereQueue sphere_queue;
   std::vector<double> ray_index;  // spectral scenes: each object's index at the ray's wavelength
   std::vector<Vec3> ray_shift;    // moving scenes: each object's displacement at the ray's time
+  // Spectral scenes with water density fields: this thread's views of them (AffineView) and
+  // each object's field as the ray sees it (a view, or the object's own field).
+  std::vector<IndexField> field_views;
+  std::vector<const IndexField*> ray_field;
+};
+
+/// What one ray sees of the objects when it drew a time or a wavelength (TraceSampledRay): each
+/// object's index and index field at its wavelength, each object's displacement at its time.
+struct RayObjects {
+  const double* index = nullptr;             ///< null: the objects' own indices
+  const IndexField* const* field = nullptr;  ///< null: the objects' own fields
+  const ObjectShifts* moved = nullptr;       ///< null: every object at its centre
 };
 
 struct Simulator::Impl {
@@ -87,7 +100,10 @@ struct Simulator::Impl {
   /// The spectrum (Scene::is_spectral): each object's index law for the ray's wavelength.
   bool spectral = false;
   SpectrumSpec spectrum;
-  std::vector<Dispersion> dispersion;  // per object; law kNone: its constant index
+  std::vector<Dispersion> dispersion;    // per object; law kNone: its constant index
+  std::vector<WaterMapTable> water_map;  // per object: its water density field at other
+                                         // wavelengths (empty: none, or not spectral)
+  bool spectral_fields = false;          // some object's field follows the wavelength
   explicit Impl(const Scene& s) : geometry(s.objects, s.exposure.max_offset_us()) {}
   /// Whether the line through p along d can meet an object (the packet path's near test, lane
   /// for lane: a ray it calls far meets nothing, whenever it was emitted).

@@ -1,5 +1,6 @@
 #include "raymatch/simulate/water.h"
 
+#include <algorithm>
 #include <cmath>
 
 namespace raymatch::simulate {
@@ -23,6 +24,50 @@ double WaterDensityTanaka(double T) {
   constexpr double a1 = -3.983035, a2 = 301.797, a3 = 522528.9, a4 = 69.34881, a5 = 999.974950;
   const double t = T - 273.15;
   return a5 * (1 - (t + a1) * (t + a1) * (t + a2) / (a3 * (t + a4)));
+}
+
+AffineIndexMap WaterIndexMap(const std::vector<double>& rho, const std::vector<double>& T,
+                             double from_um, double to_um) {
+  const size_t m = rho.size();
+  std::vector<double> x(m), y(m);
+  double mx = 0, my = 0;
+  for (size_t i = 0; i < m; ++i) {
+    x[i] = WaterRefractiveIndex(T[i], rho[i], from_um).n;
+    y[i] = WaterRefractiveIndex(T[i], rho[i], to_um).n;
+    mx += x[i] / double(m), my += y[i] / double(m);
+  }
+  double sxx = 0, sxy = 0;
+  for (size_t i = 0; i < m; ++i) sxx += (x[i] - mx) * (x[i] - mx), sxy += (x[i] - mx) * (y[i] - my);
+  AffineIndexMap map;
+  // One state (a uniform grid): a pure offset, exact.
+  map.scale = sxx > 1e-24 * double(m) ? sxy / sxx : 1.0;
+  map.offset = my - map.scale * mx;
+  for (size_t i = 0; i < m; ++i)
+    map.max_error = std::max(map.max_error, std::abs(map.offset + map.scale * x[i] - y[i]));
+  return map;
+}
+
+WaterMapTable::WaterMapTable(const std::vector<double>& rho, const std::vector<double>& T,
+                             double from_um, double lo_um, double hi_um) {
+  constexpr int kNodes = 129;
+  lo_ = lo_um;
+  step_ = hi_um > lo_um ? (hi_um - lo_um) / (kNodes - 1) : 0;
+  for (int k = 0; k < (step_ > 0 ? kNodes : 1); ++k) {
+    node_.push_back(WaterIndexMap(rho, T, from_um, lo_um + k * step_));
+    max_error_ = std::max(max_error_, node_.back().max_error);
+  }
+}
+
+AffineIndexMap WaterMapTable::At(double lambda_um) const {
+  if (node_.size() < 2) return node_.empty() ? AffineIndexMap() : node_[0];
+  const double u = std::clamp((lambda_um - lo_) / step_, 0.0, double(node_.size() - 1));
+  const size_t k = std::min(size_t(u), node_.size() - 2);
+  const double w = u - double(k);
+  const AffineIndexMap &a = node_[k], &b = node_[k + 1];
+  AffineIndexMap m;
+  m.offset = a.offset + (b.offset - a.offset) * w;
+  m.scale = a.scale + (b.scale - a.scale) * w;
+  return m;
 }
 
 }  // namespace raymatch::simulate

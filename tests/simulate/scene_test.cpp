@@ -142,11 +142,11 @@ TEST(SceneFile, MotionNeedsAPulse) {
   EXPECT_NE(LoadError(Replace(kGood, "index = 1.33\n", moving)).find("no [exposure] table"),
             std::string::npos);
   // Objects with different velocities (one static) each move on their own.
-  const Scene two = LoadScene(dir.Write(
-      "two.toml", Replace(kGood, "index = 1.33\n", moving) +
-                      "[[object]]\ntype = \"sphere\"\nradius_um = 2\ncenter_um = [0, 0, "
-                      "-30]\nindex = 1.5\n" +
-                      pulse));
+  const Scene two = LoadScene(
+      dir.Write("two.toml", Replace(kGood, "index = 1.33\n", moving) +
+                                "[[object]]\ntype = \"sphere\"\nradius_um = 2\ncenter_um = [0, 0, "
+                                "-30]\nindex = 1.5\n" +
+                                pulse));
   EXPECT_TRUE(two.has_motion());
   EXPECT_EQ(two.objects[1].SweepUm(two.exposure.max_offset_us()), 0);
   EXPECT_NE(LoadError(std::string(kGood) + "[exposure]\nshape = \"gaussian\"\n")

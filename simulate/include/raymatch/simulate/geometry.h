@@ -63,8 +63,7 @@ class Geometry {
   /// kMesh: include the Embree query (false when the scene has no meshes). `moved`: where the
   /// objects are at this ray's time (null: at their centres).
   template <bool kMesh>
-  bool Intersect(const Vec3& o, const Vec3& d, Hit* hit,
-                 const ObjectShifts* moved = nullptr) const;
+  bool Intersect(const Vec3& o, const Vec3& d, Hit* hit, const ObjectShifts* moved = nullptr) const;
 
   bool has_meshes() const { return scene_ != nullptr; }
   bool empty() const {
@@ -138,8 +137,7 @@ inline bool IntersectSphere(const Vec3& o, const Vec3& d, const Vec3& c, double 
 }
 
 template <bool kMesh>
-bool Geometry::Intersect(const Vec3& o, const Vec3& d, Hit* hit,
-                         const ObjectShifts* moved) const {
+bool Geometry::Intersect(const Vec3& o, const Vec3& d, Hit* hit, const ObjectShifts* moved) const {
   bool found = false;
   double best = 1e300;
   // A moving object is met in its own frame: the ray's origin shifted by -its displacement

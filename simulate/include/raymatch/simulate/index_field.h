@@ -55,6 +55,19 @@ class IndexField {
   Vec3 spacing_um;              ///< rz: (dr, -, dz)
   double min_n = 1, max_n = 1;  ///< range of the field (for reports and checks)
   std::string description;
+  /// Water density grids (quantity = "density"): the wavelength their index values were computed
+  /// at and a subsample of the grid's states, so that a ray of another wavelength sees the field
+  /// at its own (WaterIndexMap, AffineView). Null for other fields.
+  struct WaterStates {
+    double wavelength_um = 0;
+    std::vector<double> density_kg_m3, temperature_K;
+  };
+  std::shared_ptr<const WaterStates> water;
+
+  /// A grid field's view that shares this grid (not a copy; it must outlive the view) and gives
+  /// offset + scale x its index, gradient scaled alike (SetMap; initially offset 0, scale 1).
+  IndexField AffineView() const;
+  void SetMap(double offset, double scale) { map_offset_ = offset, map_scale_ = scale; }
 
   /// Index and its gradient at a local point.
   void Eval(const Vec3& p, double* n, Vec3* grad_n) const;
@@ -80,6 +93,10 @@ class IndexField {
  private:
   void Fill(GridCell* cell) const;     ///< node, extent, strides and corners from cell->k
   void Corners(GridCell* cell) const;  ///< coefficients from cell->base and cell->stride
+  const double* grid() const { return shared_ ? shared_ : values.data(); }
+  const double* shared_ = nullptr;  // a view's grid (AffineView)
+  bool mapped_ = false;             // a view: values pass through the map
+  double map_offset_ = 0, map_scale_ = 1;
 };
 
 inline void IndexField::EvalInCell(const GridCell& g, const Vec3& p, double* n, Vec3* grad) {

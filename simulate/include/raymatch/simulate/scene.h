@@ -147,9 +147,7 @@ struct ObjectSpec {
   Vec3 velocity_um_per_us{};
   /// How far the object can move from center_um during the exposure: |v| x the pulse's largest
   /// offset (ExposureSpec::max_offset_us); its bounds grow by this much.
-  double SweepUm(double max_offset_us) const {
-    return Length(velocity_um_per_us) * max_offset_us;
-  }
+  double SweepUm(double max_offset_us) const { return Length(velocity_um_per_us) * max_offset_us; }
   FileLocation where;  ///< for messages
 };
 

@@ -45,7 +45,7 @@ uint64_t CountBatch(const packet::Rays& r, size_t n, Accum& acc);
 
 /// The queued rays that meet the sphere, through the sphere stage and on through the optics;
 /// those that run out of random words are traced again on the scalar path.
-template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+template <PartialReflection kPR, bool kCorrector, bool kMesh, bool kDraws, class Source>
 void TraceSphereQueue(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
                       const Optics& op, uint32_t plane, const RaySelection& sel, Accum& acc,
                       std::vector<uint64_t>* near_out, const PacketPlan& plan) {
@@ -70,14 +70,14 @@ void TraceSphereQueue(const Simulator::Impl& im, const Source& src, const TraceS
   }
   if constexpr (kCorrector) c.corrector_tests += optics;
   for (size_t k = 0; k < q.num_handed_back; ++k)
-    TraceRay<kPR, kCorrector, kMesh>(im, src, trace, op, plane,
+    TraceRay<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane,
                                      q.ids[static_cast<size_t>(q.handed_back[k])], sel, acc,
                                      near_out);
 }
 
 /// One batch of packet::kBatch rays (at most; their indices in acc.rays->ids): the source, the
 /// near test and the optics in packets, then each ray the packets handed back, in ray order.
-template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+template <PartialReflection kPR, bool kCorrector, bool kMesh, bool kDraws, class Source>
 void TraceBatch(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
                 const Optics& op, uint32_t plane, const RaySelection& sel, Accum& acc,
                 std::vector<uint64_t>* near_out, const PacketPlan& plan, size_t n) {
@@ -105,15 +105,15 @@ void TraceBatch(const Simulator::Impl& im, const Source& src, const TraceSpec& t
     if (r.out[i] == packet::kNear) {
       near_out->push_back(ray);
     } else if (r.cursor[i] < 0) {  // the batch's words ran out: all again from the stream
-      TraceRay<kPR, kCorrector, kMesh>(im, src, trace, op, plane, ray, sel, acc, near_out);
+      TraceRay<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, ray, sel, acc, near_out);
     } else if (plan.sphere) {  // near the sphere: queued for the sphere stage
       if (acc.sphere_queue.Push(r, i))
-        TraceSphereQueue<kPR, kCorrector, kMesh>(im, src, trace, op, plane, sel, acc, near_out,
+        TraceSphereQueue<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, sel, acc, near_out,
                                                  plan);
     } else {  // near an object: on from the packet's source sample and the stream's cursor
       RayRng rng(trace.seed, plane, ray);
       rng.SkipTo(static_cast<uint64_t>(r.cursor[i]));
-      TraceSampledRay<kPR, kCorrector, kMesh, Source>(
+      TraceSampledRay<kPR, kCorrector, kMesh, kDraws, Source>(
           im, trace, op, ray, Vec3(r.px[i], r.py[i], r.pz[i]), Vec3(r.dx[i], r.dy[i], r.dz[i]), rng,
           sel, acc, near_out);
     }
@@ -121,7 +121,7 @@ void TraceBatch(const Simulator::Impl& im, const Source& src, const TraceSpec& t
 }
 
 /// TraceRange in batches of packet::kBatch rays: the same rays, counts and counters.
-template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+template <PartialReflection kPR, bool kCorrector, bool kMesh, bool kDraws, class Source>
 void TraceRangePackets(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
                        const Optics& op, uint32_t plane, uint64_t begin, uint64_t end,
                        const RaySelection& sel, Accum& acc, std::vector<uint64_t>* near_out,
@@ -133,14 +133,14 @@ void TraceRangePackets(const Simulator::Impl& im, const Source& src, const Trace
   ForEachSelectedRay(sel, begin, end, [&](uint64_t ray) {
     acc.rays->ids[n++] = ray;
     if (n == packet::kBatch) {
-      TraceBatch<kPR, kCorrector, kMesh>(im, src, trace, op, plane, sel, acc, near_out, plan, n);
+      TraceBatch<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, sel, acc, near_out, plan, n);
       n = 0;
     }
   });
   if (n > 0)
-    TraceBatch<kPR, kCorrector, kMesh>(im, src, trace, op, plane, sel, acc, near_out, plan, n);
+    TraceBatch<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, sel, acc, near_out, plan, n);
   if (acc.sphere_queue.count > 0)
-    TraceSphereQueue<kPR, kCorrector, kMesh>(im, src, trace, op, plane, sel, acc, near_out, plan);
+    TraceSphereQueue<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, sel, acc, near_out, plan);
 }
 
 }  // namespace raymatch::simulate

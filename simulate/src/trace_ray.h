@@ -13,13 +13,13 @@
 
 namespace raymatch::simulate {
 
-template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+template <PartialReflection kPR, bool kCorrector, bool kMesh, bool kDraws, class Source>
 void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Optics& op,
                      uint64_t ray, const Vec3& p, Vec3 d, RayRng& rng, const RaySelection& sel,
                      Accum& acc, std::vector<uint64_t>* near_out);
 
 /// One ray of the plane, from its own stream: the scalar path, and the packet path's fallback.
-template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+template <PartialReflection kPR, bool kCorrector, bool kMesh, bool kDraws, class Source>
 void TraceRay(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
               const Optics& op, uint32_t plane, uint64_t ray, const RaySelection& sel, Accum& acc,
               std::vector<uint64_t>* near_out) {
@@ -30,12 +30,12 @@ void TraceRay(const Simulator::Impl& im, const Source& src, const TraceSpec& tra
     ++c.fates[int(Fate::kEscaped)];
     return;
   }
-  TraceSampledRay<kPR, kCorrector, kMesh, Source>(im, trace, op, ray, p, d, rng, sel, acc,
+  TraceSampledRay<kPR, kCorrector, kMesh, kDraws, Source>(im, trace, op, ray, p, d, rng, sel, acc,
                                                   near_out);
 }
 
 /// TraceRay after the source: the ray leaves p along d; rng stands after the source's words.
-template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+template <PartialReflection kPR, bool kCorrector, bool kMesh, bool kDraws, class Source>
 void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Optics& op,
                      uint64_t ray, const Vec3& p, Vec3 d, RayRng& rng, const RaySelection& sel,
                      Accum& acc, std::vector<uint64_t>* near_out) {
@@ -50,7 +50,10 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Op
   // where it is then (displaced by v_k t; a mesh through Embree's motion blur at that time).
   // The spectrum likewise: such a ray draws its wavelength (after its time), which sets the
   // index of every dispersive object for it.
-  const bool near = (im.motion || im.spectral) && im.NearAnObject(p, d);
+  // kDraws: the scene moves or disperses (Scene::has_motion, is_spectral); static monochromatic
+  // scenes compile none of this.
+  bool near = false;
+  if constexpr (kDraws) near = im.NearAnObject(p, d);
   ObjectShifts shifts;
   const ObjectShifts* moved = nullptr;
   if (near && im.motion) {
@@ -151,12 +154,12 @@ void ForEachSelectedRay(const RaySelection& sel, uint64_t begin, uint64_t end, F
   }
 }
 
-template <PartialReflection kPR, bool kCorrector, bool kMesh, class Source>
+template <PartialReflection kPR, bool kCorrector, bool kMesh, bool kDraws, class Source>
 void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
                 const Optics& op, uint32_t plane, uint64_t begin, uint64_t end,
                 const RaySelection& sel, Accum& acc, std::vector<uint64_t>* near_out) {
   ForEachSelectedRay(sel, begin, end, [&](uint64_t ray) {
-    TraceRay<kPR, kCorrector, kMesh>(im, src, trace, op, plane, ray, sel, acc, near_out);
+    TraceRay<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, ray, sel, acc, near_out);
   });
 }
 

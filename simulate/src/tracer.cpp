@@ -253,6 +253,7 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
       im.geometry.empty() ? PartialReflection::kOff : scene_.trace.partial_reflection;
   const bool corr = scene_.optics.corrector.enabled;
   const bool mesh = im.geometry.has_meshes();
+  const bool draws = im.motion || im.spectral;  // rays near objects draw a time or wavelength
   constexpr uint64_t kChunk = 8192;
   const uint64_t chunks = (rays + kChunk - 1) / kChunk;
   const uint64_t my_chunks = chunks > rank ? (chunks - rank + ranks - 1) / ranks : 0;
@@ -276,25 +277,32 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
     std::visit(
         [&](const auto& src) {
           using Source = std::decay_t<decltype(src)>;
-          auto range = [&]<PartialReflection P, bool C, bool M>() {
+          auto range = [&]<PartialReflection P, bool C, bool M, bool D>() {
             if constexpr (kPacketSource<Source>) {
               if (plan) {
-                TraceRangePackets<P, C, M>(im, src, ts, op, plane_index, b, e, sel, acc, near_out,
-                                           *plan);
+                TraceRangePackets<P, C, M, D>(im, src, ts, op, plane_index, b, e, sel, acc,
+                                              near_out, *plan);
                 return;
               }
             }
-            TraceRange<P, C, M>(im, src, ts, op, plane_index, b, e, sel, acc, near_out);
+            TraceRange<P, C, M, D>(im, src, ts, op, plane_index, b, e, sel, acc, near_out);
+          };
+          // Each effect a compile-time switch: corrector, meshes, per-ray draws (motion, spectrum).
+          auto with_draws = [&]<PartialReflection P, bool C, bool M>() {
+            if (draws)
+              range.template operator()<P, C, M, true>();
+            else
+              range.template operator()<P, C, M, false>();
           };
           auto dispatch = [&]<PartialReflection P>() {
             if (corr && mesh)
-              range.template operator()<P, true, true>();
+              with_draws.template operator()<P, true, true>();
             else if (corr)
-              range.template operator()<P, true, false>();
+              with_draws.template operator()<P, true, false>();
             else if (mesh)
-              range.template operator()<P, false, true>();
+              with_draws.template operator()<P, false, true>();
             else
-              range.template operator()<P, false, false>();
+              with_draws.template operator()<P, false, false>();
           };
           switch (pr) {
             case PartialReflection::kOff:

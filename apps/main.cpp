@@ -72,6 +72,7 @@ int main(int argc, char** argv) {
 #endif
 #ifdef RAYMATCH_HAVE_FIT
   raymatch::apps::RegisterFit(app, &exit_code);
+  raymatch::apps::RegisterSensitivity(app, &exit_code);
 #endif
 #ifdef RAYMATCH_HAVE_CAPTURE
   raymatch::apps::RegisterCapture(app, &exit_code);

@@ -163,6 +163,13 @@ Slot Resolve(toml::table& root, const std::string& key, const std::string& scene
   throw fail("incomplete key");
 }
 
+std::string ResolvePath(const std::string& base_file, const std::string& p) {
+  const fs::path q(p);
+  return q.is_absolute() ? p : (fs::path(base_file).parent_path() / q).string();
+}
+
+}  // namespace
+
 std::string UnitOf(const std::string& key) {
   std::string base = key.substr(0, key.find('['));
   base = base.substr(base.rfind('.') == std::string::npos ? 0 : base.rfind('.') + 1);
@@ -170,13 +177,6 @@ std::string UnitOf(const std::string& key) {
     if (base.size() > std::string(u).size() && base.ends_with(u)) return std::string(u).substr(1);
   return "";
 }
-
-std::string ResolvePath(const std::string& base_file, const std::string& p) {
-  const fs::path q(p);
-  return q.is_absolute() ? p : (fs::path(base_file).parent_path() / q).string();
-}
-
-}  // namespace
 
 double SceneValue(const toml::table& scene, const std::string& key, const std::string& scene_file) {
   toml::table& t = const_cast<toml::table&>(scene);  // Resolve only reads through the slot here

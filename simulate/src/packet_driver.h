@@ -71,8 +71,8 @@ void TraceSphereQueue(const Simulator::Impl& im, const Source& src, const TraceS
   if constexpr (kCorrector) c.corrector_tests += optics;
   for (size_t k = 0; k < q.num_handed_back; ++k)
     TraceRay<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane,
-                                     q.ids[static_cast<size_t>(q.handed_back[k])], sel, acc,
-                                     near_out);
+                                             q.ids[static_cast<size_t>(q.handed_back[k])], sel, acc,
+                                             near_out);
 }
 
 /// One batch of packet::kBatch rays (at most; their indices in acc.rays->ids): the source, the
@@ -108,8 +108,8 @@ void TraceBatch(const Simulator::Impl& im, const Source& src, const TraceSpec& t
       TraceRay<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, ray, sel, acc, near_out);
     } else if (plan.sphere) {  // near the sphere: queued for the sphere stage
       if (acc.sphere_queue.Push(r, i))
-        TraceSphereQueue<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, sel, acc, near_out,
-                                                 plan);
+        TraceSphereQueue<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, sel, acc,
+                                                         near_out, plan);
     } else {  // near an object: on from the packet's source sample and the stream's cursor
       RayRng rng(trace.seed, plane, ray);
       rng.SkipTo(static_cast<uint64_t>(r.cursor[i]));
@@ -133,14 +133,17 @@ void TraceRangePackets(const Simulator::Impl& im, const Source& src, const Trace
   ForEachSelectedRay(sel, begin, end, [&](uint64_t ray) {
     acc.rays->ids[n++] = ray;
     if (n == packet::kBatch) {
-      TraceBatch<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, sel, acc, near_out, plan, n);
+      TraceBatch<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, sel, acc, near_out,
+                                                 plan, n);
       n = 0;
     }
   });
   if (n > 0)
-    TraceBatch<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, sel, acc, near_out, plan, n);
+    TraceBatch<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, sel, acc, near_out, plan,
+                                               n);
   if (acc.sphere_queue.count > 0)
-    TraceSphereQueue<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, sel, acc, near_out, plan);
+    TraceSphereQueue<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, sel, acc, near_out,
+                                                     plan);
 }
 
 }  // namespace raymatch::simulate

@@ -31,7 +31,7 @@ void TraceRay(const Simulator::Impl& im, const Source& src, const TraceSpec& tra
     return;
   }
   TraceSampledRay<kPR, kCorrector, kMesh, kDraws, Source>(im, trace, op, ray, p, d, rng, sel, acc,
-                                                  near_out);
+                                                          near_out);
 }
 
 /// TraceRay after the source: the ray leaves p along d; rng stands after the source's words.

@@ -287,6 +287,9 @@ std::vector<GridStudyRow> RunGridStudy(const FitSpec& spec, const std::vector<do
 /// the keys that exist when it is missing or not a number.
 double SceneValue(const toml::table& scene, const std::string& key, const std::string& scene_file);
 
+/// The unit a key's name ends in ("um", "mm", "deg", "K", "kg_m3"; "" for none).
+std::string UnitOf(const std::string& key);
+
 /// Sets the numeric scene value at `key` (which must exist).
 void SetSceneValue(toml::table& scene, const std::string& key, double value,
                    const std::string& scene_file);

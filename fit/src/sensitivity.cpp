@@ -126,7 +126,8 @@ Bound BoundsOf(const std::vector<Eigen::MatrixXd>& info, size_t P, bool nuisance
   b.fisher = Eigen::MatrixXd::Zero(Eigen::Index(P), Eigen::Index(P));
   Eigen::MatrixXd known = b.fisher;
   for (const Eigen::MatrixXd& f : info) {
-    b.per_image.push_back(nuisance ? ProfileLast(f) : f.topLeftCorner(Eigen::Index(P), Eigen::Index(P)));
+    b.per_image.push_back(nuisance ? ProfileLast(f)
+                                   : f.topLeftCorner(Eigen::Index(P), Eigen::Index(P)));
     b.fisher += b.per_image.back();
     known += f.topLeftCorner(Eigen::Index(P), Eigen::Index(P));
   }
@@ -253,8 +254,8 @@ SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
         Image& d = set.d[k][i];
         d = Image(ma.photons[k].width, ma.photons[k].height);
         for (size_t q = 0; q < d.size(); ++q)
-          d.pixels[q] = float((double(ma.photons[k].pixels[q]) - mb.photons[k].pixels[q]) /
-                              (a[i] - b[i]));
+          d.pixels[q] =
+              float((double(ma.photons[k].pixels[q]) - mb.photons[k].pixels[q]) / (a[i] - b[i]));
       }
       r.evaluations += 2;
     }
@@ -292,7 +293,8 @@ SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
   const Matrix cov = InverseSpd(r.fisher);
   r.correlation = cov;
   for (size_t i = 0; i < P; ++i)
-    for (size_t j = 0; j < P; ++j) r.correlation[i][j] = cov[i][j] / std::sqrt(cov[i][i] * cov[j][j]);
+    for (size_t j = 0; j < P; ++j)
+      r.correlation[i][j] = cov[i][j] / std::sqrt(cov[i][i] * cov[j][j]);
   r.exposure_relative_crb = info[0](Eigen::Index(P), Eigen::Index(P)) > 0
                                 ? 1 / std::sqrt(info[0](Eigen::Index(P), Eigen::Index(P)))
                                 : NAN;
@@ -354,7 +356,9 @@ SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
 
 namespace {
 
-nlohmann::json J(double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); }
+nlohmann::json J(double v) {
+  return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr);
+}
 
 std::string Num(double v, int digits = 4) {
   if (!std::isfinite(v)) return "-";
@@ -367,7 +371,8 @@ std::string Num(double v, int digits = 4) {
 /// "object.drop.center_um[2]" -> "object.drop.center_um_2_" (for file names).
 std::string Slug(const std::string& key) {
   std::string s;
-  for (char c : key) s += std::isalnum(static_cast<unsigned char>(c)) || c == '.' || c == '-' ? c : '_';
+  for (char c : key)
+    s += std::isalnum(static_cast<unsigned char>(c)) || c == '.' || c == '-' ? c : '_';
   return s;
 }
 
@@ -384,8 +389,8 @@ std::string WriteSensitivityOutputs(const SensitivitySpec& spec, const Sensitivi
   const fs::path dir(dir_name);
   EnsureDirectory(dir);
   const simulate::Scene scene = simulate::LoadScene(spec.scene, spec.scene_file);
-  const double px = scene.camera.pixel_pitch_um /
-                    (scene.optics.tube_focal_mm / scene.optics.objective_focal_mm);
+  const double px =
+      scene.camera.pixel_pitch_um / (scene.optics.tube_focal_mm / scene.optics.objective_focal_mm);
   nlohmann::json keys = nlohmann::json::array();
   for (const SensitivityKey& k : r.keys)
     keys.push_back({{"key", k.key},
@@ -409,8 +414,8 @@ std::string WriteSensitivityOutputs(const SensitivitySpec& spec, const Sensitivi
       {"rays_per_image", r.rays_per_image},
       {"sets", spec.sets},
       {"evaluations", r.evaluations},
-      {"exposure", spec.exposure_nuisance ? "nuisance (each image's exposure unknown, profiled out)"
-                                          : "known"},
+      {"exposure",
+       spec.exposure_nuisance ? "nuisance (each image's exposure unknown, profiled out)" : "known"},
       {"read_noise_e", spec.read_noise_e},
       {"exposure_relative_crb", J(r.exposure_relative_crb)},
       {"keys", keys},
@@ -473,11 +478,11 @@ std::string WriteSensitivityOutputs(const SensitivitySpec& spec, const Sensitivi
        "<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto}"
        "table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:3px 8px;"
        "text-align:right}</style></head><body>\n<h1>raymatch sensitivity</h1>\n<p>"
-    << HtmlEscape(spec.scene_file) << ": " << r.mu.size() << " image(s) at "
-    << r.photons_per_pixel << " photons per flat-field pixel; derivative images from "
-    << spec.sets << " ray-stream sets of " << r.rays_per_image << " rays per image ("
-    << r.evaluations << " evaluations, " << Num(r.seconds, 3) << " s). Exposure: "
-    << (spec.exposure_nuisance ? "a nuisance (unknown)" : "known") << ".</p>\n"
+    << HtmlEscape(spec.scene_file) << ": " << r.mu.size() << " image(s) at " << r.photons_per_pixel
+    << " photons per flat-field pixel; derivative images from " << spec.sets
+    << " ray-stream sets of " << r.rays_per_image << " rays per image (" << r.evaluations
+    << " evaluations, " << Num(r.seconds, 3)
+    << " s). Exposure: " << (spec.exposure_nuisance ? "a nuisance (unknown)" : "known") << ".</p>\n"
     << "<h2>Cramer-Rao bounds</h2><table><tr><th>key</th><th>value</th><th>bound</th>"
        "<th>its Monte Carlo error</th><th>exposure known</th>";
   for (double d : r.defocus_um) h << "<th>image at " << Num(d) << " µm alone</th>";
@@ -517,7 +522,8 @@ std::string WriteSensitivityOutputs(const SensitivitySpec& spec, const Sensitivi
       for (double v : c.crb) h << "<td>" << Num(v) << "</td>";
       h << "<td>" << Num(c.objective) << "</td></tr>\n";
     };
-    h << "<tr><th colspan=\"99\" style=\"text-align:left\">best for each number of planes</th></tr>";
+    h << "<tr><th colspan=\"99\" style=\"text-align:left\">best for each number of "
+         "planes</th></tr>";
     for (const DesignChoice& c : r.design_best) row(c);
     h << "<tr><th colspan=\"99\" style=\"text-align:left\">best choices of " << spec.design_planes
       << "</th></tr>";

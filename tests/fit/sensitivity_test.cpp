@@ -177,8 +177,8 @@ TEST(Sensitivity, BadInputIsNamed) {
   SensitivitySpec odd = Spec(path, {"object.drop.radius_um"});
   odd.sets = 3;
   EXPECT_NE(error(odd).find("sets"), std::string::npos);
-  SensitivitySpec dark = Spec(dir.Write("dark.toml", SceneText(0, 9, 1.36, 0)),
-                              {"object.drop.radius_um"});
+  SensitivitySpec dark =
+      Spec(dir.Write("dark.toml", SceneText(0, 9, 1.36, 0)), {"object.drop.radius_um"});
   EXPECT_NE(error(dark).find("--photons-per-pixel"), std::string::npos);
 }
 

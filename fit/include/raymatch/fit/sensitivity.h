@@ -21,9 +21,9 @@ namespace raymatch::fit {
 
 struct SensitivitySpec {
   std::string scene_file;
-  toml::table scene;             ///< the parsed scene (calibration key set when given)
-  std::vector<std::string> keys;  ///< the fit's key syntax (docs/fit.md), image[i].* included
-  std::vector<double> steps;      ///< central-difference span per key (empty/0: a default)
+  toml::table scene;               ///< the parsed scene (calibration key set when given)
+  std::vector<std::string> keys;   ///< the fit's key syntax (docs/fit.md), image[i].* included
+  std::vector<double> steps;       ///< central-difference span per key (empty/0: a default)
   std::vector<double> defocus_um;  ///< the images' focus positions (empty: the scene's)
   double photons_per_pixel = 0;    ///< flat-field photons per pixel (0: the scene's)
   double ray_factor = 4;           ///< rays traced per photon for the derivative images
@@ -43,8 +43,8 @@ struct SensitivitySpec {
 struct SensitivityKey {
   std::string key, unit;
   double value = 0, step = 0;
-  double crb = 0;            ///< Cramer-Rao bound (exposure a nuisance when asked), all images
-  double crb_mc_error = 0;   ///< the bound's own Monte Carlo standard error (jackknife)
+  double crb = 0;                 ///< Cramer-Rao bound (exposure a nuisance when asked), all images
+  double crb_mc_error = 0;        ///< the bound's own Monte Carlo standard error (jackknife)
   double crb_exposure_known = 0;  ///< the bound when every exposure is known
   std::vector<double> crb_per_image;  ///< each image alone (its full photon count)
 };
@@ -89,8 +89,9 @@ std::string WriteSensitivityOutputs(const SensitivitySpec& spec, const Sensitivi
 /// The design's selection over given per-image information matrices (each keys x keys, nuisances
 /// profiled out, at the full budget of one image): every choice of `planes` of them, the budget
 /// shared (information / planes). Public for tests.
-std::vector<DesignChoice> RankDesigns(const std::vector<std::vector<std::vector<double>>>& per_image,
-                                      const std::vector<double>& defocus_um, int planes,
-                                      const std::vector<size_t>& design_keys, size_t* compared);
+std::vector<DesignChoice> RankDesigns(
+    const std::vector<std::vector<std::vector<double>>>& per_image,
+    const std::vector<double>& defocus_um, int planes, const std::vector<size_t>& design_keys,
+    size_t* compared);
 
 }  // namespace raymatch::fit

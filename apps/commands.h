@@ -8,6 +8,7 @@ namespace raymatch::apps {
 void RegisterSimulate(CLI::App& app, int* exit_code);
 void RegisterCompare(CLI::App& app, int* exit_code);      // apps/compare.cpp
 void RegisterCompareScan(CLI::App& app, int* exit_code);  // apps/compare_scan.cpp
+void RegisterProfile(CLI::App& app, int* exit_code);      // apps/profile.cpp
 void RegisterCalibrate(CLI::App& app, int* exit_code);
 void RegisterRun(CLI::App& app, int* exit_code);          // apps/run.cpp
 void RegisterBench(CLI::App& app, int* exit_code);        // apps/bench.cpp ("accuracy")

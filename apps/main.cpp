@@ -66,6 +66,7 @@ int main(int argc, char** argv) {
 #ifdef RAYMATCH_HAVE_COMPARE
   raymatch::apps::RegisterCompare(app, &exit_code);
   raymatch::apps::RegisterCompareScan(app, &exit_code);
+  raymatch::apps::RegisterProfile(app, &exit_code);
 #endif
 #ifdef RAYMATCH_HAVE_CALIBRATE
   raymatch::apps::RegisterCalibrate(app, &exit_code);

@@ -261,3 +261,47 @@ TEST(BadInputCli, RunChecksEveryInputBeforeMakingItsFolder) {
 
 }  // namespace
 }  // namespace raymatch
+
+namespace raymatch {
+namespace {
+
+// Issue 23's commands refuse bad input by name and write nothing; good input gives the files.
+TEST(BadInputCli, ProfileAndSensitivityNameWhatIsWrong) {
+  testing::TempDir dir;
+  WriteFloatImage(dir / "a.tif", Image(32, 24, 100.f), "");
+  WriteFloatImage(dir / "b.tif", Image(32, 24, 110.f), "");
+  const std::string ab = (dir / "a.tif") + " " + (dir / "b.tif");
+  CliRun r = Raymatch("profile " + ab + " --rows 5 -o " + (dir / "out/p"), dir);
+  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_TRUE(Has(r.err, "--rows: expected R0:R1")) << r.err;
+  r = Raymatch("profile " + ab + " --rows 20:30 -o " + (dir / "out/p"), dir);
+  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_TRUE(Has(r.err, "0 <= R0 < R1 <= 24")) << r.err;
+  EXPECT_FALSE(fs::exists(dir / "out"));
+  r = Raymatch("profile " + ab + " --rows 4:14 -o " + (dir / "out/p"), dir);
+  EXPECT_EQ(r.code, 0) << r.err;
+  EXPECT_TRUE(fs::exists(dir / "out/p.csv") && fs::exists(dir / "out/p.png"));
+  const std::string scene = dir.Write(
+      "s.toml",
+      "name = \"s\"\n[source]\ntype = \"cone\"\nhalf_angle_deg = 20\n[[object]]\nname = "
+      "\"drop\"\ntype = \"sphere\"\nradius_um = 8\nindex = 1.36\n[objective]\nfocal_length_mm = "
+      "10\nna = 0.42\n[tube_lens]\nfocal_length_mm = 200\n[camera]\npixels = [24, 24]\n"
+      "pixel_pitch_um = 20\n[trace]\nphotons_per_pixel = 50\n");
+  r = Raymatch("sensitivity " + scene + " --keys object.drop.colour -o " + (dir / "sens"), dir);
+  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_TRUE(Has(r.err, "s.toml") && Has(r.err, "no 'colour' in object 'drop'")) << r.err;
+  r = Raymatch("sensitivity " + scene + " --keys object.drop.radius_um --design planes=x -o " +
+                   (dir / "sens"),
+               dir);
+  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_TRUE(Has(r.err, "--design: expected planes=N")) << r.err;
+  r = Raymatch("sensitivity " + scene + " --keys object.drop.radius_um --defocus-um=1:0:4 -o " +
+                   (dir / "sens"),
+               dir);
+  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_TRUE(Has(r.err, "'1:0:4'")) << r.err;
+  EXPECT_FALSE(fs::exists(dir / "sens"));
+}
+
+}  // namespace
+}  // namespace raymatch

@@ -37,7 +37,7 @@ __all__ = [
     "Calibration", "CompareError", "Error", "FocusScanResult", "RaymatchWarning", "Scene",
     "SimulationResult", "Stack", "__version__", "calibrate_corrector", "calibrate_lightfield",
     "compare", "cw_ssim", "fit", "focus_scan", "load_scene", "ms_ssim", "mse", "poisson", "psnr",
-    "read_stack", "simulate", "ssim",
+    "read_stack", "sensitivity", "simulate", "ssim",
 ]
 
 
@@ -178,3 +178,25 @@ def fit(fit_file: str | os.PathLike, scene: str | os.PathLike | None = None,
     if r["status"] == "flat":
         raise Error(r["message"])
     return r
+
+
+def sensitivity(scene: str | os.PathLike, keys: list[str], steps: list[float] | None = None,
+                defocus_um: list[float] | None = None, photons_per_pixel: float = 0,
+                ray_factor: float = 4, sets: int = 4, known_exposure: bool = False,
+                read_noise_e: float = 0, design_planes: int = 0,
+                design_keys: list[str] | None = None, seed: int = 1, threads: int = 0,
+                calibration: str | os.PathLike | None = None,
+                output: str | os.PathLike | None = None) -> dict:
+    """Runs ``raymatch sensitivity`` (docs/sensitivity.md): the Cramer-Rao bounds of scene keys
+    (fit key syntax) at the scene's values. Returns a dict: keys (value, step, crb, crb_mc_error,
+    crb_exposure_known, crb_per_image per key; units from the key's suffix), fisher,
+    correlation, exposure_relative_crb, defocus_um, mu (expected photons per image), dmu
+    (per image, per key: d mu / d key, photons per pixel per unit), and with design_planes > 0
+    'design' (best_per_count, top: defocus_um, crb, objective). output: also write
+    sensitivity.json, the maps and report.html there ('report'). Raises :class:`Error` on bad
+    input."""
+    return _raymatch._sensitivity(
+        scene, list(keys), list(steps or []), list(defocus_um or []), photons_per_pixel,
+        ray_factor, sets, known_exposure, read_noise_e, design_planes, list(design_keys or []),
+        seed, threads, os.fspath(calibration) if calibration is not None else "",
+        os.fspath(output) if output is not None else "")

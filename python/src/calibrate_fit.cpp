@@ -1,9 +1,13 @@
 // Python bindings of the calibrate and fit libraries (apps/calibrate.cpp, apps/fit.cpp).
+#include <filesystem>
+
 #include "common.h"
 #include "raymatch/calibrate/corrector.h"
 #include "raymatch/calibrate/lightfield.h"
 #include "raymatch/core/calibration_file.h"
+#include "raymatch/core/toml_reader.h"
 #include "raymatch/fit/fit.h"
+#include "raymatch/fit/sensitivity.h"
 
 namespace raymatch::python {
 
@@ -145,6 +149,92 @@ void BindCalibrate(py::module_& m) {
       "weight (dimensionless); distance_mm: corrector plane from the focal plane in mm (0 = the "
       "working distance); base: a calibration (path or Calibration) whose light field and optics "
       "are kept. Returns a dict: 'calibration', 'transmissions', 'sigma', 'gain', 'weights', ...");
+}
+
+namespace {
+
+py::dict DesignDict(const fit::DesignChoice& c) {
+  py::dict d;
+  d["defocus_um"] = c.defocus_um;
+  d["crb"] = c.crb;
+  d["objective"] = c.objective;
+  return d;
+}
+
+}  // namespace
+
+void BindSensitivity(py::module_& m) {
+  m.def(
+      "_sensitivity",
+      [](const py::object& scene, const std::vector<std::string>& keys,
+         const std::vector<double>& steps, const std::vector<double>& defocus_um,
+         double photons_per_pixel, double ray_factor, int sets, bool known_exposure,
+         double read_noise_e, int design_planes, const std::vector<std::string>& design_keys,
+         uint64_t seed, int threads, const std::string& calibration, const std::string& output) {
+        fit::SensitivitySpec spec;
+        spec.scene_file = std::filesystem::absolute(PathArg(scene)).string();
+        spec.scene = ParseTomlFile(spec.scene_file);
+        if (!calibration.empty())
+          spec.scene.insert_or_assign("calibration",
+                                      std::filesystem::absolute(calibration).string());
+        spec.keys = keys, spec.steps = steps, spec.defocus_um = defocus_um;
+        spec.photons_per_pixel = photons_per_pixel, spec.ray_factor = ray_factor;
+        spec.sets = sets, spec.exposure_nuisance = !known_exposure;
+        spec.read_noise_e = read_noise_e, spec.design_planes = design_planes;
+        spec.design_keys = design_keys, spec.seed = seed, spec.threads = threads;
+        fit::SensitivityResult r;
+        std::string report;
+        {
+          py::gil_scoped_release nogil;
+          r = fit::RunSensitivity(spec);
+          if (!output.empty()) report = fit::WriteSensitivityOutputs(spec, r, output);
+        }
+        py::list ks;
+        for (const auto& k : r.keys) {
+          py::dict d;
+          d["key"] = k.key, d["unit"] = k.unit, d["value"] = k.value, d["step"] = k.step;
+          d["crb"] = k.crb, d["crb_mc_error"] = k.crb_mc_error;
+          d["crb_exposure_known"] = k.crb_exposure_known, d["crb_per_image"] = k.crb_per_image;
+          ks.append(d);
+        }
+        py::list mu, dmu;
+        for (auto& img : r.mu) mu.append(ToArray(std::move(img)));
+        for (auto& per : r.dmu) {
+          py::list l;
+          for (auto& img : per) l.append(ToArray(std::move(img)));
+          dmu.append(l);
+        }
+        py::dict d;
+        d["keys"] = ks;
+        d["fisher"] = ToMatrix(r.fisher);
+        d["correlation"] = ToMatrix(r.correlation);
+        d["exposure_relative_crb"] = r.exposure_relative_crb;
+        d["defocus_um"] = r.defocus_um;
+        d["mu"] = mu;
+        d["dmu"] = dmu;
+        d["photons_per_pixel"] = r.photons_per_pixel;
+        d["rays_per_image"] = r.rays_per_image;
+        d["evaluations"] = r.evaluations;
+        d["seconds"] = r.seconds;
+        if (design_planes > 0) {
+          py::list best, top;
+          for (const auto& c : r.design_best) best.append(DesignDict(c));
+          for (const auto& c : r.design_top) top.append(DesignDict(c));
+          py::dict design;
+          design["keys"] = r.design_keys;
+          design["best_per_count"] = best;
+          design["top"] = top;
+          design["choices_compared"] = r.design_choices;
+          d["design"] = design;
+        }
+        d["report"] = report.empty() ? py::object(py::none()) : py::object(py::str(report));
+        return d;
+      },
+      py::arg("scene"), py::arg("keys"), py::arg("steps"), py::arg("defocus_um"),
+      py::arg("photons_per_pixel"), py::arg("ray_factor"), py::arg("sets"),
+      py::arg("known_exposure"), py::arg("read_noise_e"), py::arg("design_planes"),
+      py::arg("design_keys"), py::arg("seed"), py::arg("threads"), py::arg("calibration"),
+      py::arg("output"));
 }
 
 void BindFit(py::module_& m) {

@@ -77,9 +77,10 @@ inline std::string PathArg(const py::handle& p) {
   return py::str(py::module_::import("os").attr("fspath")(p));
 }
 
-void BindScene(py::module_& m);      // module.cpp: scenes and simulate
-void BindCompare(py::module_& m);    // compare.cpp
-void BindCalibrate(py::module_& m);  // calibrate_fit.cpp
-void BindFit(py::module_& m);        // calibrate_fit.cpp
+void BindScene(py::module_& m);        // module.cpp: scenes and simulate
+void BindCompare(py::module_& m);      // compare.cpp
+void BindCalibrate(py::module_& m);    // calibrate_fit.cpp
+void BindFit(py::module_& m);          // calibrate_fit.cpp
+void BindSensitivity(py::module_& m);  // calibrate_fit.cpp
 
 }  // namespace raymatch::python

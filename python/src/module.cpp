@@ -327,4 +327,5 @@ PYBIND11_MODULE(_raymatch, m) {
   rp::BindCompare(m);
   rp::BindCalibrate(m);
   rp::BindFit(m);
+  rp::BindSensitivity(m);
 }

@@ -84,3 +84,25 @@ def test_fit_recovers_a_radius_like_the_cli(exe, tmp_path):
     assert prof["lower"] < prof["upper"] and len(prof["t_sigma"]) == len(prof["delta_deviance"])
     with pytest.raises(raymatch.Error, match=r"model\.toml:1:1: error: missing required key 'scene'"):
         raymatch.fit(tmp_path / "model.toml")  # a scene, not a fit file
+
+
+def test_sensitivity_equals_cli(exe, tmp_path):
+    """The Cramer-Rao bounds of a tiny drop's x and radius: the module and the CLI agree to the
+    last digit (the same ray streams), with the design's choice among two planes."""
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(TINY_SCENE.replace("rays = 30000", "photons_per_pixel = 60"))
+    keys = ["object.drop.center_um[0]", "object.drop.radius_um"]
+    run_cli(exe, "sensitivity", scene, "--keys", ",".join(keys), "--defocus-um=-6,6",
+            "--ray-factor", 1, "--design", "planes=1", "-o", tmp_path / "cli", "-q", "-t", 2)
+    cli = read_json(tmp_path / "cli" / "sensitivity.json")
+    r = raymatch.sensitivity(scene, keys, defocus_um=[-6, 6], ray_factor=1, design_planes=1,
+                             threads=2, output=tmp_path / "py")
+    assert [k["key"] for k in r["keys"]] == keys and r["keys"][1]["unit"] == "um"
+    assert [k["crb"] for k in r["keys"]] == [k["crb"] for k in cli["keys"]]
+    assert all(k["crb"] > 0 and k["crb_mc_error"] < 0.2 * k["crb"] for k in r["keys"])
+    assert r["dmu"][0][1].shape == (32, 40) and len(r["mu"]) == 2
+    assert r["design"]["best_per_count"][0]["defocus_um"] == \
+        cli["design"]["best_per_count"][0]["defocus_um"]
+    assert r["report"].endswith("report.html")
+    with pytest.raises(raymatch.Error, match="no 'colour'"):
+        raymatch.sensitivity(scene, ["object.drop.colour"])

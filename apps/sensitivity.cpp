@@ -90,6 +90,12 @@ int RunSensitivityCommand(const SensitivityCliOptions& o) {
     std::cout << "  " << k.key << " = " << k.value << (k.unit.empty() ? "" : " " + k.unit)
               << ":  +- " << k.crb << "  (Monte Carlo error of the bound " << k.crb_mc_error
               << ")\n";
+  for (const auto& k : r.keys)
+    if (!(k.crb_mc_error <= 0.05 * k.crb))
+      std::cout << "WARNING: the bound of " << k.key << " has a Monte Carlo error of "
+                << 100 * k.crb_mc_error / k.crb
+                << " % of itself: its derivative images are noisy; raise --ray-factor or --sets "
+                   "(or --steps)\n";
   if (!r.design_best.empty()) {
     std::cout << "design (geometric mean of the bounds of the design keys, one image's photons "
                  "shared):\n";

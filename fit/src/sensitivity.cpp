@@ -399,6 +399,7 @@ std::string WriteSensitivityOutputs(const SensitivitySpec& spec, const Sensitivi
                     {"step", k.step},
                     {"crb", J(k.crb)},
                     {"crb_mc_error", J(k.crb_mc_error)},
+                    {"crb_mc_error_large", !(k.crb_mc_error <= 0.05 * k.crb)},
                     {"crb_exposure_known", J(k.crb_exposure_known)},
                     {"crb_per_image", [&] {
                        nlohmann::json a = nlohmann::json::array();
@@ -490,6 +491,7 @@ std::string WriteSensitivityOutputs(const SensitivitySpec& spec, const Sensitivi
   for (const SensitivityKey& k : r.keys) {
     h << "<tr><td style=\"text-align:left\">" << HtmlEscape(k.key) << "</td><td>" << Num(k.value, 6)
       << " " << k.unit << "</td><td><b>" << Num(k.crb) << "</b></td><td>" << Num(k.crb_mc_error, 2)
+      << (k.crb_mc_error <= 0.05 * k.crb ? "" : " (large: raise the ray factor or sets)")
       << "</td><td>" << Num(k.crb_exposure_known) << "</td>";
     for (double v : k.crb_per_image) h << "<td>" << Num(v) << "</td>";
     h << "</tr>\n";

@@ -239,6 +239,45 @@ void ReadMaterial(TomlReader& r, const Scene& scene, ObjectSpec& o) {
   o.material = os.str();
 }
 
+/// `perturbation_scale` of a grid (issue 23): its difference from a reference multiplied,
+/// v' = ref + s (v - ref), in the grid's own quantity (density before IAPWS R9-97, or index). The
+/// reference: `reference_density_kg_m3` / `reference_index`, else the grid's mean on the object's
+/// surface (spheres: 1024 points of a Fibonacci lattice). s = 1 leaves the grid as it is.
+void ScalePerturbation(TomlReader& r, IndexField* f, const ObjectSpec& o, bool density) {
+  const std::string ref_key = density ? "reference_density_kg_m3" : "reference_index";
+  const std::string other = density ? "reference_index" : "reference_density_kg_m3";
+  if (r.Has(other))
+    r.Fail(other,
+           std::string("a ") + (density ? "density" : "index") + " grid's reference is " + ref_key);
+  const double s = r.Number("perturbation_scale", 1.0);
+  if (!(std::abs(s) <= 1e6)) r.Fail("perturbation_scale", "expected a finite number within +-1e6");
+  const bool given = r.Has(ref_key);
+  double ref = given ? r.Positive(ref_key) : 0;
+  if (s == 1) return;  // bit for bit the grid as given
+  std::string from = "given";
+  if (!given) {
+    if (o.shape != ShapeType::kSphere)
+      r.Fail("perturbation_scale",
+             "give " + ref_key +
+                 ": the default reference (the grid's mean on the surface) is "
+                 "defined for spheres");
+    const int n = 1024;
+    double sum = 0;
+    for (int k = 0; k < n; ++k) {  // Fibonacci lattice: equal areas on the sphere
+      const double z = 1 - (2 * k + 1) / double(n), rho = std::sqrt(1 - z * z);
+      const double phi = k * M_PI * (3 - std::sqrt(5.0));
+      sum += f->Index(Vec3(rho * std::cos(phi), rho * std::sin(phi), z) * o.radius_um);
+    }
+    ref = sum / n;
+    from = "the grid's mean on the sphere's surface";
+  }
+  for (double& v : f->values) v = ref + s * (v - ref);
+  std::ostringstream d;
+  d << "difference from " << ref << (density ? " kg/m^3" : "") << " (" << from << ") x " << s
+    << "; ";
+  f->description = d.str();
+}
+
 std::shared_ptr<const IndexField> ReadIndexField(TomlReader r, Scene& scene, const ObjectSpec& o) {
   auto f = std::make_shared<IndexField>();
   const std::string type =
@@ -304,6 +343,7 @@ std::shared_ptr<const IndexField> ReadIndexField(TomlReader r, Scene& scene, con
     }
     const std::string quantity = r.Choice("quantity", {"index", "density"}, "index");
     f->values = std::move(a.values);
+    ScalePerturbation(r, f.get(), o, quantity == "density");
     if (quantity == "density") {
       std::vector<double> temps;
       double T = 293.15;
@@ -339,10 +379,10 @@ std::shared_ptr<const IndexField> ReadIndexField(TomlReader r, Scene& scene, con
         scene.warnings.push_back(r.Where("file").ToString() + ": " + std::to_string(out_of_range) +
                                  " grid values lie outside the IAPWS R9-97 range (0-1060 kg/m^3, "
                                  "261-773 K); the formula is extrapolated there");
-      f->description = "water density grid -> IAPWS R9-97 index";
+      f->description += "water density grid -> IAPWS R9-97 index";
     } else {
       r.Number("temperature_K", 0), r.String("temperature_file", "");
-      f->description = "index grid";
+      f->description += "index grid";
       for (double v : f->values)
         if (!(v > 0)) r.Fail("file", "refractive indices must be positive");
     }

@@ -5,6 +5,7 @@
 #include <nlohmann/json.hpp>
 #include <sstream>
 
+#include "numbers.h"
 #include "raymatch/compare/plot.h"
 #include "raymatch/core/atomic_file.h"
 #include "raymatch/core/html.h"
@@ -18,18 +19,8 @@ namespace fs = std::filesystem;
 
 namespace {
 
-std::string Num(double v, int prec = 6) {
-  if (!std::isfinite(v)) return "n/a";
-  std::ostringstream os;
-  os.precision(prec);
-  os << v;
-  return os.str();
-}
-
-/// JSON number or null (never NaN in an output).
-nlohmann::json J(double v) {
-  return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr);
-}
+using internal::J;
+using internal::Num;
 
 nlohmann::json Matrix(const std::vector<std::vector<double>>& m) {
   nlohmann::json a = nlohmann::json::array();

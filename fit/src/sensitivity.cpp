@@ -13,6 +13,7 @@
 #include <sstream>
 
 #include "model.h"
+#include "numbers.h"
 #include "raymatch/compare/plot.h"
 #include "raymatch/core/atomic_file.h"
 #include "raymatch/core/html.h"
@@ -356,17 +357,9 @@ SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
 
 namespace {
 
-nlohmann::json J(double v) {
-  return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr);
-}
+using internal::J;
 
-std::string Num(double v, int digits = 4) {
-  if (!std::isfinite(v)) return "-";
-  std::ostringstream o;
-  o.precision(digits);
-  o << v;
-  return o.str();
-}
+std::string Num(double v, int digits = 4) { return internal::Num(v, digits); }
 
 /// "object.drop.center_um[2]" -> "object.drop.center_um_2_" (for file names).
 std::string Slug(const std::string& key) {

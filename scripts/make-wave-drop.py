@@ -1,7 +1,9 @@
 #!/usr/bin/env python3
 """A CFD-like test drop (issue 23; docs/sensitivity.md): a 43 um water drop holding an
-axisymmetric pressure wave, a spherical shell of +AMPLITUDE kg/m^3 (Gaussian profile across the
-shell) whose centre, and so its axis, is offset OFFSET um along x from the drop's centre, stored
+axisymmetric pressure wave, a spherical shell of +AMPLITUDE kg/m^3 (a smooth cos^2 profile of
+compact support across the shell: outside it the density is exactly the reference, so the tracer
+crosses those cells in straight steps) whose centre, and so its axis, is offset OFFSET um along x
+from the drop's centre, stored
 as a 3D density grid [nz][ny][nx] (numpy .npy), and scenes that image it at 405 nm under a 23 deg
 cone through a 20x / 0.42 objective with the sample's photon count (2500 per flat-field pixel):
 
@@ -11,7 +13,7 @@ cone through a 20x / 0.42 objective with the sample's photon count (2500 per fla
   OUT/scene_plus4.toml the wave scaled to +4 kg/m^3 (the paper's Fig. 8)
 
 Usage: scripts/make-wave-drop.py OUT [--amplitude-kg-m3 20] [--offset-um 2.5]
-       [--shell-radius-um 12] [--shell-width-um 2] [--spacing-um 0.5]
+       [--shell-radius-um 12] [--shell-width-um 3] [--spacing-um 1]
 """
 import argparse
 import os
@@ -28,8 +30,8 @@ def main():
     ap.add_argument("--amplitude-kg-m3", type=float, default=20.0)
     ap.add_argument("--offset-um", type=float, default=2.5)
     ap.add_argument("--shell-radius-um", type=float, default=12.0)
-    ap.add_argument("--shell-width-um", type=float, default=2.0, help="1/e half-width")
-    ap.add_argument("--spacing-um", type=float, default=0.5)
+    ap.add_argument("--shell-width-um", type=float, default=3.0, help="half-width (support)")
+    ap.add_argument("--spacing-um", type=float, default=1.0)
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
     half = RADIUS_UM + 1.0  # the grid covers the drop with a margin; the field holds its edges
@@ -37,7 +39,8 @@ def main():
     c = -half + a.spacing_um * np.arange(n)
     z, y, x = np.meshgrid(c, c, c, indexing="ij")
     d = np.sqrt((x - a.offset_um) ** 2 + y * y + z * z)  # from the wave's centre
-    rho = REFERENCE + a.amplitude_kg_m3 * np.exp(-((d - a.shell_radius_um) / a.shell_width_um) ** 2)
+    u = np.clip((d - a.shell_radius_um) / a.shell_width_um, -1, 1)
+    rho = REFERENCE + a.amplitude_kg_m3 * np.cos(0.5 * np.pi * u) ** 2
     np.save(os.path.join(a.out, "rho.npy"), rho)
     for name, scale, note in (("scene", 1.0, "the wave as made"),
                               ("scene_ref", 0.0, "the reference drop"),

@@ -145,7 +145,7 @@ void RegisterSensitivity(CLI::App& app, int* exit_code) {
       ->check(CLI::Range(1.0 / 64, 1024.0));
   c->add_option("--sets", o->sets,
                 "independent ray-stream sets (even, >= 4); the bounds' Monte Carlo error is a "
-                "jackknife over their pairs")
+                "delete-one jackknife over them")
       ->capture_default_str();
   c->add_flag("--known-exposure", o->known_exposure,
               "take each image's photon count as known (default: a nuisance, as fits find it)");

@@ -299,13 +299,14 @@ SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
   r.exposure_relative_crb = info[0](Eigen::Index(P), Eigen::Index(P)) > 0
                                 ? 1 / std::sqrt(info[0](Eigen::Index(P), Eigen::Index(P)))
                                 : NAN;
-  // The bound's Monte Carlo error: a jackknife over pairs of sets (each pair one even, one odd).
-  const size_t pairs = sets.size() / 2;
+  // The bound's Monte Carlo error: a delete-one jackknife over the sets (each replicate the
+  // cross product of the remaining even and odd sets): S - 1 degrees of freedom.
+  const size_t n = sets.size();
   std::vector<std::vector<double>> jack;
-  for (size_t leave = 0; leave < pairs; ++leave) {
+  for (size_t leave = 0; leave < n; ++leave) {
     std::vector<size_t> use;
     for (size_t s : all)
-      if (s / 2 != leave) use.push_back(s);
+      if (s != leave) use.push_back(s);
     jack.push_back(BoundsOf(Information(sets, r.mu, use, rv), P, spec.exposure_nuisance).crb);
   }
   for (size_t i = 0; i < P; ++i) {
@@ -313,9 +314,9 @@ SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
     k.crb = b.crb[i];
     k.crb_exposure_known = b.crb_known[i];
     double mean = 0, var = 0;
-    for (const auto& j : jack) mean += (j.empty() ? NAN : j[i]) / double(pairs);
+    for (const auto& j : jack) mean += (j.empty() ? NAN : j[i]) / double(n);
     for (const auto& j : jack) var += std::pow((j.empty() ? NAN : j[i]) - mean, 2);
-    k.crb_mc_error = std::sqrt(double(pairs - 1) / double(pairs) * var);
+    k.crb_mc_error = std::sqrt(double(n - 1) / double(n) * var);
     for (const Eigen::MatrixXd& f : b.per_image) {
       const std::vector<double> one = Bounds(f);
       k.crb_per_image.push_back(one.empty() ? INFINITY : one[i]);
@@ -419,7 +420,8 @@ std::string WriteSensitivityOutputs(const SensitivitySpec& spec, const Sensitivi
       {"method",
        "Fisher information sum dmu_i dmu_j / (mu + read_noise^2) over the pixels of all images; "
        "derivatives by central differences with common random numbers, the cross product of "
-       "independent ray-stream halves (unbiased); crb_mc_error: jackknife over pairs of sets"}};
+       "independent ray-stream halves (unbiased); crb_mc_error: delete-one jackknife over the "
+       "sets"}};
   if (!r.design_best.empty()) {
     nlohmann::json best = nlohmann::json::array(), top = nlohmann::json::array();
     for (const DesignChoice& c : r.design_best) best.push_back(DesignJson(c, r));

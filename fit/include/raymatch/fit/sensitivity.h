@@ -28,7 +28,7 @@ struct SensitivitySpec {
   double photons_per_pixel = 0;    ///< flat-field photons per pixel (0: the scene's)
   double ray_factor = 4;           ///< rays traced per photon for the derivative images
   int sets = 4;                    ///< independent ray-stream sets (even, >= 4): the bound's
-                                   ///< Monte Carlo error is a jackknife over their pairs
+                                   ///< Monte Carlo error is a delete-one jackknife over them
   bool exposure_nuisance = true;   ///< each image's exposure unknown (profiled out)
   double read_noise_e = 0;         ///< camera read noise, electrons (= photons) rms
   uint64_t seed = 1;

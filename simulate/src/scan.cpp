@@ -50,17 +50,16 @@ static const char* PrName(PartialReflection p) {
 namespace {
 
 /// An object's index over the spectrum: mean, least and largest at 2000 quantiles, or why it is
-/// monochromatic.
-nlohmann::json OverTheSpectrum(const ObjectSpec& o, const Scene& s) {
+/// monochromatic. `water`: the object's water density field at other wavelengths as the tracer
+/// uses it (Simulator::WaterMapOf), or null.
+nlohmann::json OverTheSpectrum(const ObjectSpec& o, const Scene& s, const WaterMapTable* water) {
   const SpectrumSpec& sp = s.source.spectrum;
   const int K = 2000;  // the spectrum's quantile midpoints
-  if (o.index_field && o.index_field->water) {
+  if (o.index_field && water) {
     const IndexField& f = *o.index_field;
-    const WaterMapTable map(f.water->density_kg_m3, f.water->temperature_K, f.water->wavelength_um,
-                            sp.Sample(0), sp.Sample(std::nextafter(1.0, 0.0)));
     double lo = 1e300, hi = -1e300;
     for (int k = 0; k < K; ++k) {
-      const AffineIndexMap m = map.At(sp.Sample((k + 0.5) / K));
+      const AffineIndexMap m = water->At(sp.Sample((k + 0.5) / K));
       lo = std::min(lo, m.offset + m.scale * f.min_n),
       hi = std::max(hi, m.offset + m.scale * f.max_n);
     }
@@ -69,7 +68,7 @@ nlohmann::json OverTheSpectrum(const ObjectSpec& o, const Scene& s) {
              "wavelength (an affine map of the grid's index at wavelength_um)"},
             {"min_index", lo},
             {"max_index", hi},
-            {"map_max_error", map.max_error()}};
+            {"map_max_error", water->max_error()}};
   }
   if (o.index_field)
     return "monochromatic: an index field at wavelength_um (only water density grids follow "
@@ -123,7 +122,8 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
   nlohmann::json fates = nlohmann::json::object();
   for (int i = 0; i < kNumFates; ++i) fates[FateName(Fate(i))] = r.counters.fates[i];
   nlohmann::json objects = nlohmann::json::array();
-  for (const ObjectSpec& o : s.objects) {
+  for (size_t i = 0; i < s.objects.size(); ++i) {
+    const ObjectSpec& o = s.objects[i];
     nlohmann::json obj = {{"name", o.name}, {"index", o.index}, {"material", o.material}};
     if (!o.density_source.empty()) {
       obj["density_kg_m3"] = o.density_kg_m3;
@@ -133,7 +133,7 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
       obj["density_given"] = o.density_source == "given";
     }
     if (s.source.spectrum.type != SpectrumType::kNone)
-      obj["over_the_spectrum"] = OverTheSpectrum(o, s);
+      obj["over_the_spectrum"] = OverTheSpectrum(o, s, sim.WaterMapOf(int(i)));
     if (s.has_motion()) {  // each object's own motion (the exposure block: the pulse)
       const Vec3& v = o.velocity_um_per_us;
       obj["velocity_um_per_us"] = {v.x, v.y, v.z};

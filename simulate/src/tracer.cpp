@@ -141,6 +141,11 @@ double Simulator::source_weight() const {
   const auto* lf = std::get_if<LightFieldSource>(&impl_->source);
   return lf ? lf->weight : 0;
 }
+const WaterMapTable* Simulator::WaterMapOf(int object) const {
+  const WaterMapTable& t = impl_->water_map.at(size_t(object));
+  return t.empty() ? nullptr : &t;
+}
+
 double Simulator::object_pixel_um() const {
   return scene_.camera.pixel_pitch_um / std::abs(Magnification(scene_.optics));
 }

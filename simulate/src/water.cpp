@@ -26,16 +26,21 @@ double WaterDensityTanaka(double T) {
   return a5 * (1 - (t + a1) * (t + a1) * (t + a2) / (a3 * (t + a4)));
 }
 
-AffineIndexMap WaterIndexMap(const std::vector<double>& rho, const std::vector<double>& T,
-                             double from_um, double to_um) {
-  const size_t m = rho.size();
-  std::vector<double> x(m), y(m);
+namespace {
+
+/// The indices of the states at one wavelength.
+std::vector<double> IndicesAt(const std::vector<double>& rho, const std::vector<double>& T,
+                              double lambda_um) {
+  std::vector<double> n(rho.size());
+  for (size_t i = 0; i < rho.size(); ++i) n[i] = WaterRefractiveIndex(T[i], rho[i], lambda_um).n;
+  return n;
+}
+
+/// y ~ offset + scale x by least squares, with the largest residual.
+AffineIndexMap AffineFit(const std::vector<double>& x, const std::vector<double>& y) {
+  const size_t m = x.size();
   double mx = 0, my = 0;
-  for (size_t i = 0; i < m; ++i) {
-    x[i] = WaterRefractiveIndex(T[i], rho[i], from_um).n;
-    y[i] = WaterRefractiveIndex(T[i], rho[i], to_um).n;
-    mx += x[i] / double(m), my += y[i] / double(m);
-  }
+  for (size_t i = 0; i < m; ++i) mx += x[i] / double(m), my += y[i] / double(m);
   double sxx = 0, sxy = 0;
   for (size_t i = 0; i < m; ++i) sxx += (x[i] - mx) * (x[i] - mx), sxy += (x[i] - mx) * (y[i] - my);
   AffineIndexMap map;
@@ -47,13 +52,21 @@ AffineIndexMap WaterIndexMap(const std::vector<double>& rho, const std::vector<d
   return map;
 }
 
+}  // namespace
+
+AffineIndexMap WaterIndexMap(const std::vector<double>& rho, const std::vector<double>& T,
+                             double from_um, double to_um) {
+  return AffineFit(IndicesAt(rho, T, from_um), IndicesAt(rho, T, to_um));
+}
+
 WaterMapTable::WaterMapTable(const std::vector<double>& rho, const std::vector<double>& T,
                              double from_um, double lo_um, double hi_um) {
   constexpr int kNodes = 129;
   lo_ = lo_um;
   step_ = hi_um > lo_um ? (hi_um - lo_um) / (kNodes - 1) : 0;
+  const std::vector<double> from = IndicesAt(rho, T, from_um);  // the grid's own, once
   for (int k = 0; k < (step_ > 0 ? kNodes : 1); ++k) {
-    node_.push_back(WaterIndexMap(rho, T, from_um, lo_um + k * step_));
+    node_.push_back(AffineFit(from, IndicesAt(rho, T, lo_um + k * step_)));
     max_error_ = std::max(max_error_, node_.back().max_error);
   }
 }

@@ -86,6 +86,8 @@ struct RunControl {
   bool simd = true;
 };
 
+class WaterMapTable;  // water.h
+
 class Simulator {
  public:
   /// Builds geometry (Embree only for meshes), sources and optics. Throws Error on bad input.
@@ -163,6 +165,9 @@ class Simulator {
   const Scene& scene() const { return scene_; }
   double source_plane_z_um() const;
   double object_pixel_um() const;  ///< pixel pitch referred to the object plane
+  /// Object `object`'s water density field at other wavelengths, as rays of a spectral scene see
+  /// it (WaterMapTable); null for other objects and monochromatic scenes.
+  const WaterMapTable* WaterMapOf(int object) const;
   double field_radius_um() const;  ///< the source field radius in use (given or automatic)
   /// A light field's radiance integrated over direction cosines (map units; 0 for other
   /// sources): a continued light field's parts inside and beyond the NA (SourceSpec::edge_part)

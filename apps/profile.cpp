@@ -5,6 +5,7 @@
 
 #include "commands.h"
 #include "raymatch/compare/band_profile.h"
+#include "raymatch/core/atomic_file.h"
 #include "raymatch/core/error.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/simulate/scene.h"
@@ -50,7 +51,7 @@ int RunProfileCommand(const ProfileCliOptions& o) {
   const Image a = Load(o.a, o, &pixel_a, 0), b = Load(o.b, o, &pixel_b, 1);
   const compare::BandProfile p = compare::RowBandProfile(a, b, r0, r1, !o.b_expected);
   const std::filesystem::path out(o.output);
-  if (out.has_parent_path()) std::filesystem::create_directories(out.parent_path());
+  if (out.has_parent_path()) EnsureDirectory(out.parent_path());  // named on failure
   compare::WriteBandProfile(o.output, p, o.pixel_um > 0 ? o.pixel_um : pixel_a,
                             std::filesystem::path(o.a).filename().string(),
                             std::filesystem::path(o.b).filename().string());

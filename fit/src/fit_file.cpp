@@ -178,6 +178,23 @@ std::string UnitOf(const std::string& key) {
   return "";
 }
 
+std::optional<std::pair<size_t, std::string>> ParseImageKey(const std::string& key, size_t images) {
+  const auto segs = SplitKey(key);
+  const std::string field = segs.size() == 2 ? segs[1].name : "";
+  const bool known = field == "defocus_um" || field == "background_photons" ||
+                     field == "background_slope_x" || field == "background_slope_y";
+  if (segs.size() != 2 || !segs[0].index || segs[0].name != "image" || !known || segs[1].index ||
+      *segs[0].index >= images)
+    return std::nullopt;
+  return std::pair(*segs[0].index, field);
+}
+
+std::string ImageKeysHelp(size_t images) {
+  return "image keys are image[i].defocus_um, image[i].background_photons, "
+         "image[i].background_slope_x or _y with i < " +
+         std::to_string(images);
+}
+
 double SceneValue(const toml::table& scene, const std::string& key, const std::string& scene_file) {
   toml::table& t = const_cast<toml::table&>(scene);  // Resolve only reads through the slot here
   const Slot s = Resolve(t, key, scene_file);
@@ -375,18 +392,10 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     if (q.key.starts_with("image")) {
       // image[i].defocus_um: the defocus of one of this file's images; image[i].background_*:
       // an additive background of its expected image (photons per pixel; slopes per pixel).
-      const auto segs = SplitKey(q.key);
-      const std::string field = segs.size() == 2 ? segs[1].name : "";
-      const bool known = field == "defocus_um" || field == "background_photons" ||
-                         field == "background_slope_x" || field == "background_slope_y";
-      if (segs.size() != 2 || !segs[0].index || segs[0].name != "image" || !known ||
-          segs[1].index || *segs[0].index >= f.images.size())
-        p.Fail("key",
-               "image keys are image[i].defocus_um, image[i].background_photons, "
-               "image[i].background_slope_x or _y with i < " +
-                   std::to_string(f.images.size()));
-      if (field == "defocus_um") {
-        current = f.images[*segs[0].index].defocus_um;
+      const auto image_key = ParseImageKey(q.key, f.images.size());
+      if (!image_key) p.Fail("key", ImageKeysHelp(f.images.size()));
+      if (image_key->second == "defocus_um") {
+        current = f.images[image_key->first].defocus_um;
         if (!(std::abs(p.Number("lower")) <= kMaxDefocusUm &&
               std::abs(p.Number("upper")) <= kMaxDefocusUm))
           p.Fail("lower", "focus positions lie within +-1e5 um (10 cm)");

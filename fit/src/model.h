@@ -84,6 +84,8 @@ class FitModel {
   const Vec3& region_center() const { return region_center_; }
   double region_radius() const { return region_radius_; }
   double near_fraction() const { return near_fraction_; }
+  /// The camera's pixel at the object plane (micrometres, at the start values).
+  double object_pixel_um() const { return object_pixel_um_; }
   double background_seconds() const { return background_seconds_; }
   /// The scene with `theta` applied (for metadata and checks).
   simulate::Scene SceneAt(const std::vector<double>& theta) const;

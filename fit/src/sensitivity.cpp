@@ -46,21 +46,9 @@ namespace {
 double KeyValue(const SensitivitySpec& spec, const std::string& key,
                 const std::vector<double>& defocus) {
   if (!key.starts_with("image")) return SceneValue(spec.scene, key, spec.scene_file);
-  const size_t open = key.find('['), close = key.find(']');
-  const std::string field = close == std::string::npos ? "" : key.substr(close + 1);
-  size_t i = defocus.size();
-  try {
-    if (open == 5 && close > open + 1) i = std::stoul(key.substr(open + 1, close - open - 1));
-  } catch (const std::exception&) {
-  }
-  const bool known = field == ".defocus_um" || field == ".background_photons" ||
-                     field == ".background_slope_x" || field == ".background_slope_y";
-  if (i >= defocus.size() || !known)
-    throw Error("key '" + key +
-                "': image keys are image[i].defocus_um, image[i].background_photons, "
-                "image[i].background_slope_x or _y with i < " +
-                std::to_string(defocus.size()));
-  return field == ".defocus_um" ? defocus[i] : 0.0;
+  const auto image_key = ParseImageKey(key, defocus.size());
+  if (!image_key) throw Error("key '" + key + "': " + ImageKeysHelp(defocus.size()));
+  return image_key->second == "defocus_um" ? defocus[image_key->first] : 0.0;
 }
 
 /// The Schur complement of the last row and column (a nuisance profiled out).
@@ -237,6 +225,7 @@ SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
   };
   FitModel model(fs, spec.threads, say);
   r.rays_per_image = model.RaysAt(1.0);
+  r.object_pixel_um = model.object_pixel_um();
 
   // Derivative images per ray-stream set: central differences with common random numbers.
   std::vector<SetImages> sets(size_t(spec.sets));
@@ -382,9 +371,7 @@ std::string WriteSensitivityOutputs(const SensitivitySpec& spec, const Sensitivi
                                     const std::string& dir_name) {
   const fs::path dir(dir_name);
   EnsureDirectory(dir);
-  const simulate::Scene scene = simulate::LoadScene(spec.scene, spec.scene_file);
-  const double px =
-      scene.camera.pixel_pitch_um / (scene.optics.tube_focal_mm / scene.optics.objective_focal_mm);
+  const double px = r.object_pixel_um;
   nlohmann::json keys = nlohmann::json::array();
   for (const SensitivityKey& k : r.keys)
     keys.push_back({{"key", k.key},

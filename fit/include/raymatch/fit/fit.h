@@ -14,6 +14,7 @@
 #include <functional>
 #include <optional>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "raymatch/core/error.h"
@@ -286,6 +287,12 @@ std::vector<GridStudyRow> RunGridStudy(const FitSpec& spec, const std::vector<do
 /// The numeric scene value at `key` (see docs/fit.md for the key syntax); throws Error listing
 /// the keys that exist when it is missing or not a number.
 double SceneValue(const toml::table& scene, const std::string& key, const std::string& scene_file);
+
+/// An image key of a fit or a sensitivity study: image[i].defocus_um, image[i].background_photons,
+/// image[i].background_slope_x or _y with i < `images`; returns i and the field name, nullopt
+/// for any other key (ImageKeysHelp says what they are). A malformed key throws Error.
+std::optional<std::pair<size_t, std::string>> ParseImageKey(const std::string& key, size_t images);
+std::string ImageKeysHelp(size_t images);
 
 /// The unit a key's name ends in ("um", "mm", "deg", "K", "kg_m3"; "" for none).
 std::string UnitOf(const std::string& key);

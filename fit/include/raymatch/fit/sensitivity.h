@@ -65,6 +65,7 @@ struct SensitivityResult {
   std::vector<Image> mu;                ///< expected photons per image
   std::vector<std::vector<Image>> dmu;  ///< [image][key] d mu / d key (photons per unit)
   double photons_per_pixel = 0;
+  double object_pixel_um = 0;   ///< the camera's pixel at the object plane
   uint64_t rays_per_image = 0;  ///< rays traced per image and evaluation
   size_t evaluations = 0;
   std::vector<DesignChoice> design_best;  ///< the best choice of 1 .. design_planes planes

@@ -298,6 +298,8 @@ SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
       if (s != leave) use.push_back(s);
     jack.push_back(BoundsOf(Information(sets, r.mu, use, rv), P, spec.exposure_nuisance).crb);
   }
+  std::vector<std::vector<double>> per_image_bounds;  // each image alone
+  for (const Eigen::MatrixXd& f : b.per_image) per_image_bounds.push_back(Bounds(f));
   for (size_t i = 0; i < P; ++i) {
     SensitivityKey& k = r.keys[i];
     k.crb = b.crb[i];
@@ -306,10 +308,8 @@ SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
     for (const auto& j : jack) mean += (j.empty() ? NAN : j[i]) / double(n);
     for (const auto& j : jack) var += std::pow((j.empty() ? NAN : j[i]) - mean, 2);
     k.crb_mc_error = std::sqrt(double(n - 1) / double(n) * var);
-    for (const Eigen::MatrixXd& f : b.per_image) {
-      const std::vector<double> one = Bounds(f);
+    for (const std::vector<double>& one : per_image_bounds)
       k.crb_per_image.push_back(one.empty() ? INFINITY : one[i]);
-    }
   }
   if (spec.design_planes > 0) {
     if (size_t(spec.design_planes) > K)

@@ -3,12 +3,10 @@
 #include "raymatch/fit/sensitivity.h"
 
 #include <cmath>
-#include <filesystem>
 #include <iostream>
 
 #include "commands.h"
 #include "raymatch/core/error.h"
-#include "raymatch/core/toml_reader.h"
 
 namespace raymatch::apps {
 
@@ -51,11 +49,7 @@ std::vector<double> FocusList(const std::vector<std::string>& items) {
 }
 
 int RunSensitivityCommand(const SensitivityCliOptions& o) {
-  fit::SensitivitySpec spec;
-  spec.scene_file = std::filesystem::absolute(o.scene).string();
-  spec.scene = ParseTomlFile(spec.scene_file);
-  if (!o.calibration.empty())
-    spec.scene.insert_or_assign("calibration", std::filesystem::absolute(o.calibration).string());
+  fit::SensitivitySpec spec = fit::SensitivitySceneSpec(o.scene, o.calibration);
   spec.keys = o.keys;
   spec.steps = o.steps;
   if (!spec.steps.empty() && spec.steps.size() != spec.keys.size())

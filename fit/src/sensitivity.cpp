@@ -19,6 +19,7 @@
 #include "raymatch/core/html.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/provenance.h"
+#include "raymatch/core/toml_reader.h"
 #include "raymatch/fit/fit.h"
 #include "raymatch/simulate/scene.h"
 #include "runner.h"
@@ -29,6 +30,15 @@ namespace fs = std::filesystem;
 using internal::FromEigen;
 using internal::Matrix;
 using internal::ToEigen;
+
+SensitivitySpec SensitivitySceneSpec(const std::string& scene, const std::string& calibration) {
+  SensitivitySpec spec;
+  spec.scene_file = fs::absolute(scene).string();
+  spec.scene = ParseTomlFile(spec.scene_file);
+  if (!calibration.empty())
+    spec.scene.insert_or_assign("calibration", fs::absolute(calibration).string());
+  return spec;
+}
 
 double DefaultSensitivityStep(const std::string& key, double value) {
   const std::string unit = UnitOf(key);

@@ -1,11 +1,8 @@
 // Python bindings of the calibrate and fit libraries (apps/calibrate.cpp, apps/fit.cpp).
-#include <filesystem>
-
 #include "common.h"
 #include "raymatch/calibrate/corrector.h"
 #include "raymatch/calibrate/lightfield.h"
 #include "raymatch/core/calibration_file.h"
-#include "raymatch/core/toml_reader.h"
 #include "raymatch/fit/fit.h"
 #include "raymatch/fit/sensitivity.h"
 
@@ -171,12 +168,7 @@ void BindSensitivity(py::module_& m) {
          double photons_per_pixel, double ray_factor, int sets, bool known_exposure,
          double read_noise_e, int design_planes, const std::vector<std::string>& design_keys,
          uint64_t seed, int threads, const std::string& calibration, const std::string& output) {
-        fit::SensitivitySpec spec;
-        spec.scene_file = std::filesystem::absolute(PathArg(scene)).string();
-        spec.scene = ParseTomlFile(spec.scene_file);
-        if (!calibration.empty())
-          spec.scene.insert_or_assign("calibration",
-                                      std::filesystem::absolute(calibration).string());
+        fit::SensitivitySpec spec = fit::SensitivitySceneSpec(PathArg(scene), calibration);
         spec.keys = keys, spec.steps = steps, spec.defocus_um = defocus_um;
         spec.photons_per_pixel = photons_per_pixel, spec.ray_factor = ray_factor;
         spec.sets = sets, spec.exposure_nuisance = !known_exposure;

@@ -75,6 +75,10 @@ struct SensitivityResult {
   double seconds = 0;
 };
 
+/// A spec for the scene file `scene` (its path made absolute and the file parsed), with
+/// `calibration` (when not empty) set as the scene's calibration file; the rest at defaults.
+SensitivitySpec SensitivitySceneSpec(const std::string& scene, const std::string& calibration = "");
+
 /// Default central-difference span for a key: 0.2 um for lengths, 0.5 deg for angles, 0.002 for
 /// indices, 0.5 photons for backgrounds, else 1 % of |value| (at least 1e-3).
 double DefaultSensitivityStep(const std::string& key, double value);

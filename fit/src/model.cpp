@@ -562,30 +562,50 @@ void FitModel::DevianceResiduals(const Simulated& sim, int bin, double* out) con
   }
 }
 
-void FitModel::Score(const Simulated& sim, const std::vector<std::vector<Image>>& dmu, int bin,
-                     std::vector<double>* score, std::vector<double>* information) const {
+std::vector<double> FitModel::Score(const Simulated& sim,
+                                    const std::vector<std::vector<Image>>& dmu,
+                                    const std::vector<Image>& reference, int bin) const {
   const std::vector<Image>& use = Usable(bin);
   const std::vector<Image>& exp = Experiment(bin);
   const size_t P = dmu.empty() ? 0 : dmu[0].size();
-  score->assign(P, 0.0);
-  information->assign(P * P, 0.0);
-  std::vector<double> d(P);
+  std::vector<double> score(P, 0.0);
   for (size_t i = 0; i < sim.photons.size(); ++i) {
     const Image& e = exp[i];
-    const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin);
+    const Image m = BinImage(sim.photons[i], bin), v = BinImage(reference.at(i), bin);
+    const double shift = ReadShift(i, bin);  // (in e and in the weights; cancels in e - m)
     std::vector<Image> g;
     for (size_t j = 0; j < P; ++j) g.push_back(BinImage(dmu[i][j], bin));
     for (size_t p = 0; p < e.size(); ++p) {
       if (!Uses(use[i], p)) continue;
-      const double T = std::max(t[p], 1e-6);
-      const double f = std::max(double(e.pixels[p]), 0.0) / T - 1;
-      for (size_t a = 0; a < P; ++a) d[a] = g[a].pixels[p];
-      for (size_t a = 0; a < P; ++a) {
-        (*score)[a] += d[a] * f;
-        for (size_t b = 0; b < P; ++b) (*information)[a * P + b] += d[a] * d[b] / T;
-      }
+      const double f = (std::max(double(e.pixels[p]), 0.0) - (double(m.pixels[p]) + shift)) /
+                       (std::max(double(v.pixels[p]), kReferenceFloor) + shift);
+      for (size_t a = 0; a < P; ++a) score[a] += double(g[a].pixels[p]) * f;
     }
   }
+  return score;
+}
+
+std::vector<std::vector<double>> FitModel::CrossInformation(
+    const std::vector<std::vector<Image>>& a, const std::vector<std::vector<Image>>& b,
+    const std::vector<Image>& reference, int bin) const {
+  const std::vector<Image>& use = Usable(bin);
+  const size_t na = a.empty() ? 0 : a[0].size(), nb = b.empty() ? 0 : b[0].size();
+  std::vector<std::vector<double>> m(na, std::vector<double>(nb, 0.0));
+  for (size_t i = 0; i < a.size(); ++i) {
+    const double shift = ReadShift(i, bin);
+    const Image v = BinImage(reference.at(i), bin);
+    std::vector<Image> ga, gb;
+    for (size_t j = 0; j < na; ++j) ga.push_back(BinImage(a[i][j], bin));
+    for (size_t j = 0; j < nb; ++j) gb.push_back(BinImage(b.at(i).at(j), bin));
+    for (size_t p = 0; p < v.size(); ++p) {
+      if (!Uses(use[i], p)) continue;
+      const double weight = 1 / (std::max(double(v.pixels[p]), kReferenceFloor) + shift);
+      for (size_t r = 0; r < na; ++r)
+        for (size_t c = 0; c < nb; ++c)
+          m[r][c] += double(ga[r].pixels[p]) * gb[c].pixels[p] * weight;
+    }
+  }
+  return m;
 }
 
 std::pair<double, double> FitModel::ExpectedDeviance(const Simulated& sim, int bin,

@@ -47,16 +47,26 @@ class FitModel {
   /// that changes the light in dark regions (docs/fit.md, "Finite rays").
   void DevianceResiduals(const Simulated& sim, int bin, double* out) const;
 
-  /// Poisson score and expected information for Fisher scoring, with given derivative images
-  /// dmu[image][parameter] (photons per unit): score_i = sum_q dmu_qi (e_q / T_q - 1) and
-  /// information_ij = sum_q dmu_qi dmu_qj / T_q (row-major), T_q = TemplateMean of the binned
-  /// counts. Linear in the counts: no nonlinearity of the deviance residuals enters.
-  void Score(const Simulated& sim, const std::vector<std::vector<Image>>& dmu, int bin,
-             std::vector<double>* score, std::vector<double>* information) const;
+  /// The final steps' estimating function (fit/src/uncertainty.cpp, FinalSteps): per
+  /// parameter sum_q dmu_qi (e_q - m_q) / V_q, m the plain binned count of `sim` (no extra
+  /// ray), V = max(reference, kReferenceFloor) + the read-noise shift, `reference` (per image,
+  /// unbinned photons) traced with rays independent of `sim`'s. For any dmu and reference fixed
+  /// independently of e and of `sim`'s rays it vanishes on average at the truth in every pixel,
+  /// dark ones included (E[e - m] = 0), where e / (count + one ray) is biased by -exp(-k mu).
+  std::vector<double> Score(const Simulated& sim, const std::vector<std::vector<Image>>& dmu,
+                            const std::vector<Image>& reference, int bin) const;
 
-  /// Expected deviance at the optimum for a correct model (Poisson and template noise) and its
-  /// standard deviation, from the best images; `parameters` are subtracted from the degrees of
-  /// freedom.
+  /// sum over usable (binned) pixels of a_qi b_qj / V_q with Score's weights 1 / V
+  /// (row i, column j; not symmetrised).
+  std::vector<std::vector<double>> CrossInformation(const std::vector<std::vector<Image>>& a,
+                                                    const std::vector<std::vector<Image>>& b,
+                                                    const std::vector<Image>& reference,
+                                                    int bin) const;
+
+  /// The least variance a reference template gives a pixel in Score's weights (photons): one
+  /// photon, so a pixel no reference ray reached does not get an unbounded weight.
+  static constexpr double kReferenceFloor = 1.0;
+
   std::pair<double, double> ExpectedDeviance(const Simulated& sim, int bin,
                                              size_t parameters) const;
 

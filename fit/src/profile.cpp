@@ -11,8 +11,9 @@
 // and to first order in the distance to that optimum it is the efficient score
 //   -2 (sc_i - F_i,rest F_rest,rest^-1 sc_rest) = -2 (C sc)_i / C_ii
 // (C = F^-1; Neyman's C(alpha) score; Cox and Hinkley, Theoretical Statistics, 1974, 9.3), the
-// score sc = sum_q dmu_q (e_q / T_q - 1) projected with the derivative images averaged over
-// the independent ray-stream sets, in which the staircase averages over every pixel. Along the
+// score sc the final steps' estimating function (FitModel::Score: sum_q dmu_q (e_q - m_q) / V_q
+// with the derivative images of the independent ray-stream sets, C = A^-1 the inverse of its
+// response), in which the staircase averages over every pixel. Along the
 // linearised profile path theta(t) = best + t C e_i / sqrt(C_ii) (the others at their
 // conditional optimum for a quadratic deviance; t in units of sigma_i = sqrt(C_ii)) the image
 // is traced exactly, so the curvature of the model (a bending valley, an image that is not
@@ -144,22 +145,20 @@ void ProfileIntervals(Runner& run, const FitSpec& spec, const std::vector<double
   FitModel& model = run.model();
   const size_t level = spec.rays.fractions.size() - 1;
   const int bin = model.BinAt(level);
-  // C: the inverse of the information the score responds with (as in the final steps).
-  auto Score = [&](const std::vector<double>& th, Eigen::VectorXd* sc, std::vector<double>* info) {
+  // C: the inverse of the response A of the final steps' estimating equation, whose root's
+  // conditional path along parameter i is C e_i.
+  if (od.score_response.size() == 0) return;
+  const auto lu = od.score_response.fullPivLu();
+  if (!lu.isInvertible()) return;
+  const Eigen::MatrixXd C = lu.inverse();
+  auto Score = [&](const std::vector<double>& th, Eigen::VectorXd* sc) {
     double e = 0;
     const Simulated mu = run.Images(th, level, spec.seed, Stage::kProfile, &e);
-    std::vector<double> s, f;
-    model.Score(mu, od.score_dmu, bin, &s, &f);
+    const std::vector<double> s = model.Score(mu, od.score_dmu, od.score_reference, bin);
     *sc = Eigen::Map<const Eigen::VectorXd>(s.data(), Eigen::Index(P));
-    if (info) *info = std::move(f);
   };
   Eigen::VectorXd sc0;
-  std::vector<double> info;
-  Score(best, &sc0, &info);
-  const Matrix cm =
-      InverseSpd(FromEigen(ScoringInformation(od.half_a, od.half_b, bin, spec, info)));
-  if (cm.empty()) return;
-  const Eigen::MatrixXd C = ToEigen(cm);
+  Score(best, &sc0);
   for (size_t i : which) {
     ParameterResult& pr = res->parameters[i];
     if (!(pr.sigma > 0)) continue;
@@ -186,7 +185,7 @@ void ProfileIntervals(Runner& run, const FitSpec& spec, const std::vector<double
       std::vector<double> th = best;
       for (size_t j = 0; j < P; ++j) th[j] += t * r * u(Eigen::Index(j));
       Eigen::VectorXd sc;
-      Score(Clip(th, spec), &sc, nullptr);
+      Score(Clip(th, spec), &sc);
       points.push_back({t, G(sc)});
     }
     if (points.size() < 2) continue;

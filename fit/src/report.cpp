@@ -109,6 +109,8 @@ nlohmann::json ParameterJson(const ParameterResult& p) {
           {"sigma_statistical", J(p.sigma_statistical)},
           {"sigma_curvature", J(p.sigma_curvature)},
           {"sigma_derivatives", J(p.sigma_derivatives)},
+          {"sigma_simulation", J(p.sigma_simulation)},
+          {"score_derivative", p.score_derivative},
           {"sigma_repeat_seeds", J(p.sigma_repeat)},
           {"sigma_cramer_rao", J(p.sigma_cramer_rao)},
           {"sigma_expected_with_simulation_noise", J(p.sigma_expected)},

@@ -41,10 +41,11 @@ using Matrix = std::vector<std::vector<double>>;
 
 /// The public API's row-major nested vectors <-> Eigen (element copies, nothing else).
 inline Eigen::MatrixXd ToEigen(const Matrix& m) {
-  const auto n = static_cast<Eigen::Index>(m.size());
-  Eigen::MatrixXd a(n, n);
-  for (Eigen::Index i = 0; i < n; ++i)
-    for (Eigen::Index j = 0; j < n; ++j) a(i, j) = m[size_t(i)][size_t(j)];
+  const auto rows = static_cast<Eigen::Index>(m.size());
+  const auto cols = static_cast<Eigen::Index>(m.empty() ? 0 : m[0].size());
+  Eigen::MatrixXd a(rows, cols);
+  for (Eigen::Index i = 0; i < rows; ++i)
+    for (Eigen::Index j = 0; j < cols; ++j) a(i, j) = m[size_t(i)][size_t(j)];
   return a;
 }
 inline Matrix FromEigen(const Eigen::MatrixXd& a) {
@@ -175,6 +176,9 @@ struct Differences {
   Eigen::MatrixXd jacobian;             // residuals x parameters
   Eigen::VectorXd residuals;
   std::vector<bool> flat;  // parameter leaves every pixel unchanged
+  // Central differences: per image the mean of the 2P images traced (the image at theta to
+  // second order in the steps, with 2P times the rays' shot noise averaged down).
+  std::vector<Image> mean;
 };
 
 Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<double>& th,
@@ -199,22 +203,6 @@ inline bool FinalStepsRun(const FitSpec& spec) {
          spec.error == ErrorFunction::kPoisson && spec.rays.jacobian_seeds > 2;
 }
 
-/// The information for Fisher scoring at the optimum: the cross product of the derivative sets'
-/// two halves (unbiased: one noisy dmu squared is inflated by its noise) where the level is
-/// not binned and that product is invertible, else the one-sided `info` (row-major P x P) that
-/// FitModel::Score returned with the binned images.
-inline Eigen::MatrixXd ScoringInformation(const Differences& half_a, const Differences& half_b,
-                                          int bin, const FitSpec& spec,
-                                          const std::vector<double>& info) {
-  const auto P = Eigen::Index(spec.parameters.size());
-  if (bin == 1) {
-    const Matrix cross =
-        FisherInformation(half_a.mu.photons, half_a.dmu, half_b.dmu, ReadVariance(spec));
-    if (!InverseSpd(cross).empty()) return ToEigen(cross);  // else (rare: noise) the one-sided
-  }
-  return Eigen::Map<const Eigen::MatrixXd>(info.data(), P, P);
-}
-
 /// One compass search at schedule level `level` from *x (fit.cpp).
 bool Compass(Runner& run, const FitSpec& spec, size_t level, const std::function<uint64_t()>& seed,
              Stage stage, std::vector<double>* x, double* delta, double delta_min,
@@ -233,9 +221,15 @@ struct OptimumDerivatives {
   // The derivative images of the sets other than the main streams' (averaged): the score at a
   // point traced with the main streams uses them (independent of that point's counts).
   std::vector<std::vector<Image>> score_dmu;
-  // The noise of the derivatives in the final steps' score, as a Gram matrix in the residuals'
-  // metric (empty when no scoring steps ran): the uncertainties add its effect.
-  Eigen::MatrixXd score_derivative_noise;
+  // The same sets' mean images at the optimum (Differences::mean averaged): the score's weights
+  // 1/(mu + r^2) from rays independent of the main streams' template (FitModel::Score).
+  std::vector<Image> score_reference;
+  // The final steps' estimating equation (uncertainty.cpp, FinalSteps): its response
+  // A = J~^T W J and its variance per unit of (1 + 1/k), B = J~^T W J~, of which
+  // score_derivative_noise is the part from the derivatives' Monte Carlo noise (empty with
+  // fewer than three sets). The root's covariance is A^-1 B A^-T (1 + 1/k).
+  Eigen::MatrixXd score_response, score_variance, score_derivative_noise;
+  std::vector<bool> score_smoothed;  // per parameter: the score's derivative image is smoothed
 };
 
 /// Derivative sets at the optimum and the final Fisher-scoring steps, which move *best

@@ -259,6 +259,8 @@ void BindFit(py::module_& m) {
           d["sigma_statistical"] = p.sigma_statistical;
           d["sigma_curvature"] = p.sigma_curvature;
           d["sigma_derivatives"] = p.sigma_derivatives;
+          d["sigma_simulation"] = p.sigma_simulation;
+          d["score_derivative"] = p.score_derivative;
           d["sigma_repeat"] = p.sigma_repeat;
           d["sigma_cramer_rao"] = p.sigma_cramer_rao;
           d["sigma_expected"] = p.sigma_expected;

@@ -240,10 +240,10 @@ TEST(FitStatistics, ReadNoiseMakesTheErrorBarsOfADimImageHonest) {
 // bench/fit_accuracy.py: a 15.5 um drop, n 1.3371, 4 um before focus, 27 deg cone, 1 um pixels,
 // 1000 photons per pixel) fitted with 16 independent sets of ray streams (the fit's `seed`).
 // The experiment's noise is the same in every fit, so the fits scatter by the simulation's part
-// of the variance alone: sigma^2 - sigma_curvature^2, i.e. the template's noise C / k plus the
-// derivatives' noise in the final steps' score C N C (1 + 1/k). Without that second term the
-// index's predicted scatter was about half the observed (sigma 1.4 instead of 2.3 Cramer-Rao
-// bounds; bench/fit_accuracy.py measured RMS errors of 2.3-2.6 bounds for the index).
+// of the variance alone, sigma_simulation: the template's noise through the final steps'
+// estimating equation, A^-1 (B - N) A^-T / k, plus the derivatives' noise A^-1 N A^-T (1 + 1/k).
+// Without that second term the index's predicted scatter was about half the observed (with the
+// unsmoothed score: sigma 1.4 instead of 2.3 Cramer-Rao bounds).
 TEST(FitStatistics, ScatterOverRayStreamsMatchesTheSimulationShareOfSigma) {
   const double truth[5] = {0.6, -0.4, 0.5, 15.5, 1.3371};
   auto scene = [](const double* t, int seed) { return BenchScene(t, seed, 27, 120, 100, 20); };
@@ -266,7 +266,7 @@ TEST(FitStatistics, ScatterOverRayStreamsMatchesTheSimulationShareOfSigma) {
     for (int i = 0; i < 5; ++i) {
       const ParameterResult& p = r.parameters[i];
       best[i].push_back(p.best);
-      predicted[i] += (p.sigma * p.sigma - p.sigma_curvature * p.sigma_curvature) / kSeeds;
+      predicted[i] += p.sigma_simulation * p.sigma_simulation / kSeeds;
     }
   }
   double pooled = 0;

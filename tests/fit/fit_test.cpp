@@ -720,6 +720,84 @@ TEST(FiniteRays, TemplateOfCountPlusOneRayMakesThePoissonScoreUnbiased) {
     }
 }
 
+// The final steps' estimating function (FitModel::Score with a reference; fit/src/uncertainty.cpp)
+// must vanish on average at the truth for any fixed derivative images, dark pixels included:
+// sum_q g_q (e_q - m_q) / V_q with m the plain count of the main streams and V from other
+// streams, so E[e - m] = 0 in every pixel. A dim image (2 photons per pixel, a drop's shadow
+// darker still) makes dark pixels the rule; g = 1 everywhere and a ramp, which reach every dark
+// pixel (as smoothed derivatives reach into a dark ring). The mean over 8 main-stream templates,
+// one experiment: |mean| / SE < 4, SE^2 = sum g^2 V (1 + 1/8) / V^2. The score of the search's
+// template, sum g (e / (m + w) - 1) (count plus one ray), is biased there by about
+// -sum g exp(-mu / w), measured with the same images: it must be beyond -4 of its SE (the test
+// can tell; it moved case A's index by +10 bounds with smoothed derivatives).
+TEST(FiniteRays, FinalStepsScoreVanishesAtTheTruthInDarkPixels) {
+  testing::TempDir dir;
+  auto scene = [](int seed) {
+    std::ostringstream s;
+    s << "name = \"drop\"\nseed = " << seed
+      << "\n[source]\ntype = \"cone\"\nhalf_angle_deg = 20\n[[object]]\nname = \"drop\"\n"
+      << "type = \"sphere\"\ncenter_um = [0.3, -0.2, 0.4]\nradius_um = 13\nindex = 1.39\n"
+      << "[objective]\nfocal_length_mm = 10\nna = 0.42\nworking_distance_mm = 20\n"
+      << "[tube_lens]\nfocal_length_mm = 200\n[camera]\npixels = [48, 40]\npixel_pitch_um = 20\n"
+      << "[trace]\nphotons_per_pixel = 2\n";
+    return s.str();
+  };
+  const simulate::Scene truth = simulate::LoadScene(dir.Write("truth.toml", scene(100)));
+  const simulate::Simulator sim(truth);
+  WriteFloatImage(dir / "exp.tif", sim.TracePlane(6, 0, sim.RaysPerImage()).counts, "experiment");
+  dir.Write("model.toml", scene(1));
+  const FitSpec spec = LoadFitSpec(dir.Write(
+      "fit.toml",
+      "scene = \"model.toml\"\n[rays]\nfit_exposure = false\n[[image]]\nfile = \"exp.tif\"\n"
+      "defocus_um = 6\n[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 11\nupper = 15\n"
+      "step = 0.2\n"));
+  FitModel model(spec, 0, nullptr);
+  const std::vector<double> theta{13};
+  const int W = 48, H = 40;
+  Image ones(W, H), ramp(W, H);
+  for (int y = 0; y < H; ++y)
+    for (int x = 0; x < W; ++x) ones.at(x, y) = 1, ramp.at(x, y) = float(x) / W;
+  const std::vector<std::vector<Image>> g{{ones, ramp}};
+  std::vector<Image> reference{Image(W, H)};
+  for (uint64_t seed = 50; seed < 54; ++seed) {
+    const Simulated r = model.Expected(theta, 1.0, seed, nullptr);
+    for (size_t q = 0; q < reference[0].size(); ++q)
+      reference[0].pixels[q] += r.photons[0].pixels[q] / 4;
+  }
+  const Image& e = spec.images[0].photons;
+  const int kTemplates = 8;
+  double mean[2] = {0, 0}, plus_one[2] = {0, 0}, dark = 0;
+  double w = 0;
+  for (int j = 0; j < kTemplates; ++j) {
+    const Simulated m = model.Expected(theta, 1.0, 1000 + uint64_t(j), nullptr);
+    w = m.photons_per_ray[0];
+    const std::vector<double> sc = model.Score(m, g, reference, 1);
+    for (int a = 0; a < 2; ++a) mean[a] += sc[size_t(a)] / kTemplates;
+    for (size_t q = 0; q < e.size(); ++q) {
+      const double f = e.pixels[q] / (m.photons[0].pixels[q] + w) - 1;
+      plus_one[0] += f / kTemplates, plus_one[1] += f * ramp.pixels[q] / kTemplates;
+    }
+  }
+  double se[2] = {0, 0}, se_plus_one[2] = {0, 0};
+  for (size_t q = 0; q < e.size(); ++q) {
+    const double v = std::max(double(reference[0].pixels[q]), FitModel::kReferenceFloor);
+    dark += v < 1.5 ? 1 : 0;
+    for (int a = 0; a < 2; ++a) {
+      const double gq = a == 0 ? 1.0 : ramp.pixels[q];
+      se[a] += gq * gq * v * (1 + 1.0 / kTemplates) / (v * v);
+      se_plus_one[a] += gq * gq * (1 + 1.0 / kTemplates) / v;  // var(e / T) ~ 1 / mu
+    }
+  }
+  EXPECT_GT(dark, 0.05 * double(e.size())) << "too few dark pixels to test";
+  for (int a = 0; a < 2; ++a) {
+    std::printf("g %d: score %.2f SE, count plus one ray %.2f SE (%.0f of %zu pixels dark)\n", a,
+                mean[a] / std::sqrt(se[a]), plus_one[a] / std::sqrt(se_plus_one[a]), dark,
+                e.size());
+    EXPECT_LT(std::abs(mean[a]) / std::sqrt(se[a]), 4) << "g " << a << " mean " << mean[a];
+    EXPECT_LT(plus_one[a] / std::sqrt(se_plus_one[a]), -4) << "the test cannot tell, g " << a;
+  }
+}
+
 // The paper's Fig. 9: a grid scan of defocus x tilt (out of the image plane) of the merging
 // drops' mesh at the sample's photon count. The grid minimum lands on the truth with the Poisson
 // deviance (1/16 of the rays, binned 4x4) and with MS-SSIM at 1/1024 of the rays.

@@ -156,15 +156,22 @@ struct ParameterResult {
   double start = 0, best = 0, lower = 0, upper = 0;
   double sigma_curvature =
       0;  ///< from the Poisson likelihood's curvature (Gauss-Newton) at the optimum
-  /// The reported uncertainty: sigma_curvature x sqrt(1 + 1/(ray_factor x final fraction)),
-  /// since the simulation's own shot noise (variance mu / (ray_factor x fraction)) adds to the
-  /// experiment's in the fitted values.
-  /// With final Fisher-scoring steps it also holds sigma_derivatives in quadrature.
+  /// The reported uncertainty. With the final steps (the default): the covariance of their
+  /// estimating equation's root, A^-1 B A^-T (1 + 1/k) (docs/fit.md, "Finite rays"), which
+  /// holds the experiment's and the simulation's shot noise (k = ray_factor x final fraction)
+  /// and the derivatives' Monte Carlo noise. Without them: sigma_curvature x sqrt(1 + 1/k).
   double sigma = 0;
   /// The part of sigma from the Monte Carlo noise of the derivative images that the final steps'
   /// score used (their scatter between independent ray-stream sets): a noisy derivative turns
   /// the residuals' noise into a scatter of the root of the score equation.
   double sigma_derivatives = 0;
+  /// The part of sigma from the simulation's own noise (the template's shot noise and the
+  /// derivatives'): what the fits of one experiment scatter by over independent ray streams
+  /// (`seed`); the rest of sigma is the experiment's shot noise.
+  double sigma_simulation = 0;
+  /// The final steps' derivative image of this parameter: "smoothed" ([1/4, 1/2, 1/4] in x and
+  /// y) or "as traced" (central differences), whichever gave the smaller sigma; "" without them.
+  std::string score_derivative;
   /// sigma before the model-mismatch inflation (equal to sigma when the fit is consistent).
   double sigma_statistical = 0;
   double sigma_repeat = 0;      ///< scatter of repeated fits with independent simulation seeds

@@ -176,14 +176,6 @@ Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<do
       }
     }
     d.flat[i] = same;
-    if (central) {
-      if (d.mean.empty())
-        for (const Image& ia : mu_a.photons) d.mean.emplace_back(ia.width, ia.height);
-      const float f = static_cast<float>(0.5 / double(P));
-      for (size_t k = 0; k < mu_a.photons.size(); ++k)
-        for (size_t q = 0; q < d.mean[k].size(); ++q)
-          d.mean[k].pixels[q] += f * (mu_a.photons[k].pixels[q] + mu_b.photons[k].pixels[q]);
-    }
   }
   return d;
 }
@@ -197,16 +189,12 @@ Differences AverageSets(const std::vector<Differences>& sets, size_t first, size
       for (size_t i = 0; i < a.dmu[k].size(); ++i)
         for (size_t q = 0; q < a.dmu[k][i].size(); ++q)
           a.dmu[k][i].pixels[q] += sets[s].dmu[k][i].pixels[q];
-    for (size_t k = 0; k < a.mean.size() && k < sets[s].mean.size(); ++k)
-      for (size_t q = 0; q < a.mean[k].size(); ++q) a.mean[k].pixels[q] += sets[s].mean[k].pixels[q];
   }
   if (n > 1) {
     a.jacobian /= double(n);
     for (auto& per_image : a.dmu)
       for (Image& im : per_image)
         for (float& v : im.pixels) v = float(v / double(n));
-    for (Image& im : a.mean)
-      for (float& v : im.pixels) v = float(v / double(n));
   }
   return a;
 }

@@ -585,6 +585,27 @@ std::vector<double> FitModel::Score(const Simulated& sim,
   return score;
 }
 
+std::vector<double> FitModel::PoissonScore(const Simulated& sim,
+                                           const std::vector<std::vector<Image>>& dmu,
+                                           int bin) const {
+  const std::vector<Image>& use = Usable(bin);
+  const std::vector<Image>& exp = Experiment(bin);
+  const size_t P = dmu.empty() ? 0 : dmu[0].size();
+  std::vector<double> score(P, 0.0);
+  for (size_t i = 0; i < sim.photons.size(); ++i) {
+    const Image& e = exp[i];
+    const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin);
+    std::vector<Image> g;
+    for (size_t j = 0; j < P; ++j) g.push_back(BinImage(dmu[i][j], bin));
+    for (size_t p = 0; p < e.size(); ++p) {
+      if (!Uses(use[i], p)) continue;
+      const double f = std::max(double(e.pixels[p]), 0.0) / std::max(t[p], 1e-6) - 1;
+      for (size_t a = 0; a < P; ++a) score[a] += double(g[a].pixels[p]) * f;
+    }
+  }
+  return score;
+}
+
 std::vector<std::vector<double>> FitModel::CrossInformation(
     const std::vector<std::vector<Image>>& a, const std::vector<std::vector<Image>>& b,
     const std::vector<Image>& reference, int bin) const {

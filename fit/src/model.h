@@ -56,6 +56,13 @@ class FitModel {
   std::vector<double> Score(const Simulated& sim, const std::vector<std::vector<Image>>& dmu,
                             const std::vector<Image>& reference, int bin) const;
 
+  /// The Poisson log-likelihood's score with given derivative images, sum_q dmu_qi (e_q / T_q -
+  /// 1), T the template (count plus one ray, TemplateOf): its weights follow the template, so
+  /// differences of it along a path see the Poisson likelihood's asymmetry (the profile
+  /// likelihood's paths; fit/src/profile.cpp).
+  std::vector<double> PoissonScore(const Simulated& sim, const std::vector<std::vector<Image>>& dmu,
+                                   int bin) const;
+
   /// sum over usable (binned) pixels of a_qi b_qj / V_q with Score's weights 1 / V
   /// (row i, column j; not symmetrised).
   std::vector<std::vector<double>> CrossInformation(const std::vector<std::vector<Image>>& a,

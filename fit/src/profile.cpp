@@ -11,9 +11,10 @@
 // and to first order in the distance to that optimum it is the efficient score
 //   -2 (sc_i - F_i,rest F_rest,rest^-1 sc_rest) = -2 (C sc)_i / C_ii
 // (C = F^-1; Neyman's C(alpha) score; Cox and Hinkley, Theoretical Statistics, 1974, 9.3), the
-// score sc the final steps' estimating function (FitModel::Score: sum_q dmu_q (e_q - m_q) / V_q
-// with the derivative images of the independent ray-stream sets, C = A^-1 the inverse of its
-// response), in which the staircase averages over every pixel. Along the
+// score sc = sum_q dmu_q (e_q / T_q - 1) (FitModel::PoissonScore) with the final steps'
+// derivative images from the independent ray-stream sets and C = A^-1, the inverse of their
+// estimating equation's response, taken relative to its value at the optimum (the root of
+// that equation); the staircase averages over every pixel. Along the
 // linearised profile path theta(t) = best + t C e_i / sqrt(C_ii) (the others at their
 // conditional optimum for a quadratic deviance; t in units of sigma_i = sqrt(C_ii)) the image
 // is traced exactly, so the curvature of the model (a bending valley, an image that is not
@@ -154,11 +155,19 @@ void ProfileIntervals(Runner& run, const FitSpec& spec, const std::vector<double
   auto Score = [&](const std::vector<double>& th, Eigen::VectorXd* sc) {
     double e = 0;
     const Simulated mu = run.Images(th, level, spec.seed, Stage::kProfile, &e);
-    const std::vector<double> s = model.Score(mu, od.score_dmu, od.score_reference, bin);
+    const std::vector<double> s = model.PoissonScore(mu, od.score_dmu, bin);
     *sc = Eigen::Map<const Eigen::VectorXd>(s.data(), Eigen::Index(P));
   };
+  // Scores relative to the one at the optimum: the main streams' template differs from the
+  // final steps' (the sets' mean), so their score at that root is not zero but a constant of
+  // their noise (and of the one-ray template's -exp(-k mu) in dark pixels); the path's change
+  // is what the profile needs.
   Eigen::VectorXd sc0;
   Score(best, &sc0);
+  auto ScoreBy = [&](const std::vector<double>& th, Eigen::VectorXd* sc) {
+    Score(th, sc);
+    *sc -= sc0;
+  };
   for (size_t i : which) {
     ParameterResult& pr = res->parameters[i];
     if (!(pr.sigma > 0)) continue;
@@ -170,7 +179,7 @@ void ProfileIntervals(Runner& run, const FitSpec& spec, const std::vector<double
     const double r = pr.sigma / sigma_c;
     const Eigen::VectorXd u = C.col(Eigen::Index(i)) / sigma_c;
     auto G = [&](const Eigen::VectorXd& sc) { return -(C * sc)(Eigen::Index(i)) / sigma_c / r; };
-    std::vector<std::pair<double, double>> points{{0.0, G(sc0)}};  // (t, g)
+    std::vector<std::pair<double, double>> points{{0.0, 0.0}};  // (t, g)
     bool lower_at_bound = false, upper_at_bound = false;
     for (double t : {-1.0, -2.0, 1.0, 2.0}) {  // (t may move to a bound below)
       if (!run.Budget() || (t < 0 ? lower_at_bound : upper_at_bound)) continue;
@@ -185,7 +194,7 @@ void ProfileIntervals(Runner& run, const FitSpec& spec, const std::vector<double
       std::vector<double> th = best;
       for (size_t j = 0; j < P; ++j) th[j] += t * r * u(Eigen::Index(j));
       Eigen::VectorXd sc;
-      Score(Clip(th, spec), &sc);
+      ScoreBy(Clip(th, spec), &sc);
       points.push_back({t, G(sc)});
     }
     if (points.size() < 2) continue;

@@ -168,17 +168,14 @@ inline std::vector<double> Clip(std::vector<double> th, const FitSpec& spec) {
 /// on the final sets gave case A's radius an RMS error of 2.9 Cramer-Rao bounds instead of 1.8:
 /// the truncation error costs more than the Monte Carlo noise it saves, docs/performance.md).
 /// `with_center` false (central differences only): the image at theta is not traced, and `mu`
-/// and `residuals` stay empty (the extra derivative sets at the optimum use only the
-/// differences: one image fewer per set).
+/// and `residuals` stay empty (the derivative sets at the optimum when no final steps use their
+/// images: one image fewer per set).
 struct Differences {
   Simulated mu;                         // at theta
   std::vector<std::vector<Image>> dmu;  // [image][parameter] d mu / d theta_i
   Eigen::MatrixXd jacobian;             // residuals x parameters
   Eigen::VectorXd residuals;
   std::vector<bool> flat;  // parameter leaves every pixel unchanged
-  // Central differences: per image the mean of the 2P images traced (the image at theta to
-  // second order in the steps, with 2P times the rays' shot noise averaged down).
-  std::vector<Image> mean;
 };
 
 Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<double>& th,
@@ -217,18 +214,16 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
 struct OptimumDerivatives {
   Differences half_a,
       half_b;           // averages of the even and the odd sets (the first is the main streams)
-  Simulated final_sim;  // the main streams' images at the last accepted step (empty: none)
-  // The derivative images of the sets other than the main streams' (averaged): the score at a
-  // point traced with the main streams uses them (independent of that point's counts).
+  Simulated final_sim;  // the main streams' images at the final steps' root (empty: none)
+  // The equation's derivative images (J~_a + J~_b, the columns chosen): the
+  // profile-likelihood paths' score (FitModel::PoissonScore).
   std::vector<std::vector<Image>> score_dmu;
-  // The same sets' mean images at the optimum (Differences::mean averaged): the score's weights
-  // 1/(mu + r^2) from rays independent of the main streams' template (FitModel::Score).
-  std::vector<Image> score_reference;
-  // The final steps' estimating equation (uncertainty.cpp, FinalSteps): its response
-  // A = J~^T W J and its variance per unit of (1 + 1/k), B = J~^T W J~, of which
-  // score_derivative_noise is the part from the derivatives' Monte Carlo noise (empty with
-  // fewer than three sets). The root's covariance is A^-1 B A^-T (1 + 1/k).
-  Eigen::MatrixXd score_response, score_variance, score_derivative_noise;
+  // The final steps' estimating equation (uncertainty.cpp, FinalSteps; empty when they did not
+  // run): its response A, the variance of U at the truth from the experiment's noise, B_e
+  // (derivatives' noise included), and from the templates', B_t, and the part of B_e from the
+  // derivatives' Monte Carlo noise, N. The root's covariance is A^-1 (B_e + B_t) A^-T.
+  Eigen::MatrixXd score_response, score_variance_experiment, score_variance_template,
+      score_derivative_noise;
   std::vector<bool> score_smoothed;  // per parameter: the score's derivative image is smoothed
 };
 

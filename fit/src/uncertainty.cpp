@@ -52,104 +52,156 @@ std::vector<std::vector<Image>> SmoothedDerivatives(std::vector<std::vector<Imag
 
 }  // namespace
 
+namespace {
+
+/// Images (per image) or derivative images (per image and column) as Eigen-free helpers.
+using Images = std::vector<Image>;
+using Columns = std::vector<std::vector<Image>>;  // [image][column]
+
+Images MeanCenters(const std::vector<Differences>& sets, size_t first, size_t stride) {
+  Images m;
+  size_t n = 0;
+  for (size_t s = first; s < sets.size(); s += stride, ++n) {
+    const std::vector<Image>& c = sets[s].mu.photons;
+    if (m.empty())
+      for (const Image& im : c) m.emplace_back(im.width, im.height);
+    for (size_t k = 0; k < c.size(); ++k)
+      for (size_t q = 0; q < c[k].size(); ++q) m[k].pixels[q] += c[k].pixels[q];
+  }
+  for (Image& im : m)
+    for (float& v : im.pixels) v = float(v / double(std::max<size_t>(n, 1)));
+  return m;
+}
+
+/// The columns as traced followed by the same smoothed: [image][2P].
+Columns Candidates(const Columns& dmu) {
+  Columns c = dmu;
+  const Columns sm = SmoothedDerivatives(dmu);
+  for (size_t k = 0; k < c.size(); ++k) c[k].insert(c[k].end(), sm[k].begin(), sm[k].end());
+  return c;
+}
+
+Columns Plus(const Columns& a, const Columns& b) {
+  Columns c = a;
+  for (size_t k = 0; k < c.size(); ++k)
+    for (size_t i = 0; i < c[k].size(); ++i)
+      for (size_t q = 0; q < c[k][i].size(); ++q) c[k][i].pixels[q] += b[k][i].pixels[q];
+  return c;
+}
+
+Eigen::MatrixXd Rows(const Eigen::MatrixXd& m, const std::vector<size_t>& r) {
+  Eigen::MatrixXd o(Eigen::Index(r.size()), m.cols());
+  for (size_t i = 0; i < r.size(); ++i) o.row(Eigen::Index(i)) = m.row(Eigen::Index(r[i]));
+  return o;
+}
+Eigen::MatrixXd Block(const Eigen::MatrixXd& m, const std::vector<size_t>& r) {
+  Eigen::MatrixXd o(Eigen::Index(r.size()), Eigen::Index(r.size()));
+  for (size_t i = 0; i < r.size(); ++i)
+    for (size_t j = 0; j < r.size(); ++j)
+      o(Eigen::Index(i), Eigen::Index(j)) = m(Eigen::Index(r[i]), Eigen::Index(r[j]));
+  return o;
+}
+
+}  // namespace
+
 OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<double>* best_io,
                               const FitResult& res) {
   FitModel& model = run.model();
   const size_t P = spec.parameters.size();
   const size_t final_level = spec.rays.fractions.size() - 1;
   std::vector<double>& best = *best_io;
-  // Derivatives at the optimum from several independent sets of ray streams, and final
-  // Gauss-Newton steps with their average. With fixed ray streams a central difference counts
-  // the rays that cross pixel edges, and at photon-matched rays that counting noise is as large
-  // as the derivative itself for z and the index (measured: the single-stream Jacobian's column
-  // for the index has a cosine of 0.62 with the exact one). The root of J^T r = 0 with such a J
-  // scatters up to 2x the Cramer-Rao bound; averaging `jacobian_seeds` sets divides the noise's
-  // variance by their number (docs/fit.md, "Finite rays"). The sets are the uncertainties' too.
-  // When the steps move the optimum by more than half a step (the stencil's half-width) of any
-  // parameter, or end with a decrease still predicted, the derivatives are taken again there
-  // (at most three rounds): along the curved z-radius-index valley a single linearisation
-  // stops short (issue 26 item 2: z 0.2 um short, 7 CRB, from starts 1.8 um off).
+  // Derivatives at the optimum from `jacobian_seeds` independent sets of ray streams (the
+  // uncertainties' too) and the root of a cross-fitted estimating equation built from them
+  // (docs/fit.md, "Finite rays"). With fixed ray streams a central difference counts the rays
+  // that cross pixel edges, and at photon-matched rays that counting noise is as large as the
+  // derivative itself for z and the index (a single set's index column has a cosine of 0.62
+  // with the exact one): the root of J^T r = 0 with such a J scatters up to 2x the Cramer-Rao
+  // bound. When the root lies more than half a step (the stencil's half-width) of any parameter
+  // from where the sets were taken, they are taken again there (at most three rounds): along
+  // the curved z-radius-index valley a single linearisation stops short (issue 26 item 2).
   OptimumDerivatives od;
-  Differences& half_a = od.half_a;
-  Differences& half_b = od.half_b;
-  Simulated& final_sim = od.final_sim;
-  Eigen::MatrixXd& score_derivative_noise = od.score_derivative_noise;
   const std::vector<double> read_variance = ReadVariance(spec);
+  const double k = spec.rays.ray_factor * spec.rays.fractions.back();
+  const int bin = model.BinAt(final_level);
+  bool steps_ran = false;
   for (int round = 0; round < 3 && res.status != FitStatus::kFlat && spec.uncertainties &&
                       (round == 0 || run.Budget());
        ++round) {
     const size_t S = size_t(std::max(2, spec.rays.jacobian_seeds));
+    const bool steps = FinalStepsRun(spec);
     std::vector<Differences> sets;
     for (size_t s = 0; s < S; ++s)
       sets.push_back(Differentiate(run, spec, best, final_level,
                                    spec.seed + kDerivativeSetSeedStride * s, Stage::kFisher, true,
-                                   s == 0));
-    half_a = AverageSets(sets, 0, 2), half_b = AverageSets(sets, 1, 2);
-    // The final steps solve an estimating equation, J~^T W (e - m(theta)) = 0 (FitModel::Score
-    // with a reference): J~ the derivative images of the sets other than the main streams
-    // (independent of the template m and of e), each smoothed with [1/4, 1/2, 1/4] in x and y,
-    // W = 1/(mu + r^2) from those sets' mean images, m the main streams' plain count at theta.
-    // For any fixed J~ and W it vanishes on average at the truth in every pixel, so neither the
-    // smoothing nor the stencil biases its root; the smoothing removes most of the derivatives'
-    // counting noise (a ray crossing a pixel edge adds a +-1 dipole to a central difference,
-    // which the kernel shrinks 20-fold while the derivative, smooth over a pixel, passes), which
-    // otherwise scatters the root by up to 2x the Cramer-Rao bound along the z-radius-index
-    // valley. (The score sum dmu (e / (count + one ray) - 1), the search's, is biased by
-    // -exp(-k mu) per pixel: with smoothed derivatives reaching into dark pixels it moved case
-    // A's index by +10 bounds; docs/fit.md, "Finite rays".)
-    const Differences others = AverageSets(sets, 1, 1);
-    od.score_reference = others.mean;
-    const int bin = model.BinAt(final_level);
-    // Candidate columns: each parameter's derivative image as traced (0..P-1) and smoothed
-    // (P..2P-1). Their response to the main streams' derivatives (A = J~^T W J, J independent
-    // of J~), their Gram matrix (B = J~^T W J~, with J~'s own noise: the score's variance per
-    // unit of (1 + 1/k)) and the part of B from that noise (the scatter of the S - 1 sets about
-    // their mean, divided by S - 1 for the mean's).
-    std::vector<std::vector<Image>> cand = others.dmu;
+                                   s == 0 || steps));
+    od.half_a = AverageSets(sets, 0, 2), od.half_b = AverageSets(sets, 1, 2);
+    if (!steps) break;  // (the sets are always taken: the uncertainties need them)
+    steps_ran = true;
+    // The estimating equation, cross-fitted over the two halves a (sets 0, 2, ...) and b
+    // (1, 3, ...), each with its mean image c at theta_c (the plain count) and mean derivative
+    // images J (as traced), J~ (per parameter as traced or smoothed) and weights W = 1/(c + r^2):
+    //   U(theta) = J~_b^T W_b (e - c_a - J_a (theta - theta_c))
+    //            + J~_a^T W_a (e - c_b - J_b (theta - theta_c)) = 0.
+    // Each term's J~ and W come from rays independent of its template's and of e, so
+    // E[e - c] = 0 makes U vanish on average at the truth in every pixel, dark ones included,
+    // whatever J~ (the search's score, e / (count + one ray) - 1, is biased by -exp(-k mu) per
+    // pixel: with smoothed derivatives reaching into a drop's dark ring it moved case A's index
+    // by +10 bounds). The template is the mean of all S sets' images, not one: its shot noise
+    // adds mu / (k S / 2) per term instead of mu / k. The smoothing ([1/4, 1/2, 1/4]) shrinks a
+    // ray's pixel-edge dipole in a central difference about 20-fold while the derivative, smooth
+    // over a pixel, passes. U is linear in theta: its root is theta_c + A^-1 g.
+    const size_t na = (S + 1) / 2, nb = S / 2;
+    const Images ca = MeanCenters(sets, 0, 2), cb = MeanCenters(sets, 1, 2);
+    Images vm = ca;  // the weights' mean image for the variances
+    for (size_t i = 0; i < vm.size(); ++i)
+      for (size_t q = 0; q < vm[i].size(); ++q)
+        vm[i].pixels[q] = 0.5f * (ca[i].pixels[q] + cb[i].pixels[q]);
+    const Columns cand_a = Candidates(od.half_a.dmu), cand_b = Candidates(od.half_b.dmu);
+    Simulated sim_a, sim_b;
+    sim_a.photons = ca, sim_b.photons = cb;
+    // Over the 2P candidate columns: the response A (2P x P), g, and U's variance at the truth:
+    // the experiment's share B_e = (J~_a + J~_b)^T W (J~_a + J~_b), which with J~'s noise
+    // included is exactly the spread a noisy J~ gives the root, and the templates' share B_t.
+    const Eigen::MatrixXd a_all = ToEigen(model.CrossInformation(cand_b, od.half_a.dmu, cb, bin)) +
+                                  ToEigen(model.CrossInformation(cand_a, od.half_b.dmu, ca, bin));
+    Eigen::VectorXd g_all = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(2 * P));
     {
-      const auto smoothed = SmoothedDerivatives(others.dmu);
-      for (size_t k = 0; k < cand.size(); ++k)
-        cand[k].insert(cand[k].end(), smoothed[k].begin(), smoothed[k].end());
+      const std::vector<double> ga = model.Score(sim_a, cand_b, cb, bin);
+      const std::vector<double> gb = model.Score(sim_b, cand_a, ca, bin);
+      for (size_t i = 0; i < 2 * P; ++i) g_all(Eigen::Index(i)) = ga[i] + gb[i];
     }
-    std::vector<std::vector<Image>> main_dmu = sets[0].dmu;
-    const Eigen::MatrixXd a_all =
-        ToEigen(model.CrossInformation(cand, main_dmu, od.score_reference, bin));
-    const Eigen::MatrixXd b_all =
-        ToEigen(model.CrossInformation(cand, cand, od.score_reference, bin));
-    Eigen::MatrixXd n_all = Eigen::MatrixXd::Zero(b_all.rows(), b_all.cols());
+    const Columns cand_sum = Plus(cand_a, cand_b);
+    const Eigen::MatrixXd be_all = ToEigen(model.CrossInformation(cand_sum, cand_sum, vm, bin));
+    const Eigen::MatrixXd bt_all =
+        ToEigen(model.CrossInformation(cand_b, cand_b, vm, bin)) / (k * double(na)) +
+        ToEigen(model.CrossInformation(cand_a, cand_a, vm, bin)) / (k * double(nb));
+    // The derivatives' noise in B_e: per set, pooled over the halves from each set's scatter
+    // about its half's mean; the sum J~_a + J~_b holds it 1/na + 1/nb times.
+    Eigen::MatrixXd n_all = Eigen::MatrixXd::Zero(be_all.rows(), be_all.cols());
     if (S > 2) {
-      const double m = double(S - 1);
-      for (size_t s = 1; s < S; ++s) {
-        std::vector<std::vector<Image>> dev = sets[s].dmu;
-        const auto smoothed = SmoothedDerivatives(sets[s].dmu);
-        for (size_t k = 0; k < dev.size(); ++k) {
-          dev[k].insert(dev[k].end(), smoothed[k].begin(), smoothed[k].end());
-          for (size_t i = 0; i < 2 * P; ++i)
-            for (size_t q = 0; q < dev[k][i].size(); ++q)
-              dev[k][i].pixels[q] -= cand[k][i].pixels[q];
-        }
-        n_all += ToEigen(model.CrossInformation(dev, dev, od.score_reference, bin));
+      for (size_t s = 0; s < S; ++s) {
+        const Columns& mean = s % 2 == 0 ? cand_a : cand_b;
+        Columns dev = Candidates(sets[s].dmu);
+        for (size_t i = 0; i < dev.size(); ++i)
+          for (size_t c = 0; c < 2 * P; ++c)
+            for (size_t q = 0; q < dev[i][c].size(); ++q)
+              dev[i][c].pixels[q] -= mean[i][c].pixels[q];
+        n_all += ToEigen(model.CrossInformation(dev, dev, vm, bin));
       }
-      n_all /= (m - 1) * m;
+      n_all *= (1 / double(na) + 1 / double(nb)) / double(S - 2);
     }
     // Per parameter the column (as traced or smoothed) that gives the smaller variance of the
-    // root, A^-1 B A^-T, summed over the parameters in units of their Cramer-Rao bounds (the
-    // halves' cross product): every combination up to 12 parameters (a coordinate descent
-    // could stop in a local minimum: measured on bench/fit_accuracy.py case B), beyond that
-    // coordinate descent from all smoothed. The choice uses the derivative sets only, not the
-    // experiment, so each choice's equation stays unbiased.
+    // root, summed over the parameters in units of their Cramer-Rao bounds (the halves' cross
+    // product); every combination up to 12 parameters, else a coordinate descent from all
+    // smoothed. The choice uses the derivative sets only, never the experiment, so each choice's
+    // equation stays unbiased.
     const Matrix crb = InverseSpd(
-        FisherInformation(half_a.mu.photons, half_a.dmu, half_b.dmu, read_variance));
+        FisherInformation(od.half_a.mu.photons, od.half_a.dmu, od.half_b.dmu, read_variance));
     auto Cost = [&](const std::vector<size_t>& c) {
-      const auto n = static_cast<Eigen::Index>(P);
-      Eigen::MatrixXd A(n, n), B(n, n);
-      for (size_t i = 0; i < P; ++i) {
-        A.row(Eigen::Index(i)) = a_all.row(Eigen::Index(c[i]));
-        for (size_t j = 0; j < P; ++j) B(Eigen::Index(i), Eigen::Index(j)) = b_all(Eigen::Index(c[i]), Eigen::Index(c[j]));
-      }
-      const auto lu = A.fullPivLu();
+      const auto lu = Rows(a_all, c).fullPivLu();
       if (!lu.isInvertible()) return std::numeric_limits<double>::infinity();
-      const Eigen::MatrixXd ai = lu.inverse(), cov = ai * B * ai.transpose();
+      const Eigen::MatrixXd ai = lu.inverse();
+      const Eigen::MatrixXd cov = ai * (Block(be_all, c) + Block(bt_all, c)) * ai.transpose();
       double sum = 0;
       for (size_t i = 0; i < P; ++i) sum += cov(Eigen::Index(i), Eigen::Index(i)) / crb[i][i];
       return std::isfinite(sum) ? sum : std::numeric_limits<double>::infinity();
@@ -158,14 +210,14 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     for (size_t i = 0; i < P; ++i) choice[i] = P + i;
     if (!crb.empty()) {
       double cost = Cost(choice);
-      if (P <= 12) {  // every combination (4096 at most, each a P x P inversion)
+      if (P <= 12) {
         for (uint32_t mask = 0; mask < (1u << P); ++mask) {
           std::vector<size_t> t(P);
           for (size_t i = 0; i < P; ++i) t[i] = (mask >> i) & 1u ? i : P + i;
           const double c = Cost(t);
           if (c < cost) choice = t, cost = c;
         }
-      } else {  // coordinate descent from all smoothed
+      } else {
         for (int pass = 0; pass < 2; ++pass)
           for (size_t i = 0; i < P; ++i) {
             std::vector<size_t> t = choice;
@@ -175,55 +227,65 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
           }
       }
     }
-    od.score_dmu.assign(cand.size(), {});
+    od.score_response = Rows(a_all, choice);
+    od.score_variance_experiment = Block(be_all, choice);
+    od.score_variance_template = Block(bt_all, choice);
+    od.score_derivative_noise = Block(n_all, choice);
     od.score_smoothed.assign(P, false);
-    od.score_response.resize(Eigen::Index(P), Eigen::Index(P));
-    od.score_variance.resize(Eigen::Index(P), Eigen::Index(P));
-    score_derivative_noise.resize(Eigen::Index(P), Eigen::Index(P));
+    od.score_dmu.assign(cand_sum.size(), {});
     for (size_t i = 0; i < P; ++i) {
       od.score_smoothed[i] = choice[i] >= P;
-      for (size_t k = 0; k < cand.size(); ++k) od.score_dmu[k].push_back(cand[k][choice[i]]);
-      od.score_response.row(Eigen::Index(i)) = a_all.row(Eigen::Index(choice[i]));
-      for (size_t j = 0; j < P; ++j) {
-        od.score_variance(Eigen::Index(i), Eigen::Index(j)) = b_all(Eigen::Index(choice[i]), Eigen::Index(choice[j]));
-        score_derivative_noise(Eigen::Index(i), Eigen::Index(j)) = n_all(Eigen::Index(choice[i]), Eigen::Index(choice[j]));
-      }
+      for (size_t m = 0; m < cand_sum.size(); ++m)
+        od.score_dmu[m].push_back(cand_sum[m][choice[i]]);
     }
-    if (!FinalStepsRun(spec) || !run.Budget())
-      break;  // (the sets are always taken: the uncertainties need them, as before the steps)
-    const std::vector<std::vector<Image>>& dmu = od.score_dmu;
-    std::vector<double> x = best;
-    std::vector<double> sc = model.Score(sets[0].mu, dmu, od.score_reference, bin);
-    // Steps s = A^-1 g. The decrease they predict, in units of the root's covariance
-    // A^-1 B A^-T, is s^T A^T B^-1 A s = g^T B^-1 g: below kPolishTolerance the remaining step
-    // is a fifth of a sigma.
-    const auto step_solver = od.score_response.partialPivLu();
-    const auto size_solver = od.score_variance.ldlt();
-    auto Predicted = [&](const std::vector<double>& v) {
-      const Eigen::VectorXd g = Eigen::Map<const Eigen::VectorXd>(v.data(), Eigen::Index(P));
-      return g.dot(size_solver.solve(g));
+    const auto lu = od.score_response.fullPivLu();
+    if (!lu.isInvertible()) break;
+    // The root. The linear prediction c_h + J_h (theta - theta_c) carries J_h's counting noise
+    // times the distance from theta_c, which can be a few sigma (the coarse optimum): so the
+    // halves' images are traced again at the root (S images, not S (2P + 1)) and the equation
+    // re-solved there with the same J~ and W, until the step is below a fifth of a sigma
+    // (kPolishTolerance in the root's covariance) or after three such updates.
+    const Eigen::MatrixXd cov_root = lu.inverse() *
+                                     (od.score_variance_experiment + od.score_variance_template) *
+                                     lu.inverse().transpose();
+    const auto cov_solver = cov_root.ldlt();
+    auto Select = [&](const std::vector<double>& ga, const std::vector<double>& gb) {
+      Eigen::VectorXd g = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(P));
+      for (size_t i = 0; i < P; ++i) g(Eigen::Index(i)) = ga[choice[i]] + gb[choice[i]];
+      return g;
     };
-    double predicted = Predicted(sc);
-    for (int it = 0; it < 4 && run.Budget() && predicted >= kPolishTolerance; ++it) {
-      const Eigen::VectorXd step =
-          step_solver.solve(Eigen::Map<const Eigen::VectorXd>(sc.data(), Eigen::Index(P)));
+    Eigen::VectorXd g = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(P));
+    for (size_t i = 0; i < P; ++i) g(Eigen::Index(i)) = g_all(Eigen::Index(choice[i]));
+    std::vector<double> x = best;
+    bool stepped = false;
+    for (int update = 0; update <= 3; ++update) {
+      const Eigen::VectorXd step = lu.solve(g);
       if (!step.allFinite()) break;
       std::vector<double> y = x;
       for (size_t i = 0; i < P; ++i) y[i] += step(Eigen::Index(i));
       y = Clip(y, spec);
-      double e = 0;
-      const Simulated mu_y = run.Images(y, final_level, spec.seed, Stage::kFinal, &e);
-      const std::vector<double> sy = model.Score(mu_y, dmu, od.score_reference, bin);
-      const double predicted_y = Predicted(sy);
-      if (!(predicted_y < predicted)) break;
-      x = y, sc = sy, predicted = predicted_y, final_sim = mu_y;
+      x = y, stepped = true;
+      if (step.dot(cov_solver.solve(step)) < kPolishTolerance || update == 3 || !run.Budget())
+        break;
+      Simulated at_a, at_b;  // the halves' mean images at x, as c_a and c_b at theta_c
+      std::vector<Differences> centers(S);
+      for (size_t s2 = 0; s2 < S; ++s2)
+        centers[s2].mu = run.Images(x, final_level, spec.seed + kDerivativeSetSeedStride * s2,
+                                    Stage::kFinal, nullptr);
+      at_a.photons = MeanCenters(centers, 0, 2), at_b.photons = MeanCenters(centers, 1, 2);
+      g = Select(model.Score(at_a, cand_b, cb, bin), model.Score(at_b, cand_a, ca, bin));
     }
+    if (!stepped) break;
     bool far = false;
     for (size_t i = 0; i < P; ++i)
       far = far || std::abs(x[i] - best[i]) > 0.5 * spec.parameters[i].step;
-    const bool moved = x != best;
     best = x;
-    if ((!far && predicted < kPolishTolerance) || !moved) break;
+    if (!far) break;
+  }
+  // The main streams' images at the root, for the report, the residuals and the goodness of fit.
+  if (steps_ran && run.Budget()) {
+    double e = 0;
+    od.final_sim = run.Images(best, final_level, spec.seed, Stage::kFinal, &e);
   }
   return od;
 }
@@ -233,7 +295,6 @@ Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vec
   FitResult& res = *res_out;
   const size_t P = spec.parameters.size();
   const size_t final_level = spec.rays.fractions.size() - 1;
-  const Eigen::MatrixXd& score_derivative_noise = od.score_derivative_noise;
   const Differences& half_a = od.half_a;
   const Differences& half_b = od.half_b;
   const Simulated& final_sim = od.final_sim;
@@ -251,29 +312,36 @@ Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vec
   const Matrix cov = InverseSpd(FromEigen(JtJ));
   const double k = spec.rays.ray_factor * spec.rays.fractions.back();
   // The estimate's covariance. With the final steps, the root of their estimating equation:
-  // A^-1 B A^-T (1 + 1/k) (the experiment's and the template's noise through the smoothed
-  // derivatives, whose own noise B includes; sigma_derivatives is that part,
-  // A^-1 N A^-T (1 + 1/k)). Otherwise C (1 + 1/k), C the deviance's curvature.
+  // A^-1 (B_e + B_t) A^-T (the experiment's and the templates' noise through the chosen
+  // derivatives, whose own noise B_e includes); sigma_derivatives is the part A^-1 N A^-T,
+  // sigma_simulation the templates' and the derivatives'. Otherwise C (1 + 1/k), C the
+  // deviance's curvature, of which C / k is the simulation's.
   Eigen::MatrixXd a_inv;
-  if (od.score_response.size() > 0 && od.score_variance.size() > 0) {
+  if (od.score_response.size() > 0) {
     const auto lu = od.score_response.fullPivLu();
     if (lu.isInvertible()) a_inv = lu.inverse();
   }
-  auto Sandwich = [&](const Eigen::MatrixXd& m) {
-    return FromEigen(a_inv * m * a_inv.transpose());
-  };
+  auto Sandwich = [&](const Eigen::MatrixXd& m) { return a_inv * m * a_inv.transpose(); };
   auto SetSigmas = [&](const Matrix& c) {
-    const Matrix t = a_inv.size() > 0 ? Sandwich(od.score_variance) : c;
-    const Matrix n = a_inv.size() > 0 && score_derivative_noise.size() > 0
-                         ? Sandwich(score_derivative_noise)
-                         : Matrix(P, std::vector<double>(P, 0.0));
+    Matrix t = c;
+    std::vector<double> sim(P), der(P, 0.0);
     for (size_t i = 0; i < P; ++i) {
-      res.parameters[i].sigma = std::sqrt(std::max(0.0, t[i][i]) * (1 + 1 / k));
-      res.parameters[i].sigma_derivatives = std::sqrt(std::max(0.0, n[i][i]) * (1 + 1 / k));
-      // The simulation's share: the template's noise (the rest of t, over k) and the
-      // derivatives' (all of n's part).
-      const double rest = std::max(0.0, t[i][i] - n[i][i]);
-      res.parameters[i].sigma_simulation = std::sqrt(rest / k + std::max(0.0, n[i][i]) * (1 + 1 / k));
+      for (size_t j = 0; j < P; ++j) t[i][j] *= 1 + 1 / k;
+      sim[i] = c[i][i] / k;
+    }
+    if (a_inv.size() > 0) {
+      t = FromEigen(Sandwich(od.score_variance_experiment + od.score_variance_template));
+      const Eigen::MatrixXd n = Sandwich(od.score_derivative_noise);
+      const Eigen::MatrixXd tm = Sandwich(od.score_variance_template);
+      for (size_t i = 0; i < P; ++i) {
+        const auto ii = Eigen::Index(i);
+        der[i] = n(ii, ii), sim[i] = tm(ii, ii) + n(ii, ii);
+      }
+    }
+    for (size_t i = 0; i < P; ++i) {
+      res.parameters[i].sigma = std::sqrt(std::max(0.0, t[i][i]));
+      res.parameters[i].sigma_derivatives = std::sqrt(std::max(0.0, der[i]));
+      res.parameters[i].sigma_simulation = std::sqrt(std::max(0.0, sim[i]));
     }
     res.correlation = Correlation(t);
   };

@@ -157,9 +157,9 @@ struct ParameterResult {
   double sigma_curvature =
       0;  ///< from the Poisson likelihood's curvature (Gauss-Newton) at the optimum
   /// The reported uncertainty. With the final steps (the default): the covariance of their
-  /// estimating equation's root, A^-1 B A^-T (1 + 1/k) (docs/fit.md, "Finite rays"), which
-  /// holds the experiment's and the simulation's shot noise (k = ray_factor x final fraction)
-  /// and the derivatives' Monte Carlo noise. Without them: sigma_curvature x sqrt(1 + 1/k).
+  /// estimating equation's root, A^-1 (B_e + B_t) A^-T (docs/fit.md, "Finite rays"), which
+  /// holds the experiment's and the templates' shot noise and the derivatives' Monte Carlo
+  /// noise. Without them: sigma_curvature x sqrt(1 + 1/k), k = ray_factor x final fraction.
   double sigma = 0;
   /// The part of sigma from the Monte Carlo noise of the derivative images that the final steps'
   /// score used (their scatter between independent ray-stream sets): a noisy derivative turns
@@ -170,7 +170,8 @@ struct ParameterResult {
   /// (`seed`); the rest of sigma is the experiment's shot noise.
   double sigma_simulation = 0;
   /// The final steps' derivative image of this parameter: "smoothed" ([1/4, 1/2, 1/4] in x and
-  /// y) or "as traced" (central differences), whichever gave the smaller sigma; "" without them.
+  /// y) or "as traced" (central differences), whichever gave the smaller sigmas; "" without
+  /// them.
   std::string score_derivative;
   /// sigma before the model-mismatch inflation (equal to sigma when the fit is consistent).
   double sigma_statistical = 0;

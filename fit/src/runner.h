@@ -218,10 +218,11 @@ struct OptimumDerivatives {
   // The equation's derivative images (J~_a + J~_b, the columns chosen): the
   // profile-likelihood paths' score (FitModel::PoissonScore).
   std::vector<std::vector<Image>> score_dmu;
-  // The final steps' estimating equation (uncertainty.cpp, FinalSteps; empty when they did not
-  // run): its response A, the variance of U at the truth from the experiment's noise, B_e
-  // (derivatives' noise included), and from the templates', B_t, and the part of B_e from the
-  // derivatives' Monte Carlo noise, N. The root's covariance is A^-1 (B_e + B_t) A^-T.
+  // The final steps' estimating equation (uncertainty.cpp, FinalSteps; when they do not run,
+  // only the response, the halves' cross information, for the profile paths): its response A, the
+  // variance of U at the truth from the experiment's noise, B_e (derivatives' noise included), and
+  // from the templates', B_t, and the part of B_e from the derivatives' Monte Carlo noise, N. The
+  // root's covariance is A^-1 (B_e + B_t) A^-T.
   Eigen::MatrixXd score_response, score_variance_experiment, score_variance_template,
       score_derivative_noise;
   std::vector<bool> score_smoothed;  // per parameter: the score's derivative image is smoothed

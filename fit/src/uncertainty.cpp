@@ -135,7 +135,15 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
                                    spec.seed + kDerivativeSetSeedStride * s, Stage::kFisher, true,
                                    s == 0 || steps));
     od.half_a = AverageSets(sets, 0, 2), od.half_b = AverageSets(sets, 1, 2);
-    if (!steps) break;  // (the sets are always taken: the uncertainties need them)
+    if (!steps) {
+      // (The sets are always taken: the uncertainties need them.) The profile-likelihood paths
+      // then score with the sets other than the main streams' and respond with the halves'
+      // cross information.
+      od.score_dmu = AverageSets(sets, 1, 1).dmu;
+      od.score_response = ToEigen(
+          FisherInformation(od.half_a.mu.photons, od.half_a.dmu, od.half_b.dmu, read_variance));
+      break;
+    }
     steps_ran = true;
     // The estimating equation, cross-fitted over the two halves a (sets 0, 2, ...) and b
     // (1, 3, ...), each with its mean image c at theta_c (the plain count) and mean derivative
@@ -241,39 +249,50 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     const auto lu = od.score_response.fullPivLu();
     if (!lu.isInvertible()) break;
     // The root. The linear prediction c_h + J_h (theta - theta_c) carries J_h's counting noise
-    // times the distance from theta_c, which can be a few sigma (the coarse optimum): so the
-    // halves' images are traced again at the root (S images, not S (2P + 1)) and the equation
-    // re-solved there with the same J~ and W, until the step is below a fifth of a sigma
-    // (kPolishTolerance in the root's covariance) or after three such updates.
-    const Eigen::MatrixXd cov_root = lu.inverse() *
-                                     (od.score_variance_experiment + od.score_variance_template) *
-                                     lu.inverse().transpose();
-    const auto cov_solver = cov_root.ldlt();
+    // times the distance from theta_c, which can be a few sigma (the coarse optimum), and where
+    // the equation is nearly singular (weak nuisances) its linear root can be far off: so each
+    // step is tried with the halves' images traced at its end (S images, not S (2P + 1)) and
+    // kept only when the equation's value there, in units of the root's statistical spread,
+    // Q = U^T (B_e + B_t)^-1 U, falls (else halved, at most twice); the steps end when the
+    // next one is below a fifth of a sigma (Q < kPolishTolerance) or after four.
+    const Eigen::MatrixXd b_total = od.score_variance_experiment + od.score_variance_template;
+    const auto b_solver = b_total.completeOrthogonalDecomposition();
+    auto Q = [&](const Eigen::VectorXd& v) { return v.dot(b_solver.solve(v)); };
     auto Select = [&](const std::vector<double>& ga, const std::vector<double>& gb) {
-      Eigen::VectorXd g = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(P));
-      for (size_t i = 0; i < P; ++i) g(Eigen::Index(i)) = ga[choice[i]] + gb[choice[i]];
-      return g;
+      Eigen::VectorXd v = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(P));
+      for (size_t i = 0; i < P; ++i) v(Eigen::Index(i)) = ga[choice[i]] + gb[choice[i]];
+      return v;
+    };
+    auto GAt = [&](const std::vector<double>& y) {
+      Simulated at_a, at_b;  // the halves' mean images at y, as c_a and c_b at theta_c
+      std::vector<Differences> centers(S);
+      for (size_t s2 = 0; s2 < S; ++s2)
+        centers[s2].mu = run.Images(y, final_level, spec.seed + kDerivativeSetSeedStride * s2,
+                                    Stage::kFinal, nullptr);
+      at_a.photons = MeanCenters(centers, 0, 2), at_b.photons = MeanCenters(centers, 1, 2);
+      return Select(model.Score(at_a, cand_b, cb, bin), model.Score(at_b, cand_a, ca, bin));
     };
     Eigen::VectorXd g = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(P));
     for (size_t i = 0; i < P; ++i) g(Eigen::Index(i)) = g_all(Eigen::Index(choice[i]));
+    double q = Q(g);
     std::vector<double> x = best;
     bool stepped = false;
-    for (int update = 0; update <= 3; ++update) {
+    for (int it = 0; it < 4 && q >= kPolishTolerance && std::isfinite(q) && run.Budget(); ++it) {
       const Eigen::VectorXd step = lu.solve(g);
       if (!step.allFinite()) break;
-      std::vector<double> y = x;
-      for (size_t i = 0; i < P; ++i) y[i] += step(Eigen::Index(i));
-      y = Clip(y, spec);
-      x = y, stepped = true;
-      if (step.dot(cov_solver.solve(step)) < kPolishTolerance || update == 3 || !run.Budget())
-        break;
-      Simulated at_a, at_b;  // the halves' mean images at x, as c_a and c_b at theta_c
-      std::vector<Differences> centers(S);
-      for (size_t s2 = 0; s2 < S; ++s2)
-        centers[s2].mu = run.Images(x, final_level, spec.seed + kDerivativeSetSeedStride * s2,
-                                    Stage::kFinal, nullptr);
-      at_a.photons = MeanCenters(centers, 0, 2), at_b.photons = MeanCenters(centers, 1, 2);
-      g = Select(model.Score(at_a, cand_b, cb, bin), model.Score(at_b, cand_a, ca, bin));
+      bool accepted = false;
+      for (double f = 1; f >= 0.25 && run.Budget(); f *= 0.5) {
+        std::vector<double> y = x;
+        for (size_t i = 0; i < P; ++i) y[i] += f * step(Eigen::Index(i));
+        y = Clip(y, spec);
+        const Eigen::VectorXd gy = GAt(y);
+        const double qy = Q(gy);
+        if (qy < q) {
+          x = y, g = gy, q = qy, accepted = stepped = true;
+          break;
+        }
+      }
+      if (!accepted) break;
     }
     if (!stepped) break;
     bool far = false;
@@ -317,7 +336,7 @@ Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vec
   // sigma_simulation the templates' and the derivatives'. Otherwise C (1 + 1/k), C the
   // deviance's curvature, of which C / k is the simulation's.
   Eigen::MatrixXd a_inv;
-  if (od.score_response.size() > 0) {
+  if (od.score_response.size() > 0 && od.score_variance_experiment.size() > 0) {
     const auto lu = od.score_response.fullPivLu();
     if (lu.isInvertible()) a_inv = lu.inverse();
   }

@@ -391,7 +391,7 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
     if (record && std::all_of(flat.begin(), flat.end(), [](bool b) { return b; })) break;
   }
   // Then the Gauss-Newton polish at the final level (Polish). Skipped in the main search when
-  // the final Fisher-scoring rounds follow (`[rays] polish`): they start from the coarse
+  // the final steps follow (`[rays] polish`): they start from the coarse
   // optimum and cross the valley with averaged derivatives.
   const bool polish = !record || spec.rays.polish || !FinalStepsRun(spec);
   if (polish && !levels.empty() && std::none_of(flat.begin(), flat.end(), [](bool b) { return b; }))
@@ -490,7 +490,7 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
   res.near_ray_fraction = model.near_fraction();
 
   const auto t_unc = Clock::now();
-  // 1b. Derivative sets at the optimum and the final Fisher-scoring steps (uncertainty.cpp).
+  // 1b. Derivative sets at the optimum and the final steps' estimating equation (uncertainty.cpp).
   const OptimumDerivatives od = FinalSteps(run, spec, &best, res);
 
   for (size_t i = 0; i < P; ++i) {

@@ -193,8 +193,9 @@ Differences AverageSets(const std::vector<Differences>& sets, size_t first, size
 /// there would end up to 1 sigma short of the optimum, on the side it came from.
 inline constexpr double kPolishTolerance = 0.05;
 
-/// Whether the fit ends with Fisher-scoring steps at the optimum (the Poisson error with
-/// Levenberg-Marquardt and more than the two derivative sets the uncertainties need).
+/// Whether the fit ends with the final steps at the optimum (a cross-fitted estimating equation)
+/// (the Poisson error with Levenberg-Marquardt and more than the two derivative sets the
+/// uncertainties need).
 inline bool FinalStepsRun(const FitSpec& spec) {
   return spec.uncertainties && spec.method == Method::kLevenbergMarquardt &&
          spec.error == ErrorFunction::kPoisson && spec.rays.jacobian_seeds > 2;
@@ -228,7 +229,7 @@ struct OptimumDerivatives {
   std::vector<bool> score_smoothed;  // per parameter: the score's derivative image is smoothed
 };
 
-/// Derivative sets at the optimum and the final Fisher-scoring steps, which move *best
+/// Derivative sets at the optimum and the final steps, which move *best
 /// (uncertainty.cpp).
 OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<double>* best,
                               const FitResult& res);

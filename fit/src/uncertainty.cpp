@@ -1,7 +1,8 @@
 // The fit's final steps and uncertainties: derivative sets at the optimum over independent ray
-// streams, Fisher-scoring steps with their average, then the covariance (curvature of the
-// Poisson likelihood with the derivatives' noise), the Cramer-Rao bound, repeated fits with
-// independent simulation seeds and error-function slices (docs/fit.md, "Uncertainties").
+// streams and the root of a cross-fitted estimating equation built from them, then the
+// covariance (that root's sandwich, or the Poisson likelihood's curvature), the Cramer-Rao
+// bound, repeated fits with independent simulation seeds and error-function slices
+// (docs/fit.md, "Finite rays" and "Noise").
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>

@@ -90,11 +90,11 @@ struct RaySchedule {
   /// of fixed ray streams (false: descents only, which stop short in a local dip).
   bool smooth_polish = true;
   /// Gauss-Newton polish at the final fraction after the coarse levels' search. false: when the
-  /// final Fisher-scoring rounds follow (jacobian_seeds > 2, Poisson error), they start from the
+  /// final steps follow (jacobian_seeds > 2, Poisson error), they start from the
   /// coarse optimum instead (docs/fit.md, "Finite rays"); otherwise the polish runs anyway.
   bool polish = false;
   /// Independent ray-stream sets whose central differences are averaged at the optimum, for
-  /// the final Gauss-Newton steps and the uncertainties (2: the two sets the uncertainties
+  /// the final steps and the uncertainties (2: the two sets the uncertainties
   /// need, no final steps). docs/fit.md, "Finite rays".
   int jacobian_seeds = 4;
   /// Pixel binning per fraction (empty: the smallest b with b^2 x ray_factor x fraction >= 1).

@@ -40,12 +40,16 @@ Field MakeField(const Scene& s, double auto_radius) {
 
 /// The calibrated map continued beyond its NA cut (SourceSpec::edge_half_angle_deg): on a grid
 /// 4x finer than the map's and aligned with it, padded out to 15 deg beyond the cut. Inside
-/// the cut a fine cell takes its map pixel's value (the same distribution as the map); beyond
-/// it, the map's value on a ring just inside the cut at the same azimuth times E / E(that ring),
-/// E the soft edge about the (tilted) edge axis, averaged over 2x2 points per cell so the image
-/// moves smoothly with the edge's parameters. Map pixels on the cut left at zero by the
-/// calibration (centre outside the NA) are filled like the continuation. SourceSpec::edge_part
-/// keeps only the part inside or beyond the cut (the two add up to the whole, point by point).
+/// the reference ring (kEdgeRingPixels map pixels inside the cut) a fine cell takes its map
+/// pixel's value (the same distribution as the map); from that ring outwards, across the cut and
+/// beyond it, the map's value on the ring at the same azimuth times E / E(ring), E the soft edge
+/// about the (tilted) edge axis, averaged over 2x2 points per cell so the image moves smoothly
+/// with the edge's parameters. The band between the ring and the cut is modelled, not measured:
+/// the cone images resolve angles only to about a pixel over their defocus (0.5 um / 20 um =
+/// 1.4 deg on the sample), so the measured map falls off over the last 2 deg before the sharp
+/// cut (7 % low at 23-24 deg on the sample, and the drop's index fitted 11 sigma low with the
+/// true edge). SourceSpec::edge_part keeps only the measured part (inside the ring) or the
+/// modelled one (the two add up to the whole, point by point).
 Image ContinuedMap(const SourceSpec& ss, double* extent) {
   const Image& m = ss.angular_map;
   const double ext = ss.angular_extent, s_na = ss.map_na_limit;
@@ -65,8 +69,8 @@ Image ContinuedMap(const SourceSpec& ss, double* extent) {
   };
   const bool keep_in = ss.edge_part != SourceSpec::EdgePart::kBeyond;
   const bool keep_out = ss.edge_part != SourceSpec::EdgePart::kInside;
-  const double inner = s_na - 1.5 * pu;    // a measured ring just inside the cut
-  auto map_at = [&](double u, double v) {  // nearest map pixel, 0 outside the map
+  const double inner = s_na - kEdgeRingPixels * pu;  // the reference ring (measured)
+  auto map_at = [&](double u, double v) {            // nearest map pixel, 0 outside the map
     const int x = int(std::floor((u + ext) / pu)), y = int(std::floor((ext - v) / pu));
     return (x < 0 || y < 0 || x >= n || y >= n) ? 0.0 : double(m.at(x, y));
   };
@@ -78,8 +82,8 @@ Image ContinuedMap(const SourceSpec& ss, double* extent) {
       const double sc = std::hypot(uc, vc);
       const bool in_map = mx >= 0 && my >= 0 && mx < f * n && my < f * n;
       const double mv = in_map ? double(m.at(mx / f, my / f)) : 0.0;
-      if (sc + 0.75 * cell < s_na && (mv > 0 || sc < inner)) {
-        out.at(x, y) = keep_in ? float(mv) : 0.0f;  // wholly inside the cut: the measurement
+      if (sc + 0.75 * cell < inner) {
+        out.at(x, y) = keep_in ? float(mv) : 0.0f;  // wholly inside the ring: the measurement
         continue;
       }
       double sum = 0;
@@ -87,19 +91,15 @@ Image ContinuedMap(const SourceSpec& ss, double* extent) {
         for (int b = 0; b < 2; ++b) {
           const double u = uc + (a - 0.5) * 0.5 * cell, v = vc + (b - 0.5) * 0.5 * cell;
           const double s = std::hypot(u, v);
-          if (s < s_na && mv > 0) {
+          if (s < inner) {
             if (keep_in) sum += mv;
-          } else {
+          } else if (keep_out) {
+            // The ring's value holds the edge's fall-off at the ring: A(phi) E(ring), so the
+            // continuation is ring x E / E(ring), not / E(cut) (which made it brighter by
+            // E(ring) / E(cut): 20 % on the sample, and its single-plane index 9 sigma high).
             const double c = std::cos(std::atan2(v, u)), sn = std::sin(std::atan2(v, u));
             const double ring = map_at(inner * c, inner * sn);
-            if (s < s_na) {
-              if (keep_in) sum += ring;
-            } else if (keep_out) {
-              // The ring's value holds the edge's fall-off at the ring: A(phi) E(ring), so the
-              // continuation is ring x E / E(ring), not / E(cut) (which made it brighter by
-              // E(ring) / E(cut): 20 % on the sample, and its single-plane index 9 sigma high).
-              sum += ring * E(u, v) / std::max(E(inner * c, inner * sn), 1e-300);
-            }
+            sum += ring * E(u, v) / std::max(E(inner * c, inner * sn), 1e-300);
           }
         }
       out.at(x, y) = float(sum / 4);

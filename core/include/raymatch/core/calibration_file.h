@@ -29,9 +29,9 @@ struct CalibrationData {
   double field_size_um[2] = {0, 0};
   std::string light_field_note;  ///< e.g. "measured up to NA 0.42; beyond: extrapolated"
   // The light field beyond na_limit, which no image through the objective shows: a soft edge
-  // (1 - tanh((theta - edge_half_angle_deg) / edge_width_deg)) / 2 continuing the map's
-  // outermost measured ring (docs/calibration-format.md). 0 = none (the map as it is), set by
-  // `raymatch calibrate sphere` from a drop of known shape.
+  // (1 - tanh((theta - edge_half_angle_deg) / edge_width_deg)) / 2 continuing the map's ring 3
+  // map pixels inside the cut outwards (docs/calibration-format.md). 0 = none (the map as it is),
+  // set by `raymatch calibrate sphere` from a drop of known shape.
   double edge_half_angle_deg = 0, edge_width_deg = 0;
   /// The edge's axis tilted from the optical axis, [x, y] degrees (direction cosines sin x, sin y).
   std::array<double, 2> edge_tilt_deg{0, 0};

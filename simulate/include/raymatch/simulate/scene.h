@@ -86,19 +86,20 @@ struct SourceSpec {
   std::string angular_map_file, spatial_map_file;
   /// A light field from a calibration file whose map is cut at the objective's NA: the sine of
   /// that cut (0 = not cut), and the illumination beyond it when edge_half_angle_deg > 0: the
-  /// map's outermost measured ring continued outwards under the soft edge
-  /// E(theta) = (1 - tanh((theta - edge_half_angle_deg) / edge_width_deg)) / 2, relative to
-  /// E at that ring (1.5 map pixels inside the cut; scene table [light_field_edge], calibration
-  /// [light_field] edge_*).
+  /// map's ring 3 map pixels inside the cut continued outwards, across the cut, under the soft
+  /// edge E(theta) = (1 - tanh((theta - edge_half_angle_deg) / edge_width_deg)) / 2, relative
+  /// to E at that ring (the cone images blur the last 2 deg before the cut; scene table
+  /// [light_field_edge], calibration [light_field] edge_*).
   double map_na_limit = 0;
   double edge_half_angle_deg = 0, edge_width_deg = 0;
   /// The edge's axis tilted from the optical axis, [x, y] in degrees: theta above is measured
   /// from the axis with direction cosines (sin x, sin y) (light_field_edge.tilt_deg,
-  /// calibration edge_tilt_deg). The map inside the cut is the measurement either way.
+  /// calibration edge_tilt_deg). The map inside the ring is the measurement either way.
   std::array<double, 2> edge_tilt_deg{0, 0};
-  /// Which part of a continued light field the source emits: all, only inside the NA cut (the
-  /// measurement) or only beyond it. Fits trace the two parts as separate ray populations, so
-  /// the edge's keys leave the inside rays' paths unchanged (Simulator::source_weight()).
+  /// Which part of a continued light field the source emits: all, only inside the reference
+  /// ring (the measurement) or only from it outwards (the edge model). Fits trace the two parts as
+  /// separate ray populations, so the edge's keys leave the inside rays' paths unchanged
+  /// (Simulator::source_weight()).
   enum class EdgePart { kAll, kInside, kBeyond };
   EdgePart edge_part = EdgePart::kAll;
   SpectrumSpec spectrum;  ///< none: monochromatic at Scene::wavelength_um

@@ -25,10 +25,15 @@ int RunFitCommand(const FitCliOptions& o) {
   const fit::FitResult r = fit::RunFit(spec, fo);
   const std::string report = fit::WriteFitOutputs(spec, r, RankOutput(o.output));
   std::cout << "fit " << fit::StatusName(r.status) << ": " << r.message << "\n";
-  for (const auto& p : r.parameters)
+  for (const auto& p : r.parameters) {
     std::cout << "  " << p.key << " = " << p.best << (p.unit.empty() ? "" : " " + p.unit) << "  +- "
               << p.sigma << "  (Cramer-Rao bound " << p.sigma_cramer_rao << ", repeat-seed scatter "
-              << p.sigma_repeat << ")" << (p.at_bound ? "  AT BOUND" : "") << "\n";
+              << p.sigma_repeat << ")" << (p.at_bound ? "  AT BOUND" : "");
+    if (p.prior_sigma > 0)
+      std::cout << "  (prior from the " << p.prior_from << ": " << p.prior_mean << " +- "
+                << p.prior_sigma << ")";
+    std::cout << "\n";
+  }
   for (const auto& p : r.parameters)
     if (!p.profile_t.empty())
       std::cout << "  profile-likelihood 68 % interval of " << p.key << ": ["

@@ -100,6 +100,11 @@ void WriteCalibrationFile(const std::string& path, const CalibrationData& d) {
   if (d.psf_sigma_um > 0)
     os << "\n[camera]\npsf_sigma_um = " << d.psf_sigma_um
        << "   # Gaussian PSF sigma at the object plane (calibrate sphere)\n";
+  if (!d.key_sigma.empty()) {
+    os << "\n[uncertainty]   # 1 sigma of calibrated values, by the fit key they set "
+          "(calibrate sphere; a fit's prior = \"calibration\")\n";
+    for (const auto& [key, sigma] : d.key_sigma) os << Quote(key) << " = " << sigma << "\n";
+  }
   if (d.has_corrector()) {
     os << "\n[corrector]\ndistance_mm = " << d.corrector_distance_mm
        << "\nring_outer_mm = " << List(d.ring_outer_mm)
@@ -194,6 +199,14 @@ CalibrationData ReadCalibrationFile(const std::string& path) {
     TomlReader c = r.Table("camera");
     d.psf_sigma_um = c.InRange("psf_sigma_um", 0, 100, 0);
     c.Finish();
+  }
+  if (r.Has("uncertainty")) {
+    TomlReader u = r.Table("uncertainty");
+    for (const auto& [k, v] : *t["uncertainty"].as_table()) {
+      const std::string key(k.str());
+      d.key_sigma[key] = u.Positive(key);
+    }
+    u.Finish();
   }
   if (r.Has("corrector")) {
     TomlReader c = r.Table("corrector");

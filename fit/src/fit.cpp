@@ -234,6 +234,52 @@ class ImageCost : public ceres::CostFunction {
   std::vector<bool>* flat_;
 };
 
+/// The Gaussian priors as residuals (theta_i - mean_i) / sigma_i, whose squares add
+/// PriorPenalty to the deviance (Ceres' cost is half the sum of squares, as for the images').
+class PriorCost : public ceres::CostFunction {
+ public:
+  explicit PriorCost(const FitSpec& spec) : spec_(spec) {
+    for (size_t i = 0; i < spec.parameters.size(); ++i)
+      if (spec.parameters[i].prior_sigma > 0) index_.push_back(i);
+    set_num_residuals(static_cast<int>(index_.size()));
+    mutable_parameter_block_sizes()->push_back(static_cast<int>(spec.parameters.size()));
+  }
+  bool Evaluate(double const* const* params, double* residuals, double** jacobians) const override {
+    const size_t P = spec_.parameters.size();
+    const std::vector<double> th = Clip(std::vector<double>(params[0], params[0] + P), spec_);
+    for (size_t r = 0; r < index_.size(); ++r) {
+      const Parameter& p = spec_.parameters[index_[r]];
+      residuals[r] = (th[index_[r]] - p.prior_mean) / p.prior_sigma;
+      if (jacobians && jacobians[0])
+        for (size_t j = 0; j < P; ++j)
+          jacobians[0][r * P + j] = j == index_[r] ? 1 / p.prior_sigma : 0;
+    }
+    return true;
+  }
+
+ private:
+  const FitSpec& spec_;
+  std::vector<size_t> index_;
+};
+
+/// The priors' rows appended to deviance residuals r (and their Jacobian J when given).
+void AppendPriorRows(const FitSpec& spec, const std::vector<double>& x, Eigen::VectorXd* r,
+                     Eigen::MatrixXd* J) {
+  const size_t P = spec.parameters.size();
+  for (size_t i = 0; i < P; ++i) {
+    const Parameter& p = spec.parameters[i];
+    if (!(p.prior_sigma > 0)) continue;
+    const Eigen::Index n = r->size();
+    r->conservativeResize(n + 1);
+    (*r)(n) = (x[i] - p.prior_mean) / p.prior_sigma;
+    if (J) {
+      J->conservativeResize(n + 1, Eigen::Index(P));
+      J->row(n).setZero();
+      (*J)(n, Eigen::Index(i)) = 1 / p.prior_sigma;
+    }
+  }
+}
+
 /// Stops a level once the search stalls at the resolution the ray streams allow: a successful
 /// step that lowered the deviance by less than 1 or moved every parameter by less than 1/32 of
 /// its `step`, or three unsuccessful iterations in a row (the error with fixed ray streams is
@@ -298,6 +344,7 @@ std::vector<double> Polish(Runner& run, const FitSpec& spec, const std::vector<d
     if (fresh) {
       const Differences d = Differentiate(run, spec, x, L, seed, stage, true);
       J = d.jacobian, r = d.residuals, x_jacobian = x;
+      AppendPriorRows(spec, x, &r, &J);
     }
     const double dev = r.squaredNorm();
     Eigen::MatrixXd A = J.transpose() * J;
@@ -317,8 +364,9 @@ std::vector<double> Polish(Runner& run, const FitSpec& spec, const std::vector<d
       y = Clip(y, spec);
       double e = 0;
       const Simulated mu = run.Images(y, L, seed, stage, &e);
-      Eigen::VectorXd ry(r.size());
+      Eigen::VectorXd ry(Eigen::Index(run.model().num_residuals(bin)));
       run.model().DevianceResiduals(mu, bin, ry.data());
+      AppendPriorRows(spec, y, &ry, nullptr);
       // Kept when it lowers the deviance, or when it lowers the Gauss-Newton decrease still
       // predicted (the estimating equation J^T r = 0 with this smooth chord Jacobian). With
       // fixed ray streams the deviance is rough at scales below one sigma (rays cross pixel
@@ -360,6 +408,8 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
     po.cost_function_ownership = ceres::TAKE_OWNERSHIP;
     ceres::Problem problem(po);
     problem.AddResidualBlock(new ImageCost(run, spec, f, seed, &flat), nullptr, x.data());
+    if (PriorPrecision(spec).sum() > 0)
+      problem.AddResidualBlock(new PriorCost(spec), nullptr, x.data());
     // Bounds are kept by clipping inside the cost (not Ceres' bound constraints, whose projected
     // line search evaluates the Jacobian, i.e. P more images, at every trial point).
     ceres::Solver::Options so;
@@ -497,6 +547,7 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
     const Parameter& p = spec.parameters[i];
     ParameterResult pr;
     pr.key = p.key, pr.unit = p.unit, pr.start = p.start, pr.best = best[i];
+    pr.prior_mean = p.prior_mean, pr.prior_sigma = p.prior_sigma, pr.prior_from = p.prior_from;
     pr.lower = p.lower, pr.upper = p.upper;
     pr.at_bound = std::abs(best[i] - p.lower) < 1e-9 * (p.upper - p.lower) ||
                   std::abs(best[i] - p.upper) < 1e-9 * (p.upper - p.lower);

@@ -3,10 +3,12 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <optional>
 #include <set>
 #include <sstream>
 
 #include "raymatch/compare/focus_scan.h"
+#include "raymatch/core/calibration_file.h"
 #include "raymatch/core/image.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/toml_reader.h"
@@ -383,11 +385,30 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     r.Fail("image", "missing: give at least one [[image]] with file and defocus_um");
 
   std::set<std::string> keys;
+  std::optional<CalibrationData> cal;  // read when a prior names it
   for (TomlReader p : r.Tables("parameter")) {
     Parameter q;
     q.where = p.Where();
     q.key = p.String("key");
     if (!keys.insert(q.key).second) p.Fail("key", "parameter '" + q.key + "' is given twice");
+    // The calibration's edge and PSF as keys of a scene that takes them from the calibration:
+    // written into the scene's tables with the calibration's values, so they can be set.
+    if (q.key.starts_with("light_field_edge.") && !f.scene.contains("light_field_edge") &&
+        !(scene.source.edge_half_angle_deg > 0))
+      p.Fail("key", "'" + q.key +
+                        "' needs the light field's edge beyond the NA: a [light_field_edge] "
+                        "table in the scene, or a calibration with one (`raymatch calibrate "
+                        "sphere`; in a pipeline, [calibration] sphere)");
+    if (q.key.starts_with("light_field_edge.") && !f.scene.contains("light_field_edge")) {
+      toml::array tilt{scene.source.edge_tilt_deg[0], scene.source.edge_tilt_deg[1]};
+      f.scene.insert_or_assign("light_field_edge",
+                               toml::table{{"half_angle_deg", scene.source.edge_half_angle_deg},
+                                           {"width_deg", scene.source.edge_width_deg},
+                                           {"tilt_deg", std::move(tilt)}});
+    }
+    if (q.key == "camera.psf_sigma_um" && f.scene["camera"].as_table() &&
+        !f.scene["camera"].as_table()->contains("psf_sigma_um"))
+      f.scene["camera"].as_table()->insert_or_assign("psf_sigma_um", scene.camera.psf_sigma_um);
     double current = 0;
     if (q.key.starts_with("image")) {
       // image[i].defocus_um: the defocus of one of this file's images; image[i].background_*:
@@ -426,6 +447,30 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
       q.points = static_cast<int>(n);
     }
     q.unit = UnitOf(q.key);
+    if (p.Has("prior") && f.error != ErrorFunction::kPoisson)
+      p.Fail("prior", "a prior adds to the Poisson deviance: it needs error = \"poisson\"");
+    if (p.Has("prior")) {
+      if (const auto s = t["parameter"][f.parameters.size()]["prior"].value<std::string>()) {
+        if (*s != "calibration")
+          p.Fail("prior", "expected \"calibration\" or [mean, sigma] (a Gaussian prior)");
+        if (f.calibration_file.empty())
+          p.Fail("prior", "prior = \"calibration\" needs a calibration file (key calibration)");
+        if (!cal) cal = ReadCalibrationFile(f.calibration_file);
+        const auto it = cal->key_sigma.find(q.key);
+        if (it == cal->key_sigma.end())
+          p.Fail("prior", "the calibration " + f.calibration_file + " gives no uncertainty for '" +
+                              q.key + "' (its [uncertainty] table, written by `raymatch " +
+                              "calibrate sphere`, holds the keys that calibration fitted; files "
+                              "written before 2026-11-25 lack it: run it again)");
+        q.prior_mean = current, q.prior_sigma = it->second, q.prior_from = "calibration";
+        p.String("prior");
+      } else {
+        const std::vector<double> m = p.Numbers("prior", 2, 2);
+        if (!(m[1] > 0) || !std::isfinite(m[0]) || !std::isfinite(m[1]))
+          p.Fail("prior", "expected [mean, sigma] with sigma > 0 (a Gaussian prior)");
+        q.prior_mean = m[0], q.prior_sigma = m[1], q.prior_from = "fit file";
+      }
+    }
     p.Finish();
     f.parameters.push_back(q);
   }

@@ -115,7 +115,11 @@ nlohmann::json ParameterJson(const ParameterResult& p) {
           {"sigma_cramer_rao", J(p.sigma_cramer_rao)},
           {"sigma_expected_with_simulation_noise", J(p.sigma_expected)},
           {"slice", {{"x", p.slice_x}, {"error", p.slice_error}}},
-          {"profile_likelihood", ProfileJson(p)}};
+          {"profile_likelihood", ProfileJson(p)},
+          {"prior", p.prior_sigma > 0 ? nlohmann::json{{"mean", p.prior_mean},
+                                                       {"sigma", p.prior_sigma},
+                                                       {"from", p.prior_from}}
+                                      : nlohmann::json()}};
 }
 
 /// fit.json: everything the fit did and found.

@@ -6,6 +6,7 @@
 
 #include <Eigen/Dense>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <deque>
 #include <functional>
@@ -55,6 +56,26 @@ inline Matrix FromEigen(const Eigen::MatrixXd& a) {
   return m;
 }
 
+/// The Gaussian priors' share of the error, sum ((theta - mean) / sigma)^2 over the parameters
+/// that have one (Parameter::prior_sigma): the fit minimises the deviance plus this.
+inline double PriorPenalty(const FitSpec& spec, const std::vector<double>& th) {
+  double s = 0;
+  for (size_t i = 0; i < th.size(); ++i) {
+    const Parameter& p = spec.parameters[i];
+    if (p.prior_sigma > 0) s += std::pow((th[i] - p.prior_mean) / p.prior_sigma, 2);
+  }
+  return s;
+}
+
+/// The priors' precisions 1 / sigma^2 (0 where none): the information they add.
+inline Eigen::VectorXd PriorPrecision(const FitSpec& spec) {
+  Eigen::VectorXd l = Eigen::VectorXd::Zero(Eigen::Index(spec.parameters.size()));
+  for (size_t i = 0; i < spec.parameters.size(); ++i)
+    if (spec.parameters[i].prior_sigma > 0)
+      l(Eigen::Index(i)) = 1 / std::pow(spec.parameters[i].prior_sigma, 2);
+  return l;
+}
+
 /// Evaluations with bookkeeping: the record of every evaluation, the best so far, progress.
 class Runner {
  public:
@@ -93,7 +114,7 @@ class Runner {
     ev.stage = stage;
     Simulated mu = model_.Expected(th, fraction, seed, &ev.rays);
     ev.bin = model_.BinAt(level);
-    ev.error = model_.Error(mu, ev.bin);
+    ev.error = model_.Error(mu, ev.bin) + PriorPenalty(spec_, th);
     ev.seconds = Since(t0);
     if (error) *error = ev.error;
     res_->evaluations.push_back(ev);
@@ -227,6 +248,9 @@ struct OptimumDerivatives {
   Eigen::MatrixXd score_response, score_variance_experiment, score_variance_template,
       score_derivative_noise;
   std::vector<bool> score_smoothed;  // per parameter: the score's derivative image is smoothed
+  // The Gaussian priors' precisions on the score's scale (2 Lambda with the final steps, whose U
+  // sums two halves; Lambda without): their score is score_prior (m - theta).
+  Eigen::VectorXd score_prior;
 };
 
 /// Derivative sets at the optimum and the final steps, which move *best

@@ -124,6 +124,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
   const std::vector<double> read_variance = ReadVariance(spec);
   const double k = spec.rays.ray_factor * spec.rays.fractions.back();
   const int bin = model.BinAt(final_level);
+  const Eigen::VectorXd prior = PriorPrecision(spec);
   bool steps_ran = false;
   for (int round = 0; round < 3 && res.status != FitStatus::kFlat && spec.uncertainties &&
                       (round == 0 || run.Budget());
@@ -143,6 +144,8 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       od.score_dmu = AverageSets(sets, 1, 1).dmu;
       od.score_response = ToEigen(
           FisherInformation(od.half_a.mu.photons, od.half_a.dmu, od.half_b.dmu, read_variance));
+      od.score_response.diagonal() += prior;
+      od.score_prior = prior;
       break;
     }
     steps_ran = true;
@@ -171,8 +174,8 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     // Over the 2P candidate columns: the response A (2P x P), g, and U's variance at the truth:
     // the experiment's share B_e = (J~_a + J~_b)^T W (J~_a + J~_b), which with J~'s noise
     // included is exactly the spread a noisy J~ gives the root, and the templates' share B_t.
-    const Eigen::MatrixXd a_all = ToEigen(model.CrossInformation(cand_b, od.half_a.dmu, cb, bin)) +
-                                  ToEigen(model.CrossInformation(cand_a, od.half_b.dmu, ca, bin));
+    Eigen::MatrixXd a_all = ToEigen(model.CrossInformation(cand_b, od.half_a.dmu, cb, bin)) +
+                            ToEigen(model.CrossInformation(cand_a, od.half_b.dmu, ca, bin));
     Eigen::VectorXd g_all = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(2 * P));
     {
       const std::vector<double> ga = model.Score(sim_a, cand_b, cb, bin);
@@ -180,7 +183,20 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       for (size_t i = 0; i < 2 * P; ++i) g_all(Eigen::Index(i)) = ga[i] + gb[i];
     }
     const Columns cand_sum = Plus(cand_a, cand_b);
-    const Eigen::MatrixXd be_all = ToEigen(model.CrossInformation(cand_sum, cand_sum, vm, bin));
+    Eigen::MatrixXd be_all = ToEigen(model.CrossInformation(cand_sum, cand_sum, vm, bin));
+    // Gaussian priors (Parameter::prior_*): the term 2 Lambda (m - theta) in U, on the scale of
+    // the two halves' sum (each about the full score), so the response gains 2 Lambda and U's
+    // variance 4 Lambda (the prior's mean is a measurement with variance 1 / Lambda); the same
+    // for either column of a parameter.
+    for (size_t i = 0; i < P; ++i) {
+      const double l = prior(Eigen::Index(i));
+      if (!(l > 0)) continue;
+      for (size_t c : {i, P + i}) {
+        a_all(Eigen::Index(c), Eigen::Index(i)) += 2 * l;
+        g_all(Eigen::Index(c)) += 2 * l * (spec.parameters[i].prior_mean - best[i]);
+        for (size_t c2 : {i, P + i}) be_all(Eigen::Index(c), Eigen::Index(c2)) += 4 * l;
+      }
+    }
     const Eigen::MatrixXd bt_all =
         ToEigen(model.CrossInformation(cand_b, cand_b, vm, bin)) / (k * double(na)) +
         ToEigen(model.CrossInformation(cand_a, cand_a, vm, bin)) / (k * double(nb));
@@ -237,6 +253,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       }
     }
     od.score_response = Rows(a_all, choice);
+    od.score_prior = 2 * prior;
     od.score_variance_experiment = Block(be_all, choice);
     od.score_variance_template = Block(bt_all, choice);
     od.score_derivative_noise = Block(n_all, choice);
@@ -259,9 +276,12 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     const Eigen::MatrixXd b_total = od.score_variance_experiment + od.score_variance_template;
     const auto b_solver = b_total.completeOrthogonalDecomposition();
     auto Q = [&](const Eigen::VectorXd& v) { return v.dot(b_solver.solve(v)); };
-    auto Select = [&](const std::vector<double>& ga, const std::vector<double>& gb) {
+    auto Select = [&](const std::vector<double>& ga, const std::vector<double>& gb,
+                      const std::vector<double>& y) {
       Eigen::VectorXd v = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(P));
-      for (size_t i = 0; i < P; ++i) v(Eigen::Index(i)) = ga[choice[i]] + gb[choice[i]];
+      for (size_t i = 0; i < P; ++i)
+        v(Eigen::Index(i)) = ga[choice[i]] + gb[choice[i]] +
+                             2 * prior(Eigen::Index(i)) * (spec.parameters[i].prior_mean - y[i]);
       return v;
     };
     auto GAt = [&](const std::vector<double>& y) {
@@ -271,7 +291,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
         centers[s2].mu = run.Images(y, final_level, spec.seed + kDerivativeSetSeedStride * s2,
                                     Stage::kFinal, nullptr);
       at_a.photons = MeanCenters(centers, 0, 2), at_b.photons = MeanCenters(centers, 1, 2);
-      return Select(model.Score(at_a, cand_b, cb, bin), model.Score(at_b, cand_a, ca, bin));
+      return Select(model.Score(at_a, cand_b, cb, bin), model.Score(at_b, cand_a, ca, bin), y);
     };
     Eigen::VectorXd g = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(P));
     for (size_t i = 0; i < P; ++i) g(Eigen::Index(i)) = g_all(Eigen::Index(choice[i]));
@@ -327,8 +347,12 @@ Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vec
   const Differences& d2 = half_b;
   best_sim = final_sim.photons.empty() ? d.mu : final_sim;
   res.best_images = best_sim.photons;
-  const Eigen::MatrixXd JtJ =
+  // (Gaussian priors add their precisions to the curvature and to the Fisher information: the
+  // bound is then the Bayesian one, Van Trees.)
+  const Eigen::VectorXd prior = PriorPrecision(spec);
+  Eigen::MatrixXd JtJ =
       0.5 * (d.jacobian.transpose() * d2.jacobian + d2.jacobian.transpose() * d.jacobian);
+  JtJ.diagonal() += prior;
   const Matrix cov = InverseSpd(FromEigen(JtJ));
   const double k = spec.rays.ray_factor * spec.rays.fractions.back();
   // The estimate's covariance. With the final steps, the root of their estimating equation:
@@ -371,10 +395,12 @@ Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vec
     for (size_t i = 0; i < P; ++i) res.parameters[i].sigma_curvature = std::sqrt(cov[i][i]);
     SetSigmas(cov);
   }
-  const Matrix crb =
-      spec.cramer_rao || cov.empty()
-          ? InverseSpd(FisherInformation(d.mu.photons, d.dmu, d2.dmu, ReadVariance(spec)))
-          : Matrix();
+  Matrix crb;
+  if (spec.cramer_rao || cov.empty()) {
+    Matrix fisher = FisherInformation(d.mu.photons, d.dmu, d2.dmu, ReadVariance(spec));
+    for (size_t i = 0; i < fisher.size(); ++i) fisher[i][i] += prior(Eigen::Index(i));
+    crb = InverseSpd(fisher);
+  }
   if (!crb.empty()) {
     for (size_t i = 0; i < P; ++i) {
       res.parameters[i].sigma_cramer_rao = std::sqrt(crb[i][i]);

@@ -196,8 +196,11 @@ void CheckMeshFile(const MeshObjectMetadata& m, const std::string& folder) {
 
 /// The fit files, read and checked before the calibration exists: each is loaded as the fit
 /// will load it (scene, images, keys, bounds, the images' light) with a stand-in calibration
-/// that has the light-field folder's optics and a uniform light field, in a scratch folder.
-void CheckFitFiles(const std::vector<std::string>& fits, const calibrate::LightFieldInput& lf) {
+/// that has the light-field folder's optics and a uniform light field, in a scratch folder;
+/// with a sphere calibration in the pipeline (`sphere`), also its edge beyond the NA, PSF and
+/// the uncertainties of the keys it fits (fits may free them with `prior = "calibration"`).
+void CheckFitFiles(const std::vector<std::string>& fits, const calibrate::LightFieldInput& lf,
+                   bool sphere) {
   if (fits.empty()) return;
   CalibrationData d;
   d.objective_focal_mm = lf.optics.objective_focal_mm;
@@ -208,6 +211,14 @@ void CheckFitFiles(const std::vector<std::string>& fits, const calibrate::LightF
   d.wavelength_um = lf.optics.wavelength_um;
   d.angular_map = Image(8, 8, 1.f);
   d.angular_extent = std::clamp(lf.optics.acceptance_sin(), 0.05, 0.95);
+  if (sphere) {
+    d.na_limit = d.angular_extent;
+    d.edge_half_angle_deg = std::asin(d.na_limit) * 180 / M_PI + 1, d.edge_width_deg = 1;
+    d.psf_sigma_um = 0.21 * d.wavelength_um / std::max(d.na, 0.01);
+    for (const char* k : {"light_field_edge.half_angle_deg", "light_field_edge.tilt_deg[0]",
+                          "light_field_edge.tilt_deg[1]", "camera.psf_sigma_um"})
+      d.key_sigma[k] = 1;
+  }
   std::error_code ec;
   const fs::path scratch =
       fs::temp_directory_path(ec) / ("raymatch-run-check-" + std::to_string(::getpid()));
@@ -274,7 +285,7 @@ RunInputs ReadRunInputs(const PipelineOptions& opt) {
                              in.mesh->image);
     CheckMeshFile(*in.mesh, in.cfg.merging);
   }
-  CheckFitFiles(in.cfg.fits, in.lf);
+  CheckFitFiles(in.cfg.fits, in.lf, !in.cfg.sphere.empty());
   return in;
 }
 

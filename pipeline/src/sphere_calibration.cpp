@@ -159,6 +159,11 @@ void WriteCalibratedFile(const SphereCalibrationOptions& o, const CalibrationDat
   out.edge_width_deg = res.edge_width_deg;
   out.psf_sigma_um = res.psf_sigma_um;
   out.edge_tilt_deg = {res.edge_tilt_deg[0], res.edge_tilt_deg[1]};
+  // The nuisances' sigmas, for fits that free them with the calibration as a prior.
+  out.key_sigma.clear();
+  for (const auto& v : res.values)
+    if ((v.key.starts_with("light_field_edge.") || v.key == "camera.psf_sigma_um") && v.sigma > 0)
+      out.key_sigma[v.key] = v.sigma;
   out.provenance = ProvenanceJson();
   for (auto& [k, v] : base.provenance.items())
     if (!out.provenance.contains(k)) out.provenance[k] = v;

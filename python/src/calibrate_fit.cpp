@@ -264,6 +264,9 @@ void BindFit(py::module_& m) {
           d["sigma_repeat"] = p.sigma_repeat;
           d["sigma_cramer_rao"] = p.sigma_cramer_rao;
           d["sigma_expected"] = p.sigma_expected;
+          if (p.prior_sigma > 0)
+            d["prior"] = py::dict(py::arg("mean") = p.prior_mean, py::arg("sigma") = p.prior_sigma,
+                                  py::arg("from") = p.prior_from);
           d["at_bound"] = p.at_bound;
           d["slice_x"] = p.slice_x;
           d["slice_error"] = p.slice_error;

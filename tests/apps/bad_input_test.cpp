@@ -205,11 +205,12 @@ std::string SamplePipeline(const testing::TempDir& dir, const std::string& fits)
   const fs::path src = fs::path(RAYMATCH_SOURCE_DIR) / "datasets-sample";
   for (const char* f : {"lightfield", "flatfield", "drop46", "merging", "fit"})
     fs::copy(src / f, dir.path() / f, fs::copy_options::recursive);
-  return dir.Write("pipeline.toml",
-                   "output = \"out/run\"\n[calibration]\nlightfield = \"lightfield\"\n"
-                   "corrector = \"flatfield\"\n[experiment]\nscan = \"drop46\"\n"
-                   "mesh_object = \"merging\"\n[simulation]\nray_fraction = 0.01\n" +
-                       fits);
+  return dir.Write(
+      "pipeline.toml",
+      "output = \"out/run\"\n[calibration]\nlightfield = \"lightfield\"\n"
+      "corrector = \"flatfield\"\nsphere = \"drop46\"\n[experiment]\nscan = \"drop46\"\n"
+      "mesh_object = \"merging\"\n[simulation]\nray_fraction = 0.01\n" +
+          fits);
 }
 
 // Defect 3 for `run`: every input (the mesh object's mesh, the fit files and their images) is
@@ -217,8 +218,22 @@ std::string SamplePipeline(const testing::TempDir& dir, const std::string& fits)
 TEST(BadInputCli, RunChecksEveryInputBeforeMakingItsFolder) {
   testing::TempDir dir;
   const std::string pipeline = SamplePipeline(dir, "[fit]\nfiles = [\"fit/sphere.toml\"]\n");
+  // The sample's sphere fit frees the light field's edge with the sphere calibration as its
+  // prior: a pipeline without that calibration is refused naming the fit file and the key.
+  std::ifstream pin(pipeline);
+  std::stringstream ps;
+  ps << pin.rdbuf();
+  std::string no_sphere = ps.str();
+  no_sphere.replace(no_sphere.find("sphere = \"drop46\"\n"), 18, "");
+  const std::string pipeline2 = dir.Write("pipeline_no_sphere.toml", no_sphere);
+  CliRun r = Raymatch("run " + pipeline2 + " -q -o " + (dir / "out/run"), dir);
+  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_TRUE(Has(r.err, "sphere.toml:")) << r.err;
+  EXPECT_TRUE(Has(r.err, "light_field_edge.half_angle_deg")) << r.err;
+  EXPECT_TRUE(Has(r.err, "[calibration] sphere")) << r.err;
+  EXPECT_FALSE(fs::exists(dir / "out")) << r.err;
   dir.Write("merging/merging_drops.obj", kBadMeshes[3].second);  // an open mesh
-  CliRun r = Raymatch("run " + pipeline + " -q -o " + (dir / "out/run"), dir);
+  r = Raymatch("run " + pipeline + " -q -o " + (dir / "out/run"), dir);
   EXPECT_EQ(r.code, 1) << r.err;
   EXPECT_TRUE(Has(r.err, "merging_drops.obj")) << r.err;
   EXPECT_FALSE(fs::exists(dir / "out")) << r.err;

@@ -99,8 +99,13 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
     ReplaceInFile(data + "/fit/sphere.toml", "fractions = [0.0625, 0.25]", "fractions = [0.0625]");
     ReplaceInFile(data + "/fit/merging_grid.toml", "fractions = [0.015625]",
                   "fractions = [0.00390625]");
-    // and the sphere calibration (9 parameters, 2 planes) is left out.
+    // and the sphere calibration (9 parameters, 2 planes) is left out, with the sphere fit's
+    // edge, which takes that calibration as its prior.
     ReplaceInFile(data + "/pipeline.toml", "\nsphere = \"drop46\"", "\n# sphere = \"drop46\"");
+    ReplaceInFile(data + "/fit/sphere.toml",
+                  "[[parameter]]\nkey = \"light_field_edge.half_angle_deg\"\nlower = 24\n"
+                  "upper = 28\nstep = 0.2\nprior = \"calibration\"\n",
+                  "");
   }
   const std::string cmd = std::string(RAYMATCH_BIN) + " run " + data + "/pipeline.toml -o " +
                           (dir / "out") + " --ray-fraction 0.5 >" + (dir / "log.txt") + " 2>&1";

@@ -21,6 +21,8 @@ CalibrationData Sample() {
   d.cone_half_angle_deg = 24.1;
   d.edge_half_angle_deg = 25.7, d.edge_width_deg = 1.2, d.edge_tilt_deg = {-0.4, 0.7};
   d.psf_sigma_um = 0.23;
+  d.key_sigma = {{"light_field_edge.half_angle_deg", 0.062},
+                 {"light_field_edge.tilt_deg[0]", 0.012}};
   d.light_field_note = "measured \"up to\" NA";
   d.ring_outer_mm = {1, 2, 3};
   d.transmissions = {1, 0.97, 0.9};
@@ -46,6 +48,7 @@ TEST(CalibrationFile, RoundTrip) {
   EXPECT_EQ(b.edge_width_deg, a.edge_width_deg);
   EXPECT_EQ(b.edge_tilt_deg, a.edge_tilt_deg);
   EXPECT_EQ(b.psf_sigma_um, a.psf_sigma_um);
+  EXPECT_EQ(b.key_sigma, a.key_sigma);
   EXPECT_EQ(b.transmissions, a.transmissions);
   EXPECT_EQ(b.transmission_sigma, a.transmission_sigma);
   EXPECT_EQ(b.ring_outer_mm, a.ring_outer_mm);

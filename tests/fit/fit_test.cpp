@@ -497,6 +497,60 @@ TEST(FitModelNuisances, EdgeAndPsfAsKeysGiveTheTracersOwnExpectedImage) {
   EXPECT_GT(chi / double(ref_sharp.size()), 1 + 3 * tol) << "the PSF test cannot tell";
 }
 
+// Gaussian priors (Parameter::prior_*): the fit maximises likelihood x prior. Known answer for
+// Gaussian likelihood and prior: the marginal posterior of x combines its marginal likelihood
+// (the fit without a prior: x0 +- s0) with the prior N(m, s) as inverse variances,
+//   x = (x0 / s0^2 + m / s^2) / (1 / s0^2 + 1 / s^2),  sigma = (1 / s0^2 + 1 / s^2)^-1/2,
+// whatever x's correlation with the radius. With s = s0 and m 3 s0 away, x lands half-way
+// (1.5 s0 from x0) with sigma s0 / sqrt 2. Tolerance 0.4 s0 for x (the final steps' derivative
+// sets are re-taken 1.5 s0 away: their template noise moves the root by a fraction of the
+// simulation's share of sigma) and 12 % for sigma; a prior left out of the final steps'
+// equation ends at x0, out of the sigmas at s0 (41 % high). The curvature's sigma and the bound
+// (Bayesian, Van Trees) hold the prior's information too.
+TEST_F(FitFile, GaussianPriorCombinesWithTheLikelihoodAsInverseVariances) {
+  WriteFloatImage(dir_ / "exp.tif", NoiseTestExperiment(), "drop at x = 0.4 um");
+  const FitResult free_fit = RunFit(LoadFitSpec(NoiseTestFit("")));
+  const ParameterResult& f = free_fit.parameters[0];
+  ASSERT_GT(f.sigma, 0);
+  const double m = f.best + 3 * f.sigma, s = f.sigma;
+  std::ostringstream prior;
+  prior.precision(17);
+  prior << "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = "
+           "0.2\nprior = ["
+        << m << ", " << s << "]\n[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\n"
+        << "upper = 25\nstep = 0.2\n";
+  const std::string path =
+      dir_.Write("fit.toml", "scene = \"model.toml\"\n" + std::string(kNoiseTestRays) +
+                                 "[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n" + prior.str());
+  const FitResult r = RunFit(LoadFitSpec(path));
+  const ParameterResult& p = r.parameters[0];
+  EXPECT_EQ(p.prior_sigma, s);
+  EXPECT_EQ(p.prior_from, "fit file");
+  const double want = (f.best / (s * s) + m / (s * s)) / (2 / (s * s));
+  EXPECT_NEAR(p.best, want, 0.25 * s) << "free fit " << f.best << " +- " << s;
+  EXPECT_NEAR(p.sigma, s / std::sqrt(2.0), 0.06 * s / std::sqrt(2.0));
+  EXPECT_LT(p.sigma_curvature, 0.85 * f.sigma_curvature);
+  EXPECT_LT(p.sigma_cramer_rao, 0.85 * f.sigma_cramer_rao);
+  // The radius, nearly uncorrelated with x, keeps its value and sigma.
+  EXPECT_NEAR(r.parameters[1].best, free_fit.parameters[1].best,
+              0.5 * free_fit.parameters[1].sigma);
+  // A prior from a calibration without an uncertainty for the key, and a malformed prior, are
+  // refused naming the key.
+  EXPECT_NE(ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"
+                        "prior = \"calibration\"\n"))
+                .find("needs a calibration file"),
+            std::string::npos);
+  EXPECT_NE(ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"
+                        "prior = [23, 0]\n"))
+                .find("sigma > 0"),
+            std::string::npos);
+  EXPECT_NE(ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n"
+                        "prior = [23, 0.1]\n",
+                        "error = \"mse\"\n"))
+                .find("poisson"),
+            std::string::npos);
+}
+
 // An additive background (stray light, a dark frame that does not match): the experiment is
 // the drop's image plus Poisson photons of a level 60 and a slope of 0.5 per pixel along x. The
 // fit frees the drop's x and radius and image[0].background_photons and _slope_x: the level and

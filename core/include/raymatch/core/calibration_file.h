@@ -3,6 +3,7 @@
 // the angular light-field map), written by `raymatch calibrate` and read by the simulator
 // (docs/calibration-format.md). Either the light field or the corrector may be absent.
 #include <array>
+#include <map>
 #include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
@@ -37,6 +38,10 @@ struct CalibrationData {
   std::array<double, 2> edge_tilt_deg{0, 0};
   // Camera: the Gaussian PSF's sigma at the object plane (um), 0 = none/not calibrated.
   double psf_sigma_um = 0;
+  /// 1-sigma uncertainties of calibrated scene values, by the fit key they set (e.g.
+  /// "light_field_edge.half_angle_deg", "camera.psf_sigma_um"; table [uncertainty], written by
+  /// `raymatch calibrate sphere`): a fit's `prior = "calibration"` reads them.
+  std::map<std::string, double> key_sigma;
   // Corrector: central disc + rings (empty when not calibrated).
   std::vector<double> ring_outer_mm, transmissions, transmission_sigma;
   double corrector_distance_mm = 0;  ///< plane distance from the focal plane

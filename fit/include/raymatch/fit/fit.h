@@ -67,6 +67,11 @@ struct Parameter {
   double step = 0;   ///< typical change: pattern mesh, grid spacing, FD step base
   int points = 0;    ///< grid: samples from lower to upper (0: from step)
   std::string unit;  ///< from the key's suffix (_um, _deg, ...) for reports
+  /// A Gaussian prior (an independent measurement of the value, e.g. the calibration's): the
+  /// fit minimises the deviance plus ((theta - prior_mean) / prior_sigma)^2, and the sigmas,
+  /// bounds and profiles hold it. prior_sigma 0: none. prior_from says where it came from.
+  double prior_mean = 0, prior_sigma = 0;
+  std::string prior_from;
   FileLocation where;
 };
 
@@ -154,6 +159,8 @@ struct Evaluation {
 struct ParameterResult {
   std::string key, unit;
   double start = 0, best = 0, lower = 0, upper = 0;
+  double prior_mean = 0, prior_sigma = 0;  ///< the Gaussian prior the fit used (sigma 0: none)
+  std::string prior_from;                  ///< "calibration" or "fit file"
   double sigma_curvature =
       0;  ///< from the Poisson likelihood's curvature (Gauss-Newton) at the optimum
   /// The reported uncertainty. With the final steps (the default): the covariance of their

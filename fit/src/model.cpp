@@ -562,48 +562,51 @@ void FitModel::DevianceResiduals(const Simulated& sim, int bin, double* out) con
   }
 }
 
-std::vector<double> FitModel::Score(const Simulated& sim,
-                                    const std::vector<std::vector<Image>>& dmu,
-                                    const std::vector<Image>& reference, int bin) const {
+std::vector<double> FitModel::Project(
+    const std::vector<std::vector<Image>>& dmu, int bin,
+    const std::function<std::vector<double>(size_t)>& residual) const {
   const std::vector<Image>& use = Usable(bin);
-  const std::vector<Image>& exp = Experiment(bin);
   const size_t P = dmu.empty() ? 0 : dmu[0].size();
   std::vector<double> score(P, 0.0);
-  for (size_t i = 0; i < sim.photons.size(); ++i) {
-    const Image& e = exp[i];
-    const Image m = BinImage(sim.photons[i], bin), v = BinImage(reference.at(i), bin);
-    const double shift = ReadShift(i, bin);  // (in e and in the weights; cancels in e - m)
+  for (size_t i = 0; i < dmu.size(); ++i) {
+    const std::vector<double> f = residual(i);
     std::vector<Image> g;
     for (size_t j = 0; j < P; ++j) g.push_back(BinImage(dmu[i][j], bin));
-    for (size_t p = 0; p < e.size(); ++p) {
+    for (size_t p = 0; p < f.size(); ++p) {
       if (!Uses(use[i], p)) continue;
-      const double f = (std::max(double(e.pixels[p]), 0.0) - (double(m.pixels[p]) + shift)) /
-                       (std::max(double(v.pixels[p]), kReferenceFloor) + shift);
-      for (size_t a = 0; a < P; ++a) score[a] += double(g[a].pixels[p]) * f;
+      for (size_t a = 0; a < P; ++a) score[a] += double(g[a].pixels[p]) * f[p];
     }
   }
   return score;
 }
 
+std::vector<double> FitModel::Score(const Simulated& sim,
+                                    const std::vector<std::vector<Image>>& dmu,
+                                    const std::vector<Image>& reference, int bin) const {
+  const std::vector<Image>& exp = Experiment(bin);
+  return Project(dmu, bin, [&](size_t i) {
+    const Image& e = exp[i];
+    const Image m = BinImage(sim.photons[i], bin), v = BinImage(reference.at(i), bin);
+    const double shift = ReadShift(i, bin);  // (in e and in the weights; cancels in e - m)
+    std::vector<double> f(e.size());
+    for (size_t p = 0; p < e.size(); ++p)
+      f[p] = (std::max(double(e.pixels[p]), 0.0) - (double(m.pixels[p]) + shift)) /
+             (std::max(double(v.pixels[p]), kReferenceFloor) + shift);
+    return f;
+  });
+}
+
 std::vector<double> FitModel::PoissonScore(const Simulated& sim,
                                            const std::vector<std::vector<Image>>& dmu,
                                            int bin) const {
-  const std::vector<Image>& use = Usable(bin);
   const std::vector<Image>& exp = Experiment(bin);
-  const size_t P = dmu.empty() ? 0 : dmu[0].size();
-  std::vector<double> score(P, 0.0);
-  for (size_t i = 0; i < sim.photons.size(); ++i) {
+  return Project(dmu, bin, [&](size_t i) {
     const Image& e = exp[i];
-    const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin);
-    std::vector<Image> g;
-    for (size_t j = 0; j < P; ++j) g.push_back(BinImage(dmu[i][j], bin));
-    for (size_t p = 0; p < e.size(); ++p) {
-      if (!Uses(use[i], p)) continue;
-      const double f = std::max(double(e.pixels[p]), 0.0) / std::max(t[p], 1e-6) - 1;
-      for (size_t a = 0; a < P; ++a) score[a] += double(g[a].pixels[p]) * f;
-    }
-  }
-  return score;
+    std::vector<double> f = TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin);
+    for (size_t p = 0; p < e.size(); ++p)
+      f[p] = std::max(double(e.pixels[p]), 0.0) / std::max(f[p], 1e-6) - 1;
+    return f;
+  });
 }
 
 std::vector<std::vector<double>> FitModel::CrossInformation(

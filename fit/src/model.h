@@ -110,6 +110,10 @@ class FitModel {
   std::vector<double> DefocusAt(const std::vector<double>& theta) const;
 
  private:
+  /// sum over image i's usable pixels p (binned) of dmu[i][a]_p f_i(p), f_i = residual(i) per
+  /// binned pixel: the projection Score and PoissonScore share.
+  std::vector<double> Project(const std::vector<std::vector<Image>>& dmu, int bin,
+                              const std::function<std::vector<double>(size_t)>& residual) const;
   const FitSpec& spec_;
   int threads_;
   std::function<void(const std::string&)> say_;

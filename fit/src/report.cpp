@@ -288,11 +288,14 @@ std::string ParametersHtml(const FitSpec& spec, const FitResult& res) {
        "<th>Cramer-Rao bound</th><th>CRB incl. simulation noise</th><th>profile-likelihood 68 % "
        "interval</th><th>bounds</th></tr>\n";
   for (const ParameterResult& p : res.parameters)
-    h << "<tr><td style=\"text-align:left\">" << Esc(p.key) << "</td><td>" << p.unit << "</td><td>"
-      << Num(p.start) << "</td><td>" << Num(p.best, 8) << (p.at_bound ? " (at bound)" : "")
-      << "</td><td>" << Num(p.sigma, 3) << "</td><td>" << Num(p.sigma_curvature, 3) << "</td><td>"
-      << Num(p.sigma_repeat, 3) << "</td><td>" << Num(p.sigma_cramer_rao, 3) << "</td><td>"
-      << Num(p.sigma_expected, 3) << "</td><td"
+    h << "<tr><td style=\"text-align:left\">" << Esc(p.key)
+      << (p.prior_sigma > 0 ? "<br><small>prior " + Num(p.prior_mean, 8) + " &plusmn; " +
+                                  Num(p.prior_sigma, 3) + " (" + Esc(p.prior_from) + ")</small>"
+                            : std::string())
+      << "</td><td>" << p.unit << "</td><td>" << Num(p.start) << "</td><td>" << Num(p.best, 8)
+      << (p.at_bound ? " (at bound)" : "") << "</td><td>" << Num(p.sigma, 3) << "</td><td>"
+      << Num(p.sigma_curvature, 3) << "</td><td>" << Num(p.sigma_repeat, 3) << "</td><td>"
+      << Num(p.sigma_cramer_rao, 3) << "</td><td>" << Num(p.sigma_expected, 3) << "</td><td"
       << (p.profile_t.empty()
               ? ">not needed"
               : " title=\"" + Esc(p.profile_reason) + "\">[" +

@@ -45,25 +45,16 @@ Image Smooth121(const Image& a) {
   return o;
 }
 
-std::vector<std::vector<Image>> SmoothedDerivatives(std::vector<std::vector<Image>> dmu) {
-  for (auto& per_image : dmu)
-    for (Image& im : per_image) im = Smooth121(im);
-  return dmu;
-}
-
-}  // namespace
-
-namespace {
-
-/// Images (per image) or derivative images (per image and column) as Eigen-free helpers.
+/// Images per fitted image, and derivative images per fitted image and column.
 using Images = std::vector<Image>;
 using Columns = std::vector<std::vector<Image>>;  // [image][column]
 
-Images MeanCenters(const std::vector<Differences>& sets, size_t first, size_t stride) {
+/// The mean of list[first], list[first + stride], ...: pixel by pixel, per image.
+Images MeanImages(const std::vector<Images>& list, size_t first, size_t stride) {
   Images m;
   size_t n = 0;
-  for (size_t s = first; s < sets.size(); s += stride, ++n) {
-    const std::vector<Image>& c = sets[s].mu.photons;
+  for (size_t s = first; s < list.size(); s += stride, ++n) {
+    const Images& c = list[s];
     if (m.empty())
       for (const Image& im : c) m.emplace_back(im.width, im.height);
     for (size_t k = 0; k < c.size(); ++k)
@@ -74,11 +65,27 @@ Images MeanCenters(const std::vector<Differences>& sets, size_t first, size_t st
   return m;
 }
 
+/// The mean of columns list[first], list[first + stride], ...
+Columns MeanColumns(const std::vector<Columns>& list, size_t first, size_t stride) {
+  std::vector<Images> flat;  // [set][image * columns + column]
+  for (size_t s = 0; s < list.size(); ++s) {
+    flat.emplace_back();
+    for (const Images& per_image : list[s])
+      flat.back().insert(flat.back().end(), per_image.begin(), per_image.end());
+  }
+  const Images mean = MeanImages(flat, first, stride);
+  Columns c = list.at(first);
+  size_t at = 0;
+  for (Images& per_image : c)
+    for (Image& im : per_image) im = mean[at++];
+  return c;
+}
+
 /// The columns as traced followed by the same smoothed: [image][2P].
 Columns Candidates(const Columns& dmu) {
   Columns c = dmu;
-  const Columns sm = SmoothedDerivatives(dmu);
-  for (size_t k = 0; k < c.size(); ++k) c[k].insert(c[k].end(), sm[k].begin(), sm[k].end());
+  for (size_t k = 0; k < c.size(); ++k)
+    for (const Image& im : dmu[k]) c[k].push_back(Smooth121(im));
   return c;
 }
 
@@ -163,12 +170,15 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     // ray's pixel-edge dipole in a central difference about 20-fold while the derivative, smooth
     // over a pixel, passes. U is linear in theta: its root is theta_c + A^-1 g.
     const size_t na = (S + 1) / 2, nb = S / 2;
-    const Images ca = MeanCenters(sets, 0, 2), cb = MeanCenters(sets, 1, 2);
-    Images vm = ca;  // the weights' mean image for the variances
-    for (size_t i = 0; i < vm.size(); ++i)
-      for (size_t q = 0; q < vm[i].size(); ++q)
-        vm[i].pixels[q] = 0.5f * (ca[i].pixels[q] + cb[i].pixels[q]);
-    const Columns cand_a = Candidates(od.half_a.dmu), cand_b = Candidates(od.half_b.dmu);
+    std::vector<Images> centers;
+    std::vector<Columns> cand_sets;  // each set's candidate columns, smoothed once
+    for (const Differences& d : sets) {
+      centers.push_back(d.mu.photons);
+      cand_sets.push_back(Candidates(d.dmu));
+    }
+    const Images ca = MeanImages(centers, 0, 2), cb = MeanImages(centers, 1, 2);
+    const Images vm = MeanImages(centers, 0, 1);  // the weights' mean image for the variances
+    const Columns cand_a = MeanColumns(cand_sets, 0, 2), cand_b = MeanColumns(cand_sets, 1, 2);
     Simulated sim_a, sim_b;
     sim_a.photons = ca, sim_b.photons = cb;
     // Over the 2P candidate columns: the response A (2P x P), g, and U's variance at the truth:
@@ -206,7 +216,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     if (S > 2) {
       for (size_t s = 0; s < S; ++s) {
         const Columns& mean = s % 2 == 0 ? cand_a : cand_b;
-        Columns dev = Candidates(sets[s].dmu);
+        Columns dev = cand_sets[s];
         for (size_t i = 0; i < dev.size(); ++i)
           for (size_t c = 0; c < 2 * P; ++c)
             for (size_t q = 0; q < dev[i][c].size(); ++q)
@@ -286,11 +296,12 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     };
     auto GAt = [&](const std::vector<double>& y) {
       Simulated at_a, at_b;  // the halves' mean images at y, as c_a and c_b at theta_c
-      std::vector<Differences> centers(S);
+      std::vector<Images> at(S);
       for (size_t s2 = 0; s2 < S; ++s2)
-        centers[s2].mu = run.Images(y, final_level, spec.seed + kDerivativeSetSeedStride * s2,
-                                    Stage::kFinal, nullptr);
-      at_a.photons = MeanCenters(centers, 0, 2), at_b.photons = MeanCenters(centers, 1, 2);
+        at[s2] = run.Images(y, final_level, spec.seed + kDerivativeSetSeedStride * s2,
+                            Stage::kFinal, nullptr)
+                     .photons;
+      at_a.photons = MeanImages(at, 0, 2), at_b.photons = MeanImages(at, 1, 2);
       return Select(model.Score(at_a, cand_b, cb, bin), model.Score(at_b, cand_a, ca, bin), y);
     };
     Eigen::VectorXd g = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(P));

@@ -197,8 +197,12 @@ std::string FitSectionHtml(const std::string& stem, const fit::FitSpec& spec,
      << " s)</h3><table><tr><th>parameter</th><th>best</th>"
         "<th>sigma</th><th>Cramer-Rao bound</th><th>profile-likelihood 68 % interval</th></tr>";
   for (const auto& p : fr2.parameters) {
-    hh << "<tr><td>" << p.key << "</td><td>" << p.best << " " << p.unit << "</td><td>" << p.sigma
-       << "</td><td>" << p.sigma_cramer_rao << "</td><td>";
+    hh << "<tr><td>" << p.key;
+    if (p.prior_sigma > 0)
+      hh << "<br><small>prior " << p.prior_mean << " &plusmn; " << p.prior_sigma << " ("
+         << HtmlEscape(p.prior_from) << ")</small>";
+    hh << "</td><td>" << p.best << " " << p.unit << "</td><td>" << p.sigma << "</td><td>"
+       << p.sigma_cramer_rao << "</td><td>";
     if (p.profile_t.empty())
       hh << "not needed";
     else

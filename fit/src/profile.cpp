@@ -222,12 +222,19 @@ void ProfileValues(FitResult* res) {
     p.profile_lower_open = p.profile_lower_open || lo < p.lower;
     p.profile_upper_open = p.profile_upper_open || hi > p.upper;
     // Say so where the interval is not best +- sigma: by a quarter sigma or more on a side.
+    // Quote it where it is wider or lopsided; where it is narrower on both sides, sigma (the
+    // wider) stays the one to quote: that has been seen only where two parameters correlate
+    // above 0.97 (a sphere's index and the light field's edge), where the path's projection
+    // with the final steps' response C is itself uncertain (docs/fit.md).
+    const bool narrower = !p.profile_lower_open && !p.profile_upper_open &&
+                          p.profile_lower_sigmas > -0.75 && p.profile_upper_sigmas < 0.75;
     if (p.profile_lower_open || p.profile_upper_open ||
         std::abs(p.profile_lower_sigmas + 1) > 0.25 || std::abs(p.profile_upper_sigmas - 1) > 0.25)
       res->message += "; " + p.key + ": the profile-likelihood interval [" + Fmt(p.profile_lower) +
                       (p.profile_lower_open ? " or below" : "") + ", " + Fmt(p.profile_upper) +
-                      (p.profile_upper_open ? " or above" : "") + "] is not best +- sigma (" +
-                      p.profile_reason + "): quote it";
+                      (p.profile_upper_open ? " or above" : "") + "] is " +
+                      (narrower ? "narrower than" : "not") + " best +- sigma (" + p.profile_reason +
+                      "): " + (narrower ? "quote sigma, the wider" : "quote it");
   }
 }
 

@@ -159,11 +159,14 @@ void WriteCalibratedFile(const SphereCalibrationOptions& o, const CalibrationDat
   out.edge_width_deg = res.edge_width_deg;
   out.psf_sigma_um = res.psf_sigma_um;
   out.edge_tilt_deg = {res.edge_tilt_deg[0], res.edge_tilt_deg[1]};
-  // The nuisances' sigmas, for fits that free them with the calibration as a prior.
+  // The nuisances' sigmas, for fits that free them with the calibration as a prior. Where the
+  // fit determined none (an information matrix that is not positive definite: a dim or short
+  // calibration), the value is known only to lie within the fit's bounds: the sigma of a
+  // uniform value over them, (upper - lower) / sqrt(12), so such a prior barely constrains.
   out.key_sigma.clear();
-  for (const auto& v : res.values)
-    if ((v.key.starts_with("light_field_edge.") || v.key == "camera.psf_sigma_um") && v.sigma > 0)
-      out.key_sigma[v.key] = v.sigma;
+  for (const fit::ParameterResult& p : fr.parameters)
+    if (p.key.starts_with("light_field_edge.") || p.key == "camera.psf_sigma_um")
+      out.key_sigma[p.key] = p.sigma > 0 ? p.sigma : (p.upper - p.lower) / std::sqrt(12.0);
   out.provenance = ProvenanceJson();
   for (auto& [k, v] : base.provenance.items())
     if (!out.provenance.contains(k)) out.provenance[k] = v;

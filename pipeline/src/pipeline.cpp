@@ -344,13 +344,18 @@ struct Calibration {
   std::string lf_report, co_report, sp_report;
 };
 
+/// Bumped when the calibration's model or file changes so that a calibration made by an older
+/// raymatch is not reused (2: the edge model from 3 map pixels inside the NA cut and the
+/// [uncertainty] table, 2026-11-25).
+constexpr int kCalibrationModel = 2;
+
 std::string CalibrationInputs(const RunInputs& in) {
   const PipelineFile& cfg = in.cfg;
-  std::string s = FolderStamp(cfg.lightfield) + "|" + FolderStamp(cfg.flatfield) + "|" +
-                  (in.lf.flat.empty() ? "" : FileChecksum(in.lf.flat)) + "|" +
-                  std::to_string(cfg.extrapolate_to_deg) + "|" + std::to_string(cfg.zones) + "|" +
-                  std::to_string(cfg.smoothness) + "|" +
-                  (cfg.sphere.empty() ? "" : FolderStamp(cfg.sphere));
+  std::string s =
+      "model " + std::to_string(kCalibrationModel) + "|" + FolderStamp(cfg.lightfield) + "|" +
+      FolderStamp(cfg.flatfield) + "|" + (in.lf.flat.empty() ? "" : FileChecksum(in.lf.flat)) +
+      "|" + std::to_string(cfg.extrapolate_to_deg) + "|" + std::to_string(cfg.zones) + "|" +
+      std::to_string(cfg.smoothness) + "|" + (cfg.sphere.empty() ? "" : FolderStamp(cfg.sphere));
   for (double d : cfg.sphere_planes_um) s += "|" + std::to_string(d);
   return s;
 }

@@ -25,7 +25,7 @@ inline void Locate(double x, int n, int* i, double* f, bool* inside) {
 
 }  // namespace
 
-void IndexField::Eval(const Vec3& p, double* n, Vec3* grad) const {
+void IndexField::EvalUnrotated(const Vec3& p, double* n, Vec3* grad) const {
   switch (type) {
     case IndexFieldType::kLuneburg: {
       const double q = 2 - Dot(p, p) / (radius_um * radius_um);
@@ -90,6 +90,7 @@ IndexField IndexField::AffineView() const {
   v.type = type, v.n0 = n0, v.radius_um = radius_um, v.g_per_um = g_per_um, v.k_per_um = k_per_um;
   v.nx = nx, v.ny = ny, v.nz = nz, v.origin_um = origin_um, v.spacing_um = spacing_um;
   v.min_n = min_n, v.max_n = max_n;
+  v.rotated = rotated, v.rotation = rotation, v.rotation_t = rotation_t;
   v.shared_ = grid();
   v.mapped_ = true;
   return v;
@@ -532,6 +533,7 @@ UniformCells::UniformCells(const IndexField& f, double tolerance) {
     return;
   }
   if (cx_ < 1 || cy_ < 1 || cz_ < 1) return;
+  rotated_ = f.rotated, rotation_t_ = f.rotation_t;
   origin_ = f.origin_um, spacing_ = f.spacing_um;
   inv_spacing_ = {1 / spacing_.x, 1 / spacing_.y, 1 / spacing_.z};
   dist_.assign(size_t(cx_) * cy_ * cz_, 0);
@@ -612,8 +614,10 @@ UniformCells::UniformCells(const IndexField& f, double tolerance) {
       for (int i = cx_ - 1; i >= 0; --i) pass(k, j, i, -1);
 }
 
-double UniformCells::FreeLength(const Vec3& p) const {
+double UniformCells::FreeLength(const Vec3& local) const {
   if (dist_.empty()) return 0;
+  // (A rotated field's blocks are in its own axes; lengths do not change under the rotation.)
+  const Vec3 p = rotated_ ? rotation_t_ * local : local;
   // Cell coordinates along each used axis (r, z for axisymmetric grids).
   const double ux = ((rz_ ? std::sqrt(p.x * p.x + p.y * p.y) : p.x) - origin_.x) * inv_spacing_.x;
   const double uy = rz_ ? 0.5 : (p.y - origin_.y) * inv_spacing_.y;

@@ -388,6 +388,19 @@ std::shared_ptr<const IndexField> ReadIndexField(TomlReader r, Scene& scene, con
     }
     f->description += std::string(rz ? " n(r, z) " : " n(x, y, z) ") + file;
   }
+  // A rotation about the object's centre (after the scaling, whose default reference, the mean
+  // on a sphere's surface, then does not depend on it).
+  if (r.Has("rotation_deg")) {
+    const auto a = r.Vec3("rotation_deg");
+    for (double v : a)
+      if (!(std::abs(v) <= 360)) r.Fail("rotation_deg", "expected three angles within +-360 deg");
+    f->rotated = true;
+    f->rotation = RotationFromEulerDeg(a[0], a[1], a[2]);
+    f->rotation_t = f->rotation.Transposed();
+    std::ostringstream d;
+    d << ", rotated [" << a[0] << ", " << a[1] << ", " << a[2] << "] deg";
+    f->description += d.str();
+  }
   r.Finish();
   // Range for reports: sample the analytic fields at the centre; grids exactly.
   if (!f->values.empty()) {

@@ -63,6 +63,13 @@ class IndexField {
     std::vector<double> density_kg_m3, temperature_K;
   };
   std::shared_ptr<const WaterStates> water;
+  /// The field rotated about its object's centre (`rotation_deg`, R = Rz Ry Rx as for objects):
+  /// the index at local point p is the unrotated field's at R^T p, its gradient rotated by R.
+  /// Set whenever the scene gives `rotation_deg`, even [0, 0, 0], so that a fit of the angles
+  /// traces every evaluation with the same integrator (a rotated 3D grid is not stepped cell by
+  /// cell: its cells are not aligned with the local axes).
+  bool rotated = false;
+  Mat3 rotation, rotation_t;
 
   /// A grid field's view that shares this grid (not a copy; it must outlive the view) and gives
   /// offset + scale x its index, gradient scaled alike (SetMap; initially offset 0, scale 1).
@@ -70,7 +77,12 @@ class IndexField {
   void SetMap(double offset, double scale) { map_offset_ = offset, map_scale_ = scale; }
 
   /// Index and its gradient at a local point.
-  void Eval(const Vec3& p, double* n, Vec3* grad_n) const;
+  void Eval(const Vec3& p, double* n, Vec3* grad_n) const {
+    if (!rotated) return EvalUnrotated(p, n, grad_n);
+    Vec3 g;
+    EvalUnrotated(rotation_t * p, n, &g);
+    *grad_n = rotation * g;
+  }
   double Index(const Vec3& p) const {
     double n;
     Vec3 g;
@@ -91,6 +103,7 @@ class IndexField {
   static void EvalInCell(const GridCell& cell, const Vec3& p, double* n, Vec3* grad_n);
 
  private:
+  void EvalUnrotated(const Vec3& p, double* n, Vec3* grad_n) const;  ///< in the field's own axes
   void Fill(GridCell* cell) const;     ///< node, extent, strides and corners from cell->k
   void Corners(GridCell* cell) const;  ///< coefficients from cell->base and cell->stride
   const double* grid() const { return shared_ ? shared_ : values.data(); }
@@ -160,10 +173,10 @@ GrinPoint SharmaStep(const IndexField& f, const Vec3& center, const GrinPoint& s
 /// result is kept: local extrapolation). Returns the number of field evaluations used.
 int AdaptiveStep(const IndexField& f, const Vec3& center, const GrinSettings& cfg, GrinPoint* s,
                  double* dt, double* used);
-/// Whether a field is integrated with CellStep under these settings (3D grids, cell steps on,
-/// the embedded controller).
+/// Whether a field is integrated with CellStep under these settings (3D grids not rotated, cell
+/// steps on, the embedded controller).
 inline bool UsesCellSteps(const IndexField& f, const GrinSettings& cfg) {
-  return cfg.cell_steps && !cfg.step_doubling && f.type == IndexFieldType::kGrid3D;
+  return cfg.cell_steps && !cfg.step_doubling && f.type == IndexFieldType::kGrid3D && !f.rotated;
 }
 /// The same from a bare state (computes the first stage).
 int AdaptiveStep(const IndexField& f, const Vec3& center, const GrinSettings& cfg, GrinState* s,
@@ -185,6 +198,8 @@ class UniformCells {
 
  private:
   bool rz_ = false;
+  bool rotated_ = false;  // the field's rotation_t (R^T) maps local points into its axes
+  Mat3 rotation_t_;
   int cx_ = 0, cy_ = 0, cz_ = 0;  // cells per axis (rz: cx_ along r, cy_ = 1)
   Vec3 origin_, spacing_, inv_spacing_;
   std::vector<uint8_t> dist_;

@@ -377,11 +377,14 @@ TEST(Grin, UniformCellsNeverReachANonUniformCell) {
   f.values.assign(size_t(f.nx) * f.ny * f.nz, 1.33);
   // A non-uniform blob: the node (12, 8, 9) raised (its 8 neighbouring cells change).
   f.values[(size_t(9) * f.ny + 8) * f.nx + 12] = 1.34;
-  const UniformCells u(f, 1e-13);
+  // Blocks of 4^3 cells (5 x 4 x 5, the last z block partial): the raised node touches cells
+  // 11-12, 7-8, 8-9, i.e. 2 x 2 x 1 blocks of 64 cells, all others are uniform. The automatic
+  // block of so small a grid is one cell: then only the 8 cells around the node are not.
+  const UniformCells u4(f, 1e-13, 4), u(f, 1e-13);
   ASSERT_FALSE(u.empty());
-  // Blocks of 4^3 cells (5 x 4 x 5, the last z block partial); the raised node touches cells
-  // 11-12, 7-8, 8-9, i.e. 2 x 2 x 1 blocks of 64 cells, all others are uniform.
-  EXPECT_EQ(u.uniform_cells(), size_t(20 * 16 * 18 - 4 * 64));
+  EXPECT_EQ(u4.uniform_cells(), size_t(20 * 16 * 18 - 4 * 64));
+  EXPECT_EQ(u.block(), 1);
+  EXPECT_EQ(u.uniform_cells(), size_t(20 * 16 * 18 - 8));
   // What a straight step needs: the index is the uniform value and its gradient zero all along
   // the path (inside the grid or beyond its edge, where the edge values hold).
   auto flat = [&](const Vec3& p) {
@@ -391,17 +394,25 @@ TEST(Grin, UniformCellsNeverReachANonUniformCell) {
     return n == 1.33 && g.x == 0 && g.y == 0 && g.z == 0;
   };
   RayRng rng(7, 0, 0);
-  int positive = 0;
-  for (int trial = 0; trial < 20000; ++trial) {
-    const Vec3 p(-5 + 10 * rng.Uniform(), -5.6 + 11.2 * rng.Uniform(), -5.4 + 10.8 * rng.Uniform());
-    const double len = u.FreeLength(p);
-    if (len <= 0) continue;
-    ++positive;
-    const Vec3 d = Normalize(Vec3(rng.Uniform() - 0.5, rng.Uniform() - 0.5, rng.Uniform() - 0.5));
-    for (int k = 0; k <= 40; ++k)
-      ASSERT_TRUE(flat(p + d * (len * k / 40 * (1 - 1e-12)))) << trial << " " << k;
+  for (const UniformCells* map : {&u4, &u}) {
+    int positive = 0;
+    for (int trial = 0; trial < 20000; ++trial) {
+      const Vec3 p(-5 + 10 * rng.Uniform(), -5.6 + 11.2 * rng.Uniform(),
+                   -5.4 + 10.8 * rng.Uniform());
+      const double len = map->FreeLength(p);
+      if (len <= 0) continue;
+      ++positive;
+      const Vec3 d = Normalize(Vec3(rng.Uniform() - 0.5, rng.Uniform() - 0.5, rng.Uniform() - 0.5));
+      for (int k = 0; k <= 40; ++k)
+        ASSERT_TRUE(flat(p + d * (len * k / 40 * (1 - 1e-12))))
+            << map->block() << " " << trial << " " << k;
+    }
+    EXPECT_GT(positive, 10000);
   }
-  EXPECT_GT(positive, 10000);
+  // A grid of more than kMaxBlocks cells gets larger blocks.
+  IndexField big = Grid3D(101, 101, 101, {0.5, 0.5, 0.5}, {-25, -25, -25});
+  big.values.assign(size_t(101) * 101 * 101, 1.33);
+  EXPECT_EQ(UniformCells(big, 1e-13).block(), 2);
   // An axisymmetric grid that starts on the axis continues through it: a point near the axis
   // far from the non-uniform cells may cross the axis.
   IndexField rz;

@@ -182,22 +182,26 @@ inline bool UsesCellSteps(const IndexField& f, const GrinSettings& cfg) {
 int AdaptiveStep(const IndexField& f, const Vec3& center, const GrinSettings& cfg, GrinState* s,
                  double* dt, double* used);
 
-/// Where a grid field is uniform, for straight steps across it: per block of 4^3 grid cells, the
+/// Where a grid field is uniform, for straight steps across it: per block of B^3 grid cells, the
 /// Chebyshev distance in blocks to the nearest block holding a cell whose corner values differ
 /// by more than a tolerance (or to the grid's edge). Empty for analytic fields.
 class UniformCells {
  public:
   UniformCells() = default;
-  UniformCells(const IndexField& f, double tolerance);
+  /// `block`: cells per block side B; 0 chooses the smallest of 1, 2, 4 whose map has at most
+  /// kMaxBlocks entries.
+  UniformCells(const IndexField& f, double tolerance, int block = 0);
   bool empty() const { return dist_.empty(); }
   /// Length of any straight path from local point p that stays in uniform cells (0: p is not
   /// in one).
   double FreeLength(const Vec3& p) const;
   size_t uniform_cells() const { return uniform_cells_; }  ///< grid cells in uniform blocks
-  static constexpr int kBlock = 4;  ///< cells per block side (the map's resolution)
+  int block() const { return block_; }                     ///< cells per block side
+  static constexpr size_t kMaxBlocks = size_t(1) << 18;    ///< the automatic block's map size
 
  private:
   bool rz_ = false;
+  int block_ = 4;
   bool rotated_ = false;  // the field's rotation_t (R^T) maps local points into its axes
   Mat3 rotation_t_;
   int cx_ = 0, cy_ = 0, cz_ = 0;  // cells per axis (rz: cx_ along r, cy_ = 1)

@@ -16,7 +16,8 @@ and the time per fit. The cases:
   C  "bench": bench/fit_sphere.sh's sphere: radius 15.5 um, n 1.3371, 27 deg cone, -4 um,
      1 um pixels (120 x 100), 1000 photons per pixel
 Usage: bench/fit_accuracy.py OUT [--cases ABC] [--k 16] [--start nominal|truth]
-                             [--offsets 0.4,0.4,1.8,0.6,0.005] [--fit-lines 'key = value' ...]
+                             [--offsets 0.4,0.4,1.8,0.6,0.005] [--seed-base 100]
+                             [--fit-lines 'key = value' ...]
 (--offsets: |nominal start - truth| of x, y, z, radius, index; issue 26's far starts are
 0.4,0.4,2,1,0.01)
 Writes OUT/<case>/k<i>/fit/fit.json and OUT/summary.json; prints a Markdown table.
@@ -78,7 +79,7 @@ partial_reflection = "unpolarized"
 """
 
 
-def run_case(name, case, K, out, fit_lines, from_truth=False, offsets=OFFSETS):
+def run_case(name, case, K, out, fit_lines, from_truth=False, offsets=OFFSETS, seed_base=100):
     rows = []
     for k in range(K):
         d = os.path.join(out, name, f"k{k}")
@@ -87,7 +88,7 @@ def run_case(name, case, K, out, fit_lines, from_truth=False, offsets=OFFSETS):
         sgn = 1 if k % 2 == 0 else -1
         start = [t + (0 if from_truth else sgn * o * (1 if i % 2 == 0 else -1))
                  for i, (t, o) in enumerate(zip(truth, offsets))]
-        open(os.path.join(d, "truth.toml"), "w").write(scene(case, truth, 100 + k))
+        open(os.path.join(d, "truth.toml"), "w").write(scene(case, truth, seed_base + k))
         open(os.path.join(d, "model.toml"), "w").write(scene(case, start, 1))
         images = []
         for p in case["planes"]:
@@ -144,6 +145,8 @@ def main():
                     help="nominal: offset starts (the benchmark); truth: start at the truth (bias alone)")
     ap.add_argument("--offsets", default=",".join(str(o) for o in OFFSETS),
                     help="|nominal start - truth| of x, y, z (um), radius (um), index")
+    ap.add_argument("--seed-base", type=int, default=100,
+                    help="the experiments' seeds are SEED_BASE + k (default 100)")
     ap.add_argument("--fit-lines", nargs="*", default=[], help="extra top-level fit-file lines")
     a = ap.parse_args()
     table, timing = [], []
@@ -151,7 +154,8 @@ def main():
         offsets = [float(v) for v in a.offsets.split(",")]
         if len(offsets) != 5:
             ap.error("--offsets needs five numbers: x, y, z, radius, index")
-        rows = run_case(c, CASES[c], a.k, a.out, a.fit_lines, a.start == "truth", offsets)
+        rows = run_case(c, CASES[c], a.k, a.out, a.fit_lines, a.start == "truth", offsets,
+                        a.seed_base)
         t, s = summarise(c, CASES[c], rows)
         table += t
         timing.append(s)

@@ -116,24 +116,36 @@ def run_case(name, case, K, out, fit_lines, from_truth=False, offsets=OFFSETS, s
     return rows
 
 
-def summarise(name, case, rows):
+def error_stats(rows, truth, names):
+    """Per parameter over the fits (rows of dict(fit=fit.json, wall=s, rc=exit)): mean error
+    and RMS error in mean Cramer-Rao bounds, RMS(error / sigma), mean CRB and sigma."""
     K = len(rows)
     out = []
-    for i, pname in enumerate(NAMES):
-        t = case["truth"][i]
-        err = [r["fit"]["parameters"][i]["best"] - t for r in rows]
+    for i, pname in enumerate(names):
+        err = [r["fit"]["parameters"][i]["best"] - truth[i] for r in rows]
         crb = [r["fit"]["parameters"][i]["sigma_cramer_rao"] for r in rows]
         sig = [r["fit"]["parameters"][i]["sigma"] for r in rows]
         mean_crb = sum(crb) / K
-        out.append(dict(case=name, parameter=pname,
+        out.append(dict(parameter=pname,
                         mean_error_over_crb=sum(err) / K / mean_crb,
                         rms_error_over_crb=math.sqrt(sum(e * e for e in err) / K) / mean_crb,
                         rms_error_over_sigma=math.sqrt(sum((e / s) ** 2 for e, s in zip(err, sig)) / K),
                         mean_crb=mean_crb, mean_sigma=sum(sig) / K))
+    return out
+
+
+def timing_stats(rows):
+    """Fits, mean and max wall time per fit, exit codes and mean evaluations per fit."""
+    K = len(rows)
     walls = [r["wall"] for r in rows]
-    return out, dict(case=name, fits=K, mean_seconds=sum(walls) / K, max_seconds=max(walls),
-                     exits=sorted(set(r["rc"] for r in rows)),
-                     evaluations=sum(len(r["fit"]["evaluations"]) for r in rows) / K)
+    return dict(fits=K, mean_seconds=sum(walls) / K, max_seconds=max(walls),
+                exits=sorted(set(r["rc"] for r in rows)),
+                evaluations=sum(len(r["fit"]["evaluations"]) for r in rows) / K)
+
+
+def summarise(name, case, rows):
+    return ([dict(case=name, **r) for r in error_stats(rows, case["truth"], NAMES)],
+            dict(case=name, **timing_stats(rows)))
 
 
 def main():

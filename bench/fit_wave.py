@@ -23,12 +23,13 @@ Environment: RAYMATCH (the executable; default build/release/apps/raymatch).
 """
 import argparse
 import json
-import math
 import os
 import re
 import subprocess
 import sys
 import time
+
+from fit_accuracy import error_stats, timing_stats  # the same statistics (bench/)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RAYMATCH = os.environ.get("RAYMATCH", os.path.join(ROOT, "build/release/apps/raymatch"))
@@ -95,24 +96,12 @@ def main():
               f"(best - truth)/CRB " + " ".join(f"{e:+.2f}" for e in errs), file=sys.stderr,
               flush=True)
     K = len(rows)
-    table = []
-    for i, name in enumerate(NAMES):
-        err = [r["fit"]["parameters"][i]["best"] - truth[i] for r in rows]
-        crb = [r["fit"]["parameters"][i]["sigma_cramer_rao"] for r in rows]
-        sig = [r["fit"]["parameters"][i]["sigma"] for r in rows]
-        mean_crb = sum(crb) / K
-        table.append(dict(parameter=name, mean_error_over_crb=sum(err) / K / mean_crb,
-                          rms_error_over_crb=math.sqrt(sum(e * e for e in err) / K) / mean_crb,
-                          rms_error_over_sigma=math.sqrt(sum((e / s) ** 2 for e, s in zip(err, sig)) / K),
-                          mean_crb=mean_crb, mean_sigma=sum(sig) / K))
+    table = error_stats(rows, truth, NAMES)
     split = {}
     for r in rows:
         for key, v in r["fit"].get("seconds", {}).items():
             split[key] = split.get(key, 0) + v / K
-    walls = [r["wall"] for r in rows]
-    timing = dict(fits=K, mean_seconds=sum(walls) / K, max_seconds=max(walls),
-                  exits=sorted(set(r["rc"] for r in rows)), split=split,
-                  evaluations=sum(len(r["fit"]["evaluations"]) for r in rows) / K)
+    timing = dict(timing_stats(rows), split=split)
     json.dump(dict(parameters=table, timing=timing, command=sys.argv, fit_lines=a.fit_lines,
                    ray_factor=a.ray_factor),
               open(os.path.join(a.out, "summary.json"), "w"), indent=1)

@@ -566,26 +566,25 @@ UniformCells::UniformCells(const IndexField& f, double tolerance, int block) {
     while (block <= 0 && block_ < 4 &&
            cells_all / (size_t(block_) * block_ * (rz_ ? 1 : block_)) > kMaxBlocks)
       block_ *= 2;
-    const int kBlock = block_;
-    const int bx = (cx_ + kBlock - 1) / kBlock, by = rz_ ? 1 : (cy_ + kBlock - 1) / kBlock,
-              bz = (cz_ + kBlock - 1) / kBlock;
-    const int sy = rz_ ? 1 : kBlock;
+    const int bx = (cx_ + block_ - 1) / block_, by = rz_ ? 1 : (cy_ + block_ - 1) / block_,
+              bz = (cz_ + block_ - 1) / block_;
+    const int sy = rz_ ? 1 : block_;
     std::vector<uint8_t> blocks(size_t(bx) * by * bz, 0);
     for (int K = 0; K < bz; ++K)
       for (int J = 0; J < by; ++J)
         for (int I = 0; I < bx; ++I) {
           bool ok = true;
           size_t cells = 0;
-          for (int k = K * kBlock; ok && k < std::min(cz_, (K + 1) * kBlock); ++k)
+          for (int k = K * block_; ok && k < std::min(cz_, (K + 1) * block_); ++k)
             for (int j = J * sy; ok && j < std::min(cy_, (J + 1) * sy); ++j)
-              for (int i = I * kBlock; ok && i < std::min(cx_, (I + 1) * kBlock); ++i, ++cells)
+              for (int i = I * block_; ok && i < std::min(cx_, (I + 1) * block_); ++i, ++cells)
                 ok = at(k, j, i) != 0;
           blocks[(size_t(K) * by + J) * bx + I] = ok ? 255 : 0;
           if (ok) uniform_cells_ += cells;
         }
     dist_ = std::move(blocks);
     cx_ = bx, cy_ = by, cz_ = bz;
-    spacing_ = {spacing_.x * kBlock, spacing_.y * sy, spacing_.z * kBlock};
+    spacing_ = {spacing_.x * block_, spacing_.y * sy, spacing_.z * block_};
     inv_spacing_ = {1 / spacing_.x, 1 / spacing_.y, 1 / spacing_.z};
   }
   // An axisymmetric grid that starts on the axis continues through it (r >= 0 mirrors): the

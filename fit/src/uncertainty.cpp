@@ -125,24 +125,32 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
   // derivative itself for z and the index (a single set's index column has a cosine of 0.62
   // with the exact one): the root of J^T r = 0 with such a J scatters up to 2x the Cramer-Rao
   // bound. When the root lies more than half a step (the stencil's half-width) of any parameter
-  // from where the sets were taken, they are taken again there (at most three rounds): along
-  // the curved z-radius-index valley a single linearisation stops short (issue 26 item 2).
+  // from where the sets were taken, they are taken again there (at most three rounds, after a
+  // pilot round of two sets, below): along the curved z-radius-index valley a single
+  // linearisation stops short (issue 26 item 2).
   OptimumDerivatives od;
   const std::vector<double> read_variance = ReadVariance(spec);
   const double k = spec.rays.ray_factor * spec.rays.fractions.back();
   const int bin = model.BinAt(final_level);
   const Eigen::VectorXd prior = PriorPrecision(spec);
   bool steps_ran = false;
+  const bool steps = FinalStepsRun(spec);
+  const size_t s_all = size_t(std::max(2, spec.rays.jacobian_seeds));
+  // A pilot round first (with the final steps and more than two sets): two sets and their root.
+  // Where that root lies more than half a step from the search's optimum (the quarter-ray
+  // search leaves the index 2-3 bounds off in most fits), all sets are taken at the pilot's
+  // root instead, which saves a whole round of S (2P + 1) images; otherwise the pilot's two
+  // sets are kept and the others join them where they were taken (the same sets as without
+  // the pilot).
+  bool pilot = steps && s_all > 2;
+  std::vector<Differences> sets;  // the sets taken at `best`
   for (int round = 0; round < 3 && res.status != FitStatus::kFlat && spec.uncertainties &&
-                      (round == 0 || run.Budget());
-       ++round) {
-    const size_t S = size_t(std::max(2, spec.rays.jacobian_seeds));
-    const bool steps = FinalStepsRun(spec);
-    std::vector<Differences> sets;
-    for (size_t s = 0; s < S; ++s)
+                      (round == 0 || run.Budget());) {
+    for (size_t s = sets.size(); s < (pilot ? 2 : s_all); ++s)
       sets.push_back(Differentiate(run, spec, best, final_level,
                                    spec.seed + kDerivativeSetSeedStride * s, Stage::kFisher, true,
                                    s == 0 || steps));
+    const size_t S = sets.size();
     od.half_a = AverageSets(sets, 0, 2), od.half_b = AverageSets(sets, 1, 2);
     if (!steps) {
       // (The sets are always taken: the uncertainties need them.) The profile-likelihood paths
@@ -275,7 +283,11 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
         od.score_dmu[m].push_back(cand_sum[m][choice[i]]);
     }
     const auto lu = od.score_response.fullPivLu();
-    if (!lu.isInvertible()) break;
+    if (!lu.isInvertible()) {
+      if (!pilot) break;
+      pilot = false;  // the full sets where the pilot's were taken
+      continue;
+    }
     // The root. The linear prediction c_h + J_h (theta - theta_c) carries J_h's counting noise
     // times the distance from theta_c, which can be a few sigma (the coarse optimum), and where
     // the equation is nearly singular (weak nuisances) its linear root can be far off: so each
@@ -326,12 +338,19 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       }
       if (!accepted) break;
     }
-    if (!stepped) break;
     bool far = false;
-    for (size_t i = 0; i < P; ++i)
+    for (size_t i = 0; i < P && stepped; ++i)
       far = far || std::abs(x[i] - best[i]) > 0.5 * spec.parameters[i].step;
+    if (pilot) {  // not a round: the full sets follow, here or at the pilot's root
+      pilot = false;
+      if (far) best = x, sets.clear();
+      continue;
+    }
+    if (!stepped) break;
     best = x;
     if (!far) break;
+    sets.clear();
+    ++round;
   }
   // The main streams' images at the root, for the report, the residuals and the goodness of fit.
   if (steps_ran && run.Budget()) {

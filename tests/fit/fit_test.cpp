@@ -8,6 +8,7 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <random>
 #include <set>
 #include <sstream>
@@ -21,6 +22,7 @@
 #include "raymatch/core/toml_reader.h"
 #include "raymatch/simulate/scene.h"
 #include "raymatch/simulate/tracer.h"
+#include "runner.h"
 #include "temp_dir.h"
 
 namespace raymatch::fit {
@@ -641,6 +643,40 @@ TEST_F(FitFile, SaturatedPixelsAreLeftOut) {
   }
   const FitResult without = RunFit(LoadFitSpec(NoiseTestFit("")));
   EXPECT_TRUE(without.goodness.mismatch) << without.goodness.verdict;
+}
+
+// The final steps' pilot round (fit/src/uncertainty.cpp, FinalSteps): two derivative sets and
+// their root first; where that root lies more than half a step from the search's optimum, every
+// set is taken at the pilot's root (once), not at the optimum and again at the root. Started
+// 0.25 um off in x (half a step is 0.1 um), sets 2 and 3 are each traced once (2P + 1 images),
+// sets 0 and 1 at two points, and the root lands on the drop; started at the truth, every set
+// once. Without the pilot every set is traced twice in the first case (a second round).
+TEST_F(FitFile, PilotRoundTakesTheDerivativeSetsOnceAtItsRoot) {
+  WriteFloatImage(dir_ / "exp.tif", NoiseTestExperiment(), "drop at x = 0.4 um");
+  std::ifstream in(NoiseTestFit(""));
+  std::string text{std::istreambuf_iterator<char>(in), {}};
+  text.replace(text.find("ray_factor = 4"), 14, "ray_factor = 1");  // (quicker)
+  const FitSpec spec = LoadFitSpec(dir_.Write("fit.toml", text));
+  ASSERT_TRUE(internal::FinalStepsRun(spec));
+  ASSERT_EQ(spec.rays.jacobian_seeds, 4);
+  const size_t P = spec.parameters.size();
+  for (const double off : {0.25, 0.0}) {
+    FitResult res;
+    internal::Runner run(spec, FitOptions{}, &res);
+    std::vector<double> best{kNoiseTestTruth[0] + off, kNoiseTestTruth[1]};
+    internal::FinalSteps(run, spec, &best, res);
+    std::map<uint64_t, size_t> traced;  // derivative-set images per set
+    for (const Evaluation& e : res.evaluations)
+      if (e.stage == Stage::kFisher)
+        ++traced[(e.seed - spec.seed) / internal::kDerivativeSetSeedStride];
+    ASSERT_EQ(traced.size(), 4u) << off;
+    for (const uint64_t s : {2, 3})
+      EXPECT_EQ(traced[s], 2 * P + 1) << "set " << s << ", off " << off;
+    for (const uint64_t s : {0, 1})
+      EXPECT_EQ(traced[s], off > 0 ? 4 * P + 1 : 2 * P + 1) << "set " << s << ", off " << off;
+    EXPECT_NEAR(best[0], kNoiseTestTruth[0], 0.03) << off;
+    EXPECT_NEAR(best[1], kNoiseTestTruth[1], 0.1) << off;
+  }
 }
 
 // The final fraction is fitted either by the Fisher-scoring rounds (the default: no polish

@@ -157,11 +157,9 @@ void ProfileIntervals(Runner& run, const FitSpec& spec, const std::vector<double
     const Simulated mu = run.Images(th, level, spec.seed, Stage::kProfile, &e);
     const std::vector<double> s = model.PoissonScore(mu, od.score_dmu, bin);
     *sc = Eigen::Map<const Eigen::VectorXd>(s.data(), Eigen::Index(P));
-    if (od.score_prior.rows() == Eigen::Index(P)) {  // the priors' score
-      Eigen::VectorXd d(static_cast<Eigen::Index>(P));
-      for (size_t j = 0; j < P; ++j) d(Eigen::Index(j)) = spec.parameters[j].prior_mean - th[j];
-      *sc += od.score_prior * d;
-    }
+    for (size_t j = 0; j < P && od.score_prior.size() == Eigen::Index(P); ++j)  // priors' score
+      (*sc)(Eigen::Index(j)) +=
+          od.score_prior(Eigen::Index(j)) * (spec.parameters[j].prior_mean - th[j]);
   };
   // Scores relative to the one at the optimum: the main streams' template differs from the
   // final steps' (the sets' mean), so their score at that root is not zero but a constant of

@@ -247,12 +247,10 @@ struct OptimumDerivatives {
   // root's covariance is A^-1 (B_e + B_t) A^-T.
   Eigen::MatrixXd score_response, score_variance_experiment, score_variance_template,
       score_derivative_noise;
-  // Per parameter: the smoothed image's share of its own two columns in the combination (0:
-  // as traced, 1: smoothed).
-  std::vector<double> score_smoothed_weight;
+  std::vector<bool> score_smoothed;  // per parameter: the score's derivative image is smoothed
   // The Gaussian priors' precisions on the score's scale (2 Lambda with the final steps, whose U
   // sums two halves; Lambda without): their score is score_prior (m - theta).
-  Eigen::MatrixXd score_prior;
+  Eigen::VectorXd score_prior;
 };
 
 /// Derivative sets at the optimum and the final steps, which move *best

@@ -97,14 +97,17 @@ Columns Plus(const Columns& a, const Columns& b) {
   return c;
 }
 
-/// fit.json's `score_derivative`: how the parameter's own equation weighs its derivative image
-/// as traced and smoothed (the combination also draws on the other parameters' images).
-std::string ScoreDerivativeName(double smoothed_weight) {
-  if (std::abs(smoothed_weight) < 0.05) return "as traced";
-  if (std::abs(smoothed_weight - 1) < 0.05) return "smoothed";
-  char buf[64];
-  std::snprintf(buf, sizeof buf, "combined (smoothed weight %.2f)", smoothed_weight);
-  return buf;
+Eigen::MatrixXd Rows(const Eigen::MatrixXd& m, const std::vector<size_t>& r) {
+  Eigen::MatrixXd o(Eigen::Index(r.size()), m.cols());
+  for (size_t i = 0; i < r.size(); ++i) o.row(Eigen::Index(i)) = m.row(Eigen::Index(r[i]));
+  return o;
+}
+Eigen::MatrixXd Block(const Eigen::MatrixXd& m, const std::vector<size_t>& r) {
+  Eigen::MatrixXd o(Eigen::Index(r.size()), Eigen::Index(r.size()));
+  for (size_t i = 0; i < r.size(); ++i)
+    for (size_t j = 0; j < r.size(); ++j)
+      o(Eigen::Index(i), Eigen::Index(j)) = m(Eigen::Index(r[i]), Eigen::Index(r[j]));
+  return o;
 }
 
 }  // namespace
@@ -157,7 +160,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       od.score_response = ToEigen(
           FisherInformation(od.half_a.mu.photons, od.half_a.dmu, od.half_b.dmu, read_variance));
       od.score_response.diagonal() += prior;
-      od.score_prior = prior.asDiagonal();
+      od.score_prior = prior;
       break;
     }
     steps_ran = true;
@@ -230,41 +233,54 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       }
       n_all *= (1 / double(na) + 1 / double(nb)) / double(S - 2);
     }
-    // The 2P candidate equations (each parameter's derivative image as traced and smoothed) are
-    // combined optimally: U = T g_all with T = A_all^T V^-1, V = B_e + B_t their variance at the
-    // truth, whose root has the smallest covariance any fixed combination gives,
-    // (A_all^T V^-1 A_all)^-1 (Hansen, Econometrica 50, 1029 (1982); Godambe's optimal
-    // estimating functions). The smoothed and the traced images of a parameter carry the same
-    // derivative with different pixel noise, so a combination cancels part of that noise, which
-    // choosing one of them cannot. T comes from the derivative sets only, never the experiment,
-    // so U stays unbiased whatever it is.
-    const Eigen::MatrixXd t_all =
-        (be_all + bt_all).completeOrthogonalDecomposition().solve(a_all).transpose();
-    // The priors' terms in the combined equations: U gains T E (m - theta), E(c, j) = 2 Lambda_j
-    // where column c is parameter j's.
-    Eigen::MatrixXd prior_cols = Eigen::MatrixXd::Zero(Eigen::Index(2 * P), Eigen::Index(P));
-    for (size_t i = 0; i < P; ++i)
-      for (size_t c : {i, P + i})
-        prior_cols(Eigen::Index(c), Eigen::Index(i)) = 2 * prior(Eigen::Index(i));
-    od.score_response = t_all * a_all;
-    od.score_prior = t_all * prior_cols;
-    od.score_variance_experiment = t_all * be_all * t_all.transpose();
-    od.score_variance_template = t_all * bt_all * t_all.transpose();
-    od.score_derivative_noise = t_all * n_all * t_all.transpose();
-    od.score_smoothed_weight.assign(P, 0.0);
+    // Per parameter the column (as traced or smoothed) that gives the smaller variance of the
+    // root, summed over the parameters in units of their Cramer-Rao bounds (the halves' cross
+    // product); every combination up to 12 parameters, else a coordinate descent from all
+    // smoothed. The choice uses the derivative sets only, never the experiment, so each choice's
+    // equation stays unbiased.
+    const Matrix crb = InverseSpd(
+        FisherInformation(od.half_a.mu.photons, od.half_a.dmu, od.half_b.dmu, read_variance));
+    auto Cost = [&](const std::vector<size_t>& c) {
+      const auto lu = Rows(a_all, c).fullPivLu();
+      if (!lu.isInvertible()) return std::numeric_limits<double>::infinity();
+      const Eigen::MatrixXd ai = lu.inverse();
+      const Eigen::MatrixXd cov = ai * (Block(be_all, c) + Block(bt_all, c)) * ai.transpose();
+      double sum = 0;
+      for (size_t i = 0; i < P; ++i) sum += cov(Eigen::Index(i), Eigen::Index(i)) / crb[i][i];
+      return std::isfinite(sum) ? sum : std::numeric_limits<double>::infinity();
+    };
+    std::vector<size_t> choice(P);
+    for (size_t i = 0; i < P; ++i) choice[i] = P + i;
+    if (!crb.empty()) {
+      double cost = Cost(choice);
+      if (P <= 12) {
+        for (uint32_t mask = 0; mask < (1u << P); ++mask) {
+          std::vector<size_t> t(P);
+          for (size_t i = 0; i < P; ++i) t[i] = (mask >> i) & 1u ? i : P + i;
+          const double c = Cost(t);
+          if (c < cost) choice = t, cost = c;
+        }
+      } else {
+        for (int pass = 0; pass < 2; ++pass)
+          for (size_t i = 0; i < P; ++i) {
+            std::vector<size_t> t = choice;
+            t[i] = t[i] < P ? t[i] + P : t[i] - P;
+            const double c = Cost(t);
+            if (c < cost) choice = t, cost = c;
+          }
+      }
+    }
+    od.score_response = Rows(a_all, choice);
+    od.score_prior = 2 * prior;
+    od.score_variance_experiment = Block(be_all, choice);
+    od.score_variance_template = Block(bt_all, choice);
+    od.score_derivative_noise = Block(n_all, choice);
+    od.score_smoothed.assign(P, false);
     od.score_dmu.assign(cand_sum.size(), {});
     for (size_t i = 0; i < P; ++i) {
-      const double wt = t_all(Eigen::Index(i), Eigen::Index(i));
-      const double ws = t_all(Eigen::Index(i), Eigen::Index(P + i));
-      od.score_smoothed_weight[i] = wt + ws != 0 ? ws / (wt + ws) : 0.0;
-      for (size_t m = 0; m < cand_sum.size(); ++m) {
-        Image img(cand_sum[m][0].width, cand_sum[m][0].height);
-        for (size_t c = 0; c < 2 * P; ++c) {
-          const float w = static_cast<float>(t_all(Eigen::Index(i), Eigen::Index(c)));
-          for (size_t q = 0; q < img.size(); ++q) img.pixels[q] += w * cand_sum[m][c].pixels[q];
-        }
-        od.score_dmu[m].push_back(std::move(img));
-      }
+      od.score_smoothed[i] = choice[i] >= P;
+      for (size_t m = 0; m < cand_sum.size(); ++m)
+        od.score_dmu[m].push_back(cand_sum[m][choice[i]]);
     }
     const auto lu = od.score_response.fullPivLu();
     if (!lu.isInvertible()) {
@@ -284,10 +300,11 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     auto Q = [&](const Eigen::VectorXd& v) { return v.dot(b_solver.solve(v)); };
     auto Select = [&](const std::vector<double>& ga, const std::vector<double>& gb,
                       const std::vector<double>& y) {
-      Eigen::VectorXd v(static_cast<Eigen::Index>(2 * P)), d(static_cast<Eigen::Index>(P));
-      for (size_t c = 0; c < 2 * P; ++c) v(Eigen::Index(c)) = ga[c] + gb[c];
-      for (size_t i = 0; i < P; ++i) d(Eigen::Index(i)) = spec.parameters[i].prior_mean - y[i];
-      return Eigen::VectorXd(t_all * v + od.score_prior * d);
+      Eigen::VectorXd v = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(P));
+      for (size_t i = 0; i < P; ++i)
+        v(Eigen::Index(i)) = ga[choice[i]] + gb[choice[i]] +
+                             2 * prior(Eigen::Index(i)) * (spec.parameters[i].prior_mean - y[i]);
+      return v;
     };
     auto GAt = [&](const std::vector<double>& y) {
       Simulated at_a, at_b;  // the halves' mean images at y, as c_a and c_b at theta_c
@@ -299,7 +316,8 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       at_a.photons = MeanImages(at, 0, 2), at_b.photons = MeanImages(at, 1, 2);
       return Select(model.Score(at_a, cand_b, cb, bin), model.Score(at_b, cand_a, ca, bin), y);
     };
-    Eigen::VectorXd g = t_all * g_all;
+    Eigen::VectorXd g = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(P));
+    for (size_t i = 0; i < P; ++i) g(Eigen::Index(i)) = g_all(Eigen::Index(choice[i]));
     double q = Q(g);
     std::vector<double> x = best;
     bool stepped = false;
@@ -401,8 +419,8 @@ Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vec
     }
     res.correlation = Correlation(t);
   };
-  for (size_t i = 0; i < P && i < od.score_smoothed_weight.size() && a_inv.size() > 0; ++i)
-    res.parameters[i].score_derivative = ScoreDerivativeName(od.score_smoothed_weight[i]);
+  for (size_t i = 0; i < P && i < od.score_smoothed.size() && a_inv.size() > 0; ++i)
+    res.parameters[i].score_derivative = od.score_smoothed[i] ? "smoothed" : "as traced";
   if (!cov.empty()) {
     for (size_t i = 0; i < P; ++i) res.parameters[i].sigma_curvature = std::sqrt(cov[i][i]);
     SetSigmas(cov);

@@ -247,11 +247,26 @@ struct OptimumDerivatives {
   // root's covariance is A^-1 (B_e + B_t) A^-T.
   Eigen::MatrixXd score_response, score_variance_experiment, score_variance_template,
       score_derivative_noise;
-  std::vector<bool> score_smoothed;  // per parameter: the score's derivative image is smoothed
+  // Per parameter the smoothed image's weight w in the score's derivative image,
+  // (1 - w) as traced + w smoothed, chosen to minimise sum_i Var(root_i) / score_scale_i over
+  // the candidate equations (columns as traced 0..P-1, smoothed P..2P-1): their response
+  // (2P x P) and the variance of their values at the truth, B_e + B_t (2P x 2P).
+  std::vector<double> score_smoothing;
+  Eigen::MatrixXd candidate_response, candidate_variance;
+  Eigen::VectorXd score_scale;  // the Cramer-Rao variances the weights' cost divides by
   // The Gaussian priors' precisions on the score's scale (2 Lambda with the final steps, whose U
   // sums two halves; Lambda without): their score is score_prior (m - theta).
   Eigen::VectorXd score_prior;
 };
+
+/// The final steps' choice of derivative images (uncertainty.cpp): per parameter i the weight
+/// w_i in [0, 1] of its smoothed image in the combination row_i = (1 - w_i) e_i + w_i e_{P+i}
+/// of 2P candidate equations (as traced, then smoothed) with the given response (2P x P) and
+/// variance (2P x 2P), minimising sum_i Var(root_i) / scale_i: the best corner (w in {0, 1}),
+/// then a coordinate descent in eighths. SmoothingCombination is that P x 2P matrix.
+std::vector<double> SmoothingWeights(const Eigen::MatrixXd& response,
+                                     const Eigen::MatrixXd& variance, const Eigen::VectorXd& scale);
+Eigen::MatrixXd SmoothingCombination(const std::vector<double>& w);
 
 /// Derivative sets at the optimum and the final steps, which move *best
 /// (uncertainty.cpp).

@@ -6,6 +6,7 @@
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <limits>
 
 #include "profile.h"
@@ -97,20 +98,63 @@ Columns Plus(const Columns& a, const Columns& b) {
   return c;
 }
 
-Eigen::MatrixXd Rows(const Eigen::MatrixXd& m, const std::vector<size_t>& r) {
-  Eigen::MatrixXd o(Eigen::Index(r.size()), m.cols());
-  for (size_t i = 0; i < r.size(); ++i) o.row(Eigen::Index(i)) = m.row(Eigen::Index(r[i]));
-  return o;
-}
-Eigen::MatrixXd Block(const Eigen::MatrixXd& m, const std::vector<size_t>& r) {
-  Eigen::MatrixXd o(Eigen::Index(r.size()), Eigen::Index(r.size()));
-  for (size_t i = 0; i < r.size(); ++i)
-    for (size_t j = 0; j < r.size(); ++j)
-      o(Eigen::Index(i), Eigen::Index(j)) = m(Eigen::Index(r[i]), Eigen::Index(r[j]));
-  return o;
+}  // namespace
+
+Eigen::MatrixXd SmoothingCombination(const std::vector<double>& w) {
+  const auto P = Eigen::Index(w.size());
+  Eigen::MatrixXd t = Eigen::MatrixXd::Zero(P, 2 * P);
+  for (Eigen::Index i = 0; i < P; ++i) t(i, i) = 1 - w[size_t(i)], t(i, P + i) = w[size_t(i)];
+  return t;
 }
 
-}  // namespace
+std::vector<double> SmoothingWeights(const Eigen::MatrixXd& response,
+                                     const Eigen::MatrixXd& variance,
+                                     const Eigen::VectorXd& scale) {
+  const size_t P = size_t(scale.size());
+  auto Cost = [&](const std::vector<double>& w) {
+    const Eigen::MatrixXd t = SmoothingCombination(w);
+    const auto lu = (t * response).fullPivLu();
+    if (!lu.isInvertible()) return std::numeric_limits<double>::infinity();
+    const Eigen::MatrixXd ai = lu.inverse();
+    const Eigen::MatrixXd cov = ai * (t * variance * t.transpose()) * ai.transpose();
+    const double sum = (cov.diagonal().array() / scale.array()).sum();
+    return std::isfinite(sum) ? sum : std::numeric_limits<double>::infinity();
+  };
+  std::vector<double> weight(P, 1.0);
+  double cost = Cost(weight);
+  auto Try = [&](const std::vector<double>& t) {
+    const double c = Cost(t);
+    if (c < cost) weight = t, cost = c;
+  };
+  // The corners first (each parameter's image as traced or smoothed alone): every combination
+  // up to 12 parameters, else a coordinate descent from all smoothed.
+  if (P <= 12) {
+    for (uint32_t mask = 0; mask < (1u << P); ++mask) {
+      std::vector<double> t(P);
+      for (size_t i = 0; i < P; ++i) t[i] = (mask >> i) & 1u ? 0.0 : 1.0;
+      Try(t);
+    }
+  } else {
+    for (int pass = 0; pass < 2; ++pass)
+      for (size_t i = 0; i < P; ++i) {
+        std::vector<double> t = weight;
+        t[i] = 1 - t[i];
+        Try(t);
+      }
+  }
+  // Then a coordinate descent over each weight in eighths.
+  for (int pass = 0; pass < 3; ++pass) {
+    const std::vector<double> before = weight;
+    for (size_t i = 0; i < P; ++i)
+      for (int e = 0; e <= 8; ++e) {
+        std::vector<double> t = weight;
+        t[i] = e / 8.0;
+        Try(t);
+      }
+    if (weight == before) break;
+  }
+  return weight;
+}
 
 OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<double>* best_io,
                               const FitResult& res) {
@@ -233,55 +277,37 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       }
       n_all *= (1 / double(na) + 1 / double(nb)) / double(S - 2);
     }
-    // Per parameter the column (as traced or smoothed) that gives the smaller variance of the
-    // root, summed over the parameters in units of their Cramer-Rao bounds (the halves' cross
-    // product); every combination up to 12 parameters, else a coordinate descent from all
-    // smoothed. The choice uses the derivative sets only, never the experiment, so each choice's
-    // equation stays unbiased.
+    // Per parameter a convex combination of its two columns, (1 - w) as traced + w smoothed,
+    // with the weights that give the smallest variance of the root, summed over the parameters
+    // in units of their Cramer-Rao bounds (the halves' cross product; SmoothingWeights). The
+    // weights use the derivative sets only, never the experiment, so the equation stays
+    // unbiased; each row
+    // combines its own parameter's two columns only and never extrapolates (a free combination
+    // of all 2P columns, T = A^T V^-1, fitted the noise of V for weak nuisances).
     const Matrix crb = InverseSpd(
         FisherInformation(od.half_a.mu.photons, od.half_a.dmu, od.half_b.dmu, read_variance));
-    auto Cost = [&](const std::vector<size_t>& c) {
-      const auto lu = Rows(a_all, c).fullPivLu();
-      if (!lu.isInvertible()) return std::numeric_limits<double>::infinity();
-      const Eigen::MatrixXd ai = lu.inverse();
-      const Eigen::MatrixXd cov = ai * (Block(be_all, c) + Block(bt_all, c)) * ai.transpose();
-      double sum = 0;
-      for (size_t i = 0; i < P; ++i) sum += cov(Eigen::Index(i), Eigen::Index(i)) / crb[i][i];
-      return std::isfinite(sum) ? sum : std::numeric_limits<double>::infinity();
-    };
-    std::vector<size_t> choice(P);
-    for (size_t i = 0; i < P; ++i) choice[i] = P + i;
-    if (!crb.empty()) {
-      double cost = Cost(choice);
-      if (P <= 12) {
-        for (uint32_t mask = 0; mask < (1u << P); ++mask) {
-          std::vector<size_t> t(P);
-          for (size_t i = 0; i < P; ++i) t[i] = (mask >> i) & 1u ? i : P + i;
-          const double c = Cost(t);
-          if (c < cost) choice = t, cost = c;
-        }
-      } else {
-        for (int pass = 0; pass < 2; ++pass)
-          for (size_t i = 0; i < P; ++i) {
-            std::vector<size_t> t = choice;
-            t[i] = t[i] < P ? t[i] + P : t[i] - P;
-            const double c = Cost(t);
-            if (c < cost) choice = t, cost = c;
-          }
-      }
-    }
-    od.score_response = Rows(a_all, choice);
+    const Eigen::MatrixXd v_all = be_all + bt_all;
+    Eigen::VectorXd scale = Eigen::VectorXd::Zero(Eigen::Index(P));
+    for (size_t i = 0; i < P && !crb.empty(); ++i) scale(Eigen::Index(i)) = crb[i][i];
+    const std::vector<double> weight =
+        crb.empty() ? std::vector<double>(P, 1.0) : SmoothingWeights(a_all, v_all, scale);
+    const Eigen::MatrixXd combination = SmoothingCombination(weight);
+    od.score_response = combination * a_all;
     od.score_prior = 2 * prior;
-    od.score_variance_experiment = Block(be_all, choice);
-    od.score_variance_template = Block(bt_all, choice);
-    od.score_derivative_noise = Block(n_all, choice);
-    od.score_smoothed.assign(P, false);
+    od.score_variance_experiment = combination * be_all * combination.transpose();
+    od.score_variance_template = combination * bt_all * combination.transpose();
+    od.score_derivative_noise = combination * n_all * combination.transpose();
+    od.score_smoothing = weight;
+    od.candidate_response = a_all, od.candidate_variance = v_all;
+    od.score_scale = scale;
     od.score_dmu.assign(cand_sum.size(), {});
-    for (size_t i = 0; i < P; ++i) {
-      od.score_smoothed[i] = choice[i] >= P;
-      for (size_t m = 0; m < cand_sum.size(); ++m)
-        od.score_dmu[m].push_back(cand_sum[m][choice[i]]);
-    }
+    for (size_t m = 0; m < cand_sum.size(); ++m)
+      for (size_t i = 0; i < P; ++i) {
+        Image im = cand_sum[m][i];
+        for (size_t q = 0; q < im.pixels.size(); ++q)
+          im.pixels[q] = (1 - weight[i]) * im.pixels[q] + weight[i] * cand_sum[m][P + i].pixels[q];
+        od.score_dmu[m].push_back(std::move(im));
+      }
     const auto lu = od.score_response.fullPivLu();
     if (!lu.isInvertible()) {
       if (!pilot) break;
@@ -302,7 +328,8 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
                       const std::vector<double>& y) {
       Eigen::VectorXd v = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(P));
       for (size_t i = 0; i < P; ++i)
-        v(Eigen::Index(i)) = ga[choice[i]] + gb[choice[i]] +
+        v(Eigen::Index(i)) = (1 - weight[i]) * (ga[i] + gb[i]) +
+                             weight[i] * (ga[P + i] + gb[P + i]) +
                              2 * prior(Eigen::Index(i)) * (spec.parameters[i].prior_mean - y[i]);
       return v;
     };
@@ -316,8 +343,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       at_a.photons = MeanImages(at, 0, 2), at_b.photons = MeanImages(at, 1, 2);
       return Select(model.Score(at_a, cand_b, cb, bin), model.Score(at_b, cand_a, ca, bin), y);
     };
-    Eigen::VectorXd g = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(P));
-    for (size_t i = 0; i < P; ++i) g(Eigen::Index(i)) = g_all(Eigen::Index(choice[i]));
+    Eigen::VectorXd g = combination * g_all;
     double q = Q(g);
     std::vector<double> x = best;
     bool stepped = false;
@@ -419,8 +445,12 @@ Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vec
     }
     res.correlation = Correlation(t);
   };
-  for (size_t i = 0; i < P && i < od.score_smoothed.size() && a_inv.size() > 0; ++i)
-    res.parameters[i].score_derivative = od.score_smoothed[i] ? "smoothed" : "as traced";
+  for (size_t i = 0; i < P && i < od.score_smoothing.size() && a_inv.size() > 0; ++i) {
+    const double w = od.score_smoothing[i];
+    char mixed[64];
+    std::snprintf(mixed, sizeof mixed, "%.3g as traced + %.3g smoothed", 1 - w, w);
+    res.parameters[i].score_derivative = w <= 0 ? "as traced" : w >= 1 ? "smoothed" : mixed;
+  }
   if (!cov.empty()) {
     for (size_t i = 0; i < P; ++i) res.parameters[i].sigma_curvature = std::sqrt(cov[i][i]);
     SetSigmas(cov);

@@ -130,6 +130,14 @@ class FitFile : public ::testing::Test {
                                       "[[image]]\nfile = \"exp.tif\"\ndefocus_um = -10\n" +
                                       image_keys + kNoiseTestDrop + more_params);
   }
+  /// The noise test's fit at ray factor 1 (quicker), with its experiment: for the final steps.
+  FitSpec FinalStepsSpec() {
+    WriteFloatImage(dir_ / "exp.tif", NoiseTestExperiment(), "drop at x = 0.4 um");
+    std::ifstream in(NoiseTestFit(""));
+    std::string text{std::istreambuf_iterator<char>(in), {}};
+    text.replace(text.find("ray_factor = 4"), 14, "ray_factor = 1");
+    return LoadFitSpec(dir_.Write("fit.toml", text));
+  }
   static constexpr const char* kNoiseTestDrop =
       "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
       "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\nstep = 0.2\n";
@@ -652,11 +660,7 @@ TEST_F(FitFile, SaturatedPixelsAreLeftOut) {
 // sets 0 and 1 at two points, and the root lands on the drop; started at the truth, every set
 // once. Without the pilot every set is traced twice in the first case (a second round).
 TEST_F(FitFile, PilotRoundTakesTheDerivativeSetsOnceAtItsRoot) {
-  WriteFloatImage(dir_ / "exp.tif", NoiseTestExperiment(), "drop at x = 0.4 um");
-  std::ifstream in(NoiseTestFit(""));
-  std::string text{std::istreambuf_iterator<char>(in), {}};
-  text.replace(text.find("ray_factor = 4"), 14, "ray_factor = 1");  // (quicker)
-  const FitSpec spec = LoadFitSpec(dir_.Write("fit.toml", text));
+  const FitSpec spec = FinalStepsSpec();
   ASSERT_TRUE(internal::FinalStepsRun(spec));
   ASSERT_EQ(spec.rays.jacobian_seeds, 4);
   const size_t P = spec.parameters.size();
@@ -677,6 +681,63 @@ TEST_F(FitFile, PilotRoundTakesTheDerivativeSetsOnceAtItsRoot) {
     EXPECT_NEAR(best[0], kNoiseTestTruth[0], 0.03) << off;
     EXPECT_NEAR(best[1], kNoiseTestTruth[1], 0.1) << off;
   }
+}
+
+// The final steps' estimating equation (fit/src/uncertainty.cpp, FinalSteps): per parameter
+// a convex combination of its derivative image as traced and smoothed, (1 - w) J + w J~, with
+// the weights that minimise the root's variance in Cramer-Rao units. On a real fit the chosen
+// weights are no worse than any corner (each image alone) nor than a neighbour an eighth away,
+// and the equation is that combination of the candidate equations.
+TEST_F(FitFile, FinalStepsWeighTracedAndSmoothedDerivativesForTheSmallestVariance) {
+  const FitSpec spec = FinalStepsSpec();
+  FitResult res;
+  internal::Runner run(spec, FitOptions{}, &res);
+  std::vector<double> best{kNoiseTestTruth[0], kNoiseTestTruth[1]};
+  const internal::OptimumDerivatives od = internal::FinalSteps(run, spec, &best, res);
+  const size_t P = 2;
+  ASSERT_EQ(od.score_smoothing.size(), P);
+  ASSERT_EQ(od.candidate_response.rows(), Eigen::Index(2 * P));
+  auto Cost = [&](const std::vector<double>& w) {
+    const Eigen::MatrixXd t = internal::SmoothingCombination(w);
+    const Eigen::MatrixXd a_inv = (t * od.candidate_response).inverse();
+    const Eigen::MatrixXd cov =
+        a_inv * t * od.candidate_variance * t.transpose() * a_inv.transpose();
+    return (cov.diagonal().array() / od.score_scale.array()).sum();
+  };
+  const std::vector<double> w = od.score_smoothing;
+  const double cost = Cost(w);
+  for (const std::vector<double>& corner : {std::vector<double>{0, 0}, {0, 1}, {1, 0}, {1, 1}})
+    EXPECT_LE(cost, Cost(corner) * (1 + 1e-12)) << corner[0] << " " << corner[1];
+  for (size_t i = 0; i < P; ++i)
+    for (const double d : {-0.125, 0.125}) {
+      std::vector<double> n = w;
+      n[i] = std::clamp(n[i] + d, 0.0, 1.0);
+      EXPECT_LE(cost, Cost(n) * (1 + 1e-12)) << i << " " << d;
+    }
+  const Eigen::MatrixXd a = internal::SmoothingCombination(w) * od.candidate_response;
+  for (Eigen::Index i = 0; i < Eigen::Index(P); ++i)
+    for (Eigen::Index j = 0; j < Eigen::Index(P); ++j)
+      EXPECT_NEAR(od.score_response(i, j), a(i, j), 1e-9 * std::abs(a(i, i))) << i << " " << j;
+}
+
+// SmoothingWeights on uncoupled parameters, where the optimum is known: for one parameter with
+// candidate responses a_0 (as traced), a_1 (smoothed) and independent variances v_0, v_1 the
+// combination of least variance weighs each by a / v (Gauss-Markov), w* = (a_1 / v_1) /
+// (a_0 / v_0 + a_1 / v_1). Here w* = 1/4 (on the grid of eighths), 1/9 (nearest eighth 1/8,
+// whose variance is below 0's and 1/4's) and 0 (a smoothed image that does not respond). Taking
+// a whole image per parameter (the fit before 2026-11-27) gives 0, 0, 0.
+TEST(FiniteRays, SmoothingWeightsMinimiseTheRootsVariance) {
+  Eigen::MatrixXd response = Eigen::MatrixXd::Zero(6, 3), variance = Eigen::MatrixXd::Zero(6, 6);
+  const double a[2][3] = {{1, 2, 1}, {1, 1, 0}}, v[2][3] = {{1, 1, 1}, {3, 4, 1}};
+  for (int c = 0; c < 2; ++c)
+    for (int i = 0; i < 3; ++i)
+      response(3 * c + i, i) = a[c][i], variance(3 * c + i, 3 * c + i) = v[c][i];
+  const std::vector<double> w =
+      internal::SmoothingWeights(response, variance, Eigen::VectorXd::Ones(3));
+  ASSERT_EQ(w.size(), 3u);
+  EXPECT_DOUBLE_EQ(w[0], 0.25);
+  EXPECT_DOUBLE_EQ(w[1], 0.125);
+  EXPECT_DOUBLE_EQ(w[2], 0.0);
 }
 
 // The final fraction is fitted either by the Fisher-scoring rounds (the default: no polish

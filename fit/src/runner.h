@@ -264,6 +264,9 @@ struct OptimumDerivatives {
 /// of 2P candidate equations (as traced, then smoothed) with the given response (2P x P) and
 /// variance (2P x 2P), minimising sum_i Var(root_i) / scale_i: the best corner (w in {0, 1}),
 /// then a coordinate descent in eighths. SmoothingCombination is that P x 2P matrix.
+/// SmoothingCost is that sum for the weights w (infinity where the combination is singular).
+double SmoothingCost(const Eigen::MatrixXd& response, const Eigen::MatrixXd& variance,
+                     const Eigen::VectorXd& scale, const std::vector<double>& w);
 std::vector<double> SmoothingWeights(const Eigen::MatrixXd& response,
                                      const Eigen::MatrixXd& variance, const Eigen::VectorXd& scale);
 Eigen::MatrixXd SmoothingCombination(const std::vector<double>& w);

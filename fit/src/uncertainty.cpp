@@ -107,18 +107,23 @@ Eigen::MatrixXd SmoothingCombination(const std::vector<double>& w) {
   return t;
 }
 
+double SmoothingCost(const Eigen::MatrixXd& response, const Eigen::MatrixXd& variance,
+                     const Eigen::VectorXd& scale, const std::vector<double>& w) {
+  const Eigen::MatrixXd t = SmoothingCombination(w);
+  const auto lu = (t * response).fullPivLu();
+  if (!lu.isInvertible()) return std::numeric_limits<double>::infinity();
+  const Eigen::MatrixXd ai = lu.inverse();
+  const Eigen::MatrixXd cov = ai * (t * variance * t.transpose()) * ai.transpose();
+  const double sum = (cov.diagonal().array() / scale.array()).sum();
+  return std::isfinite(sum) ? sum : std::numeric_limits<double>::infinity();
+}
+
 std::vector<double> SmoothingWeights(const Eigen::MatrixXd& response,
                                      const Eigen::MatrixXd& variance,
                                      const Eigen::VectorXd& scale) {
   const size_t P = size_t(scale.size());
   auto Cost = [&](const std::vector<double>& w) {
-    const Eigen::MatrixXd t = SmoothingCombination(w);
-    const auto lu = (t * response).fullPivLu();
-    if (!lu.isInvertible()) return std::numeric_limits<double>::infinity();
-    const Eigen::MatrixXd ai = lu.inverse();
-    const Eigen::MatrixXd cov = ai * (t * variance * t.transpose()) * ai.transpose();
-    const double sum = (cov.diagonal().array() / scale.array()).sum();
-    return std::isfinite(sum) ? sum : std::numeric_limits<double>::infinity();
+    return SmoothingCost(response, variance, scale, w);
   };
   std::vector<double> weight(P, 1.0);
   double cost = Cost(weight);
@@ -281,9 +286,9 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     // with the weights that give the smallest variance of the root, summed over the parameters
     // in units of their Cramer-Rao bounds (the halves' cross product; SmoothingWeights). The
     // weights use the derivative sets only, never the experiment, so the equation stays
-    // unbiased; each row
-    // combines its own parameter's two columns only and never extrapolates (a free combination
-    // of all 2P columns, T = A^T V^-1, fitted the noise of V for weak nuisances).
+    // unbiased; each row combines its own parameter's two columns only and never extrapolates
+    // (a free combination of all 2P columns, T = A^T V^-1, fitted the noise of V for weak
+    // nuisances).
     const Matrix crb = InverseSpd(
         FisherInformation(od.half_a.mu.photons, od.half_a.dmu, od.half_b.dmu, read_variance));
     const Eigen::MatrixXd v_all = be_all + bt_all;
@@ -326,11 +331,11 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     auto Q = [&](const Eigen::VectorXd& v) { return v.dot(b_solver.solve(v)); };
     auto Select = [&](const std::vector<double>& ga, const std::vector<double>& gb,
                       const std::vector<double>& y) {
-      Eigen::VectorXd v = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(P));
+      Eigen::VectorXd g2 = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(2 * P));
+      for (size_t c = 0; c < 2 * P; ++c) g2(Eigen::Index(c)) = ga[c] + gb[c];
+      Eigen::VectorXd v = combination * g2;
       for (size_t i = 0; i < P; ++i)
-        v(Eigen::Index(i)) = (1 - weight[i]) * (ga[i] + gb[i]) +
-                             weight[i] * (ga[P + i] + gb[P + i]) +
-                             2 * prior(Eigen::Index(i)) * (spec.parameters[i].prior_mean - y[i]);
+        v(Eigen::Index(i)) += 2 * prior(Eigen::Index(i)) * (spec.parameters[i].prior_mean - y[i]);
       return v;
     };
     auto GAt = [&](const std::vector<double>& y) {

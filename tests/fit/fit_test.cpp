@@ -698,11 +698,7 @@ TEST_F(FitFile, FinalStepsWeighTracedAndSmoothedDerivativesForTheSmallestVarianc
   ASSERT_EQ(od.score_smoothing.size(), P);
   ASSERT_EQ(od.candidate_response.rows(), Eigen::Index(2 * P));
   auto Cost = [&](const std::vector<double>& w) {
-    const Eigen::MatrixXd t = internal::SmoothingCombination(w);
-    const Eigen::MatrixXd a_inv = (t * od.candidate_response).inverse();
-    const Eigen::MatrixXd cov =
-        a_inv * t * od.candidate_variance * t.transpose() * a_inv.transpose();
-    return (cov.diagonal().array() / od.score_scale.array()).sum();
+    return internal::SmoothingCost(od.candidate_response, od.candidate_variance, od.score_scale, w);
   };
   const std::vector<double> w = od.score_smoothing;
   const double cost = Cost(w);

@@ -127,13 +127,14 @@ std::vector<double> Pattern(Runner& run, const FitSpec& spec, FitResult* res) {
 // --------------------------------------------------------------- Levenberg-Marquardt (Ceres)
 
 Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<double>& th,
-                          size_t level, uint64_t seed, Stage stage, bool central,
+                          size_t level, uint64_t seed, Stage stage, Stencil stencil,
                           bool with_center) {
   FitModel& m = run.model();
   const int bin = m.BinAt(level);
   const size_t P = th.size(), R = m.num_residuals(bin);
   Differences d;
   double e = 0;
+  const bool central = stencil == Stencil::kCentral;
   if (with_center || !central) {
     d.mu = run.Images(th, level, seed, stage, &e);
     d.residuals.resize(R);
@@ -155,9 +156,14 @@ Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<do
       mu_b = run.Images(b, level, seed, stage, &e);
       m.DevianceResiduals(mu_a, bin, rp.data());
       m.DevianceResiduals(mu_b, bin, rm.data());
-    } else {  // forward (backward at the upper bound): one evaluation per parameter
-      (th[i] + h <= p.upper ? a[i] : b[i]) += th[i] + h <= p.upper ? h : -h;
-      const bool fwd = a[i] != th[i];
+    } else {  // h to one side (the other at a bound): one image per parameter
+      const double up = p.upper - th[i], down = th[i] - p.lower;  // room to either side
+      bool fwd = stencil == Stencil::kForward;
+      if ((fwd ? up : down) < h && (fwd ? down : up) > (fwd ? up : down)) fwd = !fwd;
+      if (fwd)
+        a[i] = std::min(th[i] + h, p.upper);
+      else
+        b[i] = std::max(th[i] - h, p.lower);
       (fwd ? mu_a : mu_b) = run.Images(fwd ? a : b, level, seed, stage, &e);
       (fwd ? mu_b : mu_a) = d.mu;
       m.DevianceResiduals(mu_a, bin, rp.data());
@@ -211,7 +217,8 @@ class ImageCost : public ceres::CostFunction {
     const std::vector<double> th = Clip(std::vector<double>(params[0], params[0] + P), spec_);
     if (!run_.Budget()) return false;
     if (jacobians && jacobians[0]) {
-      const Differences d = Differentiate(run_, spec_, th, level_, seed_, Stage::kLm, true);
+      const Differences d =
+          Differentiate(run_, spec_, th, level_, seed_, Stage::kLm, Stencil::kCentral);
       std::copy(d.residuals.data(), d.residuals.data() + d.residuals.size(), residuals);
       // Ceres wants row-major residuals x parameters.
       Eigen::Map<Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>> J(
@@ -342,7 +349,7 @@ std::vector<double> Polish(Runner& run, const FitSpec& spec, const std::vector<d
     for (size_t i = 0; i < P && !fresh; ++i)
       fresh = std::abs(x[i] - x_jacobian[i]) > spec.parameters[i].step;
     if (fresh) {
-      const Differences d = Differentiate(run, spec, x, L, seed, stage, true);
+      const Differences d = Differentiate(run, spec, x, L, seed, stage, Stencil::kCentral);
       J = d.jacobian, r = d.residuals, x_jacobian = x;
       AppendPriorRows(spec, x, &r, &J);
     }

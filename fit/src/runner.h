@@ -183,14 +183,18 @@ inline std::vector<double> Clip(std::vector<double> th, const FitSpec& spec) {
 }
 
 /// Differences of the expected images and of the deviance residuals with common random numbers
-/// (the same ray streams on both sides): central (for the Fisher information and the reported
-/// curvature) or forward (for Levenberg-Marquardt's search directions: P instead of 2P
-/// evaluations); one-sided at a bound. Step: half the parameter's `step` (twice that half-width
-/// on the final sets gave case A's radius an RMS error of 2.9 Cramer-Rao bounds instead of 1.8:
-/// the truncation error costs more than the Monte Carlo noise it saves, docs/performance.md).
-/// `with_center` false (central differences only): the image at theta is not traced, and `mu`
-/// and `residuals` stay empty (the derivative sets at the optimum when no final steps use their
-/// images: one image fewer per set).
+/// (the same ray streams on both sides). kCentral: theta +- step/2 (Levenberg-Marquardt, the
+/// polish; twice that half-width gave case A's radius an RMS error of 2.9 Cramer-Rao bounds
+/// instead of 1.8 when the fit's root used these derivatives directly, docs/performance.md),
+/// one-sided at a bound. kForward / kBackward: theta and theta +- step/2 (backward / forward at
+/// a bound): P + 1 images instead of 2P + 1, at twice the counting noise (half the span; a whole
+/// step's span made case A's x sigma 1.34x short of its scatter); the final steps' derivative
+/// sets alternate them so that each half's mean is the central difference over +-step/2
+/// (uncertainty.cpp, FinalSteps). `with_center` false (central only): the image at theta is
+/// not traced, and `mu` and `residuals` stay empty (the derivative sets at the optimum when no
+/// final steps use their images: one image fewer per set).
+enum class Stencil { kCentral, kForward, kBackward };
+
 struct Differences {
   Simulated mu;                         // at theta
   std::vector<std::vector<Image>> dmu;  // [image][parameter] d mu / d theta_i
@@ -200,7 +204,7 @@ struct Differences {
 };
 
 Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<double>& th,
-                          size_t level, uint64_t seed, Stage stage, bool central,
+                          size_t level, uint64_t seed, Stage stage, Stencil stencil,
                           bool with_center = true);
 
 /// The mean of sets[first], sets[first + stride], ...: Jacobian and derivative images averaged
@@ -270,6 +274,11 @@ double SmoothingCost(const Eigen::MatrixXd& response, const Eigen::MatrixXd& var
 std::vector<double> SmoothingWeights(const Eigen::MatrixXd& response,
                                      const Eigen::MatrixXd& variance, const Eigen::VectorXd& scale);
 Eigen::MatrixXd SmoothingCombination(const std::vector<double>& w);
+/// The stencil of derivative set s at the optimum: with the final steps one-sided, forward,
+/// backward, backward, forward, ... so that the halves' means (sets 0, 2, ... and 1, 3, ...) are
+/// central for a multiple of four sets and the cross products of the pilot's two sets (forward
+/// with backward) lose the one-sided truncation error to first order; without them central.
+Stencil SetStencil(size_t s, bool steps);
 
 /// Derivative sets at the optimum and the final steps, which move *best
 /// (uncertainty.cpp).

@@ -100,6 +100,11 @@ Columns Plus(const Columns& a, const Columns& b) {
 
 }  // namespace
 
+Stencil SetStencil(size_t s, bool steps) {
+  if (!steps) return Stencil::kCentral;
+  return s % 4 == 0 || s % 4 == 3 ? Stencil::kForward : Stencil::kBackward;
+}
+
 Eigen::MatrixXd SmoothingCombination(const std::vector<double>& w) {
   const auto P = Eigen::Index(w.size());
   Eigen::MatrixXd t = Eigen::MatrixXd::Zero(P, 2 * P);
@@ -197,8 +202,8 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
                       (round == 0 || run.Budget());) {
     for (size_t s = sets.size(); s < (pilot ? 2 : s_all); ++s)
       sets.push_back(Differentiate(run, spec, best, final_level,
-                                   spec.seed + kDerivativeSetSeedStride * s, Stage::kFisher, true,
-                                   s == 0 || steps));
+                                   spec.seed + kDerivativeSetSeedStride * s, Stage::kFisher,
+                                   SetStencil(s, steps), s == 0 || steps));
     const size_t S = sets.size();
     od.half_a = AverageSets(sets, 0, 2), od.half_b = AverageSets(sets, 1, 2);
     if (!steps) {

@@ -656,8 +656,9 @@ TEST_F(FitFile, SaturatedPixelsAreLeftOut) {
 // The final steps' pilot round (fit/src/uncertainty.cpp, FinalSteps): two derivative sets and
 // their root first; where that root lies more than half a step from the search's optimum, every
 // set is taken at the pilot's root (once), not at the optimum and again at the root. Started
-// 0.25 um off in x (half a step is 0.1 um), sets 2 and 3 are each traced once (2P + 1 images),
-// sets 0 and 1 at two points, and the root lands on the drop; started at the truth, every set
+// 0.25 um off in x (half a step is 0.1 um), sets 2 and 3 are each traced once (P + 1 images:
+// one-sided differences), sets 0 and 1 at two points (the centre of the second is the pilot
+// step's image, traced already), and the root lands on the drop; started at the truth, every set
 // once. Without the pilot every set is traced twice in the first case (a second round).
 TEST_F(FitFile, PilotRoundTakesTheDerivativeSetsOnceAtItsRoot) {
   const FitSpec spec = FinalStepsSpec();
@@ -674,12 +675,64 @@ TEST_F(FitFile, PilotRoundTakesTheDerivativeSetsOnceAtItsRoot) {
       if (e.stage == Stage::kFisher)
         ++traced[(e.seed - spec.seed) / internal::kDerivativeSetSeedStride];
     ASSERT_EQ(traced.size(), 4u) << off;
-    for (const uint64_t s : {2, 3})
-      EXPECT_EQ(traced[s], 2 * P + 1) << "set " << s << ", off " << off;
+    for (const uint64_t s : {2, 3}) EXPECT_EQ(traced[s], P + 1) << "set " << s << ", off " << off;
     for (const uint64_t s : {0, 1})
-      EXPECT_EQ(traced[s], off > 0 ? 4 * P + 1 : 2 * P + 1) << "set " << s << ", off " << off;
+      EXPECT_EQ(traced[s], off > 0 ? 2 * P + 1 : P + 1) << "set " << s << ", off " << off;
     EXPECT_NEAR(best[0], kNoiseTestTruth[0], 0.03) << off;
     EXPECT_NEAR(best[1], kNoiseTestTruth[1], 0.1) << off;
+  }
+}
+
+// The final steps' derivative sets (fit/src/uncertainty.cpp, FinalSteps; fit.cpp,
+// Differentiate): one-sided over half a step, forward in sets 0 and 3 and backward in sets 1
+// and 2, so that each half's mean (sets 0 + 2, 1 + 3) is a central difference and its
+// truncation error second order; each set traces its centre and one image per parameter. A
+// derivative image is the difference of those two images over half a step (common random
+// numbers). A forward difference with less than that room to the upper bound goes backward.
+TEST_F(FitFile, FinalStepsDerivativeSetsAreOneSidedAndAlternate) {
+  const FitSpec spec = FinalStepsSpec();
+  ASSERT_TRUE(internal::FinalStepsRun(spec));
+  const size_t P = spec.parameters.size();
+  FitResult res;
+  internal::Runner run(spec, FitOptions{}, &res);
+  const std::vector<double> truth{kNoiseTestTruth[0], kNoiseTestTruth[1]};
+  std::vector<double> best = truth;
+  internal::FinalSteps(run, spec, &best, res);
+  std::map<uint64_t, std::vector<std::vector<double>>> points;  // per set, the traced thetas
+  for (const Evaluation& e : res.evaluations)
+    if (e.stage == Stage::kFisher)
+      points[(e.seed - spec.seed) / internal::kDerivativeSetSeedStride].push_back(e.theta);
+  ASSERT_EQ(points.size(), 4u);
+  for (const auto& [s, thetas] : points) {
+    const double sign = s == 0 || s == 3 ? 1 : -1;
+    ASSERT_EQ(thetas.size(), P + 1) << "set " << s;
+    EXPECT_EQ(thetas[0], truth) << "set " << s;
+    for (size_t i = 0; i < P; ++i) {
+      std::vector<double> want = truth;
+      want[i] += sign * 0.5 * spec.parameters[i].step;
+      for (size_t j = 0; j < P; ++j)
+        EXPECT_NEAR(thetas[i + 1][j], want[j], 1e-12) << "set " << s << ", parameter " << i;
+    }
+  }
+  // At the radius's upper bound less a tenth of a step: forward in x, backward in the radius.
+  const size_t level = spec.rays.fractions.size() - 1;
+  const std::vector<double> th{truth[0], spec.parameters[1].upper - 0.1 * spec.parameters[1].step};
+  const internal::Differences d = internal::Differentiate(run, spec, th, level, 99, Stage::kFisher,
+                                                          internal::Stencil::kForward);
+  const Image c = run.Images(th, level, 99, Stage::kFisher, nullptr).photons[0];
+  for (size_t i = 0; i < P; ++i) {
+    const double h = 0.5 * (i == 0 ? spec.parameters[0].step : -spec.parameters[1].step);
+    std::vector<double> y = th;
+    y[i] += h;
+    const Image side = run.Images(y, level, 99, Stage::kFisher, nullptr).photons[0];
+    double diff = 0, norm = 0;
+    for (size_t q = 0; q < c.size(); ++q) {
+      const double want = (double(side.pixels[q]) - c.pixels[q]) / h;
+      diff = std::max(diff, std::abs(d.dmu[0][i].pixels[q] - want));
+      norm = std::max(norm, std::abs(want));
+    }
+    ASSERT_GT(norm, 0) << i;
+    EXPECT_LT(diff, 1e-5 * norm) << i;
   }
 }
 

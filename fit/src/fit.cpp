@@ -157,9 +157,11 @@ Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<do
       m.DevianceResiduals(mu_a, bin, rp.data());
       m.DevianceResiduals(mu_b, bin, rm.data());
     } else {  // h to one side (the other at a bound): one image per parameter
-      const double up = p.upper - th[i], down = th[i] - p.lower;  // room to either side
+      // The other side where this one has less than h of room and that one more.
+      const double up = p.upper - th[i], down = th[i] - p.lower;
       bool fwd = stencil == Stencil::kForward;
-      if ((fwd ? up : down) < h && (fwd ? down : up) > (fwd ? up : down)) fwd = !fwd;
+      const double room = fwd ? up : down, other = fwd ? down : up;
+      if (room < h && other > room) fwd = !fwd;
       if (fwd)
         a[i] = std::min(th[i] + h, p.upper);
       else

@@ -143,6 +143,7 @@ Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<do
   d.jacobian.resize(R, P);
   d.dmu.assign(spec.images.size(), std::vector<Image>(P));
   d.flat.assign(P, false);
+  d.side.assign(P, 0);
   Eigen::VectorXd rp(R), rm(R);
   for (size_t i = 0; i < P; ++i) {
     const Parameter& p = spec.parameters[i];
@@ -162,6 +163,7 @@ Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<do
       bool fwd = stencil == Stencil::kForward;
       const double room = fwd ? up : down, other = fwd ? down : up;
       if (room < h && other > room) fwd = !fwd;
+      d.side[i] = fwd ? 1 : -1;
       if (fwd)
         a[i] = std::min(th[i] + h, p.upper);
       else

@@ -201,6 +201,7 @@ struct Differences {
   Eigen::MatrixXd jacobian;             // residuals x parameters
   Eigen::VectorXd residuals;
   std::vector<bool> flat;  // parameter leaves every pixel unchanged
+  std::vector<int> side;   // per parameter: +1 forward, -1 backward (one-sided), 0 central
 };
 
 Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<double>& th,
@@ -279,6 +280,15 @@ Eigen::MatrixXd SmoothingCombination(const std::vector<double>& w);
 /// central for a multiple of four sets and the cross products of the pilot's two sets (forward
 /// with backward) lose the one-sided truncation error to first order; without them central.
 Stencil SetStencil(size_t s, bool steps);
+/// What of the derivative sets' scatter is their counting noise (uncertainty.cpp): per
+/// parameter i the projection M_i = I - X (X^T X)^+ X^T (S x S) onto what the halves' means
+/// (X's indicator columns of sets 0, 2, ... and 1, 3, ...) and the side of each set's one-sided
+/// difference (X's column sides[s][i], +1 forward, -1 backward, 0 central) leave. A forward and a
+/// backward difference differ by their truncation errors (about h times the second derivative),
+/// which is no noise. The deviations dev_s = sum_t M_i(s, t) y_t of the sets' values y_t of
+/// parameter i and dev'_s of parameter j have E[sum_s dev_s dev'_s] = tr(M_i M_j) Cov(y, y')
+/// for sets with equal noise, whatever the halves' means and the sides' offsets.
+std::vector<Eigen::MatrixXd> ScatterProjections(const std::vector<std::vector<int>>& sides);
 
 /// Derivative sets at the optimum and the final steps, which move *best
 /// (uncertainty.cpp).

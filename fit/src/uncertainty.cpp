@@ -105,6 +105,20 @@ Stencil SetStencil(size_t s, bool steps) {
   return s % 4 == 0 || s % 4 == 3 ? Stencil::kForward : Stencil::kBackward;
 }
 
+std::vector<Eigen::MatrixXd> ScatterProjections(const std::vector<std::vector<int>>& sides) {
+  const auto S = Eigen::Index(sides.size());
+  const size_t P = sides.empty() ? 0 : sides[0].size();
+  std::vector<Eigen::MatrixXd> m;
+  for (size_t i = 0; i < P; ++i) {
+    Eigen::MatrixXd x = Eigen::MatrixXd::Zero(S, 3);
+    for (Eigen::Index s = 0; s < S; ++s) x(s, s % 2) = 1, x(s, 2) = sides[size_t(s)].at(i);
+    // The projection onto X's column space (rank 2 where the sides are all alike or central).
+    const Eigen::CompleteOrthogonalDecomposition<Eigen::MatrixXd> cod(x);
+    m.push_back(Eigen::MatrixXd::Identity(S, S) - x * cod.pseudoInverse());
+  }
+  return m;
+}
+
 Eigen::MatrixXd SmoothingCombination(const std::vector<double>& w) {
   const auto P = Eigen::Index(w.size());
   Eigen::MatrixXd t = Eigen::MatrixXd::Zero(P, 2 * P);
@@ -272,20 +286,33 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     const Eigen::MatrixXd bt_all =
         ToEigen(model.CrossInformation(cand_b, cand_b, vm, bin)) / (k * double(na)) +
         ToEigen(model.CrossInformation(cand_a, cand_a, vm, bin)) / (k * double(nb));
-    // The derivatives' noise in B_e: per set, pooled over the halves from each set's scatter
-    // about its half's mean; the sum J~_a + J~_b holds it 1/na + 1/nb times.
+    // The derivatives' noise in B_e: per set, pooled over the halves from the sets' scatter
+    // about their half's mean and their side's truncation offset (ScatterProjections); the sum
+    // J~_a + J~_b holds it 1/na + 1/nb times.
     Eigen::MatrixXd n_all = Eigen::MatrixXd::Zero(be_all.rows(), be_all.cols());
-    if (S > 2) {
+    {
+      std::vector<std::vector<int>> sides;
+      for (const Differences& d : sets) sides.push_back(d.side);
+      const std::vector<Eigen::MatrixXd> proj = ScatterProjections(sides);
       for (size_t s = 0; s < S; ++s) {
-        const Columns& mean = s % 2 == 0 ? cand_a : cand_b;
         Columns dev = cand_sets[s];
         for (size_t i = 0; i < dev.size(); ++i)
-          for (size_t c = 0; c < 2 * P; ++c)
-            for (size_t q = 0; q < dev[i][c].size(); ++q)
-              dev[i][c].pixels[q] -= mean[i][c].pixels[q];
+          for (size_t c = 0; c < 2 * P; ++c) {
+            const Eigen::MatrixXd& m = proj[c % P];
+            for (size_t q = 0; q < dev[i][c].size(); ++q) {
+              double v = 0;
+              for (size_t t = 0; t < S; ++t)
+                v += m(Eigen::Index(s), Eigen::Index(t)) * cand_sets[t][i][c].pixels[q];
+              dev[i][c].pixels[q] = float(v);
+            }
+          }
         n_all += ToEigen(model.CrossInformation(dev, dev, vm, bin));
       }
-      n_all *= (1 / double(na) + 1 / double(nb)) / double(S - 2);
+      for (Eigen::Index c = 0; c < n_all.rows(); ++c)
+        for (Eigen::Index c2 = 0; c2 < n_all.cols(); ++c2) {
+          const double dof = (proj[size_t(c) % P] * proj[size_t(c2) % P]).trace();
+          n_all(c, c2) *= dof > 0.5 ? (1 / double(na) + 1 / double(nb)) / dof : 0.0;
+        }
     }
     // Per parameter a convex combination of its two columns, (1 - w) as traced + w smoothed,
     // with the weights that give the smallest variance of the root, summed over the parameters

@@ -720,6 +720,7 @@ TEST_F(FitFile, FinalStepsDerivativeSetsAreOneSidedAndAlternate) {
   const internal::Differences d = internal::Differentiate(run, spec, th, level, 99, Stage::kFisher,
                                                           internal::Stencil::kForward);
   const Image c = run.Images(th, level, 99, Stage::kFisher, nullptr).photons[0];
+  EXPECT_EQ(d.side, (std::vector<int>{1, -1}));
   for (size_t i = 0; i < P; ++i) {
     const double h = 0.5 * (i == 0 ? spec.parameters[0].step : -spec.parameters[1].step);
     std::vector<double> y = th;
@@ -787,6 +788,46 @@ TEST(FiniteRays, SmoothingWeightsMinimiseTheRootsVariance) {
   EXPECT_DOUBLE_EQ(w[0], 0.25);
   EXPECT_DOUBLE_EQ(w[1], 0.125);
   EXPECT_DOUBLE_EQ(w[2], 0.0);
+}
+
+// The derivatives' noise N (sigma_derivatives) from the sets' scatter (ScatterProjections): a
+// forward and a backward difference differ by their truncation errors, no noise, which the
+// scatter about the halves' means alone would count. Sets of Q Gaussian "pixels" with known
+// variance 1 (parameter 0, sides as SetStencil) and covariance rho with parameter 1 (all
+// backward, as at an upper bound), offset per half and per side by 5 standard deviations: the
+// estimate sum_s dev_s dev'_s / (tr(M_0 M_1) Q) is chi-square with tr Q degrees of freedom, so
+// within 5 sqrt(2 / (tr Q)) of the truth (the halves' means alone: 1 + 2 * 2.5^2 for S = 4).
+TEST(FiniteRays, DerivativeNoiseLeavesTheOneSidedTruncationOut) {
+  const size_t Q = 20000;
+  const double rho = 0.5, offset = 5;
+  for (const size_t S : {4, 8}) {
+    std::vector<std::vector<int>> sides;
+    for (size_t s = 0; s < S; ++s)
+      sides.push_back({internal::SetStencil(s, true) == internal::Stencil::kForward ? 1 : -1, -1});
+    const std::vector<Eigen::MatrixXd> m = internal::ScatterProjections(sides);
+    ASSERT_EQ(m.size(), 2u);
+    const double dof = (m[0] * m[1]).trace();
+    EXPECT_NEAR(m[0].trace(), double(S) - 3, 1e-9) << S;
+    EXPECT_NEAR(m[1].trace(), double(S) - 2, 1e-9) << S;
+    EXPECT_NEAR(dof, double(S) - 3, 1e-9) << S;
+    std::mt19937_64 rng(7 + S);
+    std::normal_distribution<double> g;
+    std::vector<Eigen::MatrixXd> y(2, Eigen::MatrixXd(Eigen::Index(S), Eigen::Index(Q)));
+    for (size_t q = 0; q < Q; ++q) {
+      const double half[2] = {3 * g(rng), 3 * g(rng)};
+      for (size_t s = 0; s < S; ++s) {
+        const double u = g(rng), v = rho * u + std::sqrt(1 - rho * rho) * g(rng);
+        const auto si = Eigen::Index(s), qi = Eigen::Index(q);
+        y[0](si, qi) = half[s % 2] + 0.5 * offset * sides[s][0] + u;
+        y[1](si, qi) = 2 * half[s % 2] - offset + v;
+      }
+    }
+    const Eigen::MatrixXd d0 = m[0] * y[0], d1 = m[1] * y[1];
+    const double tol = 5 * std::sqrt(2 / (dof * double(Q)));
+    EXPECT_NEAR(d0.squaredNorm() / (m[0].trace() * double(Q)), 1, tol) << S;
+    EXPECT_NEAR(d1.squaredNorm() / (m[1].trace() * double(Q)), 1, tol) << S;
+    EXPECT_NEAR(d0.cwiseProduct(d1).sum() / (dof * double(Q)), rho, tol) << S;
+  }
 }
 
 // The final fraction is fitted either by the Fisher-scoring rounds (the default: no polish

@@ -294,7 +294,10 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       std::vector<std::vector<int>> sides;
       for (const Differences& d : sets) sides.push_back(d.side);
       const std::vector<Eigen::MatrixXd> proj = ScatterProjections(sides);
-      for (size_t s = 0; s < S; ++s) {
+      // No degrees of freedom left (the pilot's two sets): N = 0 without summing the products.
+      bool scatter = false;
+      for (const Eigen::MatrixXd& m : proj) scatter = scatter || m.trace() > 0.5;
+      for (size_t s = 0; s < S && scatter; ++s) {
         Columns dev = cand_sets[s];
         for (size_t i = 0; i < dev.size(); ++i)
           for (size_t c = 0; c < 2 * P; ++c) {

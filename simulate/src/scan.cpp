@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
+#include <memory>
 #include <set>
 #include <sstream>
 
@@ -14,6 +15,7 @@
 #include "raymatch/core/provenance.h"
 #include "raymatch/simulate/geometry.h"
 #include "raymatch/simulate/water.h"
+#include "raymatch/simulate/wave_image.h"
 
 namespace fs = std::filesystem;
 
@@ -236,12 +238,76 @@ bool CodeValues(const Scene& scene, const Image& counts, uint32_t plane_index, I
   return true;
 }
 
+static PlaneResult MiePlane(const MieImager& mie, double dz, uint32_t plane_index,
+                            const RunControl& control, nlohmann::json* meta) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const Scene& s = mie.scene();
+  PlaneResult r;
+  r.defocus_um = dz;
+  const Image expected = mie.Expected(dz, control.threads > 0 ? control.threads : s.trace.threads);
+  r.counts = PoissonSample(expected, s.trace.seed, plane_index);
+  r.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const PixelStats st = ComputeStats(r.counts);
+  const ObjectSpec& o = s.objects[0];
+  *meta = {
+      {"provenance", ProvenanceJson()},
+      {"scene_file", s.file},
+      {"scene_checksum_fnv1a64", s.file.empty() ? "" : FileChecksum(s.file)},
+      {"units", {{"pixel_values", "photon counts"}, {"lengths", "micrometres"}}},
+      {"optics", "mie"},
+      {"model",
+       "exact wave image: Mie scattering of each illumination plane wave (unpolarised), "
+       "partially coherent Koehler imaging through an aplanatic objective, Poisson photon counts "
+       "of the expected image (docs/wave-optics.md)"},
+      {"sampling", mie.sampling().ToJson()},
+      {"defocus_um", dz},
+      {"defocus_convention",
+       "z of the objective's focal plane; + = focal plane moved downstream (towards the camera)"},
+      {"seed", s.trace.seed},
+      {"plane_index", plane_index},
+      {"photons_per_pixel_target", s.trace.photons_per_pixel},
+      {"seconds", r.seconds},
+      {"effects", mie.Effects()},
+      {"objective",
+       {{"na", s.optics.na},
+        {"acceptance_sin_theta_in_medium", AcceptanceSin(s)},
+        {"na_convention", "NA = medium_index x sin(theta_max) (docs/conventions.md)"},
+        {"focal_length_mm", s.optics.objective_focal_mm}}},
+      {"image",
+       {{"width", r.counts.width},
+        {"height", r.counts.height},
+        {"mean_counts", st.mean},
+        {"max_counts", st.max},
+        {"object_pixel_um", s.camera.pixel_pitch_um / std::abs(Magnification(s.optics))},
+        {"magnification", Magnification(s.optics)},
+        {"orientation",
+         s.camera.flip ? "upright: +x right, +y up (inversion undone)" : "raw sensor: inverted"}}},
+      {"wavelength_um", s.wavelength_um},
+      {"medium_index", s.medium_index},
+      {"objects",
+       nlohmann::json::array({{{"name", o.name},
+                               {"shape", "sphere"},
+                               {"center_um", {o.center_um.x, o.center_um.y, o.center_um.z}},
+                               {"radius_um", o.radius_um},
+                               {"index", o.index},
+                               {"absorption_index", o.absorption_index},
+                               {"material", o.material}}})},
+  };
+  return r;
+}
+
 ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
   const auto t0 = std::chrono::steady_clock::now();
   CheckPlanePositions(scene);
   // Every input (meshes, index fields, ray lists, the calibration) is read and checked while the
   // simulator is built, before the output folder is made: a refused input leaves no folder.
-  Simulator sim(scene);
+  const bool wave = scene.trace.optics == ImageOptics::kMie;
+  std::unique_ptr<Simulator> sim_ptr;
+  std::unique_ptr<MieImager> mie;
+  if (wave)
+    mie = std::make_unique<MieImager>(scene);
+  else
+    sim_ptr = std::make_unique<Simulator>(scene);
   EnsureDirectory(opt.output_dir);
   ScanSummary sum;
   sum.index_json = (fs::path(opt.output_dir) / (scene.name + "_scan.json")).string();
@@ -251,14 +317,16 @@ ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
   // no index listing planes it did not write (or planes of two different scans).
   RemoveStaleOutput(sum.index_json);
   RemoveStaleOutput(sum.index_csv);
-  sum.effects = sim.Effects();
-  if (opt.rays) {
+  sum.effects = wave ? mie->Effects() : sim_ptr->Effects();
+  if (wave) {
+    sum.rays_per_image = 0;  // no rays: the expected image, then Poisson photon counts
+  } else if (opt.rays) {
     sum.rays_per_image = *opt.rays;
   } else if (scene.trace.rays > 0) {
     sum.rays_per_image = scene.trace.rays;
   } else {
     sum.rays_per_image =
-        sim.RaysForPhotonTarget(scene.trace.photons_per_pixel, &sum.hits_per_pixel_per_ray);
+        sim_ptr->RaysForPhotonTarget(scene.trace.photons_per_pixel, &sum.hits_per_pixel_per_ray);
   }
   nlohmann::json planes = nlohmann::json::array();
   std::ostringstream csv;
@@ -270,8 +338,14 @@ ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
     std::snprintf(label, sizeof label, "plane %zu/%zu z=%+.2f um", i + 1, scene.defocus_um.size(),
                   dz);
     ctl.label = label;
-    const PlaneResult r = sim.TracePlane(dz, static_cast<uint32_t>(i), sum.rays_per_image, ctl);
-    nlohmann::json meta = PlaneMetadata(sim, r, static_cast<uint32_t>(i));
+    PlaneResult r;
+    nlohmann::json meta;
+    if (wave) {
+      r = MiePlane(*mie, dz, static_cast<uint32_t>(i), ctl, &meta);
+    } else {
+      r = sim_ptr->TracePlane(dz, static_cast<uint32_t>(i), sum.rays_per_image, ctl);
+      meta = PlaneMetadata(*sim_ptr, r, static_cast<uint32_t>(i));
+    }
     const std::string stem = PlaneStem(scene.name, dz);
     ScanPlaneOutput out;
     out.defocus_um = dz;
@@ -317,6 +391,7 @@ ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
                                 {"rays_per_image", sum.rays_per_image},
                                 {"photons_per_pixel_target", scene.trace.photons_per_pixel},
                                 {"effects", sum.effects},
+                                {"optics", ImageOpticsName(scene.trace.optics)},
                                 {"seconds", sum.seconds},
                                 {"planes", planes}};
   WriteTextFileAtomic(sum.index_json, index.dump(2) + "\n");

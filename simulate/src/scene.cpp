@@ -10,6 +10,7 @@
 #include "raymatch/core/toml_reader.h"
 #include "raymatch/simulate/shapes.h"
 #include "raymatch/simulate/water.h"
+#include "raymatch/simulate/wave_image.h"
 
 namespace fs = std::filesystem;
 
@@ -201,6 +202,7 @@ bool ReadDispersionLaw(TomlReader& r, const Scene& scene, ObjectSpec& o) {
 }
 
 void ReadMaterial(TomlReader& r, const Scene& scene, ObjectSpec& o) {
+  o.absorption_index = r.InRange("absorption_index", 0.0, 10.0, 0.0);
   if (ReadDispersionLaw(r, scene, o)) return;
   if (r.Has("index") && r.Has("material"))
     r.Fail("material", "give either 'index' or 'material', not both");
@@ -787,11 +789,36 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
     s.trace.grin.uniform_tolerance =
         tr.InRange("grin_uniform_tolerance", -1.0, 1e-3, s.trace.grin.uniform_tolerance);
     s.trace.grin.cell_steps = tr.Bool("grin_cell_steps", s.trace.grin.cell_steps);
+    s.trace.optics = tr.Choice("optics", {"rays", "mie"}, "rays") == "mie" ? ImageOptics::kMie
+                                                                           : ImageOptics::kRays;
+    if (tr.Has("mie")) {
+      TomlReader mr = tr.Table("mie");
+      MieSettings& m = s.trace.mie;
+      m.nodes_per_panel = static_cast<int>(mr.Integer("nodes_per_panel", m.nodes_per_panel, 1, 64));
+      m.panel_width = mr.InRange("panel_width", 1e-4, 1.0, m.panel_width);
+      m.harmonics = static_cast<int>(mr.Integer("harmonics", m.harmonics, 0, 256));
+      m.oversample = mr.InRange("oversample", 1.0, 8.0, m.oversample);
+      m.margin_um = mr.InRange("margin_um", 0.0, 1000.0, m.margin_um);
+      m.pixel_subsamples =
+          static_cast<int>(mr.Integer("pixel_subsamples", m.pixel_subsamples, 0, 64));
+      mr.Finish();
+      if (s.trace.optics != ImageOptics::kMie)
+        tr.Fail("mie", "[trace.mie] sets the wave image's sampling: it needs optics = \"mie\"");
+    }
     tr.Finish();
   }
+  for (const ObjectSpec& o : s.objects)
+    if (o.absorption_index > 0 && s.trace.optics != ImageOptics::kMie)
+      throw Error(o.where, "object '" + o.name +
+                               "': absorption_index needs [trace] optics = "
+                               "\"mie\" (the ray model does not absorb)");
   if (s.trace.rays == 0 && s.trace.photons_per_pixel == 0) s.trace.rays = 1000000;
 
   ReadMotion(r, path, &s);
+  if (s.trace.optics == ImageOptics::kMie) {
+    const std::string why = MieUnsupportedReason(s);
+    if (!why.empty()) r.Table("trace").Fail("optics", why);
+  }
 
   if (r.Has("scan")) {
     TomlReader sc = r.Table("scan");
@@ -802,6 +829,8 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
   ValidateScene(s);
   return s;
 }
+
+const char* ImageOpticsName(ImageOptics o) { return o == ImageOptics::kMie ? "mie" : "rays"; }
 
 bool Scene::has_motion() const {
   if (exposure.shape == PulseShape::kNone) return false;

@@ -134,8 +134,11 @@ struct ObjectSpec {
   std::shared_ptr<const TriangleMesh> mesh;
   std::string shape_description;  ///< how a generated mesh was made
   double index = 1.0;             ///< absolute refractive index
-  std::string material;           ///< "constant" or "water (IAPWS R9-97, T=..., rho=...)"
-  double density_kg_m3 = 0;       ///< water: the density used (0 for a constant index)
+  /// Imaginary part k of the complex index n + i k (absorption; optics = "mie" only: the ray
+  /// model does not absorb, and a scene with k > 0 asks for the wave model).
+  double absorption_index = 0;
+  std::string material;      ///< "constant" or "water (IAPWS R9-97, T=..., rho=...)"
+  double density_kg_m3 = 0;  ///< water: the density used (0 for a constant index)
   /// water: "given" (density_kg_m3 in the file) or "defaulted" (Tanaka et al. 2001 at T);
   /// empty for a constant index.
   std::string density_source;
@@ -214,6 +217,22 @@ struct CameraSpec {
 
 enum class PartialReflection { kOff, kUnpolarized, kPolarized };
 
+/// Which model makes the images: Monte Carlo rays (the default), or the exact wave image of a
+/// homogeneous sphere (Mie scattering with partially coherent imaging, wave_image.h).
+enum class ImageOptics { kRays, kMie };
+const char* ImageOpticsName(ImageOptics o);  ///< "rays", "mie"
+
+/// [trace.mie]: the wave image's sampling (defaults converge to below 0.1 % of the background;
+/// docs/wave-optics.md).
+struct MieSettings {
+  int nodes_per_panel = 6;    ///< Gauss-Legendre nodes per panel of sin(theta) (illumination)
+  double panel_width = 0.03;  ///< widest panel in sin(theta)
+  int harmonics = 8;          ///< azimuthal harmonics of an asymmetric (light-field) source
+  double oversample = 1.5;    ///< FFT grid spacing lambda_medium / (4 NA / n) / oversample
+  double margin_um = 0;       ///< window margin beyond the sphere's light (0: 8 um + 8 lambda/NA)
+  int pixel_subsamples = 0;   ///< per pixel side (0: spacing at most lambda_medium / (8 NA / n))
+};
+
 struct TraceSpec {
   uint64_t rays = 0;             ///< rays per image; 0 = derive from photons_per_pixel
   double photons_per_pixel = 0;  ///< target mean hits per pixel in the flat field
@@ -221,7 +240,9 @@ struct TraceSpec {
   int max_interactions = 100;  ///< interface events per ray before it is abandoned
   int threads = 0;             ///< 0 = all cores
   uint64_t seed = 1;
-  GrinSettings grin;  ///< gradient-index integration tolerances
+  GrinSettings grin;                        ///< gradient-index integration tolerances
+  ImageOptics optics = ImageOptics::kRays;  ///< [trace] optics = "rays" | "mie"
+  MieSettings mie;                          ///< [trace.mie]
 };
 
 struct Scene {

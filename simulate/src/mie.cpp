@@ -1,0 +1,140 @@
+#include "raymatch/simulate/mie.h"
+
+#include <algorithm>
+#include <cmath>
+#include <stdexcept>
+#include <string>
+
+namespace raymatch::simulate {
+
+int MieTerms(double x) { return static_cast<int>(std::lround(x + 4.05 * std::cbrt(x) + 2)); }
+
+namespace {
+
+/// D_n(z) = psi_n'(z) / psi_n(z) for one n, from J_{n-1/2}(z) / J_{n+1/2}(z) by Lentz's
+/// continued fraction (modified Lentz evaluation): D_n = -n / z + [a_1; a_2, ...] with
+/// a_k = (-1)^(k+1) (2n + 2k - 1) / z.
+Complex LogDerivativeStart(int n, Complex z) {
+  constexpr double kTiny = 1e-300, kEps = 1e-15;
+  auto a = [&](int k) { return (k % 2 ? 1.0 : -1.0) * (2.0 * n + 2.0 * k - 1.0) / z; };
+  Complex f = a(1);
+  if (std::abs(f) < kTiny) f = kTiny;
+  Complex c = f, d = 0;
+  for (int k = 2; k < 100000 + 10 * int(std::abs(z)); ++k) {
+    const Complex b = a(k);
+    d = b + d;
+    if (std::abs(d) < kTiny) d = kTiny;
+    c = b + 1.0 / c;
+    if (std::abs(c) < kTiny) c = kTiny;
+    d = 1.0 / d;
+    const Complex delta = c * d;
+    f *= delta;
+    if (std::abs(delta - 1.0) < kEps) break;
+  }
+  return -double(n) / z + f;
+}
+
+}  // namespace
+
+MieCoefficients ComputeMie(Complex m, double x) {
+  if (!(x > 0) || !std::isfinite(x))
+    throw std::invalid_argument("Mie: size parameter must be positive, got " + std::to_string(x));
+  if (!(m.real() > 0) || m.imag() < 0)
+    throw std::invalid_argument("Mie: relative index needs Re m > 0 and Im m >= 0");
+  MieCoefficients c;
+  c.m = m;
+  c.x = x;
+  const int n_terms = MieTerms(x);
+  const Complex z = m * x;
+  // Downward recurrence D_{n-1} = n / z - 1 / (D_n + n / z) from a continued-fraction start.
+  std::vector<Complex> dn(n_terms + 1);
+  dn[n_terms] = LogDerivativeStart(n_terms, z);
+  for (int n = n_terms; n >= 1; --n) dn[n - 1] = double(n) / z - 1.0 / (dn[n] + double(n) / z);
+  // Riccati-Bessel psi_n(x) = x j_n(x), chi_n(x) = -x y_n(x), xi_n = psi_n - i chi_n, upward.
+  double psi0 = std::cos(x), psi1 = std::sin(x);   // psi_{-1}, psi_0
+  double chi0 = -std::sin(x), chi1 = std::cos(x);  // chi_{-1}, chi_0
+  Complex xi1(psi1, -chi1);
+  c.a.resize(n_terms);
+  c.b.resize(n_terms);
+  for (int n = 1; n <= n_terms; ++n) {
+    const double psi = (2.0 * n - 1.0) * psi1 / x - psi0;
+    const double chi = (2.0 * n - 1.0) * chi1 / x - chi0;
+    const Complex xi(psi, -chi);
+    const Complex ta = dn[n] / m + double(n) / x, tb = m * dn[n] + double(n) / x;
+    c.a[n - 1] = (ta * psi - psi1) / (ta * xi - xi1);
+    c.b[n - 1] = (tb * psi - psi1) / (tb * xi - xi1);
+    psi0 = psi1, psi1 = psi;
+    chi0 = chi1, chi1 = chi;
+    xi1 = xi;
+  }
+  return c;
+}
+
+MieEfficiencies Efficiencies(const MieCoefficients& c) {
+  MieEfficiencies e;
+  Complex back = 0;
+  double g = 0;
+  const int n_terms = c.terms();
+  for (int n = 1; n <= n_terms; ++n) {
+    const Complex an = c.a[n - 1], bn = c.b[n - 1];
+    const double fn = 2.0 * n + 1.0;
+    e.q_ext += fn * (an + bn).real();
+    e.q_sca += fn * (std::norm(an) + std::norm(bn));
+    back += fn * (n % 2 ? -1.0 : 1.0) * (an - bn);
+    g += fn / (n * (n + 1.0)) * (an * std::conj(bn)).real();
+    if (n < n_terms) {
+      const Complex an1 = c.a[n], bn1 = c.b[n];
+      g += n * (n + 2.0) / (n + 1.0) * (an * std::conj(an1) + bn * std::conj(bn1)).real();
+    }
+  }
+  const double x2 = c.x * c.x;
+  e.q_ext *= 2 / x2;
+  e.q_sca *= 2 / x2;
+  e.q_back = std::norm(back) / x2;
+  e.g = e.q_sca > 0 ? 4 / (x2 * e.q_sca) * g : 0;
+  return e;
+}
+
+MieAmplitudes Amplitudes(const MieCoefficients& c, double theta) {
+  const double mu = std::cos(theta);
+  double pi0 = 0, pi1 = 1;  // pi_{n-1}, pi_n
+  MieAmplitudes s{0, 0};
+  for (int n = 1; n <= c.terms(); ++n) {
+    const double tau = n * mu * pi1 - (n + 1) * pi0;
+    const double fn = (2.0 * n + 1.0) / (n * (n + 1.0));
+    const Complex an = c.a[n - 1], bn = c.b[n - 1];
+    s.s1 += fn * (an * pi1 + bn * tau);
+    s.s2 += fn * (an * tau + bn * pi1);
+    const double pi2 = ((2.0 * n + 1.0) * mu * pi1 - (n + 1.0) * pi0) / n;
+    pi0 = pi1, pi1 = pi2;
+  }
+  return s;
+}
+
+MieTable::MieTable(const MieCoefficients& c, double theta_max, double step_per_x) {
+  theta_max_ = std::min(theta_max, M_PI);
+  step_ = std::min(step_per_x / std::max(c.x, 1e-3), 0.01);
+  // Nodes from -step to theta_max + 2 steps so every query has two nodes on each side; S is
+  // even in theta (pi_n, tau_n are functions of cos theta), so the node at -step is S(step).
+  const int n = static_cast<int>(std::ceil(theta_max_ / step_)) + 4;
+  s1_.resize(n);
+  s2_.resize(n);
+  for (int i = 0; i < n; ++i) {
+    const MieAmplitudes s = Amplitudes(c, std::abs((i - 1) * step_));
+    s1_[i] = s.s1;
+    s2_[i] = s.s2;
+  }
+}
+
+MieAmplitudes MieTable::At(double theta) const {
+  const double t = std::clamp(theta, 0.0, theta_max_) / step_ + 1;  // node index coordinate
+  const int i = std::clamp(static_cast<int>(t), 1, static_cast<int>(s1_.size()) - 3);
+  const double u = t - i;  // in [0, 1) between nodes i and i + 1
+  // Lagrange weights on nodes i-1, i, i+1, i+2 at offsets -1, 0, 1, 2.
+  const double w0 = -u * (u - 1) * (u - 2) / 6, w1 = (u + 1) * (u - 1) * (u - 2) / 2;
+  const double w2 = -(u + 1) * u * (u - 2) / 2, w3 = (u + 1) * u * (u - 1) / 6;
+  return {w0 * s1_[i - 1] + w1 * s1_[i] + w2 * s1_[i + 1] + w3 * s1_[i + 2],
+          w0 * s2_[i - 1] + w1 * s2_[i] + w2 * s2_[i + 1] + w3 * s2_[i + 2]};
+}
+
+}  // namespace raymatch::simulate

@@ -1,0 +1,613 @@
+// The exact wave image of a sphere (wave_image.h states the model; docs/wave-optics.md derives
+// it). Frames: the world frame of docs/conventions.md, light along +z; each illumination node
+// is computed for a wave tilted in the x-z plane and a sphere on the axis, then rotated and
+// shifted to the scene's sphere by the azimuthal harmonics.
+#include "raymatch/simulate/wave_image.h"
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <complex>
+#include <functional>
+#include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
+
+#include "raymatch/core/error.h"
+#include "raymatch/core/rng.h"
+#include "raymatch/simulate/mie.h"
+#include "raymatch/simulate/tracer.h"
+#include "sources.h"
+
+namespace raymatch::simulate {
+
+namespace {
+
+constexpr double kDeg = M_PI / 180.0;
+
+/// Gauss-Legendre nodes and weights on [a, b] (Newton's iteration on P_n from the Chebyshev
+/// guess; Golub and Welsch's eigenvalue method gives the same to rounding).
+void GaussLegendre(int n, double a, double b, std::vector<double>* x, std::vector<double>* w) {
+  for (int i = 0; i < n; ++i) {
+    double z = std::cos(M_PI * (i + 0.75) / (n + 0.5)), dp = 1;
+    for (int it = 0; it < 100; ++it) {
+      double p0 = 1, p1 = z;  // P_0, P_1
+      for (int k = 2; k <= n; ++k) {
+        const double p2 = ((2.0 * k - 1) * z * p1 - (k - 1.0) * p0) / k;
+        p0 = p1, p1 = p2;
+      }
+      if (n == 1) p1 = z, p0 = 1;
+      dp = n * (z * p1 - p0) / (z * z - 1);
+      const double dz = p1 / dp;
+      z -= dz;
+      if (std::abs(dz) < 1e-15) break;
+    }
+    x->push_back(a + (b - a) * (1 - z) / 2);
+    w->push_back((b - a) / ((1 - z * z) * dp * dp));
+  }
+}
+
+/// Keys' cubic convolution weights (a = -1/2) for offset t in [0, 1).
+inline void KeysWeights(double t, double w[4]) {
+  const double t2 = t * t, t3 = t2 * t;
+  w[0] = -0.5 * t3 + t2 - 0.5 * t;
+  w[1] = 1.5 * t3 - 2.5 * t2 + 1;
+  w[2] = -1.5 * t3 + 2 * t2 + 0.5 * t;
+  w[3] = 0.5 * t3 - 0.5 * t2;
+}
+
+/// One illumination node: a polar angle of the incident wave with its quadrature weight and the
+/// source's azimuthal moments there.
+struct Node {
+  double s = 0, cos = 1;       // sin and cos of the polar angle
+  double omega = 0;            // quadrature weight x Jacobian (s ds), or 1 for a single direction
+  std::vector<double> wc, ws;  // integral of w(s, phi) cos(m phi), sin(m phi) d phi
+};
+
+}  // namespace
+
+std::string MieUnsupportedReason(const Scene& s) {
+  if (s.objects.size() != 1)
+    return "optics = \"mie\" needs exactly one object (a sphere); the scene has " +
+           std::to_string(s.objects.size());
+  const ObjectSpec& o = s.objects[0];
+  if (o.shape != ShapeType::kSphere)
+    return "optics = \"mie\" needs a sphere; object '" + o.name + "' is not one";
+  if (o.index_field)
+    return "optics = \"mie\" needs a homogeneous sphere; '" + o.name + "' has an index field";
+  if (s.has_motion()) return "optics = \"mie\" does not model motion yet (use optics = \"rays\")";
+  if (s.source.spectrum.type != SpectrumType::kNone)
+    return "optics = \"mie\" is monochromatic: remove [source] spectrum or use optics = \"rays\"";
+  switch (s.source.type) {
+    case SourceType::kCone:
+    case SourceType::kLightField:
+      break;
+    case SourceType::kCollimated:
+      if (s.source.tilt_deg != 0)
+        return "optics = \"mie\" takes a collimated source along the axis only (tilt_deg = 0)";
+      break;
+    case SourceType::kPoint:
+      return "optics = \"mie\" needs plane-wave illumination; a point source is not one";
+    case SourceType::kRayList:
+      return "optics = \"mie\" needs a source with an angular distribution, not a ray list";
+  }
+  return "";
+}
+
+nlohmann::json MieSampling::ToJson() const {
+  return {{"directions", directions}, {"azimuthal_harmonics", harmonics},
+          {"fft_grid", grid},         {"fft_grid_um", grid_um},
+          {"window_um", window_um},   {"pixel_subsamples", pixel_subsamples},
+          {"mie_terms", terms},       {"size_parameter", size_parameter}};
+}
+
+struct MieImager::Impl {
+  Scene scene;
+  MieSettings set;
+  double k = 0;  // wavenumber in the medium (rad / um)
+  double lambda_medium = 0;
+  double s_na = 0;    // sin of the objective's acceptance angle in the medium
+  double radius = 0;  // sphere radius
+  Vec3 center;
+  MieCoefficients mie;
+  MieTable table;
+  std::vector<Node> nodes;
+  int harmonics = 0;
+  // Corrector: zone outer edges in sin(theta) and intensity transmissions (empty: none).
+  std::vector<double> zone_s, zone_t;
+  // The pupil as zones in sin(theta): outer edges (the last is the NA) and amplitudes sqrt(T).
+  std::vector<double> pupil_edges, pupil_amp;
+  double flat = 0;   // flat-field flux (source units)
+  double scale = 1;  // photons per pixel per flat-field unit
+  double magnification = 1;
+  double sensor_sign = -1;  // sign x M: sensor coordinate per object coordinate
+  // Spatial envelope (light field's spatial map; empty: uniform).
+  Image spatial;
+  double sp_x0 = 0, sp_y0 = 0, sp_w = 0, sp_h = 0, spatial_mean = 1;
+  bool spatial_clamp = false;
+  mutable MieSampling last;
+
+  double Transmission(double s) const {
+    if (s > s_na) return 0;
+    if (zone_s.empty()) return 1;
+    for (size_t i = 0; i < zone_s.size(); ++i)
+      if (s <= zone_s[i]) return zone_t[i];
+    return 0;
+  }
+
+  double SpatialAt(double x, double y) const {
+    if (spatial.empty()) return 1;
+    const double fx = (x - sp_x0) / sp_w + 0.5, fy = 0.5 - (y - sp_y0) / sp_h;
+    int cx = int(std::floor(fx * spatial.width)), cy = int(std::floor(fy * spatial.height));
+    if (!spatial_clamp && (cx < 0 || cy < 0 || cx >= spatial.width || cy >= spatial.height))
+      return 0;
+    cx = std::clamp(cx, 0, spatial.width - 1);
+    cy = std::clamp(cy, 0, spatial.height - 1);
+    return spatial.at(cx, cy);
+  }
+
+  void BuildSource();
+  void BuildNodes(const std::vector<double>& breaks, double s_max,
+                  const std::function<double(double, double)>& density);
+  // The intensity change of node j's wave on the grid, as azimuthal harmonics d_m(rho).
+  void NodeHarmonics(const Node& nd, double dz, int n, double h, double drho, int n_rho,
+                     std::vector<std::vector<double>>* d) const;
+};
+
+void MieImager::Impl::BuildNodes(const std::vector<double>& breaks_in, double s_max,
+                                 const std::function<double(double, double)>& density) {
+  std::vector<double> breaks{0, s_max};
+  for (double b : breaks_in)
+    if (b > 0 && b < s_max) breaks.push_back(b);
+  std::sort(breaks.begin(), breaks.end());
+  breaks.erase(std::unique(breaks.begin(), breaks.end(),
+                           [](double a, double b) { return std::abs(a - b) < 1e-12; }),
+               breaks.end());
+  const int n_phi = 720;
+  for (size_t p = 0; p + 1 < breaks.size(); ++p) {
+    const double a = breaks[p], b = breaks[p + 1];
+    const int panels = std::max(1, int(std::ceil((b - a) / set.panel_width - 1e-9)));
+    for (int q = 0; q < panels; ++q) {
+      std::vector<double> xs, ws;
+      GaussLegendre(set.nodes_per_panel, a + (b - a) * q / panels, a + (b - a) * (q + 1) / panels,
+                    &xs, &ws);
+      for (size_t i = 0; i < xs.size(); ++i) {
+        Node nd;
+        nd.s = xs[i];
+        nd.cos = std::sqrt(1 - nd.s * nd.s);
+        nd.omega = ws[i] * nd.s;
+        nd.wc.assign(harmonics + 1, 0.0);
+        nd.ws.assign(harmonics + 1, 0.0);
+        for (int l = 0; l < n_phi; ++l) {
+          const double phi = 2 * M_PI * (l + 0.5) / n_phi;
+          const double w = density(nd.s * std::cos(phi), nd.s * std::sin(phi));
+          if (w == 0) continue;
+          for (int m = 0; m <= harmonics; ++m) {
+            nd.wc[m] += w * std::cos(m * phi);
+            nd.ws[m] += w * std::sin(m * phi);
+          }
+        }
+        for (int m = 0; m <= harmonics; ++m)
+          nd.wc[m] *= 2 * M_PI / n_phi, nd.ws[m] *= 2 * M_PI / n_phi;
+        if (nd.wc[0] > 0) nodes.push_back(std::move(nd));
+      }
+    }
+  }
+}
+
+void MieImager::Impl::BuildSource() {
+  const SourceSpec& ss = scene.source;
+  std::vector<double> breaks{s_na};
+  breaks.insert(breaks.end(), zone_s.begin(), zone_s.end());
+  switch (ss.type) {
+    case SourceType::kCollimated: {  // along the axis (MieUnsupportedReason)
+      harmonics = 0;
+      Node nd;
+      nd.s = 0, nd.cos = 1, nd.omega = 1;
+      nd.wc = {1.0};
+      nd.ws = {0.0};
+      nodes.push_back(nd);
+      break;
+    }
+    case SourceType::kCone: {
+      harmonics = 0;
+      const double sm = std::sin(ss.half_angle_deg * kDeg);
+      BuildNodes(breaks, sm, [](double, double) { return 1.0; });
+      break;
+    }
+    case SourceType::kLightField: {
+      harmonics = set.harmonics;
+      double extent = ss.angular_extent;
+      const bool edge = ss.edge_half_angle_deg > 0 && ss.map_na_limit > 0;
+      auto map = std::make_shared<Image>(edge ? ContinuedMap(ss, &extent) : ss.angular_map);
+      const double pu = 2 * extent / map->width;
+      auto density = [map, extent, pu](double u, double v) {
+        if (u * u + v * v >= 1) return 0.0;
+        const int x = int(std::floor((u + extent) / pu)), y = int(std::floor((extent - v) / pu));
+        if (x < 0 || y < 0 || x >= map->width || y >= map->height) return 0.0;
+        return double(map->at(x, y));
+      };
+      if (ss.map_na_limit > 0) {
+        breaks.push_back(ss.map_na_limit);
+        breaks.push_back(ss.map_na_limit -
+                         kEdgeRingPixels * 2 * ss.angular_extent / ss.angular_map.width);
+      }
+      BuildNodes(breaks, std::min(0.999, extent * std::sqrt(2.0)), density);
+      break;
+    }
+    default:
+      throw Error(FileLocation{scene.file}, MieUnsupportedReason(scene));
+  }
+  if (nodes.empty())
+    throw Error(FileLocation{scene.file}, "optics = \"mie\": the source emits no light");
+}
+
+MieImager::MieImager(const Scene& scene) : impl_(std::make_unique<Impl>()) {
+  const std::string why = MieUnsupportedReason(scene);
+  if (!why.empty()) throw Error(FileLocation{scene.file}, why);
+  Impl& im = *impl_;
+  im.scene = scene;
+  im.set = scene.trace.mie;
+  const ObjectSpec& o = scene.objects[0];
+  im.radius = o.radius_um;
+  im.center = o.center_um;
+  im.lambda_medium = scene.wavelength_um / scene.medium_index;
+  im.k = 2 * M_PI / im.lambda_medium;
+  im.s_na = AcceptanceSin(scene);
+  const Complex m(o.index / scene.medium_index, o.absorption_index / scene.medium_index);
+  im.mie = ComputeMie(m, im.k * im.radius);
+  // Corrector zones as edges in sin(theta) for a direction leaving the axis point (the ray
+  // model's zones are radii at the corrector plane, r = d tan(theta) on axis).
+  const OpticsSpec& op = scene.optics;
+  if (op.corrector.enabled) {
+    const double cz = op.corrector.distance_mm > 0
+                          ? op.corrector.distance_mm
+                          : (op.model == ObjectiveModel::kSingle ? op.objective_focal_mm
+                                                                 : op.working_distance_mm);
+    const double tan_na = std::tan(std::asin(im.s_na));
+    const size_t n = op.corrector.transmissions.size();
+    for (size_t i = 0; i < n; ++i) {
+      const double r = op.corrector.ring_outer_mm.empty() ? cz * tan_na * 1.02 * double(i + 1) / n
+                                                          : op.corrector.ring_outer_mm[i];
+      im.zone_s.push_back(std::sin(std::atan(r / cz)));
+      im.zone_t.push_back(op.corrector.transmissions[i]);
+    }
+  }
+  for (size_t i = 0; i < im.zone_s.size() && im.zone_s[i] < im.s_na; ++i) {
+    im.pupil_edges.push_back(im.zone_s[i]);
+    im.pupil_amp.push_back(std::sqrt(im.zone_t[i]));
+  }
+  im.pupil_edges.push_back(im.s_na);
+  im.pupil_amp.push_back(std::sqrt(im.Transmission(im.s_na)));
+  im.BuildSource();
+  // The largest scattering angle: the steepest wave to the farthest accepted direction.
+  double s_max = 0;
+  for (const Node& nd : im.nodes) s_max = std::max(s_max, nd.s);
+  im.table = MieTable(im.mie, std::asin(std::min(1.0, s_max)) + std::asin(im.s_na) + 0.01);
+  for (const Node& nd : im.nodes) im.flat += nd.omega * nd.wc[0] * im.Transmission(nd.s);
+  if (!(im.flat > 0))
+    throw Error(FileLocation{scene.file},
+                "optics = \"mie\": no direct light passes the objective (a dark field): the "
+                "photon scale is defined by the flat field");
+  im.magnification = Magnification(op);
+  im.sensor_sign = (scene.camera.flip ? -1.0 : 1.0) * im.magnification;
+  if (scene.source.type == SourceType::kLightField && !scene.source.spatial_map.empty()) {
+    im.spatial = scene.source.spatial_map;
+    im.sp_w = scene.source.field_size_um[0];
+    im.sp_h = scene.source.field_size_um[1];
+    im.sp_x0 = scene.source.field_center_um.x;
+    im.sp_y0 = scene.source.field_center_um.y;
+    im.spatial_clamp = scene.source.extend_spatial_map;
+  }
+  // Photons: the flat field's mean over the sensor is photons_per_pixel (as in the ray model's
+  // photon target); with a ray count instead, the ray model's flat field of that many rays.
+  const CameraSpec& cam = scene.camera;
+  double sum = 0;
+  for (int r = 0; r < cam.ny; ++r)
+    for (int c = 0; c < cam.nx; ++c) {
+      const double u = (c + 0.5 - cam.nx / 2.0) * cam.pixel_pitch_um;
+      const double v = (cam.ny / 2.0 - r - 0.5) * cam.pixel_pitch_um;
+      sum += im.SpatialAt((u + cam.offset_um[0]) / im.sensor_sign,
+                          (v + cam.offset_um[1]) / im.sensor_sign);
+    }
+  im.spatial_mean = sum / (double(cam.nx) * cam.ny);
+  double photons = scene.trace.photons_per_pixel;
+  if (!(photons > 0)) {
+    Scene flat = scene;
+    flat.objects.clear();
+    flat.trace.optics = ImageOptics::kRays;
+    double per_ray = 0;
+    Simulator(flat).RaysForPhotonTarget(1.0, &per_ray);
+    photons = per_ray * double(scene.trace.rays);
+  }
+  if (!(im.spatial_mean > 0))
+    throw Error(FileLocation{scene.file},
+                "optics = \"mie\": the light field's spatial map is "
+                "zero over the whole sensor");
+  im.scale = photons / (im.flat * im.spatial_mean);
+  im.last.directions = int(im.nodes.size());
+  im.last.harmonics = im.harmonics;
+  im.last.terms = im.mie.terms();
+  im.last.size_parameter = im.mie.x;
+  im.last.background = im.flat;
+}
+
+MieImager::~MieImager() = default;
+const Scene& MieImager::scene() const { return impl_->scene; }
+MieSampling MieImager::sampling() const { return impl_->last; }
+
+std::vector<std::string> MieImager::Effects() const {
+  const Scene& s = impl_->scene;
+  std::vector<std::string> e{"optics:mie"};
+  e.push_back(s.source.type == SourceType::kCone         ? "source:cone"
+              : s.source.type == SourceType::kCollimated ? "source:collimated"
+                                                         : "source:light_field");
+  if (!impl_->spatial.empty()) e.push_back("spatial_map");
+  if (!impl_->zone_s.empty()) e.push_back("corrector");
+  if (s.camera.psf_sigma_um > 0) e.push_back("psf");
+  if (s.objects[0].absorption_index > 0) e.push_back("absorption");
+  return e;
+}
+
+void MieImager::Impl::NodeHarmonics(const Node& nd, double dz, int n, double h, double drho,
+                                    int n_rho, std::vector<std::vector<double>>* d) const {
+  const double L = n * h, dk = 2 * M_PI / L;
+  const Vec3 kin(nd.s, 0, nd.cos);
+  const double kz_in = k * nd.cos;
+  const Vec3 p1(0, 1, 0), p2(nd.cos, 0, -nd.s);  // TE and TM polarisations of the wave
+  std::array<cv::Mat, 4> u;                      // (p1, p2) x (Ex, Ey) at the camera
+  for (cv::Mat& a : u) a = cv::Mat::zeros(n, n, CV_64FC2);
+  const double kna = k * s_na, kna_out = kna + dk;
+  const int i_lo = int(std::ceil((-kna_out - k * nd.s) / dk));
+  const int i_hi = int(std::floor((kna_out - k * nd.s) / dk));
+  const int j_hi = int(std::floor(kna_out / dk));
+  const double norm = -2 * M_PI / (k * k * L * L);
+  for (int j = -j_hi; j <= j_hi; ++j) {
+    const double ky = dk * j;
+    const int row = ((j % n) + n) % n;
+    for (int i = i_lo; i <= i_hi; ++i) {
+      const double kx = k * nd.s + dk * i, kt2 = kx * kx + ky * ky;
+      if (kt2 > kna_out * kna_out) continue;
+      const double kt = std::sqrt(kt2);
+      // The pupil's amplitude, averaged over the mode's Fourier cell: the cell's share of each
+      // zone (a linear ramp across the edge, over the cell's width along the radius), so the
+      // discrete pupil's edges move smoothly with the window instead of as a staircase.
+      const double ramp = dk * (kt > 0 ? (std::abs(kx) + std::abs(ky)) / kt : 1.0);
+      auto inside = [&](double edge_k) { return std::clamp((edge_k - kt) / ramp + 0.5, 0.0, 1.0); };
+      double amp = 0, below = 0;
+      for (size_t z = 0; z < pupil_edges.size(); ++z) {
+        const double in = inside(pupil_edges[z] * k);
+        amp += (in - below) * pupil_amp[z];
+        below = in;
+      }
+      if (amp <= 0) continue;
+      const double st = std::min(kt / k, 1.0), ct = std::sqrt(std::max(0.0, 1 - st * st));
+      const Vec3 ks(kx / k, ky / k, ct);
+      const double cos_scat = std::clamp(Dot(ks, kin), -1.0, 1.0);
+      const MieAmplitudes sa = table.At(std::acos(cos_scat));
+      Vec3 e_perp = Cross(kin, ks);
+      const double cn = Length(e_perp);
+      e_perp = cn > 1e-12 ? e_perp / cn : Vec3(0, 1, 0);
+      const Vec3 e_par_i = Cross(e_perp, kin), e_par_s = Cross(e_perp, ks);
+      const Complex f =
+          norm / ct * amp * std::sqrt(ct) * std::exp(Complex(0, (k * ct - kz_in) * dz));
+      const double phi = kt2 > 0 ? std::atan2(ky, kx) : 0.0;
+      const double cp = std::cos(phi), sp = std::sin(phi);
+      const Vec3 e_th(ct * cp, ct * sp, -st), e_ph(-sp, cp, 0);
+      const int col = ((i % n) + n) % n;
+      for (int p = 0; p < 2; ++p) {
+        const Vec3& pol = p == 0 ? p1 : p2;
+        const Complex a_par = sa.s2 * Dot(pol, e_par_i), a_perp = sa.s1 * Dot(pol, e_perp);
+        // E_s = a_par e_par_s + a_perp e_perp, resolved on e_theta, e_phi of the direction.
+        const Complex a_th = a_par * Dot(e_par_s, e_th) + a_perp * Dot(e_perp, e_th);
+        const Complex a_ph = a_par * Dot(e_par_s, e_ph) + a_perp * Dot(e_perp, e_ph);
+        const Complex ex = f * (a_th * cp - a_ph * sp), ey = f * (a_th * sp + a_ph * cp);
+        u[2 * p].at<cv::Vec2d>(row, col) += cv::Vec2d(ex.real(), ex.imag());
+        u[2 * p + 1].at<cv::Vec2d>(row, col) += cv::Vec2d(ey.real(), ey.imag());
+      }
+    }
+  }
+  for (cv::Mat& a : u) cv::dft(a, a, cv::DFT_INVERSE);  // sum over modes, no 1/N^2
+  // The direct wave: amplitude sqrt(T cos) on the polarisation's image direction.
+  const double a0 = std::sqrt(Transmission(nd.s) * nd.cos);
+  std::vector<double> dev(size_t(n) * n);
+  for (int r = 0; r < n; ++r) {
+    const cv::Vec2d *ux1 = u[0].ptr<cv::Vec2d>(r), *uy1 = u[1].ptr<cv::Vec2d>(r),
+                    *ux2 = u[2].ptr<cv::Vec2d>(r), *uy2 = u[3].ptr<cv::Vec2d>(r);
+    for (int c = 0; c < n; ++c) {
+      // p1 = y: direct (0, a0); p2: direct (a0, 0). |a0 + U|^2 - a0^2 = 2 a0 Re U + |U|^2.
+      const double v1 = ux1[c][0] * ux1[c][0] + ux1[c][1] * ux1[c][1] + uy1[c][0] * uy1[c][0] +
+                        uy1[c][1] * uy1[c][1] + 2 * a0 * uy1[c][0];
+      const double v2 = ux2[c][0] * ux2[c][0] + ux2[c][1] * ux2[c][1] + uy2[c][0] * uy2[c][0] +
+                        uy2[c][1] * uy2[c][1] + 2 * a0 * ux2[c][0];
+      dev[size_t(r) * n + c] = 0.5 * (v1 + v2);
+    }
+  }
+  // Azimuthal harmonics about the sphere (grid point 0): the pattern is even in psi (the
+  // incidence plane is a mirror plane), so d_m = (2 - delta_m0) / N sum_l D(psi_l) cos(m psi_l)
+  // over N points of the circle, from the half circle with trapezoid end weights.
+  const int mh = harmonics;
+  d->assign(mh + 1, std::vector<double>(n_rho, 0.0));
+  const double band = 2 * kna;  // the intensity's highest spatial frequency
+  auto sample = [&](double x, double y) {
+    const double gx = x / h, gy = y / h;
+    const double fx = std::floor(gx), fy = std::floor(gy);
+    double wx[4], wy[4];
+    KeysWeights(gx - fx, wx);
+    KeysWeights(gy - fy, wy);
+    const int ix = int(fx) - 1, iy = int(fy) - 1;
+    double sum = 0;
+    for (int b = 0; b < 4; ++b) {
+      const int rr = (((iy + b) % n) + n) % n;
+      const double* rowp = &dev[size_t(rr) * n];
+      double rs = 0;
+      for (int a = 0; a < 4; ++a) rs += wx[a] * rowp[(((ix + a) % n) + n) % n];
+      sum += wy[b] * rs;
+    }
+    return sum;
+  };
+  for (int q = 0; q < n_rho; ++q) {
+    const double rho = q * drho;
+    const int nf = 2 * int(std::ceil((band * rho + mh + 16) / 2));
+    const int half = nf / 2;
+    std::vector<double> acc(mh + 1, 0.0);
+    for (int l = 0; l <= half; ++l) {
+      const double psi = 2 * M_PI * l / nf;
+      const double w = (l == 0 || l == half) ? 1.0 : 2.0;
+      const double v = w * sample(rho * std::cos(psi), rho * std::sin(psi));
+      for (int m = 0; m <= mh; ++m) acc[m] += v * std::cos(m * psi);
+    }
+    for (int m = 0; m <= mh; ++m) (*d)[m][q] = acc[m] * (m == 0 ? 1.0 : 2.0) / nf;
+  }
+}
+
+Image MieImager::Expected(double defocus_um, int threads) const {
+  const Impl& im = *impl_;
+  const Scene& s = im.scene;
+  const MieSettings& set = im.set;
+  const double dz = defocus_um - im.center.z;
+  const double tan_na = im.s_na / std::sqrt(1 - im.s_na * im.s_na);
+  // Light from the sphere reaches the focal plane within rho_light of its axis; the window
+  // adds a margin for the pupil's diffraction tails (periodic wrap-around).
+  const double rho_light = im.radius + (std::abs(dz) + im.radius) * tan_na;
+  const double margin =
+      set.margin_um > 0 ? set.margin_um : 8 + 8 * s.wavelength_um / (im.s_na * s.medium_index);
+  const double h = im.lambda_medium / (4 * im.s_na) / set.oversample;
+  const int n = cv::getOptimalDFTSize(int(std::ceil(2 * (rho_light + margin) / h)));
+  const double rho_max = rho_light + margin / 2;
+  const double drho = h / 2;
+  const int n_rho = int(std::ceil(rho_max / drho)) + 3;
+  // Per-node harmonics, summed in node order (the same image for any thread count).
+  std::vector<std::vector<std::vector<double>>> per(im.nodes.size());
+  tbb::task_arena arena(threads > 0 ? threads : tbb::task_arena::automatic);
+  arena.execute([&] {
+    tbb::parallel_for(size_t(0), im.nodes.size(), [&](size_t j) {
+      im.NodeHarmonics(im.nodes[j], dz, n, h, drho, n_rho, &per[j]);
+    });
+  });
+  const int mh = im.harmonics;
+  std::vector<std::vector<double>> cm(mh + 1, std::vector<double>(n_rho, 0.0)), sm = cm;
+  for (size_t j = 0; j < im.nodes.size(); ++j) {
+    const Node& nd = im.nodes[j];
+    const double w = nd.omega / nd.cos;  // unit flux through the z-plane: amplitude^2 = 1 / cos
+    for (int m = 0; m <= mh; ++m)
+      for (int q = 0; q < n_rho; ++q) {
+        cm[m][q] += w * nd.wc[m] * per[j][m][q];
+        if (m > 0) sm[m][q] += w * nd.ws[m] * per[j][m][q];
+      }
+  }
+  // Render: pixels integrated on K x K sub-samples; the PSF convolves the fine image.
+  const CameraSpec& cam = s.camera;
+  const double pix_obj = cam.pixel_pitch_um / std::abs(im.magnification);
+  const int kss = set.pixel_subsamples > 0
+                      ? set.pixel_subsamples
+                      : std::max(1, int(std::ceil(pix_obj / (im.lambda_medium / (8 * im.s_na)))));
+  const double fine = pix_obj / kss;
+  const double psf = cam.psf_sigma_um;
+  const int pad = psf > 0 ? int(std::ceil(4 * psf / fine)) : 0;
+  const int fw = cam.nx * kss + 2 * pad, fh = cam.ny * kss + 2 * pad;
+  cv::Mat dev(fh, fw, CV_64F, cv::Scalar(0));
+  auto deviation = [&](double x, double y) {
+    const double dx = x - im.center.x, dy = y - im.center.y;
+    const double rho = std::hypot(dx, dy);
+    const double g = rho / drho;
+    if (g >= n_rho - 3) return 0.0;
+    const int q = int(g);
+    const double t = g - q;
+    double w[4];
+    KeysWeights(t, w);
+    auto at = [&](const std::vector<double>& f) {
+      const int q0 = q - 1;
+      // f is even in rho about 0 (a smooth function of x, y): f(-drho) = f(drho).
+      const double f0 = f[std::abs(q0)];
+      return w[0] * f0 + w[1] * f[q] + w[2] * f[q + 1] + w[3] * f[q + 2];
+    };
+    double v = at(cm[0]);
+    if (mh > 0) {
+      const double psi = std::atan2(dy, dx);
+      for (int m = 1; m <= mh; ++m)
+        v += at(cm[m]) * std::cos(m * psi) + at(sm[m]) * std::sin(m * psi);
+    }
+    return v;
+  };
+  arena.execute([&] {
+    tbb::parallel_for(0, fh, [&](int r) {
+      double* row = dev.ptr<double>(r);
+      const double v = (cam.ny / 2.0 - (r - pad + 0.5) / kss) * cam.pixel_pitch_um;
+      const double y = (v + cam.offset_um[1]) / im.sensor_sign;
+      for (int c = 0; c < fw; ++c) {
+        const double u = ((c - pad + 0.5) / kss - cam.nx / 2.0) * cam.pixel_pitch_um;
+        row[c] = deviation((u + cam.offset_um[0]) / im.sensor_sign, y);
+      }
+    });
+  });
+  if (psf > 0)
+    cv::GaussianBlur(dev, dev, cv::Size(0, 0), psf / fine, psf / fine, cv::BORDER_REPLICATE);
+  Image out(cam.nx, cam.ny);
+  for (int r = 0; r < cam.ny; ++r)
+    for (int c = 0; c < cam.nx; ++c) {
+      double sum = 0;
+      for (int b = 0; b < kss; ++b) {
+        const double* row = dev.ptr<double>(pad + r * kss + b);
+        for (int a = 0; a < kss; ++a) sum += row[pad + c * kss + a];
+      }
+      const double u = (c + 0.5 - cam.nx / 2.0) * cam.pixel_pitch_um;
+      const double v = (cam.ny / 2.0 - r - 0.5) * cam.pixel_pitch_um;
+      const double env = im.SpatialAt((u + cam.offset_um[0]) / im.sensor_sign,
+                                      (v + cam.offset_um[1]) / im.sensor_sign);
+      const double val = im.scale * env * (im.flat + sum / (kss * kss));
+      out.at(c, r) = float(std::isfinite(val) ? std::max(0.0, val) : 0.0);
+    }
+  im.last.grid = n;
+  im.last.grid_um = h;
+  im.last.window_um = n * h;
+  im.last.pixel_subsamples = kss;
+  return out;
+}
+
+namespace {
+/// Poisson variate from uniforms: inversion below mean 10, Hormann's PTRS above (W. Hormann,
+/// "The transformed rejection method for generating Poisson random variables", Insurance:
+/// Mathematics and Economics 12, 39 (1993)).
+double PoissonDraw(double mu, RayRng& rng) {
+  if (!(mu > 0)) return 0;
+  if (mu < 10) {
+    double p = std::exp(-mu), sum = p;
+    const double u = rng.Uniform();
+    int k = 0;
+    while (u > sum && k < 1000) {
+      ++k;
+      p *= mu / k;
+      sum += p;
+    }
+    return k;
+  }
+  const double smu = std::sqrt(mu), b = 0.931 + 2.53 * smu, a = -0.059 + 0.02483 * b;
+  const double inv_alpha = 1.1239 + 1.1328 / (b - 3.4), vr = 0.9277 - 3.6224 / (b - 2);
+  const double log_mu = std::log(mu);
+  for (;;) {
+    const double u = rng.Uniform() - 0.5, v = rng.Uniform();
+    const double us = 0.5 - std::abs(u);
+    const double k = std::floor((2 * a / us + b) * u + mu + 0.43);
+    if (us >= 0.07 && v <= vr) return k;
+    if (k < 0 || (us < 0.013 && v > us)) continue;
+    if (std::log(v) + std::log(inv_alpha) - std::log(a / (us * us) + b) <=
+        -mu + k * log_mu - std::lgamma(k + 1))
+      return k;
+  }
+}
+}  // namespace
+
+Image PoissonSample(const Image& expected, uint64_t seed, uint32_t plane) {
+  Image out(expected.width, expected.height);
+  tbb::parallel_for(size_t(0), expected.size(), [&](size_t i) {
+    RayRng rng(seed, plane, i);
+    out.pixels[i] = float(PoissonDraw(expected.pixels[i], rng));
+  });
+  return out;
+}
+
+}  // namespace raymatch::simulate

@@ -1,0 +1,146 @@
+// The exact wave image of a sphere (optics = "mie"): known answers of the model's physics.
+#include "raymatch/simulate/wave_image.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "raymatch/core/error.h"
+#include "raymatch/simulate/mie.h"
+#include "raymatch/simulate/tracer.h"
+#include "test_scenes.h"
+
+namespace raymatch::simulate {
+namespace {
+
+using testing::MicroscopeScene;
+using testing::SphereObject;
+
+/// The paper's microscope at 462 nm with a water-like sphere, a cone of `cone_deg`, 0.5 um
+/// object pixels, 1000 photons per pixel.
+Scene WaveScene(double radius, double n, double cone_deg, int pixels = 64) {
+  Scene s = MicroscopeScene();
+  s.camera.nx = s.camera.ny = pixels;
+  s.camera.pixel_pitch_um = 10;  // 0.5 um at the object
+  s.source.type = SourceType::kCone;
+  s.source.half_angle_deg = cone_deg;
+  s.objects = {SphereObject(radius, n)};
+  s.trace.photons_per_pixel = 1000;
+  s.trace.optics = ImageOptics::kMie;
+  return s;
+}
+
+// A sphere of the medium's index scatters nothing (every a_n, b_n = 0): the image is the flat
+// field, exactly photons_per_pixel in every pixel, as the ray model's flat field is on average.
+TEST(WaveImage, FlatFieldIsExactlyThePhotonTarget) {
+  for (double cone : {0.0, 10.0, 30.0}) {  // 30 deg: partly beyond the NA (24.8 deg)
+    Scene s = WaveScene(5, 1.0, cone, 32);
+    if (cone == 0) s.source.type = SourceType::kCollimated;
+    const Image img = MieImager(s).Expected(3.0, 2);
+    for (float v : img.pixels) ASSERT_NEAR(v, 1000.0, 1e-9 * 1000) << "cone " << cone;
+  }
+}
+
+// The optical theorem at the camera: one plane wave along the axis (unit flux density) loses,
+// summed over the image, the sphere's extinction cross section and gains back what it scatters
+// into the objective's NA: sum_pixels (I - I_flat) / I_flat x pixel area = -C_ext + C_sca,NA
+// with C_ext = Q_ext pi a^2 (Bohren and Huffman eq. 4.76) and
+// C_sca,NA = 2 pi / k^2 integral_0^theta_NA (|S1|^2 + |S2|^2) / 2 sin(theta) d theta (an
+// integral the image never computes: the image sums a Fourier grid of plane waves). This
+// tests the angular-spectrum factor 1 / (-2 pi i k cos theta) and its phase: a wrong phase
+// gives a wrong extinction, a wrong magnitude a wrong scattered power.
+TEST(WaveImage, LightRemovedIsExtinctionMinusLightScatteredIntoTheNa) {
+  for (double n : {1.2, 1.45}) {
+    Scene s = WaveScene(2.0, n, 0, 240);
+    s.source.type = SourceType::kCollimated;
+    s.trace.mie.margin_um = 60;
+    const MieImager imager(s);
+    for (double defocus : {0.0, 6.0}) {
+      const Image img = imager.Expected(defocus, 2);
+      const double pix = 0.5;
+      double removed = 0;
+      for (float v : img.pixels) removed += (v / 1000.0 - 1) * pix * pix;
+      const double k = 2 * M_PI / s.wavelength_um, x = k * 2.0;
+      const MieCoefficients c = ComputeMie({n, 0}, x);
+      const double c_ext = Efficiencies(c).q_ext * M_PI * 4.0;
+      const double t_na = std::asin(0.42);
+      const int steps = 20000;
+      double sca = 0;
+      for (int i = 0; i <= steps; ++i) {  // Simpson
+        const double t = t_na * i / steps;
+        const MieAmplitudes a = Amplitudes(c, t);
+        sca += (std::norm(a.s1) + std::norm(a.s2)) / 2 * std::sin(t) *
+               (i == 0 || i == steps ? 1 : (i % 2 ? 4 : 2));
+      }
+      const double c_sca_na = 2 * M_PI / (k * k) * sca * t_na / steps / 3;
+      SCOPED_TRACE("n = " + std::to_string(n) + ", defocus " + std::to_string(defocus));
+      // The sensor (60 um from the sphere to its edge) misses the diffraction tails of the NA's
+      // sharp edge beyond it: for a circular pupil 1 - encircled energy ~ 2 / (pi v) at
+      // v = k NA R (Born and Wolf sec. 8.5.2), 0.19 % of C_sca,NA here; plus 0.2 % of C_ext for
+      // the discrete pupil (its edge cells are averaged over their Fourier cell, which takes the
+      // sharp edge's far tails out of the window).
+      const double tails = 2 / (M_PI * k * 0.42 * 60.0) * c_sca_na;
+      EXPECT_NEAR(removed, -c_ext + c_sca_na, tails + 2e-3 * c_ext)
+          << "C_ext " << c_ext << " C_sca,NA " << c_sca_na;
+    }
+  }
+}
+
+TEST(WaveImage, SameImageForAnyThreadCount) {
+  Scene s = WaveScene(4, 1.38, 15, 48);
+  s.objects[0].center_um = Vec3(1.3, -0.7, 0.5);
+  const MieImager imager(s);
+  const Image a = imager.Expected(-2.0, 1), b = imager.Expected(-2.0, 2);
+  ASSERT_EQ(a.pixels.size(), b.pixels.size());
+  for (size_t i = 0; i < a.pixels.size(); ++i) ASSERT_EQ(a.pixels[i], b.pixels[i]) << i;
+}
+
+// Moving the sphere by whole pixels moves its image by those pixels (the microscope is
+// shift-invariant; the model computes about the sphere and renders at its position).
+TEST(WaveImage, ShiftingTheSphereShiftsTheImage) {
+  Scene s = WaveScene(3, 1.38, 12, 48);
+  const Image a = MieImager(s).Expected(2.0, 2);
+  s.objects[0].center_um = Vec3(2.0, 1.0, 0);  // 4 pixels right, 2 up (rows decrease)
+  const Image b = MieImager(s).Expected(2.0, 2);
+  double worst = 0;
+  for (int r = 8; r < 40; ++r)
+    for (int c = 8; c < 40; ++c)
+      worst = std::max(worst, double(std::abs(b.at(c + 4, r - 2) - a.at(c, r))));
+  EXPECT_LT(worst, 1e-3);
+}
+
+TEST(WaveImage, PoissonSampleHasTheExpectedMeanAndVariance) {
+  for (double mu : {0.7, 4.0, 35.0, 1000.0}) {
+    Image e(200, 200, float(mu));
+    const Image s = PoissonSample(e, 7, 3);
+    double m = 0, v = 0;
+    for (float x : s.pixels) m += x;
+    m /= s.size();
+    for (float x : s.pixels) v += (x - m) * (x - m);
+    v /= s.size() - 1;
+    // 40000 draws: the mean's standard error sqrt(mu / N), the variance's about
+    // mu sqrt(2 / N) (plus the fourth cumulant mu / N): 5 standard errors.
+    EXPECT_NEAR(m, mu, 5 * std::sqrt(mu / 40000.0)) << mu;
+    EXPECT_NEAR(v, mu, 5 * std::sqrt((2 * mu * mu + mu) / 40000.0)) << mu;
+    const Image again = PoissonSample(e, 7, 3);
+    EXPECT_EQ(again.pixels, s.pixels);
+  }
+}
+
+TEST(WaveImage, ScenesWithoutAnExactWaveImageAreRejected) {
+  Scene s = WaveScene(3, 1.38, 12);
+  s.objects.push_back(SphereObject(2, 1.4, Vec3(10, 0, 0)));
+  EXPECT_NE(MieUnsupportedReason(s).find("exactly one object"), std::string::npos);
+  EXPECT_THROW(MieImager{s}, Error);
+  s.objects = {testing::BoxObject(Vec3(2, 2, 2), 1.4)};
+  EXPECT_NE(MieUnsupportedReason(s).find("needs a sphere"), std::string::npos);
+  s.objects = {SphereObject(3, 1.38)};
+  s.source.type = SourceType::kPoint;
+  EXPECT_NE(MieUnsupportedReason(s).find("point source"), std::string::npos);
+  s.source.type = SourceType::kCollimated;
+  s.source.tilt_deg = 5;
+  EXPECT_NE(MieUnsupportedReason(s).find("along the axis"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace raymatch::simulate

@@ -3,6 +3,7 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <limits>
 #include <optional>
 #include <set>
 #include <sstream>
@@ -286,6 +287,11 @@ void CheckExperimentImage(const FitImage& fi, double expected_photons_per_pixel,
 
 FitSpec LoadFitSpec(const std::string& path) { return LoadFitSpec(path, ""); }
 
+double FitSpec::RaysPerPhoton() const {
+  return exact_images ? std::numeric_limits<double>::infinity()
+                      : rays.ray_factor * rays.fractions.back();
+}
+
 FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
                     const std::string& calibration_override) {
   const toml::table t = ParseTomlFile(path);
@@ -310,7 +316,24 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     f.calibration_file = fs::absolute(ResolvePath(path, r.String("calibration"))).string();
   }
   if (!f.calibration_file.empty()) f.scene.insert_or_assign("calibration", f.calibration_file);
+  if (r.Has("optics")) {  // the fit file's choice of image model replaces the scene's
+    const std::string optics = r.Choice("optics", {"rays", "mie"});
+    if (!f.scene.contains("trace")) f.scene.insert("trace", toml::table{});
+    f.scene["trace"].as_table()->insert_or_assign("optics", optics);
+  }
   const simulate::Scene scene = simulate::LoadScene(f.scene, f.scene_file);  // checks it
+  if (scene.trace.optics == simulate::ImageOptics::kMie) {
+    // An exact image model: one level, the two derivative sets the uncertainties need (any two
+    // sets are the same images), no repeats with other ray streams; [rays] may still set them.
+    f.exact_images = true;
+    f.rays.fractions = {1.0};
+    f.rays.jacobian_seeds = 2;
+    f.repeat_seeds = 0;
+    // The profile-likelihood paths score with the ray streams' derivative sets and are not yet
+    // right for an exact model (an interval beside its own estimate): curvature sigmas only,
+    // unless [uncertainty] profile asks.
+    f.profile = ProfileMode::kNever;
+  }
   // Mesh files are read when a simulator is built: check them now (the meshes are cached, so
   // the fit reads each file once), before anything runs or is written.
   if (std::any_of(scene.objects.begin(), scene.objects.end(), [](const simulate::ObjectSpec& o) {
@@ -502,7 +525,7 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     f.rays.finite_ray_correction = ry.Bool("finite_ray_correction", true);
     f.rays.smooth_polish = ry.Bool("smooth_polish", true);
     f.rays.polish = ry.Bool("polish", false);
-    f.rays.jacobian_seeds = int(ry.Integer("jacobian_seeds", 4, 2, 64));
+    f.rays.jacobian_seeds = int(ry.Integer("jacobian_seeds", f.rays.jacobian_seeds, 2, 64));
     if (ry.Has("binning")) {
       for (double b : ry.Numbers("binning", f.rays.fractions.size(), f.rays.fractions.size())) {
         if (!(b >= 1 && b <= 64 && b == std::floor(b)))
@@ -514,14 +537,16 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
   }
   if (r.Has("uncertainty")) {
     TomlReader u = r.Table("uncertainty");
-    f.repeat_seeds = static_cast<int>(u.Integer("repeat_seeds", 3, 0, 1000));
+    f.repeat_seeds = static_cast<int>(u.Integer("repeat_seeds", f.repeat_seeds, 0, 1000));
     if (f.repeat_seeds == 1) u.Fail("repeat_seeds", "0 (none) or at least 2 repeated fits");
     f.cramer_rao = u.Bool("cramer_rao", true);
     f.slice_points = static_cast<int>(u.Integer("slice_points", 7, 0, 1001));
-    const std::string profile = u.Choice("profile", {"auto", "always", "never"}, "auto");
-    f.profile = profile == "always"  ? ProfileMode::kAlways
-                : profile == "never" ? ProfileMode::kNever
-                                     : ProfileMode::kAuto;
+    if (u.Has("profile")) {
+      const std::string profile = u.Choice("profile", {"auto", "always", "never"});
+      f.profile = profile == "always"  ? ProfileMode::kAlways
+                  : profile == "never" ? ProfileMode::kNever
+                                       : ProfileMode::kAuto;
+    }
     f.profile_correlation = u.InRange("profile_correlation", 0, 1, 0.9);
     u.Finish();
   }

@@ -9,6 +9,7 @@
 
 #include "raymatch/compare/measures.h"
 #include "raymatch/core/rng.h"
+#include "raymatch/simulate/wave_image.h"
 
 namespace raymatch::fit {
 
@@ -149,6 +150,11 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
   std::vector<std::pair<Vec3, double>> bounds;
   double max_field = 0;
   for (const auto& th : probes) {
+    if (spec.exact_images) {  // one FFT window for every evaluation (MieSettings::window_um)
+      const simulate::Scene sc = SceneAt(th);
+      for (double dz : sc.defocus_um)
+        wave_window_um_ = std::max(wave_window_um_, simulate::AutomaticMieWindowUm(sc, dz));
+    }
     const simulate::Simulator sim(TracedScene(SceneAt(th), simulate::SourceSpec::EdgePart::kAll));
     for (const auto& b : sim.ObjectBounds()) bounds.push_back(b);
     max_field = std::max(max_field, sim.field_radius_um());
@@ -186,6 +192,11 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
     say_("background of the first image: " + std::to_string(ppp) + " photons per pixel");
   }
   photon_matched_rays_ = ppp > 0 ? simulate::Simulator(s0).RaysForPhotonTarget(ppp) : s0.trace.rays;
+  if (spec.exact_images) {
+    double per_ray = 0;
+    if (!(ppp > 0)) simulate::Simulator(s0).RaysForPhotonTarget(1.0, &per_ray);
+    wave_photons_ = ppp > 0 ? ppp : per_ray * double(photon_matched_rays_);
+  }
   if (edge_split_) {
     using Part = simulate::SourceSpec::EdgePart;
     const double all = simulate::Simulator(TracedScene(s0, Part::kAll)).source_weight();
@@ -345,6 +356,20 @@ Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, 
                              uint64_t* rays_traced) {
   using Part = simulate::SourceSpec::EdgePart;
   const simulate::Scene full = SceneAt(theta);
+  if (spec_.exact_images) {
+    // The exact wave image in photons at the experiment's flat-field count; the exposure and
+    // background follow as for traced images.
+    simulate::Scene w = full;
+    w.trace.photons_per_pixel = wave_photons_;
+    w.trace.rays = 0;
+    if (w.trace.mie.window_um == 0) w.trace.mie.window_um = wave_window_um_;
+    const simulate::MieImager mie(w);
+    Simulated out;
+    out.finite_ray_correction = false;
+    for (size_t i = 0; i < spec_.images.size(); ++i)
+      AddExposureAndBackground(theta, i, mie.Expected(w.defocus_um[i], threads_), 1.0, &out);
+    return out;
+  }
   simulate::Scene scene = TracedScene(full, edge_split_ ? Part::kInside : Part::kAll);
   scene.trace.seed = seed;
   const simulate::Simulator sim(scene);
@@ -390,36 +415,42 @@ Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, 
       if (rays_traced) *rays_traced += beyond_rays;
     }
     if (psf_os_ > 1) counts = ApplyPsf(counts, full.camera.psf_sigma_um, seed, plane);
-    // The image's additive background (image[i].background_* keys): photons per pixel, a
-    // level and slopes per pixel about the image centre, added to the expected image after the
-    // exposure. The exposure profile matches the totals of the rest, which the joint optimum
-    // of a Poisson model with a free level and scale satisfies exactly.
-    const Image bg_image = BackgroundOf(theta, i, counts.width, counts.height);
-    const Image& usable = spec_.images[i].usable;
-    double bg_sum = 0;
-    for (size_t p = 0; p < bg_image.size(); ++p)
-      if (Uses(usable, p)) bg_sum += bg_image.pixels[p];
-    double s = scale;
-    if (spec_.rays.fit_exposure) {
-      // The exposure is a nuisance parameter: its maximum-likelihood value for Poisson counts
-      // is sum(e) / sum(mu) in closed form (profiled out at every evaluation). A fixed exposure
-      // would turn any error in the photon count (the experiment's, or the 0.4 % of the
-      // photon-target pilot) into a shift of z, radius and index, which change how much light
-      // leaves the aperture.
-      double se = 0, sm = 0;
-      for (size_t p = 0; p < counts.size(); ++p)
-        if (Uses(usable, p))
-          se += std::max(0.0f, spec_.images[i].photons.pixels[p]), sm += counts.pixels[p];
-      if (sm > 0 && se - bg_sum > 0) s = (se - bg_sum) / sm;
-    }
-    for (float& v : counts.pixels) v = static_cast<float>(v * s);
-    if (!bg_image.pixels.empty())
-      for (size_t p = 0; p < counts.size(); ++p)
-        counts.pixels[p] = std::max(0.0f, counts.pixels[p] + bg_image.pixels[p]);
-    out.photons.push_back(std::move(counts));
-    out.photons_per_ray.push_back(s);
+    AddExposureAndBackground(theta, i, std::move(counts), scale, &out);
   }
   return out;
+}
+
+void FitModel::AddExposureAndBackground(const std::vector<double>& theta, size_t i, Image counts,
+                                        double scale, Simulated* out) const {
+  // The image's additive background (image[i].background_* keys): photons per pixel, a
+  // level and slopes per pixel about the image centre, added to the expected image after the
+  // exposure. The exposure profile matches the totals of the rest, which the joint optimum
+  // of a Poisson model with a free level and scale satisfies exactly.
+  const Image bg_image = BackgroundOf(theta, i, counts.width, counts.height);
+  const Image& usable = spec_.images[i].usable;
+  double bg_sum = 0;
+  for (size_t p = 0; p < bg_image.size(); ++p)
+    if (Uses(usable, p)) bg_sum += bg_image.pixels[p];
+  double s = scale;
+  if (spec_.rays.fit_exposure) {
+    // The exposure is a nuisance parameter: its maximum-likelihood value for Poisson counts
+    // is sum(e) / sum(mu) in closed form (profiled out at every evaluation). A fixed exposure
+    // would turn any error in the photon count (the experiment's, or the 0.4 % of the
+    // photon-target pilot) into a shift of z, radius and index, which change how much light
+    // leaves the aperture.
+    double se = 0, sm = 0;
+    for (size_t p = 0; p < counts.size(); ++p)
+      if (Uses(usable, p))
+        se += std::max(0.0f, spec_.images[i].photons.pixels[p]), sm += counts.pixels[p];
+    if (sm > 0 && se - bg_sum > 0) s = (se - bg_sum) / sm;
+  }
+  for (float& v : counts.pixels) v = static_cast<float>(v * s);
+  if (!bg_image.pixels.empty())
+    for (size_t p = 0; p < counts.size(); ++p)
+      counts.pixels[p] = std::max(0.0f, counts.pixels[p] + bg_image.pixels[p]);
+  out->photons.push_back(std::move(counts));
+  // An exact model's image has no counting noise: no photons per ray.
+  out->photons_per_ray.push_back(spec_.exact_images ? 0.0 : s);
 }
 
 Image BinImage(const Image& a, int b) {
@@ -435,6 +466,7 @@ int FitModel::BinAt(size_t level) const {
   // The SSIM family is multi-scale or windowed already (the paper's MS-SSIM held its optimum
   // down to 1/1024 of the rays unbinned); binning serves the per-pixel Poisson deviance and MSE.
   if (spec_.error != ErrorFunction::kPoisson && spec_.error != ErrorFunction::kMse) return 1;
+  if (spec_.exact_images) return 1;  // no simulation noise to bin away
   const double k = spec_.rays.ray_factor * spec_.rays.fractions[level];
   int b = 1;
   while (b * b * k < 1 - 1e-9) ++b;

@@ -114,8 +114,14 @@ class FitModel {
   /// binned pixel: the projection Score and PoissonScore share.
   std::vector<double> Project(const std::vector<std::vector<Image>>& dmu, int bin,
                               const std::function<std::vector<double>(size_t)>& residual) const;
+  /// Scales image i's counts by the exposure (fitted or `scale`), adds its background keys and
+  /// appends it to `out`.
+  void AddExposureAndBackground(const std::vector<double>& theta, size_t i, Image counts,
+                                double scale, Simulated* out) const;
   const FitSpec& spec_;
   int threads_;
+  double wave_photons_ = 0;    // exact images: the flat field's photons per pixel
+  double wave_window_um_ = 0;  // exact images: the FFT window over the parameter box
   std::function<void(const std::string&)> say_;
   bool split_allowed_ = true;
   // Nuisance keys that keep the near/far split (docs/fit.md, "Speed", "Nuisances that keep the

@@ -198,7 +198,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
   // linearisation stops short (issue 26 item 2).
   OptimumDerivatives od;
   const std::vector<double> read_variance = ReadVariance(spec);
-  const double k = spec.rays.ray_factor * spec.rays.fractions.back();
+  const double k = spec.RaysPerPhoton();
   const int bin = model.BinAt(final_level);
   const Eigen::VectorXd prior = PriorPrecision(spec);
   bool steps_ran = false;
@@ -450,7 +450,7 @@ Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vec
       0.5 * (d.jacobian.transpose() * d2.jacobian + d2.jacobian.transpose() * d.jacobian);
   JtJ.diagonal() += prior;
   const Matrix cov = InverseSpd(FromEigen(JtJ));
-  const double k = spec.rays.ray_factor * spec.rays.fractions.back();
+  const double k = spec.RaysPerPhoton();
   // The estimate's covariance. With the final steps, the root of their estimating equation:
   // A^-1 (B_e + B_t) A^-T (the experiment's and the templates' noise through the chosen
   // derivatives, whose own noise B_e includes); sigma_derivatives is the part A^-1 N A^-T,

@@ -464,20 +464,43 @@ void MieImager::Impl::NodeHarmonics(const Node& nd, double dz, int n, double h, 
   }
 }
 
+namespace {
+/// Light from the sphere reaches the focal plane within rho_light of its axis; the window adds
+/// a margin for the pupil's diffraction tails (periodic wrap-around).
+struct Window {
+  double rho_light, margin;
+};
+Window WindowFor(const Scene& s, double defocus_um) {
+  const ObjectSpec& o = s.objects.at(0);
+  const double s_na = AcceptanceSin(s), tan_na = s_na / std::sqrt(1 - s_na * s_na);
+  const double dz = defocus_um - o.center_um.z;
+  const double margin = s.trace.mie.margin_um > 0
+                            ? s.trace.mie.margin_um
+                            : 8 + 8 * s.wavelength_um / (s_na * s.medium_index);
+  return {o.radius_um + (std::abs(dz) + o.radius_um) * tan_na, margin};
+}
+}  // namespace
+
+double AutomaticMieWindowUm(const Scene& scene, double defocus_um) {
+  const Window w = WindowFor(scene, defocus_um);
+  return 2 * (w.rho_light + w.margin);
+}
+
 Image MieImager::Expected(double defocus_um, int threads) const {
   const Impl& im = *impl_;
   const Scene& s = im.scene;
   const MieSettings& set = im.set;
   const double dz = defocus_um - im.center.z;
-  const double tan_na = im.s_na / std::sqrt(1 - im.s_na * im.s_na);
-  // Light from the sphere reaches the focal plane within rho_light of its axis; the window
-  // adds a margin for the pupil's diffraction tails (periodic wrap-around).
-  const double rho_light = im.radius + (std::abs(dz) + im.radius) * tan_na;
-  const double margin =
-      set.margin_um > 0 ? set.margin_um : 8 + 8 * s.wavelength_um / (im.s_na * s.medium_index);
-  const double h = im.lambda_medium / (4 * im.s_na) / set.oversample;
-  const int n = cv::getOptimalDFTSize(int(std::ceil(2 * (rho_light + margin) / h)));
-  const double rho_max = rho_light + margin / 2;
+  const Window win = WindowFor(s, defocus_um);
+  const double margin = win.margin;
+  double h = im.lambda_medium / (4 * im.s_na) / set.oversample;
+  int n = cv::getOptimalDFTSize(int(std::ceil(2 * (win.rho_light + margin) / h)));
+  double rho_max = win.rho_light + margin / 2;
+  if (set.window_um > 0) {  // a fixed window: the same grid for every radius and defocus
+    n = cv::getOptimalDFTSize(int(std::ceil(set.window_um / h)));
+    h = set.window_um / n;
+    rho_max = set.window_um / 2 - margin / 2;
+  }
   const double drho = h / 2;
   const int n_rho = int(std::ceil(rho_max / drho)) + 3;
   // Per-node harmonics, summed in node order (the same image for any thread count).

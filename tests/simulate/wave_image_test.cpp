@@ -109,6 +109,64 @@ TEST(WaveImage, ShiftingTheSphereShiftsTheImage) {
   EXPECT_LT(worst, 1e-3);
 }
 
+/// A light field over direction cosines, n x n cells of [-0.45, 0.45]^2: value f(u, v) inside
+/// sin(theta) < 0.4, zero outside.
+template <class F>
+Scene LightFieldScene(F f, int n = 32) {
+  Scene s = WaveScene(6, 1.4, 0, 48);
+  s.source.type = SourceType::kLightField;
+  s.source.angular_extent = 0.45;
+  s.source.angular_map = Image(n, n);
+  for (int y = 0; y < n; ++y)
+    for (int x = 0; x < n; ++x) {
+      const double u = -0.45 + (x + 0.5) * 0.9 / n, v = 0.45 - (y + 0.5) * 0.9 / n;
+      s.source.angular_map.at(x, y) = std::hypot(u, v) < 0.4 ? float(f(u, v)) : 0.f;
+    }
+  return s;
+}
+
+// Turning the illumination by 90 degrees about the axis turns the image by 90 degrees about the
+// sphere: the azimuthal harmonics carry the source's asymmetry with the right orientation and
+// sign (u -> v, v -> -u turns the map counter-clockwise, and the image's +x to +y).
+TEST(WaveImage, TurningTheLightFieldTurnsTheImage) {
+  auto f = [](double u, double v) { return 1 + 1.5 * u + 0.6 * v * v; };
+  const Image a = MieImager(LightFieldScene(f)).Expected(8.0, 2);
+  const Image b =
+      MieImager(LightFieldScene([&](double u, double v) { return f(v, -u); })).Expected(8.0, 2);
+  // Pixel (c, r) at (x, y) = (c + 0.5 - 24, 24 - r - 0.5) pixels; turned: (-y, x).
+  double worst = 0, asym = 0;
+  for (int r = 0; r < 48; ++r)
+    for (int c = 0; c < 48; ++c) {
+      const int c2 = 47 - r, r2 = 47 - c;  // (x, y) -> (-y, x) -> pixel (c2, r2)
+      worst = std::max(worst, double(std::abs(b.at(c2, r2) - a.at(c, r))));
+      asym = std::max(asym, double(std::abs(a.at(c, r) - a.at(47 - c, r))));
+    }
+  EXPECT_GT(asym, 50.0);   // the tilted illumination makes the image asymmetric in x...
+  EXPECT_LT(worst, 0.05);  // ...and the turned one is the turned image (photons of 1000)
+}
+
+// A light field that is a uniform disc is the cone source of that angle: the harmonics beyond
+// the zeroth vanish, and the map's cells sampled on the quadrature's circles converge to the
+// cone's weights as the cells shrink (the map's staircase rim is the difference).
+TEST(WaveImage, UniformLightFieldConvergesToTheCone) {
+  Scene cone = LightFieldScene([](double, double) { return 1.0; });
+  cone.source = SourceSpec{};
+  cone.source.type = SourceType::kCone;
+  cone.source.half_angle_deg = std::asin(0.4) * 180 / M_PI;
+  const Image ref = MieImager(cone).Expected(4.0, 2);
+  std::vector<double> worst;
+  for (int n : {32, 128}) {
+    const Image a =
+        MieImager(LightFieldScene([](double, double) { return 1.0; }, n)).Expected(4.0, 2);
+    double w = 0;
+    for (size_t i = 0; i < a.size(); ++i)
+      w = std::max(w, double(std::abs(a.pixels[i] - ref.pixels[i])));
+    worst.push_back(w);
+  }
+  EXPECT_LT(worst[0], 15.0);  // 1.5 % of the background with 32 cells across the map
+  EXPECT_LT(worst[1], worst[0] / 2.5) << worst[0] << " -> " << worst[1];  // first order in the cell
+}
+
 TEST(WaveImage, PoissonSampleHasTheExpectedMeanAndVariance) {
   for (double mu : {0.7, 4.0, 35.0, 1000.0}) {
     Image e(200, 200, float(mu));

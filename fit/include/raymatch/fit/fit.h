@@ -131,6 +131,12 @@ struct FitSpec {
   double profile_correlation = 0.9;
   bool uncertainties = true;  ///< false: search only (benchmarks)
   int threads = 0;
+  /// The images come from an exact model (the scene's or the fit file's optics = "mie"): no
+  /// simulation noise, so one image per evaluation, no ray fractions, no repeats with other ray
+  /// streams, and every (1 + 1 / k) of the finite-ray formulas is 1.
+  bool exact_images = false;
+  /// Simulated rays per experimental photon at the final level (infinite for exact images).
+  double RaysPerPhoton() const;
 };
 
 /// Reads and checks a fit file: scene, images (read and prepared), parameter keys resolved in

@@ -230,7 +230,10 @@ struct MieSettings {
   int harmonics = 8;          ///< azimuthal harmonics of an asymmetric (light-field) source
   double oversample = 1.5;    ///< FFT grid spacing lambda_medium / (4 NA / n) / oversample
   double margin_um = 0;       ///< window margin beyond the sphere's light (0: 8 um + 8 lambda/NA)
-  int pixel_subsamples = 0;   ///< per pixel side (0: spacing at most lambda_medium / (8 NA / n))
+  /// The FFT window's side (0: automatic, from the sphere's radius and defocus). Fits fix it, so
+  /// the sampling does not jump as the radius and z change between evaluations.
+  double window_um = 0;
+  int pixel_subsamples = 0;  ///< per pixel side (0: spacing at most lambda_medium / (8 NA / n))
 };
 
 struct TraceSpec {

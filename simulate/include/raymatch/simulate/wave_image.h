@@ -56,6 +56,10 @@ struct MieSampling {
   nlohmann::json ToJson() const;
 };
 
+/// The FFT window side MieImager chooses by itself for `scene`'s sphere focused at `defocus_um`
+/// (MieSettings::window_um = 0): the sphere's light plus the margin, on both sides.
+double AutomaticMieWindowUm(const Scene& scene, double defocus_um);
+
 class MieImager {
  public:
   /// Throws Error (naming the scene file) when MieUnsupportedReason is not empty.

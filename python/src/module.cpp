@@ -12,6 +12,7 @@
 #include "raymatch/simulate/scan.h"
 #include "raymatch/simulate/scene.h"
 #include "raymatch/simulate/tracer.h"
+#include "raymatch/simulate/wave_image.h"
 
 namespace fs = std::filesystem;
 
@@ -153,12 +154,18 @@ py::tuple Simulate(const PyScene& ps, std::optional<uint64_t> rays,
   if (!ps.from_file) scene.file.clear();
 
   std::unique_ptr<simulate::Simulator> sim;
+  std::unique_ptr<simulate::MieImager> mie;  // optics = "mie": the exact wave image
   uint64_t rays_per_image = 0;
   double hits_per_ray = 0;
   {
     py::gil_scoped_release nogil;
-    sim = std::make_unique<simulate::Simulator>(scene);
-    if (rays)
+    if (scene.trace.optics == simulate::ImageOptics::kMie)
+      mie = std::make_unique<simulate::MieImager>(scene);
+    else
+      sim = std::make_unique<simulate::Simulator>(scene);
+    if (mie)
+      rays_per_image = 0;
+    else if (rays)
       rays_per_image = *rays;
     else if (scene.trace.rays > 0)
       rays_per_image = scene.trace.rays;
@@ -178,8 +185,12 @@ py::tuple Simulate(const PyScene& ps, std::optional<uint64_t> rays,
     nlohmann::json meta;
     {
       py::gil_scoped_release nogil;
-      r = sim->TracePlane(dz, static_cast<uint32_t>(i), rays_per_image, ctl);
-      meta = simulate::PlaneMetadata(*sim, r, static_cast<uint32_t>(i));
+      if (mie) {
+        r = simulate::MiePlane(*mie, dz, static_cast<uint32_t>(i), ctl, &meta);
+      } else {
+        r = sim->TracePlane(dz, static_cast<uint32_t>(i), rays_per_image, ctl);
+        meta = simulate::PlaneMetadata(*sim, r, static_cast<uint32_t>(i));
+      }
     }
     if (!ps.from_file) meta["scene_file"] = source;
     Image dn;
@@ -193,7 +204,7 @@ py::tuple Simulate(const PyScene& ps, std::optional<uint64_t> rays,
     if (PyErr_CheckSignals() != 0) throw py::error_already_set();  // Ctrl-C between planes
   }
   return py::make_tuple(images, py::cast(scene.defocus_um), sidecars, rays_per_image, hits_per_ray,
-                        py::cast(sim->Effects()), code_values);
+                        py::cast(mie ? mie->Effects() : sim->Effects()), code_values);
 }
 
 }  // namespace

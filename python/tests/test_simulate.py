@@ -171,3 +171,20 @@ def test_example_script_runs(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "mse" in r.stdout and (tmp_path / "report" / "report.html").exists()
     assert (tmp_path / "focus_scan.png").exists() or (tmp_path / "focus_scan.npz").exists()
+
+
+def test_wave_optics_bit_identical_to_cli(exe, tmp_path):
+    # [trace] optics = "mie": the exact wave image's Poisson counts, equal to the CLI's, with the
+    # sidecar naming the optics and its sampling.
+    text = TINY_SCENE.replace("rays = 30000", 'photons_per_pixel = 400\noptics = "mie"\n'
+                              "[trace.mie]\nnodes_per_panel = 3\npanel_width = 0.1")
+    scene_file = tmp_path / "tiny.toml"
+    scene_file.write_text(text)
+    index, cli_images, cli_sidecars = cli_scan(exe, scene_file, tmp_path / "cli", "--defocus-um",
+                                               "2")
+    r = raymatch.simulate(raymatch.Scene.from_file(scene_file), defocus_um=[2])
+    np.testing.assert_array_equal(r.images[0], cli_images[0])
+    assert r.sidecars[0]["optics"] == cli_sidecars[0]["optics"] == "mie"
+    assert r.sidecars[0]["sampling"]["mie_terms"] > 0
+    assert "optics:mie" in r.effects
+    assert abs(np.median(r.images[0][:4]) - 400) < 60  # the flat field's photons, away from the drop

@@ -238,8 +238,8 @@ bool CodeValues(const Scene& scene, const Image& counts, uint32_t plane_index, I
   return true;
 }
 
-static PlaneResult MiePlane(const MieImager& mie, double dz, uint32_t plane_index,
-                            const RunControl& control, nlohmann::json* meta) {
+PlaneResult MiePlane(const MieImager& mie, double dz, uint32_t plane_index,
+                     const RunControl& control, nlohmann::json* meta) {
   const auto t0 = std::chrono::steady_clock::now();
   const Scene& s = mie.scene();
   PlaneResult r;
@@ -286,7 +286,7 @@ static PlaneResult MiePlane(const MieImager& mie, double dz, uint32_t plane_inde
       {"medium_index", s.medium_index},
       {"objects",
        nlohmann::json::array({{{"name", o.name},
-                               {"shape", "sphere"},
+                               {"type", "sphere"},
                                {"center_um", {o.center_um.x, o.center_um.y, o.center_um.z}},
                                {"radius_um", o.radius_um},
                                {"index", o.index},
@@ -397,6 +397,73 @@ ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
   WriteTextFileAtomic(sum.index_json, index.dump(2) + "\n");
   WriteTextFileAtomic(sum.index_csv, csv.str());
   return sum;
+}
+
+std::vector<OpticsComparisonPlane> CompareOptics(const Scene& scene, const ScanOptions& opt) {
+  CheckPlanePositions(scene);
+  if (!(scene.trace.photons_per_pixel > 0))
+    throw Error(FileLocation{scene.file},
+                "--compare-optics needs [trace] photons_per_pixel (or --photons-per-pixel): the "
+                "difference is measured in units of that shot noise");
+  Scene wave_scene = scene, ray_scene = scene;
+  wave_scene.trace.optics = ImageOptics::kMie;
+  ray_scene.trace.optics = ImageOptics::kRays;
+  const MieImager mie(wave_scene);  // throws for scenes without an exact wave image
+  const Simulator sim(ray_scene);
+  const uint64_t rays = sim.RaysForPhotonTarget(scene.trace.photons_per_pixel);
+  EnsureDirectory(opt.output_dir);
+  std::vector<OpticsComparisonPlane> out;
+  std::ostringstream csv;
+  csv << "defocus_um,chi2_per_pixel,max_abs_z,wave_image,ray_image,z_image\n";
+  for (size_t i = 0; i < scene.defocus_um.size(); ++i) {
+    const double dz = scene.defocus_um[i];
+    RunControl ctl = opt.control;
+    const Image wave = mie.Expected(dz, ctl.threads > 0 ? ctl.threads : scene.trace.threads);
+    const Image ray = sim.TracePlane(dz, static_cast<uint32_t>(i), rays, ctl).counts;
+    OpticsComparisonPlane p;
+    p.defocus_um = dz;
+    Image z(wave.width, wave.height);
+    double sum = 0;
+    for (size_t q = 0; q < wave.size(); ++q) {
+      const double e = std::max(double(wave.pixels[q]), 1.0);
+      const double v = (double(ray.pixels[q]) - wave.pixels[q]) / std::sqrt(e);
+      z.pixels[q] = float(v);
+      sum += v * v;
+      p.max_abs_z = std::max(p.max_abs_z, std::abs(v));
+    }
+    p.chi2_per_pixel = sum / double(wave.size());
+    const std::string stem = PlaneStem(scene.name, dz);
+    const fs::path dir(opt.output_dir);
+    p.wave_image = (dir / (stem + "_mie.tif")).string();
+    p.ray_image = (dir / (stem + "_rays.tif")).string();
+    p.z_image = (dir / (stem + "_z.tif")).string();
+    const nlohmann::json meta = {
+        {"provenance", ProvenanceJson()},
+        {"scene_file", scene.file},
+        {"defocus_um", dz},
+        {"photons_per_pixel", scene.trace.photons_per_pixel},
+        {"rays_per_image", rays},
+        {"mie_sampling", mie.sampling().ToJson()},
+        {"z", "(rays - wave) / sqrt(wave): the difference in units of the shot noise"},
+        {"chi2_per_pixel", p.chi2_per_pixel}};
+    WriteFloatImage(p.wave_image, wave, meta.dump());
+    WriteFloatImage(p.ray_image, ray, meta.dump());
+    WriteFloatImage(p.z_image, z, meta.dump());
+    if (opt.write_png) {
+      p.z_png = (dir / (stem + "_z.png")).string();
+      Image shifted = z;
+      for (float& v : shifted.pixels) v += 5.0f;  // z = -5 .. 5 on the preview's 0 .. 10
+      WritePngPreview(p.z_png, shifted, 0.0, 10.0);
+    }
+    csv << FormatDefocus(dz) << "," << p.chi2_per_pixel << "," << p.max_abs_z << ","
+        << fs::path(p.wave_image).filename().string() << ","
+        << fs::path(p.ray_image).filename().string() << ","
+        << fs::path(p.z_image).filename().string() << "\n";
+    out.push_back(p);
+  }
+  WriteTextFileAtomic((fs::path(opt.output_dir) / (scene.name + "_optics.csv")).string(),
+                      csv.str());
+  return out;
 }
 
 }  // namespace raymatch::simulate

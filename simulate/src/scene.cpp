@@ -800,6 +800,7 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
       m.oversample = mr.InRange("oversample", 1.0, 8.0, m.oversample);
       m.margin_um = mr.InRange("margin_um", 0.0, 1000.0, m.margin_um);
       m.window_um = mr.InRange("window_um", 0.0, 100000.0, m.window_um);
+      m.spectrum_nodes = static_cast<int>(mr.Integer("spectrum_nodes", m.spectrum_nodes, 1, 256));
       m.pixel_subsamples =
           static_cast<int>(mr.Integer("pixel_subsamples", m.pixel_subsamples, 0, 64));
       mr.Finish();

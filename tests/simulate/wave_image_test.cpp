@@ -167,6 +167,33 @@ TEST(WaveImage, UniformLightFieldConvergesToTheCone) {
   EXPECT_LT(worst[1], worst[0] / 2.5) << worst[0] << " -> " << worst[1];  // first order in the cell
 }
 
+// A spectrum is incoherent over its wavelengths: two lines give the power-weighted sum of the
+// two monochromatic images (each with the sphere's index at its wavelength, Cauchy here), and
+// the flat field stays the photon target.
+TEST(WaveImage, SpectrumIsThePowerWeightedSumOfItsWavelengths) {
+  Scene s = WaveScene(3, 1.4, 10, 32);
+  s.objects[0].dispersion.law = DispersionLaw::kCauchy;
+  s.objects[0].dispersion.coefficients = {1.38, 0.004};  // n = 1.38 + 0.004 / l^2
+  s.source.spectrum.type = SpectrumType::kLines;
+  s.source.spectrum.wavelengths_um = {0.45, 0.50};
+  s.source.spectrum.weights = {0.3, 0.7};
+  const Image both = MieImager(s).Expected(2.0, 2);
+  Image sum(32, 32);
+  for (int k = 0; k < 2; ++k) {
+    Scene one = s;
+    one.source.spectrum = SpectrumSpec{};
+    one.wavelength_um = s.source.spectrum.wavelengths_um[k];
+    one.objects[0].dispersion.law = DispersionLaw::kNone;
+    one.objects[0].index = 1.38 + 0.004 / (one.wavelength_um * one.wavelength_um);
+    const Image a = MieImager(one).Expected(2.0, 2);
+    for (size_t i = 0; i < a.size(); ++i)
+      sum.pixels[i] += float(s.source.spectrum.weights[k] * a.pixels[i]);
+  }
+  for (size_t i = 0; i < sum.size(); ++i) ASSERT_NEAR(both.pixels[i], sum.pixels[i], 1e-3) << i;
+  s.objects[0].dispersion.coefficients = {1.0};  // no sphere: the flat field
+  for (float v : MieImager(s).Expected(2.0, 2).pixels) ASSERT_NEAR(v, 1000.0, 1e-6);
+}
+
 TEST(WaveImage, PoissonSampleHasTheExpectedMeanAndVariance) {
   for (double mu : {0.7, 4.0, 35.0, 1000.0}) {
     Image e(200, 200, float(mu));

@@ -52,9 +52,35 @@ bool CodeValues(const Scene& scene, const Image& counts, uint32_t plane_index, I
 /// finished stay (each is complete), nothing half-written remains.
 ScanSummary RunScan(const Scene& scene, const ScanOptions& options);
 
+/// One plane of `CompareOptics`: the exact wave image (expected photons), a ray image at the
+/// same photon count and their difference in units of the shot noise.
+struct OpticsComparisonPlane {
+  double defocus_um = 0;
+  /// mean over pixels of ((rays - wave) / sqrt(wave))^2: 1 where the ray model is right within
+  /// the shot noise; the excess over 1 grows in proportion to the photons per pixel.
+  double chi2_per_pixel = 0;
+  double max_abs_z = 0;  ///< the largest |rays - wave| / sqrt(wave)
+  std::string wave_image, ray_image, z_image, z_png;
+};
+
+/// For a sphere scene (MieUnsupportedReason empty) at its photon target: per plane the wave
+/// image (<stem>_mie.tif, expected photons), the traced ray image (<stem>_rays.tif) and
+/// z = (rays - wave) / sqrt(wave) (<stem>_z.tif, .png on -5..5), and <name>_optics.csv with one
+/// line per plane. Where the ray model can be trusted at this photon count: chi2_per_pixel
+/// near 1.
+std::vector<OpticsComparisonPlane> CompareOptics(const Scene& scene, const ScanOptions& options);
+
 /// Throws Error when a focus position is listed twice (two planes would share a file name);
 /// RunScan checks this before anything is written, the Python module before tracing.
 void CheckPlanePositions(const Scene& scene);
+
+class MieImager;  // wave_image.h
+
+/// One plane of the exact wave model ([trace] optics = "mie"): the expected image, Poisson
+/// photon counts from the streams (seed, plane index, pixel) in `counts`, and its sidecar
+/// metadata in `*meta`.
+PlaneResult MiePlane(const MieImager& mie, double defocus_um, uint32_t plane_index,
+                     const RunControl& control, nlohmann::json* meta);
 
 /// The sidecar metadata for one traced plane (also embedded in the TIFF ImageDescription).
 nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_t plane_index);

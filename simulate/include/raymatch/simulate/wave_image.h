@@ -38,7 +38,7 @@
 namespace raymatch::simulate {
 
 /// The reason a scene has no exact wave image ("" when it has one): optics = "mie" needs one
-/// homogeneous sphere, a cone, light-field or on-axis collimated source, no motion, no spectrum.
+/// homogeneous sphere, a cone, light-field or on-axis collimated source, no motion.
 std::string MieUnsupportedReason(const Scene& scene);
 
 /// How finely the wave image is sampled (the scene's [trace.mie] table; defaults converge to
@@ -50,7 +50,8 @@ struct MieSampling {
   double grid_um = 0;         ///< its spacing at the object plane
   double window_um = 0;       ///< its size
   int pixel_subsamples = 0;   ///< per pixel side
-  int terms = 0;              ///< Mie series terms
+  int terms = 0;              ///< Mie series terms (at the first wavelength)
+  int wavelengths = 1;        ///< wavelength nodes of a spectrum
   double size_parameter = 0;  ///< 2 pi n_medium a / lambda
   double background = 0;      ///< flat-field flux before scaling (source units)
   nlohmann::json ToJson() const;

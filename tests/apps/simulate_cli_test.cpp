@@ -47,6 +47,41 @@ rays = 200000
 defocus_um = [-5, 0, 5]
 )";
 
+// optics = "mie" and --compare-optics as a user runs them: the wave image's files and sidecar,
+// the comparison's files and table; a scene the wave model cannot image is refused at the
+// optics key's line.
+TEST(SimulateCli, WaveOpticsAndTheComparisonWithRays) {
+  testing::TempDir dir;
+  std::string text = kScene;
+  text.replace(text.find("rays = 200000"), 13,
+               "photons_per_pixel = 500\noptics = \"mie\"\n[trace.mie]\nnodes_per_panel = 3");
+  const std::string scene = dir.Write("wave.toml", text);
+  CliRun r = Raymatch("simulate " + scene + " -o " + (dir / "w") + " --defocus-um 0 -q", dir);
+  ASSERT_EQ(r.code, 0) << r.err;
+  std::ifstream side(dir / "w/tiny_z+000.00um.json");
+  const nlohmann::json j = nlohmann::json::parse(side);
+  EXPECT_EQ(j["optics"], "mie");
+  EXPECT_GT(j["sampling"]["directions"].get<int>(), 3);
+  r = Raymatch("simulate " + scene + " -o " + (dir / "c") + " --defocus-um -5,5 --compare-optics",
+               dir);
+  ASSERT_EQ(r.code, 0) << r.err;
+  std::ifstream so(dir / "stdout.txt");
+  const std::string out((std::istreambuf_iterator<char>(so)), std::istreambuf_iterator<char>());
+  EXPECT_NE(out.find("chi-square per pixel"), std::string::npos) << out;
+  for (const char* f : {"c/tiny_z-005.00um_mie.tif", "c/tiny_z+005.00um_rays.tif",
+                        "c/tiny_z+005.00um_z.tif", "c/tiny_z+005.00um_z.png", "c/tiny_optics.csv"})
+    EXPECT_TRUE(fs::exists(dir / f)) << f;
+  const std::string two =
+      dir.Write("two.toml", text +
+                                "[[object]]\ntype = \"sphere\"\ncenter_um = [12, 0, 0]\n"
+                                "radius_um = 2\nindex = 1.4\n");
+  r = Raymatch("simulate " + two + " -o " + (dir / "t"), dir);
+  EXPECT_EQ(r.code, 1);
+  EXPECT_NE(r.err.find("two.toml:"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("exactly one object"), std::string::npos) << r.err;
+  EXPECT_FALSE(fs::exists(dir / "t"));
+}
+
 TEST(SimulateCli, WritesImagesSidecarsAndIndex) {
   testing::TempDir dir;
   const std::string scene = dir.Write("tiny.toml", kScene);

@@ -78,7 +78,6 @@ std::string MieUnsupportedReason(const Scene& s) {
     return "optics = \"mie\" needs a sphere; object '" + o.name + "' is not one";
   if (o.index_field)
     return "optics = \"mie\" needs a homogeneous sphere; '" + o.name + "' has an index field";
-  if (s.has_motion()) return "optics = \"mie\" does not model motion yet (use optics = \"rays\")";
   switch (s.source.type) {
     case SourceType::kCone:
     case SourceType::kLightField:
@@ -379,6 +378,7 @@ std::vector<std::string> MieImager::Effects() const {
   if (!impl_->zone_s.empty()) e.push_back("corrector");
   if (s.camera.psf_sigma_um > 0) e.push_back("psf");
   if (!impl_->wavelengths.empty()) e.push_back("spectrum");
+  if (s.has_motion()) e.push_back("motion");
   if (s.objects[0].absorption_index > 0) e.push_back("absorption");
   return e;
 }
@@ -532,37 +532,21 @@ Image MieImager::Expected(double defocus_um, int threads) const {
   }
   const Scene& s = im.scene;
   const MieSettings& set = im.set;
-  const double dz = defocus_um - im.center.z;
-  const Window win = WindowFor(s, defocus_um);
-  const double margin = win.margin;
-  double h = im.lambda_medium / (4 * im.s_na) / set.oversample;
-  int n = cv::getOptimalDFTSize(int(std::ceil(2 * (win.rho_light + margin) / h)));
-  double rho_max = win.rho_light + margin / 2;
-  if (set.window_um > 0) {  // a fixed window: the same grid for every radius and defocus
-    n = cv::getOptimalDFTSize(int(std::ceil(set.window_um / h)));
-    h = set.window_um / n;
-    rho_max = set.window_um / 2 - margin / 2;
-  }
-  const double drho = h / 2;
-  const int n_rho = int(std::ceil(rho_max / drho)) + 3;
-  // Per-node harmonics, summed in node order (the same image for any thread count).
-  std::vector<std::vector<std::vector<double>>> per(im.nodes.size());
-  tbb::task_arena arena(threads > 0 ? threads : tbb::task_arena::automatic);
-  arena.execute([&] {
-    tbb::parallel_for(size_t(0), im.nodes.size(), [&](size_t j) {
-      im.NodeHarmonics(im.nodes[j], dz, n, h, drho, n_rho, &per[j]);
-    });
-  });
-  const int mh = im.harmonics;
-  std::vector<std::vector<double>> cm(mh + 1, std::vector<double>(n_rho, 0.0)), sm = cm;
-  for (size_t j = 0; j < im.nodes.size(); ++j) {
-    const Node& nd = im.nodes[j];
-    const double w = nd.omega / nd.cos;  // unit flux through the z-plane: amplitude^2 = 1 / cos
-    for (int m = 0; m <= mh; ++m)
-      for (int q = 0; q < n_rho; ++q) {
-        cm[m][q] += w * nd.wc[m] * per[j][m][q];
-        if (m > 0) sm[m][q] += w * nd.ws[m] * per[j][m][q];
-      }
+  // Motion: the pulse's equal-power quantiles (midpoints) as times, the sphere where it is at
+  // each; positions that share an axial offset share the harmonics (a lateral move only
+  // shifts the image), so lateral motion costs renders, not fields.
+  struct Group {
+    double z;
+    std::vector<std::pair<double, double>> xy;
+  };
+  std::vector<Group> groups;
+  const Vec3 vel = s.objects[0].velocity_um_per_us;
+  const int times = s.has_motion() ? set.motion_nodes : 1;
+  for (int k = 0; k < times; ++k) {
+    const double t = s.has_motion() ? s.exposure.Offset((k + 0.5) / times) : 0.0;
+    const Vec3 c = im.center + vel * t;
+    if (groups.empty() || groups.back().z != c.z) groups.push_back({c.z, {}});
+    groups.back().xy.emplace_back(c.x, c.y);
   }
   // Render: pixels integrated on K x K sub-samples; the PSF convolves the fine image.
   const CameraSpec& cam = s.camera;
@@ -575,40 +559,76 @@ Image MieImager::Expected(double defocus_um, int threads) const {
   const int pad = psf > 0 ? int(std::ceil(4 * psf / fine)) : 0;
   const int fw = cam.nx * kss + 2 * pad, fh = cam.ny * kss + 2 * pad;
   cv::Mat dev(fh, fw, CV_64F, cv::Scalar(0));
-  auto deviation = [&](double x, double y) {
-    const double dx = x - im.center.x, dy = y - im.center.y;
-    const double rho = std::hypot(dx, dy);
-    const double g = rho / drho;
-    if (g >= n_rho - 3) return 0.0;
-    const int q = int(g);
-    const double t = g - q;
-    double w[4];
-    KeysWeights(t, w);
-    auto at = [&](const std::vector<double>& f) {
-      const int q0 = q - 1;
-      // f is even in rho about 0 (a smooth function of x, y): f(-drho) = f(drho).
-      const double f0 = f[std::abs(q0)];
-      return w[0] * f0 + w[1] * f[q] + w[2] * f[q + 1] + w[3] * f[q + 2];
-    };
-    double v = at(cm[0]);
-    if (mh > 0) {
-      const double psi = std::atan2(dy, dx);
-      for (int m = 1; m <= mh; ++m)
-        v += at(cm[m]) * std::cos(m * psi) + at(sm[m]) * std::sin(m * psi);
+  tbb::task_arena arena(threads > 0 ? threads : tbb::task_arena::automatic);
+  int n = 0;
+  double h = 0;
+  for (const Group& g : groups) {
+    const double dz = defocus_um - g.z;
+    Scene at = s;
+    at.objects[0].center_um.z = g.z;
+    const Window win = WindowFor(at, defocus_um);
+    const double margin = win.margin;
+    h = im.lambda_medium / (4 * im.s_na) / set.oversample;
+    n = cv::getOptimalDFTSize(int(std::ceil(2 * (win.rho_light + margin) / h)));
+    double rho_max = win.rho_light + margin / 2;
+    if (set.window_um > 0) {  // a fixed window: the same grid for every radius and defocus
+      n = cv::getOptimalDFTSize(int(std::ceil(set.window_um / h)));
+      h = set.window_um / n;
+      rho_max = set.window_um / 2 - margin / 2;
     }
-    return v;
-  };
-  arena.execute([&] {
-    tbb::parallel_for(0, fh, [&](int r) {
-      double* row = dev.ptr<double>(r);
-      const double v = (cam.ny / 2.0 - (r - pad + 0.5) / kss) * cam.pixel_pitch_um;
-      const double y = (v + cam.offset_um[1]) / im.sensor_sign;
-      for (int c = 0; c < fw; ++c) {
-        const double u = ((c - pad + 0.5) / kss - cam.nx / 2.0) * cam.pixel_pitch_um;
-        row[c] = deviation((u + cam.offset_um[0]) / im.sensor_sign, y);
-      }
+    const double drho = h / 2;
+    const int n_rho = int(std::ceil(rho_max / drho)) + 3;
+    // Per-node harmonics, summed in node order (the same image for any thread count).
+    std::vector<std::vector<std::vector<double>>> per(im.nodes.size());
+    arena.execute([&] {
+      tbb::parallel_for(size_t(0), im.nodes.size(), [&](size_t j) {
+        im.NodeHarmonics(im.nodes[j], dz, n, h, drho, n_rho, &per[j]);
+      });
     });
-  });
+    const int mh = im.harmonics;
+    std::vector<std::vector<double>> cm(mh + 1, std::vector<double>(n_rho, 0.0)), sm = cm;
+    for (size_t j = 0; j < im.nodes.size(); ++j) {
+      const Node& nd = im.nodes[j];
+      const double w = nd.omega / nd.cos;  // unit flux through the z-plane: amplitude^2 = 1/cos
+      for (int m = 0; m <= mh; ++m)
+        for (int q = 0; q < n_rho; ++q) {
+          cm[m][q] += w * nd.wc[m] * per[j][m][q];
+          if (m > 0) sm[m][q] += w * nd.ws[m] * per[j][m][q];
+        }
+    }
+    auto deviation = [&](double dx, double dy) {
+      const double rho = std::hypot(dx, dy);
+      const double gr = rho / drho;
+      if (gr >= n_rho - 3) return 0.0;
+      const int q = int(gr);
+      double w[4];
+      KeysWeights(gr - q, w);
+      auto at = [&](const std::vector<double>& f) {
+        // f is even in rho about 0 (a smooth function of x, y): f(-drho) = f(drho).
+        return w[0] * f[std::abs(q - 1)] + w[1] * f[q] + w[2] * f[q + 1] + w[3] * f[q + 2];
+      };
+      double v = at(cm[0]);
+      if (mh > 0) {
+        const double psi = std::atan2(dy, dx);
+        for (int m = 1; m <= mh; ++m)
+          v += at(cm[m]) * std::cos(m * psi) + at(sm[m]) * std::sin(m * psi);
+      }
+      return v;
+    };
+    const double share = 1.0 / times;
+    arena.execute([&] {
+      tbb::parallel_for(0, fh, [&](int r) {
+        double* row = dev.ptr<double>(r);
+        const double v = (cam.ny / 2.0 - (r - pad + 0.5) / kss) * cam.pixel_pitch_um;
+        const double y = (v + cam.offset_um[1]) / im.sensor_sign;
+        for (int c = 0; c < fw; ++c) {
+          const double u = ((c - pad + 0.5) / kss - cam.nx / 2.0) * cam.pixel_pitch_um;
+          const double x = (u + cam.offset_um[0]) / im.sensor_sign;
+          for (const auto& [cx, cy] : g.xy) row[c] += share * deviation(x - cx, y - cy);
+        }
+      });
+    });
+  }
   if (psf > 0)
     cv::GaussianBlur(dev, dev, cv::Size(0, 0), psf / fine, psf / fine, cv::BORDER_REPLICATE);
   Image out(cam.nx, cam.ny);

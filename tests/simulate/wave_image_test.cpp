@@ -194,6 +194,40 @@ TEST(WaveImage, SpectrumIsThePowerWeightedSumOfItsWavelengths) {
   for (float v : MieImager(s).Expected(2.0, 2).pixels) ASSERT_NEAR(v, 1000.0, 1e-6);
 }
 
+// Motion during the pulse: the image is the average over the pulse's equal-power times of the
+// images of the sphere where it is then (lateral moves share one field computation, axial ones
+// do not; both must give that average).
+TEST(WaveImage, MovingSphereIsTheAverageOverThePulse) {
+  for (const Vec3 v : {Vec3(3, -2, 0), Vec3(1, 0, 4)}) {  // um per us
+    Scene s = WaveScene(3, 1.38, 10, 32);
+    s.objects[0].velocity_um_per_us = v;
+    s.exposure.shape = PulseShape::kTopHat;
+    s.exposure.duration_us = 0.5;
+    s.trace.mie.motion_nodes = 4;
+    const Image moving = MieImager(s).Expected(2.0, 2);
+    Image mean(32, 32);
+    for (int k = 0; k < 4; ++k) {
+      Scene at = s;
+      at.exposure = ExposureSpec{};
+      at.objects[0].velocity_um_per_us = Vec3();
+      at.objects[0].center_um = v * (0.5 * ((k + 0.5) / 4 - 0.5));
+      const Image a = MieImager(at).Expected(2.0, 2);
+      for (size_t i = 0; i < a.size(); ++i) mean.pixels[i] += a.pixels[i] / 4;
+    }
+    for (size_t i = 0; i < mean.size(); ++i)
+      ASSERT_NEAR(moving.pixels[i], mean.pixels[i], 2e-3) << i;
+    // and it differs from the sphere at rest by more than that
+    Scene rest = s;
+    rest.exposure = ExposureSpec{};
+    rest.objects[0].velocity_um_per_us = Vec3();
+    const Image still = MieImager(rest).Expected(2.0, 2);
+    double d = 0;
+    for (size_t i = 0; i < still.size(); ++i)
+      d = std::max(d, double(std::abs(still.pixels[i] - moving.pixels[i])));
+    EXPECT_GT(d, 10.0);
+  }
+}
+
 TEST(WaveImage, PoissonSampleHasTheExpectedMeanAndVariance) {
   for (double mu : {0.7, 4.0, 35.0, 1000.0}) {
     Image e(200, 200, float(mu));

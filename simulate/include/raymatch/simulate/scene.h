@@ -234,7 +234,8 @@ struct MieSettings {
   /// the sampling does not jump as the radius and z change between evaluations.
   double window_um = 0;
   int pixel_subsamples = 0;  ///< per pixel side (0: spacing at most lambda_medium / (8 NA / n))
-  int spectrum_nodes = 8;  ///< wavelengths of a Gaussian or tabulated spectrum (equal power)
+  int spectrum_nodes = 8;    ///< wavelengths of a Gaussian or tabulated spectrum (equal power)
+  int motion_nodes = 8;      ///< times over the pulse of a moving sphere (equal power)
 };
 
 struct TraceSpec {

@@ -38,7 +38,7 @@
 namespace raymatch::simulate {
 
 /// The reason a scene has no exact wave image ("" when it has one): optics = "mie" needs one
-/// homogeneous sphere, a cone, light-field or on-axis collimated source, no motion.
+/// homogeneous sphere and a cone, light-field or on-axis collimated source.
 std::string MieUnsupportedReason(const Scene& scene);
 
 /// How finely the wave image is sampled (the scene's [trace.mie] table; defaults converge to

@@ -27,8 +27,9 @@ int RunFitCommand(const FitCliOptions& o) {
   std::cout << "fit " << fit::StatusName(r.status) << ": " << r.message << "\n";
   for (const auto& p : r.parameters) {
     std::cout << "  " << p.key << " = " << p.best << (p.unit.empty() ? "" : " " + p.unit) << "  +- "
-              << p.sigma << "  (Cramer-Rao bound " << p.sigma_cramer_rao << ", repeat-seed scatter "
-              << p.sigma_repeat << ")" << (p.at_bound ? "  AT BOUND" : "");
+              << p.sigma << "  (Cramer-Rao bound " << p.sigma_cramer_rao;
+    if (spec.repeat_seeds >= 2) std::cout << ", repeat-seed scatter " << p.sigma_repeat;
+    std::cout << ")" << (p.at_bound ? "  AT BOUND" : "");
     if (p.prior_sigma > 0)
       std::cout << "  (prior from the " << p.prior_from << ": " << p.prior_mean << " +- "
                 << p.prior_sigma << ")";

@@ -138,6 +138,7 @@ nlohmann::json FitJson(const FitSpec& spec, const FitResult& res) {
   j["message"] = res.message;
   j["best_error"] = J(res.best_error);
   if (res.goodness.pixels > 0) j["goodness_of_fit"] = GoodnessJson(res.goodness);
+  j["optics"] = spec.exact_images ? "mie" : "rays";
   j["rays"] = {{"ray_factor", spec.rays.ray_factor},
                {"fractions", spec.rays.fractions},
                {"common_random_numbers", spec.rays.common_random_numbers},
@@ -345,12 +346,16 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
   for (const auto& [k, v] : res.seconds)
     h << "<tr><td style=\"text-align:left\">" << Esc(k) << "</td><td>" << Num(v, 3)
       << " s</td></tr>";
-  h << "</table>\n<p>Rays: " << res.photon_matched_rays
-    << " photon-matched rays per image x ray factor " << spec.rays.ray_factor
-    << "; re-traced share per evaluation " << Num(res.near_ray_fraction, 3)
-    << " (rays that can meet an object; the others traced once). Every evaluation: "
-       "evaluations.csv; "
-       "everything: fit.json.</p></body></html>\n";
+  h << "</table>\n<p>";
+  if (spec.exact_images)
+    h << "Images: the exact wave model of the sphere (optics = \"mie\", docs/wave-optics.md): "
+         "no rays, no simulation noise. ";
+  else
+    h << "Rays: " << res.photon_matched_rays << " photon-matched rays per image x ray factor "
+      << spec.rays.ray_factor << "; re-traced share per evaluation "
+      << Num(res.near_ray_fraction, 3)
+      << " (rays that can meet an object; the others traced once). ";
+  h << "Every evaluation: evaluations.csv; everything: fit.json.</p></body></html>\n";
   const fs::path report = dir / "report.html";
   WriteTextFileAtomic(report, h.str());
   return report.string();

@@ -21,6 +21,7 @@
 #include "raymatch/simulate/mie.h"
 #include "raymatch/simulate/tracer.h"
 #include "sources.h"
+#include "stages.h"
 
 namespace raymatch::simulate {
 
@@ -141,6 +142,15 @@ struct MieImager::Impl {
     for (size_t i = 0; i < zone_s.size(); ++i)
       if (s <= zone_s[i]) return zone_t[i];
     return 0;
+  }
+
+  /// The object-plane point of the sensor position (col, row) in pixels (pixel centres at
+  /// +0.5): the inverse of the tracer's sensor stage (camera offset, flip, magnification).
+  std::pair<double, double> ObjectPoint(double col, double row) const {
+    const CameraSpec& cam = scene.camera;
+    const double u = (col - cam.nx / 2.0) * cam.pixel_pitch_um;
+    const double v = (cam.ny / 2.0 - row) * cam.pixel_pitch_um;
+    return {(u + cam.offset_um[0]) / sensor_sign, (v + cam.offset_um[1]) / sensor_sign};
   }
 
   double SpatialAt(double x, double y) const {
@@ -288,23 +298,16 @@ MieImager::MieImager(const Scene& scene) : impl_(std::make_unique<Impl>()) {
   im.s_na = AcceptanceSin(scene);
   const Complex m(o.index / scene.medium_index, o.absorption_index / scene.medium_index);
   im.mie = ComputeMie(m, im.k * im.radius);
-  // Corrector zones as edges in sin(theta) for a direction leaving the axis point (the ray
-  // model's zones are radii at the corrector plane, r = d tan(theta) on axis).
+  // Corrector zones as edges in sin(theta) for a direction leaving the axis point: the ray
+  // model's zones (MakeOptics: radii at the corrector plane) at r = d tan(theta).
   const OpticsSpec& op = scene.optics;
-  if (op.corrector.enabled) {
-    const double cz = op.corrector.distance_mm > 0
-                          ? op.corrector.distance_mm
-                          : (op.model == ObjectiveModel::kSingle ? op.objective_focal_mm
-                                                                 : op.working_distance_mm);
-    const double tan_na = std::tan(std::asin(im.s_na));
-    const size_t n = op.corrector.transmissions.size();
-    for (size_t i = 0; i < n; ++i) {
-      const double r = op.corrector.ring_outer_mm.empty() ? cz * tan_na * 1.02 * double(i + 1) / n
-                                                          : op.corrector.ring_outer_mm[i];
-      im.zone_s.push_back(std::sin(std::atan(r / cz)));
-      im.zone_t.push_back(op.corrector.transmissions[i]);
+  const Optics optics = MakeOptics(scene);
+  if (optics.corrector)
+    for (size_t i = 0; i < optics.ring_outer2.size(); ++i) {
+      im.zone_s.push_back(
+          std::sin(std::atan(std::sqrt(optics.ring_outer2[i]) / optics.corrector_z)));
+      im.zone_t.push_back(optics.ring_t[i]);
     }
-  }
   for (size_t i = 0; i < im.zone_s.size() && im.zone_s[i] < im.s_na; ++i) {
     im.pupil_edges.push_back(im.zone_s[i]);
     im.pupil_amp.push_back(std::sqrt(im.zone_t[i]));
@@ -322,7 +325,7 @@ MieImager::MieImager(const Scene& scene) : impl_(std::make_unique<Impl>()) {
                 "optics = \"mie\": no direct light passes the objective (a dark field): the "
                 "photon scale is defined by the flat field");
   im.magnification = Magnification(op);
-  im.sensor_sign = (scene.camera.flip ? -1.0 : 1.0) * im.magnification;
+  im.sensor_sign = optics.sign * im.magnification;
   if (scene.source.type == SourceType::kLightField && !scene.source.spatial_map.empty()) {
     im.spatial = scene.source.spatial_map;
     im.sp_w = scene.source.field_size_um[0];
@@ -337,10 +340,8 @@ MieImager::MieImager(const Scene& scene) : impl_(std::make_unique<Impl>()) {
   double sum = 0;
   for (int r = 0; r < cam.ny; ++r)
     for (int c = 0; c < cam.nx; ++c) {
-      const double u = (c + 0.5 - cam.nx / 2.0) * cam.pixel_pitch_um;
-      const double v = (cam.ny / 2.0 - r - 0.5) * cam.pixel_pitch_um;
-      sum += im.SpatialAt((u + cam.offset_um[0]) / im.sensor_sign,
-                          (v + cam.offset_um[1]) / im.sensor_sign);
+      const auto [x, y] = im.ObjectPoint(c + 0.5, r + 0.5);
+      sum += im.SpatialAt(x, y);
     }
   im.spatial_mean = sum / (double(cam.nx) * cam.ny);
   double photons = scene.trace.photons_per_pixel;
@@ -501,19 +502,19 @@ namespace {
 struct Window {
   double rho_light, margin;
 };
-Window WindowFor(const Scene& s, double defocus_um) {
-  const ObjectSpec& o = s.objects.at(0);
+/// For a sphere of `radius_um` whose centre lies `dz` before the focal plane.
+Window WindowFor(const Scene& s, double radius_um, double dz) {
   const double s_na = AcceptanceSin(s), tan_na = s_na / std::sqrt(1 - s_na * s_na);
-  const double dz = defocus_um - o.center_um.z;
   const double margin = s.trace.mie.margin_um > 0
                             ? s.trace.mie.margin_um
                             : 8 + 8 * s.wavelength_um / (s_na * s.medium_index);
-  return {o.radius_um + (std::abs(dz) + o.radius_um) * tan_na, margin};
+  return {radius_um + (std::abs(dz) + radius_um) * tan_na, margin};
 }
 }  // namespace
 
 double AutomaticMieWindowUm(const Scene& scene, double defocus_um) {
-  const Window w = WindowFor(scene, defocus_um);
+  const ObjectSpec& o = scene.objects.at(0);
+  const Window w = WindowFor(scene, o.radius_um, defocus_um - o.center_um.z);
   return 2 * (w.rho_light + w.margin);
 }
 
@@ -564,9 +565,7 @@ Image MieImager::Expected(double defocus_um, int threads) const {
   double h = 0;
   for (const Group& g : groups) {
     const double dz = defocus_um - g.z;
-    Scene at = s;
-    at.objects[0].center_um.z = g.z;
-    const Window win = WindowFor(at, defocus_um);
+    const Window win = WindowFor(s, im.radius, dz);
     const double margin = win.margin;
     h = im.lambda_medium / (4 * im.s_na) / set.oversample;
     n = cv::getOptimalDFTSize(int(std::ceil(2 * (win.rho_light + margin) / h)));
@@ -619,11 +618,8 @@ Image MieImager::Expected(double defocus_um, int threads) const {
     arena.execute([&] {
       tbb::parallel_for(0, fh, [&](int r) {
         double* row = dev.ptr<double>(r);
-        const double v = (cam.ny / 2.0 - (r - pad + 0.5) / kss) * cam.pixel_pitch_um;
-        const double y = (v + cam.offset_um[1]) / im.sensor_sign;
         for (int c = 0; c < fw; ++c) {
-          const double u = ((c - pad + 0.5) / kss - cam.nx / 2.0) * cam.pixel_pitch_um;
-          const double x = (u + cam.offset_um[0]) / im.sensor_sign;
+          const auto [x, y] = im.ObjectPoint((c - pad + 0.5) / kss, (r - pad + 0.5) / kss);
           for (const auto& [cx, cy] : g.xy) row[c] += share * deviation(x - cx, y - cy);
         }
       });
@@ -639,10 +635,8 @@ Image MieImager::Expected(double defocus_um, int threads) const {
         const double* row = dev.ptr<double>(pad + r * kss + b);
         for (int a = 0; a < kss; ++a) sum += row[pad + c * kss + a];
       }
-      const double u = (c + 0.5 - cam.nx / 2.0) * cam.pixel_pitch_um;
-      const double v = (cam.ny / 2.0 - r - 0.5) * cam.pixel_pitch_um;
-      const double env = im.SpatialAt((u + cam.offset_um[0]) / im.sensor_sign,
-                                      (v + cam.offset_um[1]) / im.sensor_sign);
+      const auto [x, y] = im.ObjectPoint(c + 0.5, r + 0.5);
+      const double env = im.SpatialAt(x, y);
       const double val = im.scale * env * (im.flat + sum / (kss * kss));
       out.at(c, r) = float(std::isfinite(val) ? std::max(0.0, val) : 0.0);
     }

@@ -150,12 +150,11 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
   std::vector<std::pair<Vec3, double>> bounds;
   double max_field = 0;
   for (const auto& th : probes) {
-    if (spec.exact_images) {  // one FFT window for every evaluation (MieSettings::window_um)
-      const simulate::Scene sc = SceneAt(th);
+    const simulate::Scene sc = SceneAt(th);
+    if (spec.exact_images)  // one FFT window for every evaluation (MieSettings::window_um)
       for (double dz : sc.defocus_um)
         wave_window_um_ = std::max(wave_window_um_, simulate::AutomaticMieWindowUm(sc, dz));
-    }
-    const simulate::Simulator sim(TracedScene(SceneAt(th), simulate::SourceSpec::EdgePart::kAll));
+    const simulate::Simulator sim(TracedScene(sc, simulate::SourceSpec::EdgePart::kAll));
     for (const auto& b : sim.ObjectBounds()) bounds.push_back(b);
     max_field = std::max(max_field, sim.field_radius_um());
   }

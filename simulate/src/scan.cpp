@@ -119,6 +119,28 @@ nlohmann::json ExposureJson(const Scene& s) {
 
 }  // namespace
 
+/// The sidecar's objective block (both image models).
+static nlohmann::json ObjectiveJson(const Scene& s) {
+  return {{"na", s.optics.na},
+          {"acceptance_sin_theta_in_medium", AcceptanceSin(s)},
+          {"na_convention", "NA = medium_index x sin(theta_max) (docs/conventions.md)"},
+          {"focal_length_mm", s.optics.objective_focal_mm},
+          {"model", s.optics.model == ObjectiveModel::kSingle ? "single" : "two_lens"}};
+}
+
+/// The sidecar's image block (both image models).
+static nlohmann::json ImageJson(const Scene& s, const Image& counts) {
+  const PixelStats st = ComputeStats(counts);
+  return {{"width", counts.width},
+          {"height", counts.height},
+          {"mean_counts", st.mean},
+          {"max_counts", st.max},
+          {"object_pixel_um", s.camera.pixel_pitch_um / std::abs(Magnification(s.optics))},
+          {"magnification", Magnification(s.optics)},
+          {"orientation",
+           s.camera.flip ? "upright: +x right, +y up (inversion undone)" : "raw sensor: inverted"}};
+}
+
 nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_t plane_index) {
   const Scene& s = sim.scene();
   nlohmann::json fates = nlohmann::json::object();
@@ -152,7 +174,6 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
                                                        : "p" + std::to_string(k);
     path_classes[key] = r.counters.path_class[k];
   }
-  const PixelStats st = ComputeStats(r.counts);
   nlohmann::json j = {
       {"provenance", ProvenanceJson()},
       {"scene_file", s.file},
@@ -174,12 +195,7 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
       {"rays_per_second", r.seconds > 0 ? r.rays / r.seconds : 0.0},
       {"effects", sim.Effects()},
       {"partial_reflection", PrName(s.trace.partial_reflection)},
-      {"objective",
-       {{"na", s.optics.na},
-        {"acceptance_sin_theta_in_medium", AcceptanceSin(s)},
-        {"na_convention", "NA = medium_index x sin(theta_max) (docs/conventions.md)"},
-        {"focal_length_mm", s.optics.objective_focal_mm},
-        {"model", s.optics.model == ObjectiveModel::kSingle ? "single" : "two_lens"}}},
+      {"objective", ObjectiveJson(s)},
       {"path_classes", path_classes},
       {"counters",
        {{"interface_events", r.counters.interface_events},
@@ -192,15 +208,7 @@ nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_
         {"grin_uniform_steps", r.counters.grin_uniform_steps},
         {"motion_draws", r.counters.motion_draws},
         {"wavelength_draws", r.counters.wavelength_draws}}},
-      {"image",
-       {{"width", r.counts.width},
-        {"height", r.counts.height},
-        {"mean_counts", st.mean},
-        {"max_counts", st.max},
-        {"object_pixel_um", sim.object_pixel_um()},
-        {"magnification", Magnification(s.optics)},
-        {"orientation",
-         s.camera.flip ? "upright: +x right, +y up (inversion undone)" : "raw sensor: inverted"}}},
+      {"image", ImageJson(s, r.counts)},
       {"wavelength_um", s.wavelength_um},
       {"medium_index", s.medium_index},
       {"objects", objects},
@@ -247,7 +255,6 @@ PlaneResult MiePlane(const MieImager& mie, double dz, uint32_t plane_index,
   const Image expected = mie.Expected(dz, control.threads > 0 ? control.threads : s.trace.threads);
   r.counts = PoissonSample(expected, s.trace.seed, plane_index);
   r.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  const PixelStats st = ComputeStats(r.counts);
   const ObjectSpec& o = s.objects[0];
   *meta = {
       {"provenance", ProvenanceJson()},
@@ -268,20 +275,8 @@ PlaneResult MiePlane(const MieImager& mie, double dz, uint32_t plane_index,
       {"photons_per_pixel_target", s.trace.photons_per_pixel},
       {"seconds", r.seconds},
       {"effects", mie.Effects()},
-      {"objective",
-       {{"na", s.optics.na},
-        {"acceptance_sin_theta_in_medium", AcceptanceSin(s)},
-        {"na_convention", "NA = medium_index x sin(theta_max) (docs/conventions.md)"},
-        {"focal_length_mm", s.optics.objective_focal_mm}}},
-      {"image",
-       {{"width", r.counts.width},
-        {"height", r.counts.height},
-        {"mean_counts", st.mean},
-        {"max_counts", st.max},
-        {"object_pixel_um", s.camera.pixel_pitch_um / std::abs(Magnification(s.optics))},
-        {"magnification", Magnification(s.optics)},
-        {"orientation",
-         s.camera.flip ? "upright: +x right, +y up (inversion undone)" : "raw sensor: inverted"}}},
+      {"objective", ObjectiveJson(s)},
+      {"image", ImageJson(s, r.counts)},
       {"wavelength_um", s.wavelength_um},
       {"medium_index", s.medium_index},
       {"objects",

@@ -222,8 +222,8 @@ enum class PartialReflection { kOff, kUnpolarized, kPolarized };
 enum class ImageOptics { kRays, kMie };
 const char* ImageOpticsName(ImageOptics o);  ///< "rays", "mie"
 
-/// [trace.mie]: the wave image's sampling (defaults converge to below 0.1 % of the background;
-/// docs/wave-optics.md).
+/// [trace.mie]: the wave image's sampling (defaults converge to below 0.1 % of the background for
+/// spheres above about 10 um radius; smaller ones need a finer grid: docs/wave-optics.md).
 struct MieSettings {
   int nodes_per_panel = 6;    ///< Gauss-Legendre nodes per panel of sin(theta) (illumination)
   double panel_width = 0.03;  ///< widest panel in sin(theta)

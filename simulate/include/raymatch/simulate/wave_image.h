@@ -41,8 +41,8 @@ namespace raymatch::simulate {
 /// homogeneous sphere and a cone, light-field or on-axis collimated source.
 std::string MieUnsupportedReason(const Scene& scene);
 
-/// How finely the wave image is sampled (the scene's [trace.mie] table; defaults converge to
-/// below 0.1 % of the background, docs/wave-optics.md).
+/// How finely the wave image was sampled (from the scene's [trace.mie] table; how far the
+/// defaults converge: docs/wave-optics.md).
 struct MieSampling {
   int directions = 0;         ///< polar-angle nodes of the illumination (quadrature)
   int harmonics = 0;          ///< azimuthal harmonics of the source kept (0: symmetric)

@@ -1,5 +1,5 @@
 #pragma once
-// MPI for the raymatch executable (issue 13): when built with -DRAYMATCH_MPI=ON and started by
+// MPI for the raymatch executable: when built with -DRAYMATCH_MPI=ON and started by
 // mpirun/srun, the ranks split each image's ray chunks and sum the integer count images
 // (core/cluster.h), so `mpirun -n N raymatch simulate|run|fit|bench ...` gives the image one
 // process gives with the same seed, bit for bit. Every rank runs the whole command; only rank 0

@@ -100,7 +100,7 @@ void RegisterSimulate(CLI::App& app, int* exit_code) {
   sub->add_flag("--no-png", opt->no_png, "Skip PNG previews");
   sub->add_flag("--no-simd", opt->no_simd,
                 "Trace one ray at a time instead of in SIMD packets (the same image bit for bit, "
-                "about 4x slower; for comparisons and timing)");
+                "several times slower; for comparisons and timing)");
   sub->add_flag("--compare-optics", opt->compare_optics,
                 "For a sphere: the exact wave image (optics = \"mie\"), the ray image at the same "
                 "photons per pixel and z = (rays - wave) / sqrt(wave) per plane (<stem>_mie.tif, "

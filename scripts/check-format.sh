@@ -1,11 +1,13 @@
 #!/bin/bash
 # Checks that the C++ sources follow .clang-format (Debian's clang-format 14), without changing
-# them. Run by CI as the ctest `check_format`.
+# them, after scripts/check-comments.sh (no issue numbers, dates, timings or outside files in
+# the libraries' comments). Run by CI as the ctest `check_format`.
 #   scripts/check-format.sh [FILE...]    # default: every C and C++ file git tracks
 # Fix a file with: clang-format -i FILE   (the whole tree: scripts/check-format.sh --fix)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 fix=0
+[ $# -gt 0 ] || scripts/check-comments.sh
 if [ "${1:-}" = "--fix" ]; then fix=1; shift; fi
 files=("$@")
 if [ ${#files[@]} -eq 0 ]; then

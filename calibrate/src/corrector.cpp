@@ -143,7 +143,7 @@ TransmissionFit FitTransmissions(const std::vector<std::vector<double>>& W,
     // the noise is underestimated) and the uncertainties are inflated by it; 3 standard
     // deviations below (Wilson-Hilferty normal approximation of chi^2 / dof), the stated noise
     // of the flat-field signals overstates their scatter and the uncertainties are scaled down
-    // by it (the Birge ratio, both ways; issue 26: honest uncertainties).
+    // by it (the Birge ratio, both ways: uncertainties that match the scatter).
     const bool mismatch = dof > 0 && f.reduced_chi2 > 1 + 3 * std::sqrt(2.0 / dof);
     const double a = dof > 0 ? 2.0 / (9.0 * dof) : 0;
     f.chi2_z = dof > 0 ? (std::cbrt(f.reduced_chi2) - (1 - a)) / std::sqrt(a) : 0;

@@ -81,7 +81,7 @@ Image ConeToAngularMap(const Image& ph, double p, double dz, double ax, double a
       const double e = Bilinear(ph, fx, fy);
       if (e == kOutside) continue;
       // Irradiance on a plane h away -> radiance per du dv: du dv = h^2 / rho^4 dx dy with
-      // rho = h / w, so L = E (per um^2) x h^2 / w^4 (REFERENCE.md section 6).
+      // rho = h / w, so L = E (per um^2) x h^2 / w^4.
       // Signed: dark-subtracted noise must average out in sums (clipping it would bias them).
       map.at(col, row) = float(e / (p * p) * h * h / std::pow(w, 4));
       if (covered) (*covered)[size_t(row) * n + col] = 1;

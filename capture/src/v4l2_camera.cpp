@@ -1,8 +1,8 @@
 // V4L2 video devices through the V4L2 ioctls directly: listing (capabilities, formats, frame
 // sizes, control ranges) and mmap streaming of the driver's raw buffers, which this file unpacks
-// with unpack.h. Exposure: V4L2_CID_EXPOSURE_ABSOLUTE counts 100 us. (OpenCV's videoio did the
-// streaming until issue 24; its Debian build loads 244 shared libraries into every raymatch
-// process, and its raw mode delivers the same buffers.)
+// with unpack.h. Exposure: V4L2_CID_EXPOSURE_ABSOLUTE counts 100 us. (Not OpenCV's videoio: its
+// Debian build loads a few hundred shared libraries into every raymatch process, and its raw
+// mode delivers the same buffers.)
 #include <fcntl.h>
 #include <linux/videodev2.h>
 #include <poll.h>

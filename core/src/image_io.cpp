@@ -1,7 +1,7 @@
 // Image files through the formats' reference libraries: libtiff, libpng and OpenEXR (Debian's
-// libtiff-dev, libpng-dev, libopenexr-dev). OpenImageIO did this until issue 24: its Debian build
-// links 261 shared libraries (ffmpeg, GDAL, DCMTK, ...), whose loading was about 0.5 s of every
-// raymatch command's start-up, for the three formats raymatch reads and writes.
+// libtiff-dev, libpng-dev, libopenexr-dev). Not OpenImageIO: its Debian build links a few hundred
+// shared libraries (ffmpeg, GDAL, DCMTK, ...), whose loading would dominate every raymatch
+// command's start-up, for the three formats raymatch reads and writes.
 #include "raymatch/core/image_io.h"
 
 #include <ImfChannelList.h>

@@ -223,7 +223,7 @@ std::string GridCount(double n) {
   std::snprintf(buf, sizeof buf, n < 1e15 ? "%.0f" : "%.3g", n);
   return buf;
 }
-/// Refuses an experimental image that cannot hold a brightfield experiment (issue 25): no light
+/// Refuses an experimental image that cannot hold a brightfield experiment: no light
 /// at all (a camera that did not fire), a flat level far from the photon count the scene or fit
 /// file declares (a wrong gain, dark frame or exposure), or mostly saturated pixels. Each message
 /// names the fit file's [[image]] entry and the image file and says what is wrong.
@@ -484,7 +484,7 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
           p.Fail("prior", "the calibration " + f.calibration_file + " gives no uncertainty for '" +
                               q.key + "' (its [uncertainty] table, written by `raymatch " +
                               "calibrate sphere`, holds the keys that calibration fitted; files "
-                              "written before 2026-11-25 lack it: run it again)");
+                              "from older versions lack it: run it again)");
         q.prior_mean = current, q.prior_sigma = it->second, q.prior_from = "calibration";
         p.String("prior");
       } else {

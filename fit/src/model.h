@@ -29,7 +29,9 @@ class FitModel {
  public:
   /// Prepares the model: the region the objects can occupy over the parameter box, a fixed
   /// source field (so every evaluation draws the same rays), the photon-matched ray count.
+  /// Keeps a reference to `spec`, which must outlive the model.
   FitModel(const FitSpec& spec, int threads, std::function<void(const std::string&)> say);
+  FitModel(FitSpec&&, int, std::function<void(const std::string&)>) = delete;
 
   /// Expected photon images (one per experimental image) at `theta` with `fraction` of the
   /// final rays and ray streams `seed`. Adds the rays traced to `*rays_traced`.

@@ -1,12 +1,12 @@
-// Profile-likelihood intervals where the curvature interval may not be trustworthy (issue 26
-// item 3; docs/fit.md, "Profile-likelihood intervals").
+// Profile-likelihood intervals where the curvature interval may not be trustworthy (docs/fit.md,
+// "Profile-likelihood intervals").
 //
 // The profile deviance of parameter i, D_p(theta_i) = min over the others of D, is what a
 // likelihood-ratio interval needs. With fixed ray streams the deviance itself cannot be read
 // at the scale of one sigma: rays crossing pixel edges make it a staircase whose steps are
-// several units of deviance (measured on bench/fit_accuracy.py case B: the deviance along one
-// axis through the optimum at +-3 sigma scatters by about 6 about its parabola, which rises by
-// 9), so a profile from deviance differences would be noise. Its slope is smooth: by the
+// several units of deviance (bench/fit_accuracy.py case B: along one axis through the optimum
+// the scatter about the parabola is comparable to its rise over +-3 sigma), so a profile from
+// deviance differences would be noise. Its slope is smooth: by the
 // envelope theorem dD_p/dtheta_i is the gradient of D along theta_i at the conditional optimum,
 // and to first order in the distance to that optimum it is the efficient score
 //   -2 (sc_i - F_i,rest F_rest,rest^-1 sc_rest) = -2 (C sc)_i / C_ii

@@ -79,13 +79,16 @@ inline Eigen::VectorXd PriorPrecision(const FitSpec& spec) {
 /// Evaluations with bookkeeping: the record of every evaluation, the best so far, progress.
 class Runner {
  public:
-  Runner(const FitSpec& spec, const FitOptions& opt, FitResult* res)
+  /// Keeps a reference to `spec` (which must outlive the Runner) and a copy of `opt`.
+  Runner(const FitSpec& spec, FitOptions opt, FitResult* res)
       : spec_(spec),
         opt_(opt),
         res_(res),
         t0_(Clock::now()),
         model_(spec, opt.threads > 0 ? opt.threads : spec.threads,
                [&](const std::string& m) { Say(m); }) {}
+
+  Runner(FitSpec&&, FitOptions, FitResult*) = delete;  // would keep a reference to a temporary
 
   FitModel& model() { return model_; }
 
@@ -158,7 +161,7 @@ class Runner {
 
  private:
   const FitSpec& spec_;
-  const FitOptions& opt_;
+  const FitOptions opt_;
   FitResult* res_;
   Clock::time_point t0_;
   FitModel model_;

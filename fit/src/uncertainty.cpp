@@ -195,7 +195,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
   // bound. When the root lies more than half a step (the stencil's half-width) of any parameter
   // from where the sets were taken, they are taken again there (at most three rounds, after a
   // pilot round of two sets, below): along the curved z-radius-index valley a single
-  // linearisation stops short (issue 26 item 2).
+  // linearisation stops short.
   OptimumDerivatives od;
   const std::vector<double> read_variance = ReadVariance(spec);
   const double k = spec.RaysPerPhoton();

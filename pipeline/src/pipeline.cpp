@@ -255,7 +255,7 @@ std::string ReportField(const fs::path& file, const std::string& field) {
   return j[field].get<std::string>();
 }
 
-/// Every input of a run, read and checked before the output folder is made (issue 25): a
+/// Every input of a run, read and checked before the output folder is made: a
 /// refused input leaves no folder and no file.
 struct RunInputs {
   PipelineFile cfg;
@@ -346,7 +346,7 @@ struct Calibration {
 
 /// Bumped when the calibration's model or file changes so that a calibration made by an older
 /// raymatch is not reused (2: the edge model from 3 map pixels inside the NA cut and the
-/// [uncertainty] table, 2026-11-25).
+/// [uncertainty] table).
 constexpr int kCalibrationModel = 2;
 
 std::string CalibrationInputs(const RunInputs& in) {

@@ -557,9 +557,9 @@ UniformCells::UniformCells(const IndexField& f, double tolerance, int block) {
   // Blocks of B^3 cells (B^2 in r-z): uniform when all their cells are. A block at the grid's
   // edge may reach past it, where the field holds its edge values: the same constant. B is the
   // smallest of 1, 2, 4 whose map has at most kMaxBlocks entries, so that looking it up at
-  // every step stays in the processor's cache (a per-cell map cost 20 % on a 96^3 grid, whose
-  // blocks are now 2^3), while a small grid's straight steps reach its cells' own boundaries (a
-  // 46^3 wave drop: 4^3 blocks 16.9 s a photon-matched plane, cells 12.4 s).
+  // every step stays in the processor's cache (a per-cell map is slower on a 96^3 grid, bench/),
+  // while a small grid's straight steps reach its cells' own boundaries (which is faster than
+  // stopping at block boundaries when the whole map fits the cache).
   {
     const size_t cells_all = size_t(cx_) * cy_ * cz_;
     block_ = block > 0 ? block : 1;

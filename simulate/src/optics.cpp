@@ -19,7 +19,8 @@ Optics MakeOptics(const Scene& s) {
     o.stop_z = 2 * f;
     z = f;
   } else {
-    // Two thin lenses from f, WD and BFD (REFERENCE.md section 6).
+    // Two thin lenses from f, WD and BFD: d = f - BFD WD / f, f1 = d / (1 - BFD/f),
+    // f2 = d / (1 - WD/f) (so that the pair has focal length f and these two distances).
     const double wd = sp.working_distance_mm * 1e3, bfd = sp.back_focal_mm * 1e3;
     const double d = f - bfd * wd / f;
     const double f1 = d / (1 - bfd / f), f2 = d / (1 - wd / f);
@@ -32,7 +33,7 @@ Optics MakeOptics(const Scene& s) {
   o.stop_after = o.num_lenses;
   // The stop at the back focal plane is a pure angle filter: height there = f tan(theta).
   // Radius f tan(asin(NA / n)) passes exactly the rays a real (sine-condition) objective of this NA
-  // accepts from an on-axis point (docs/optics.md).
+  // accepts from an on-axis point.
   const double stop_r = f * tan_na;
   o.stop_r2 = stop_r * stop_r;
   const double tube_z = o.stop_z + sp.tube_distance_mm * 1e3;

@@ -241,7 +241,7 @@ void ReadMaterial(TomlReader& r, const Scene& scene, ObjectSpec& o) {
   o.material = os.str();
 }
 
-/// `perturbation_scale` of a grid (issue 23): its difference from a reference multiplied,
+/// `perturbation_scale` of a grid: its difference from a reference multiplied,
 /// v' = ref + s (v - ref), in the grid's own quantity (density before IAPWS R9-97, or index). The
 /// reference: `reference_density_kg_m3` / `reference_index`, else the grid's mean on the object's
 /// surface (spheres: 1024 points of a Fibonacci lattice). s = 1 leaves the grid as it is.

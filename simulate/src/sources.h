@@ -62,7 +62,7 @@ struct CollimatedSource {
 };
 
 /// Uniform radiance inside a cone: uniform density in direction cosines (u, v) over a disc of
-/// radius sin(theta_max) (REFERENCE.md section 6: radiance is density per dx dy du dv).
+/// radius sin(theta_max) (radiance is ray density per dx dy du dv).
 struct ConeSource {
   Field field;
   double sin_max;

@@ -1,5 +1,6 @@
 #pragma once
-// Corrector ring transmissions from a flat-field iris series (REFERENCE.md section 6):
+// Corrector ring transmissions from a flat-field iris series (the paper's angular corrector; the
+// signal is linear in the transmissions):
 // S_k = g sum_j T_j w_kj, with w_kj the light of illumination k through zone j.
 #include <string>
 #include <vector>

@@ -1,5 +1,6 @@
 #pragma once
-// Zemax OpticStudio binary source files (.DAT/.SDF; REFERENCE.md section 6): export a weighted
+// Zemax OpticStudio binary source files (.DAT/.SDF; the layout is in the OpticStudio
+// manual, "Source File"): export a weighted
 // ray list sampled from a calibrated light field, and import one back into an angular map.
 #include <array>
 #include <cstdint>
@@ -62,7 +63,7 @@ struct ZemaxExportOptions {
 /// Samples rays from the calibration's light field: positions uniform in the field disc at
 /// z = 0, directions (u, v) from the angular map (piecewise-constant inverse CDF, uniform within
 /// a cell, directions with u^2 + v^2 >= 1 redrawn), n = sqrt(1 - u^2 - v^2). Equal-flux rays:
-/// their density per dx dy du dv is the radiance (REFERENCE.md section 6). Philox streams per
+/// their density per dx dy du dv is the radiance (etendue in direction cosines). Philox streams per
 /// ray index: the result depends on the seed only. Throws Error without a light field.
 ZemaxSourceFile SampleZemaxSource(const CalibrationData& cal, const ZemaxExportOptions& o);
 

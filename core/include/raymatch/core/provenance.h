@@ -13,7 +13,7 @@ const std::string& CommandLine();
 /// {"tool": "raymatch", "version", "date_utc", "command_line", "host"}.
 nlohmann::json ProvenanceJson();
 
-/// ISO-8601 UTC time stamp, e.g. 2026-11-22T10:00:00Z.
+/// ISO-8601 UTC time stamp, YYYY-MM-DDThh:mm:ssZ.
 std::string UtcTimestamp();
 
 /// FNV-1a 64-bit checksum of a file's bytes as 16 hex digits (to recognise inputs, not security).

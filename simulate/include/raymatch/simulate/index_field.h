@@ -42,7 +42,8 @@ struct GridCell {
 class IndexField {
  public:
   IndexFieldType type = IndexFieldType::kLuneburg;
-  // Analytic parameters (REFERENCE.md section 5):
+  // Analytic parameters (the classic exact GRIN media; Sharma, Kumar, Ghatak, Appl. Opt. 21, 984
+  // (1982)):
   double n0 = 1.0;       ///< Luneburg: index at the surface (n = n0 sqrt(2 - (r/R)^2));
                          ///< fish-eye: centre index; parabolic: axis index; linear n^2: at origin
   double radius_um = 1;  ///< Luneburg R, fish-eye a

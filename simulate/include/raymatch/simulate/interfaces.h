@@ -27,7 +27,7 @@ inline bool Refract(const Vec3& d, const Vec3& n, double eta, Vec3* t, double* c
 }
 
 /// Fresnel amplitude and power coefficients for s and p polarisation (Born & Wolf sign
-/// convention for r_p as in REFERENCE.md section 2). cos_i, cos_t >= 0.
+/// convention for r_p: r_p = (n2 cos_i - n1 cos_t) / (n2 cos_i + n1 cos_t)). cos_i, cos_t >= 0.
 struct FresnelCoefficients {
   double rs, rp;                                ///< amplitude reflection coefficients
   double Rs, Rp;                                ///< power reflectances

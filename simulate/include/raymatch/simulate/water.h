@@ -1,6 +1,6 @@
 #pragma once
 // Refractive index of water from the IAPWS R9-97 formulation (Harvey, Gallagher, Levelt Sengers,
-// J. Phys. Chem. Ref. Data 27, 761 (1998)); REFERENCE.md section 4. The index is relative to
+// J. Phys. Chem. Ref. Data 27, 761 (1998)). The index is relative to
 // vacuum. Valid for 261.15-773.15 K, 0-1060 kg/m^3, 0.2-1.1 um; outside that range the same
 // formula is extrapolated and `in_range` is false so callers can warn.
 

@@ -1,0 +1,91 @@
+// The fit's error bars judged like an instrument's, in the default (CI) test set: over
+// independent noise realisations of a small drop, the estimates are unbiased, the reported sigma
+// describes their scatter, and it is not far above the Cramer-Rao bound. test_fit_statistics
+// (label slow) does the same at the sample's photon count with five parameters.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdio>
+#include <sstream>
+
+#include "raymatch/core/image_io.h"
+#include "raymatch/fit/fit.h"
+#include "raymatch/simulate/scene.h"
+#include "raymatch/simulate/tracer.h"
+#include "temp_dir.h"
+
+namespace raymatch::fit {
+namespace {
+
+// A 9 um drop (n 1.36) under a 27 deg cone, 1 um pixels at the object, 32 x 28 pixels.
+std::string SmallDrop(double x, double y, double r, int seed, double ppp) {
+  std::ostringstream s;
+  s << "name = \"drop\"\nseed = " << seed << "\n[source]\ntype = \"cone\"\nhalf_angle_deg = 27\n"
+    << "[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = [" << x << ", " << y
+    << ", 0]\nradius_um = " << r << "\nindex = 1.36\n"
+    << "[objective]\nfocal_length_mm = 10\nna = 0.42\nworking_distance_mm = 20\n"
+    << "[tube_lens]\nfocal_length_mm = 200\n[camera]\npixels = [32, 28]\npixel_pitch_um = 20\n"
+    << "[trace]\nphotons_per_pixel = " << ppp << "\n";
+  return s.str();
+}
+
+// 16 realisations (experiment seeds and the fit's ray streams both independent), x, y and the
+// radius fitted from starts 0.3 um and 0.4 um off, 400 photons per pixel, 6 um before focus.
+// Pooled over the 48 values:
+//  * the RMS of (best - truth) / sigma is 1 for an honest sigma; its sampling scatter is about
+//    10 %, so [0.7, 1.4] is a 3-standard-deviation band. A sigma 3x too large gives 0.33, 3x
+//    too small 3;
+//  * per parameter the mean of (best - truth) / sigma lies within 3 standard errors (3 / 4) of
+//    0: an estimate shifted by one sigma fails;
+//  * sigma / Cramer-Rao bound: the fit's sigma holds the template's ray noise (ray factor 4:
+//    sqrt(1 + 1/4) = 1.12 over the bound), so its mean must lie in [1, 1.6].
+TEST(FitHonesty, SigmaDescribesTheScatterOverRealisations) {
+  const double truth[3] = {0.3, -0.2, 9.0};
+  const int kRealisations = 16;
+  double z2 = 0, ratio = 0;
+  double mean_z[3] = {0, 0, 0};
+  for (int k = 0; k < kRealisations; ++k) {
+    testing::TempDir dir;
+    const std::string ts =
+        dir.Write("truth.toml", SmallDrop(truth[0], truth[1], truth[2], 200 + k, 400));
+    const simulate::Scene s = simulate::LoadScene(ts);
+    const simulate::Simulator sim(s);
+    WriteFloatImage(dir / "exp.tif", sim.TracePlane(-6, 0, sim.RaysPerImage()).counts,
+                    "experiment");
+    dir.Write("model.toml", SmallDrop(0, 0, 8.6, 1, 400));
+    const std::string fit = dir.Write(
+        "fit.toml",
+        "scene = \"model.toml\"\nseed = " + std::to_string(40 + k) +
+            "\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = -6\n"
+            "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.1\n"
+            "[[parameter]]\nkey = \"object.drop.center_um[1]\"\nlower = -2\nupper = 2\nstep = 0.1\n"
+            "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 8\nupper = 10\nstep = 0.1\n"
+            "[rays]\nray_factor = 4\n[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\n");
+    const FitResult r = RunFit(LoadFitSpec(fit));
+    ASSERT_TRUE(r.converged) << r.message;
+    std::printf("realisation %2d: %3zu evaluations, %4.1f s; (best - truth)/sigma:", k,
+                r.evaluations.size(), r.total_seconds);
+    for (int i = 0; i < 3; ++i) {
+      const ParameterResult& p = r.parameters[i];
+      const double z = (p.best - truth[i]) / p.sigma;
+      std::printf(" %+.2f", z);
+      z2 += z * z / (3 * kRealisations);
+      mean_z[i] += z / kRealisations;
+      ratio += p.sigma / p.sigma_cramer_rao / (3 * kRealisations);
+    }
+    std::printf("\n");
+  }
+  const double rms = std::sqrt(z2);
+  std::printf("RMS of (best - truth)/sigma %.2f; mean sigma / Cramer-Rao bound %.2f\n", rms, ratio);
+  EXPECT_GT(rms, 0.7);
+  EXPECT_LT(rms, 1.4);
+  for (int i = 0; i < 3; ++i) {
+    std::printf("parameter %d: mean (best - truth)/sigma %+.2f\n", i, mean_z[i]);
+    EXPECT_LT(std::abs(mean_z[i]), 3 / std::sqrt(double(kRealisations))) << "parameter " << i;
+  }
+  EXPECT_GE(ratio, 1.0);
+  EXPECT_LT(ratio, 1.6);
+}
+
+}  // namespace
+}  // namespace raymatch::fit

@@ -90,18 +90,63 @@ void ReadJsonIndex(const std::string& index, std::istream& in, const fs::path& b
   }
 }
 
+/// Splits a CSV line at its commas (index files hold no quoted fields).
+std::vector<std::string> SplitCsv(const std::string& line) {
+  std::vector<std::string> out(1);
+  for (const char c : line)
+    if (c == ',')
+      out.emplace_back();
+    else
+      out.back() += c;
+  for (std::string& f : out) {
+    while (!f.empty() && (f.back() == ' ' || f.back() == '\r')) f.pop_back();
+    while (!f.empty() && f.front() == ' ') f.erase(f.begin());
+  }
+  return out;
+}
+
+/// A CSV index: `defocus_um,file` per line (the file: the rest of the line), or, after a header
+/// that names a `defocus_um` and an `image` (or `file`) column (simulate's <stem>_scan.csv),
+/// those two columns.
 void ReadCsvIndex(const std::string& index, std::istream& in, const fs::path& base, Stack* s) {
   std::string line;
   int n = 0;
+  int z_col = -1, file_col = -1;  // from a header naming its columns
   while (std::getline(in, line)) {
     ++n;
     while (!line.empty() && line.back() == '\r') line.pop_back();
     if (line.empty() || line[0] == '#') continue;
     const size_t comma = line.find(',');
     double z = 0;
+    if (file_col >= 0) {
+      const std::vector<std::string> f = SplitCsv(line);
+      const int need = std::max(z_col, file_col);
+      if (int(f.size()) <= need)
+        IndexError(FileLocation{index, n, 1},
+                   "expected " + std::to_string(need + 1) + " comma-separated columns as the " +
+                       "header names, found " + std::to_string(f.size()));
+      if (!ParseDefocus(f[size_t(z_col)], &z) || !std::isfinite(z))
+        IndexError(FileLocation{index, n, 1}, "the defocus '" + f[size_t(z_col)] +
+                                                  "' is not a finite number (micrometres, column " +
+                                                  std::to_string(z_col + 1) + ")");
+      if (f[size_t(file_col)].empty())
+        IndexError(FileLocation{index, n, 1},
+                   "no image file in column " + std::to_string(file_col + 1));
+      s->defocus_um.push_back(z);
+      s->files.push_back((base / f[size_t(file_col)]).string());
+      continue;
+    }
     const bool number = comma != std::string::npos && ParseDefocus(line.substr(0, comma), &z);
     if (!number) {
-      if (n == 1) continue;  // header
+      if (n == 1) {  // a header; it may name the columns
+        const std::vector<std::string> h = SplitCsv(line);
+        for (size_t c = 0; c < h.size(); ++c) {
+          if (h[c] == "defocus_um" && z_col < 0) z_col = int(c);
+          if ((h[c] == "image" || h[c] == "file") && file_col < 0) file_col = int(c);
+        }
+        if (z_col < 0 || file_col < 0) z_col = file_col = -1;  // the plain two-column form
+        continue;
+      }
       IndexError(FileLocation{index, n, 1},
                  comma == std::string::npos
                      ? "expected 'defocus_um,file', found no comma"

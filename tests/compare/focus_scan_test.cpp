@@ -200,6 +200,26 @@ std::pair<FailureKind, std::string> ErrorOf(const std::function<void()>& f) {
   return {FailureKind::kInvalidInput, ""};
 }
 
+// simulate writes <stem>_scan.csv with more columns than defocus and file (image, png, sidecar,
+// rays, ...): its header names them, and the index reads the `defocus_um` and `image` columns.
+// A row short of the named columns is an error at its line.
+TEST(FocusScan, SimulatesOwnCsvIndexReads) {
+  testing::TempDir dir;
+  WriteFloatImage(dir / "a.tif", Plane(0), "");
+  WriteFloatImage(dir / "b.tif", Plane(1), "");
+  const Stack s = ReadStack(dir.Write(
+      "sim_scan.csv",
+      "defocus_um,image,png,sidecar,rays,hits,mean_counts,seconds\n"
+      "-5,a.tif,a.png,a.json,200000,48132,4.011,0.008\n5,b.tif,b.png,b.json,200000,1,4,0.002\n"));
+  ASSERT_EQ(s.files.size(), 2u);
+  EXPECT_EQ(s.defocus_um, (std::vector<double>{-5, 5}));
+  EXPECT_EQ(std::filesystem::path(s.files[1]).filename(), "b.tif");
+  const auto [kind, what] =
+      ErrorOf([&] { ReadStack(dir.Write("short.csv", "x,defocus_um,image\n1,-5,a.tif\n2,0\n")); });
+  EXPECT_EQ(kind, FailureKind::kFileError);
+  EXPECT_NE(what.find("short.csv:3"), std::string::npos) << what;
+}
+
 // Issue 25, defect 1: every field of a JSON stack index is type-checked; a wrong type is a file
 // error naming the file and the field (it was an uncaught nlohmann::json::type_error).
 TEST(FocusScan, JsonIndexFieldsAreTypeChecked) {

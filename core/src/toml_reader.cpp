@@ -1,9 +1,12 @@
 #include "raymatch/core/toml_reader.h"
 
+#include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <filesystem>
 #include <fstream>
 #include <sstream>
+#include <vector>
 
 namespace raymatch {
 
@@ -58,6 +61,29 @@ static const char* TypeName(const toml::node& n) {
   }
 }
 
+/// Edit distance (insertions, deletions, substitutions, adjacent transpositions: the optimal
+/// string alignment distance) between two keys, for "did you mean" hints.
+static size_t KeyDistance(const std::string& a, const std::string& b) {
+  std::vector<std::vector<size_t>> d(a.size() + 1, std::vector<size_t>(b.size() + 1));
+  for (size_t i = 0; i <= a.size(); ++i) d[i][0] = i;
+  for (size_t j = 0; j <= b.size(); ++j) d[0][j] = j;
+  for (size_t i = 1; i <= a.size(); ++i)
+    for (size_t j = 1; j <= b.size(); ++j) {
+      d[i][j] = std::min(
+          {d[i - 1][j] + 1, d[i][j - 1] + 1, d[i - 1][j - 1] + (a[i - 1] == b[j - 1] ? 0 : 1)});
+      if (i > 1 && j > 1 && a[i - 1] == b[j - 2] && a[i - 2] == b[j - 1])
+        d[i][j] = std::min(d[i][j], d[i - 2][j - 2] + 1);
+    }
+  return d[a.size()][b.size()];
+}
+
+/// A written key close enough to `want` to be a misspelling of it: at most 2 edits, and fewer
+/// than a third of the longer key's letters.
+static bool LooksLike(const std::string& written, const std::string& want) {
+  const size_t d = KeyDistance(written, want);
+  return d > 0 && d <= 2 && 3 * d < std::max(written.size(), want.size());
+}
+
 TomlReader::TomlReader(const toml::table& table, std::string file, std::string path_prefix)
     : table_(&table), file_(std::move(file)), prefix_(std::move(path_prefix)) {}
 
@@ -87,6 +113,15 @@ void TomlReader::TypeError(const std::string& key, const std::string& expected) 
   const toml::node* n = table_->get(key);
   if (!n) {
     const std::string where = prefix_.empty() ? "at the top level" : "in [" + prefix_ + "]";
+    // A key written in its place with a typo: name it, where it is written.
+    for (const auto& [k, v] : *table_) {
+      const std::string written(k.str());
+      if (!used_.count(written) && LooksLike(written, key))
+        throw Error(LocOf(file_, k.source()), "missing required key '" + Path(key) + "' " + where +
+                                                  "; found '" + Path(written) +
+                                                  "': did you mean '" + key + "'? (expected " +
+                                                  expected + ")");
+    }
     throw Error(Where(), "missing required key '" + Path(key) + "' " + where + " (expected " +
                              expected + ")");
   }
@@ -284,10 +319,15 @@ void TomlReader::Finish() const {
   for (const auto& [k, v] : *table_) {
     const std::string key(k.str());
     if (used_.count(key)) continue;
-    std::string accepted;
-    for (const auto& u : used_) accepted += (accepted.empty() ? "" : ", ") + u;
+    std::string accepted, nearest;
+    size_t best = SIZE_MAX;
+    for (const auto& u : used_) {
+      accepted += (accepted.empty() ? "" : ", ") + u;
+      if (LooksLike(key, u) && KeyDistance(key, u) < best) best = KeyDistance(key, u), nearest = u;
+    }
     throw Error(LocOf(file_, k.source()),
                 "unknown key '" + Path(key) + "'" +
+                    (nearest.empty() ? "" : ": did you mean '" + nearest + "'?") +
                     (accepted.empty() ? "" : " (accepted here: " + accepted + ")"));
   }
 }

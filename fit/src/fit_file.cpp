@@ -455,9 +455,12 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     q.upper = p.Number("upper");
     if (!(q.upper > q.lower)) p.Fail("upper", "must be greater than lower");
     q.start = p.Number("start", current);
-    if (q.start < q.lower || q.start > q.upper)
-      p.Fail(p.Has("start") ? "start" : "key",
-             "start value " + std::to_string(q.start) + " lies outside [lower, upper]");
+    if (q.start < q.lower || q.start > q.upper) {
+      std::ostringstream m;
+      m << "start value " << q.start << (p.Has("start") ? "" : " (the scene's value)")
+        << " lies outside [lower, upper] = [" << q.lower << ", " << q.upper << "]";
+      p.Fail(p.Has("start") ? "start" : "key", m.str());
+    }
     if (!std::isfinite(q.upper - q.lower)) p.Fail("upper", "upper - lower must be a finite number");
     q.step = p.Positive("step", (q.upper - q.lower) / 10);
     q.points = static_cast<int>(p.Integer("points", 0, 2, kMaxGridPoints));

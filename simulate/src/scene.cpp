@@ -677,6 +677,36 @@ void ReadMotion(TomlReader& r, const std::string& path, Scene* s) {
                                "with fwhm_us, or \"file\")");
 }
 
+/// Values that load but are unlikely to be what was meant: a sphere smaller than the wavelength
+/// under the ray model (a radius written in mm?) or an object wider than the camera's view.
+static void PlausibilityWarnings(Scene* s) {
+  const double m =
+      s->optics.objective_focal_mm > 0 ? s->optics.tube_focal_mm / s->optics.objective_focal_mm : 0;
+  const double view_um =
+      m > 0 ? std::max(s->camera.nx, s->camera.ny) * s->camera.pixel_pitch_um / m : 0;
+  auto num = [](double v) {
+    std::ostringstream o;
+    o << v;
+    return o.str();
+  };
+  for (const ObjectSpec& o : s->objects) {
+    if (o.shape == ShapeType::kSphere && o.radius_um < s->wavelength_um &&
+        s->trace.optics != ImageOptics::kMie)
+      s->warnings.push_back(o.where.ToString() + ": object '" + o.name +
+                            "': radius_um = " + num(o.radius_um) + " is below the wavelength (" +
+                            num(s->wavelength_um) +
+                            " um): a sub-wavelength sphere, which rays do not describe (a radius "
+                            "meant in mm?)");
+    const double width = o.shape == ShapeType::kSphere ? 2 * o.radius_um
+                         : o.shape == ShapeType::kMesh ? 0
+                                                       : 2 * Length(o.semi_axes_um);
+    if (view_um > 0 && width > 2 * view_um)
+      s->warnings.push_back(o.where.ToString() + ": object '" + o.name + "' is " + num(width) +
+                            " um wide, more than twice the camera's view (" + num(view_um) +
+                            " um at the object): the image shows only part of it");
+  }
+}
+
 Scene LoadScene(const toml::table& t, const std::string& path) {
   Scene s;
   s.file = path;
@@ -830,6 +860,7 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
   }
   r.Finish();
   ValidateScene(s);
+  PlausibilityWarnings(&s);
   return s;
 }
 

@@ -65,6 +65,28 @@ TEST(TomlReader, MissingKeyNamesTheTable) {
   EXPECT_NE(e.find("missing required key 'obj.radius_um' in [obj]"), std::string::npos) << e;
 }
 
+// A misspelled required key is named where it is written, with the key it resembles; so is a
+// misspelled table; a key far from every expected one gets no guess.
+TEST(TomlReader, MisspelledKeysAreNamedWithTheNearestValidKey) {
+  std::string e = ErrorOf("[obj]\nx = 1\nraduis_um = 30\n", [](TomlReader& r) {
+    auto t = r.Table("obj");
+    t.Number("x");
+    t.Positive("radius_um");
+  });
+  EXPECT_NE(e.find("s.toml:3:1"), std::string::npos) << e;
+  EXPECT_NE(e.find("found 'obj.raduis_um': did you mean 'radius_um'?"), std::string::npos) << e;
+  e = ErrorOf("[tubelens]\nf = 1\n", [](TomlReader& r) { r.Table("tube_lens"); });
+  EXPECT_NE(e.find("found 'tubelens': did you mean 'tube_lens'?"), std::string::npos) << e;
+  e = ErrorOf("[obj]\ncolour = 1\n", [](TomlReader& r) { r.Table("obj").Positive("radius_um"); });
+  EXPECT_EQ(e.find("did you mean"), std::string::npos) << e;
+  // An optional key misspelled: the unknown-key error suggests it.
+  e = ErrorOf("index = 1.33\nradus = 2\n", [](TomlReader& r) {
+    r.Number("index");
+    r.Positive("radius", 1.0);
+  });
+  EXPECT_NE(e.find("unknown key 'radus': did you mean 'radius'?"), std::string::npos) << e;
+}
+
 TEST(TomlReader, ChoicesAndArrays) {
   EXPECT_NE(ErrorOf("t = \"cube\"\n",
                     [](TomlReader& r) {

@@ -166,7 +166,9 @@ TEST_F(FitFile, BadKeysAndBoundsNameTheFileLineAndKey) {
   EXPECT_NE(not_number.find("not a number"), std::string::npos) << not_number;
   const std::string start =
       ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 24\nupper = 25\n"));
-  EXPECT_NE(start.find("outside [lower, upper]"), std::string::npos) << start;
+  EXPECT_NE(start.find("start value 23 (the scene's value) lies outside [lower, upper] = [24, 25]"),
+            std::string::npos)
+      << start;
   const std::string order =
       ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 25\nupper = 21\n"));
   EXPECT_NE(order.find("upper"), std::string::npos) << order;
@@ -174,7 +176,7 @@ TEST_F(FitFile, BadKeysAndBoundsNameTheFileLineAndKey) {
   EXPECT_NE(none.find("parameter"), std::string::npos) << none;
   const std::string unknown = ErrorOf(
       Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\nstpe = 1\n"));
-  EXPECT_NE(unknown.find("stpe"), std::string::npos) << unknown;
+  EXPECT_NE(unknown.find("stpe': did you mean 'step'?"), std::string::npos) << unknown;
   const std::string method =
       ErrorOf(Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\n",
                   "method = \"newton\"\n"));

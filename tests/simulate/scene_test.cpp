@@ -64,6 +64,30 @@ TEST(SceneFile, GoodSceneLoads) {
   EXPECT_EQ(s.trace.partial_reflection, PartialReflection::kUnpolarized);
 }
 
+// Values that load but are unlikely to be meant get a warning, not an error: a sphere below the
+// wavelength under the ray model (a radius in mm) and an object much wider than the view.
+TEST(SceneFile, ImplausibleValuesWarn) {
+  testing::TempDir dir;
+  const std::string good = kGood;
+  EXPECT_TRUE(LoadScene(dir.Write("good.toml", good)).warnings.empty());
+  std::string tiny = good;
+  const size_t at = tiny.find("radius_um = ");
+  ASSERT_NE(at, std::string::npos);
+  tiny.replace(at, tiny.find('\n', at) - at, "radius_um = 0.03");
+  const Scene s = LoadScene(dir.Write("tiny.toml", tiny));
+  ASSERT_EQ(s.warnings.size(), 1u);
+  EXPECT_NE(s.warnings[0].find("radius_um = 0.03 is below the wavelength"), std::string::npos)
+      << s.warnings[0];
+  std::string huge = good;
+  huge.replace(huge.find("radius_um = "),
+               huge.find('\n', huge.find("radius_um = ")) - huge.find("radius_um = "),
+               "radius_um = 3000");
+  const Scene h = LoadScene(dir.Write("huge.toml", huge));
+  ASSERT_EQ(h.warnings.size(), 1u);
+  EXPECT_NE(h.warnings[0].find("more than twice the camera's view"), std::string::npos)
+      << h.warnings[0];
+}
+
 TEST(SceneFile, WaterMaterialUsesIapws) {
   testing::TempDir dir;
   const Scene s = LoadScene(dir.Write(

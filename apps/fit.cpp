@@ -50,7 +50,8 @@ int RunFitCommand(const FitCliOptions& o) {
     std::cerr << "raymatch fit: error: " << r.message << "\n";
     return 3;
   }
-  return r.converged ? 0 : 1;
+  if (!r.converged) return 1;
+  return r.goodness.mismatch ? 4 : 0;
 }
 
 }  // namespace
@@ -62,8 +63,10 @@ void RegisterFit(CLI::App& app, int* exit_code) {
       "Optimise simulated images against experimental ones to extract 3D properties (positions "
       "and lengths in micrometres, angles in degrees, indices absolute), with uncertainties and "
       "the Cramer-Rao bound. The fit file is documented in docs/fit.md.\n"
-      "Exit status: 0 converged, 1 bad input or not converged, 2 usage error, 3 the error "
-      "function is flat (the parameters do not change the image).");
+      "Exit status: 0 converged and consistent with the noise, 1 bad input or not converged, 2 "
+      "usage error, 3 the error function is flat (the parameters do not change the image), 4 "
+      "converged with a model mismatch (the goodness of fit: the model does not describe the "
+      "images within their noise; outputs written, sigmas inflated).");
   c->add_option("fit_file", o->fit_file, "fit file (TOML)")->required()->check(CLI::ExistingFile);
   c->add_option("-o,--output", o->output,
                 "output folder (created): fit.json, evaluations.csv, images, report.html")

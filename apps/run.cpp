@@ -16,7 +16,10 @@ void RegisterRun(CLI::App& app, int* exit_code) {
       "run",
       "The main job from one pipeline file (docs/pipeline.md): calibrate the light field and the\n"
       "corrector, simulate the experiment's focus scan with that calibration, run the focus-scan\n"
-      "test and write index.html. Unchanged steps are reused. Exit: 0 pass, 1 warning, 2 fail.");
+      "test, run the fits and write index.html. Unchanged steps are reused.\n"
+      "Exit: 0 every check passes; 1 a check needs attention (a focus-scan warning, a model\n"
+      "mismatch in the sphere calibration or a fit, a fit not converged or without sigmas);\n"
+      "2 the focus-scan test fails; 3 and above: an error.");
   sub->add_option("pipeline", o->pipeline_file, "Pipeline file (.toml)")
       ->required()
       ->check(CLI::ExistingFile);
@@ -33,22 +36,24 @@ void RegisterRun(CLI::App& app, int* exit_code) {
     // that a log file holds lines; the one-line step messages stay unless --quiet.
     o->progress = *progress || (!*quiet && isatty(STDERR_FILENO));
     o->steps = !*quiet;
-    *exit_code = RunGuarded([&] {
-      pipeline::PipelineOptions po = *o;
-      po.output_dir = RankOutput(po.output_dir);
-      // Under MPI every rank runs every step: reuse decisions from each rank's own folder
-      // could differ, and the ranks must trace the same images in the same order.
-      if (GetCluster().size > 1) po.force = true;
-      const auto s = pipeline::RunPipeline(po);
-      if (*quiet) return s.verdict;
-      std::cout << "raymatch run: cone half-angle " << s.cone_half_angle_deg << " deg; exposure "
-                << s.photons_per_pixel << " photons/pixel; verdict "
-                << (s.verdict == 0   ? "pass"
-                    : s.verdict == 1 ? "warning"
-                                     : "fail")
-                << "\n  report: " << s.report << "\n";
-      return s.verdict;
-    });
+    *exit_code = RunGuarded(
+        [&] {
+          pipeline::PipelineOptions po = *o;
+          po.output_dir = RankOutput(po.output_dir);
+          // Under MPI every rank runs every step: reuse decisions from each rank's own folder
+          // could differ, and the ranks must trace the same images in the same order.
+          if (GetCluster().size > 1) po.force = true;
+          const auto s = pipeline::RunPipeline(po);
+          if (*quiet) return s.status;
+          std::cout << "raymatch run: cone half-angle " << s.cone_half_angle_deg
+                    << " deg; exposure " << s.photons_per_pixel
+                    << " photons/pixel\nverdict: " << s.Overall() << "\n";
+          for (const pipeline::PipelineCheck& c : s.checks)
+            std::cout << "  " << (c.ok ? "ok    " : "CHECK ") << c.name << ": " << c.result << "\n";
+          std::cout << "  report: " << s.report << "\n";
+          return s.status;
+        },
+        3);
   });
 }
 

@@ -297,7 +297,7 @@ void AppendPriorRows(const FitSpec& spec, const std::vector<double>& x, Eigen::V
 
 /// Stops a level once the search stalls at the resolution the ray streams allow: a successful
 /// step that lowered the deviance by less than 1 or moved every parameter by less than 1/32 of
-/// its `step`, or three unsuccessful iterations in a row (the error with fixed ray streams is
+/// its `step`, or five unsuccessful iterations in a row (the error with fixed ray streams is
 /// piecewise constant at small scales).
 class StallCallback : public ceres::IterationCallback {
  public:
@@ -389,10 +389,11 @@ std::vector<double> Polish(Runner& run, const FitSpec& spec, const std::vector<d
       // Kept when it lowers the deviance, or when it lowers the Gauss-Newton decrease still
       // predicted (the estimating equation J^T r = 0 with this smooth chord Jacobian). With
       // fixed ray streams the deviance is rough at scales below one sigma (rays cross pixel
-      // edges one by one: jumps of a few units within +-1 sigma of the index, docs/fit.md
-      // "Finite rays"), and a search that keeps only its descents ends in whichever local dip
-      // of that roughness it meets first, up to several sigma from the smooth optimum; the
-      // predicted decrease is linear in the counts and not rough at that scale.
+      // edges one by one: jumps of a few units within +-1 sigma of the index,
+      // docs/design/fit-estimator.md, "Finite rays"), and a search that keeps only its
+      // descents ends in whichever local dip of that roughness it meets first, up to several
+      // sigma from the smooth optimum; the predicted decrease is linear in the counts and not
+      // rough at that scale.
       const Eigen::VectorXd gy = J.transpose() * ry;
       const double predicted_y = gy.dot(A.ldlt().solve(gy));
       if (ry.squaredNorm() < dev - 0.5 * kPolishTolerance ||

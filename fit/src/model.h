@@ -46,7 +46,7 @@ class FitModel {
   /// The template is the simulated count plus one ray (TemplateMean): the simulation is a
   /// Poisson sample itself, and with the plain count the score equation pulls every pixel
   /// towards a template 1/k photons brighter (k rays per photon), which biases every parameter
-  /// that changes the light in dark regions (docs/fit.md, "Finite rays").
+  /// that changes the light in dark regions (docs/design/fit-estimator.md, "Finite rays").
   void DevianceResiduals(const Simulated& sim, int bin, double* out) const;
 
   /// The final steps' estimating function (fit/src/uncertainty.cpp, FinalSteps): per
@@ -126,12 +126,12 @@ class FitModel {
   double wave_window_um_ = 0;  // exact images: the FFT window over the parameter box
   std::function<void(const std::string&)> say_;
   bool split_allowed_ = true;
-  // Nuisance keys that keep the near/far split (docs/fit.md, "Speed", "Nuisances that keep the
-  // split"): with the light field's edge fitted, the parts inside and beyond the NA are separate
-  // ray populations (the inside rays do not depend on the edge; `inside_share_` of the rays at
-  // the start); with the PSF fitted, the rays are traced without it onto a camera `psf_os_`
-  // times finer with `psf_margin_` fine pixels beyond each side, and each ray's PSF offset is
-  // drawn there.
+  // Nuisance keys that keep the near/far split (docs/design/fit-estimator.md, "Nuisances that
+  // keep the split"): with the light field's edge fitted, the parts inside and beyond the NA
+  // are separate ray populations (the inside rays do not depend on the edge; `inside_share_` of
+  // the rays at the start); with the PSF fitted, the rays are traced without it onto a camera
+  // `psf_os_` times finer with `psf_margin_` fine pixels beyond each side, and each ray's PSF
+  // offset is drawn there.
   bool edge_split_ = false;
   double inside_share_ = 1;
   int psf_os_ = 1, psf_margin_ = 0;

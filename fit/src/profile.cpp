@@ -1,5 +1,5 @@
-// Profile-likelihood intervals where the curvature interval may not be trustworthy (docs/fit.md,
-// "Profile-likelihood intervals").
+// Profile-likelihood intervals where the curvature interval may not be trustworthy
+// (docs/design/fit-estimator.md, "Profile-likelihood intervals").
 //
 // The profile deviance of parameter i, D_p(theta_i) = min over the others of D, is what a
 // likelihood-ratio interval needs. With fixed ray streams the deviance itself cannot be read
@@ -225,7 +225,7 @@ void ProfileValues(FitResult* res) {
     // Quote it where it is wider or lopsided; where it is narrower on both sides, sigma (the
     // wider) stays the one to quote: that has been seen only where two parameters correlate
     // above 0.97 (a sphere's index and the light field's edge), where the path's projection
-    // with the final steps' response C is itself uncertain (docs/fit.md).
+    // with the final steps' response C is itself uncertain (docs/design/fit-estimator.md).
     const bool narrower = !p.profile_lower_open && !p.profile_upper_open &&
                           p.profile_lower_sigmas > -0.75 && p.profile_upper_sigmas < 0.75;
     if (p.profile_lower_open || p.profile_upper_open ||

@@ -1,5 +1,6 @@
 #pragma once
-// Profile-likelihood intervals (docs/fit.md, "Profile-likelihood intervals"). Not installed.
+// Profile-likelihood intervals (docs/design/fit-estimator.md, "Profile-likelihood intervals").
+// Not installed.
 #include <string>
 #include <vector>
 

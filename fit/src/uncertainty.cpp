@@ -2,7 +2,7 @@
 // streams and the root of a cross-fitted estimating equation built from them, then the
 // covariance (that root's sandwich, or the Poisson likelihood's curvature), the Cramer-Rao
 // bound, repeated fits with independent simulation seeds and error-function slices
-// (docs/fit.md, "Finite rays" and "Noise").
+// (docs/design/fit-estimator.md, "Finite rays" and "Noise").
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
@@ -188,14 +188,14 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
   std::vector<double>& best = *best_io;
   // Derivatives at the optimum from `jacobian_seeds` independent sets of ray streams (the
   // uncertainties' too) and the root of a cross-fitted estimating equation built from them
-  // (docs/fit.md, "Finite rays"). With fixed ray streams a central difference counts the rays
-  // that cross pixel edges, and at photon-matched rays that counting noise is as large as the
-  // derivative itself for z and the index (a single set's index column has a cosine of 0.62
-  // with the exact one): the root of J^T r = 0 with such a J scatters up to 2x the Cramer-Rao
-  // bound. When the root lies more than half a step (the stencil's half-width) of any parameter
-  // from where the sets were taken, they are taken again there (at most three rounds, after a
-  // pilot round of two sets, below): along the curved z-radius-index valley a single
-  // linearisation stops short.
+  // (docs/design/fit-estimator.md, "Finite rays"). With fixed ray streams a central difference
+  // counts the rays that cross pixel edges, and at photon-matched rays that counting noise is
+  // as large as the derivative itself for z and the index (a single set's index column has a
+  // cosine of 0.62 with the exact one): the root of J^T r = 0 with such a J scatters up to 2x
+  // the Cramer-Rao bound. When the root lies more than half a step (the stencil's half-width)
+  // of any parameter from where the sets were taken, they are taken again there (at most three
+  // rounds, after a pilot round of two sets, below): along the curved z-radius-index valley a
+  // single linearisation stops short.
   OptimumDerivatives od;
   const std::vector<double> read_variance = ReadVariance(spec);
   const double k = spec.RaysPerPhoton();
@@ -207,7 +207,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
   // A pilot round first (with the final steps and more than two sets): two sets and their root.
   // Where that root lies more than half a step from the search's optimum (the quarter-ray
   // search leaves the index 2-3 bounds off in most fits), all sets are taken at the pilot's
-  // root instead, which saves a whole round of S (2P + 1) images; otherwise the pilot's two
+  // root instead, which saves a whole round of S (P + 1) images; otherwise the pilot's two
   // sets are kept and the others join them where they were taken (the same sets as without
   // the pilot).
   bool pilot = steps && s_all > 2;
@@ -357,7 +357,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     // The root. The linear prediction c_h + J_h (theta - theta_c) carries J_h's counting noise
     // times the distance from theta_c, which can be a few sigma (the coarse optimum), and where
     // the equation is nearly singular (weak nuisances) its linear root can be far off: so each
-    // step is tried with the halves' images traced at its end (S images, not S (2P + 1)) and
+    // step is tried with the halves' images traced at its end (S images, not S (P + 1)) and
     // kept only when the equation's value there, in units of the root's statistical spread,
     // Q = U^T (B_e + B_t)^-1 U, falls (else halved, at most twice); the steps end when the
     // next one is below a fifth of a sigma (Q < kPolishTolerance) or after four.

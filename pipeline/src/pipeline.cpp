@@ -338,6 +338,57 @@ class StepRunner {
   PipelineSummary* sum_;
 };
 
+/// The sphere calibration's check, from its brief report (made now or read back).
+PipelineCheck SphereCheck(const std::string& brief) {
+  PipelineCheck c;
+  c.name = "sphere calibration";
+  const size_t g = brief.find("goodness of fit: ");
+  const std::string good =
+      g == std::string::npos ? "" : brief.substr(g + 17, brief.find('\n', g) - g - 17);
+  const bool converged = brief.find("sphere calibration: converged") != std::string::npos;
+  const bool mismatch = good.rfind("model mismatch", 0) == 0;
+  c.ok = converged && !mismatch && !good.empty();
+  c.result = std::string(converged ? "converged" : "did not converge") + "; " +
+             (mismatch       ? "model mismatch"
+              : good.empty() ? "no goodness of fit"
+                             : "consistent with the noise");
+  c.meaning = c.ok ? "the light field beyond the NA and the PSF describe the calibration drop's "
+                     "images within their noise"
+              : mismatch
+                  ? "the calibration drop's images are not described within their noise: the "
+                    "edge beyond the NA and the PSF may be biased, and with them every fitted index"
+                  : "the edge beyond the NA and the PSF are not determined: fitted indices rest "
+                    "on their defaults";
+  return c;
+}
+
+/// A fit's check: converged, every sigma determined, and the goodness of fit.
+PipelineCheck FitCheck(const std::string& stem, const fit::FitResult& r) {
+  PipelineCheck c;
+  c.name = "fit " + stem;
+  bool sigmas = !r.parameters.empty();
+  for (const fit::ParameterResult& p : r.parameters)
+    sigmas = sigmas && std::isfinite(p.sigma) && p.sigma > 0;
+  const bool graded = r.goodness.pixels > 0;
+  c.ok = r.converged && (!graded || (sigmas && !r.goodness.mismatch));
+  c.result =
+      std::string(fit::StatusName(r.status)) +
+      (!graded   ? ""
+       : !sigmas ? "; uncertainties not determined"
+                 : "") +
+      (graded ? (r.goodness.mismatch ? "; model mismatch" : "; consistent with the noise") : "");
+  const std::string misfit = "the model does not describe the images within their noise";
+  c.meaning = !r.converged ? "no estimate: see the fit's report"
+              : !graded    ? "a grid search: its minimum, with no statistical test"
+              : !sigmas    ? "the images do not determine every parameter (information matrix not "
+                             "positive definite): values without error bars" +
+                              (r.goodness.mismatch ? "; and " + misfit : std::string())
+              : r.goodness.mismatch
+                  ? misfit + ": values may be biased beyond their (inflated) sigmas"
+                  : "the model describes the images within their noise; values with sigmas";
+  return c;
+}
+
 /// The calibration step's results (made or read back).
 struct Calibration {
   CalibrationData data;
@@ -574,6 +625,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     });
 
   // 4c. Fits (docs/fit.md) with this calibration: 3D properties from single images.
+  std::vector<PipelineCheck> fit_checks;
   for (const std::string& file : cfg.fits) {
     const std::string stem = fs::path(file).stem().string();
     steps.Timed("fit " + stem, [&] {
@@ -586,10 +638,37 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
       fit::WriteFitOutputs(spec, r, (out / "fit" / stem).string());
       report.fit_html += internal::FitSectionHtml(stem, spec, r);
       sum.fits.push_back({stem, fit::StatusName(r.status)});
+      fit_checks.push_back(FitCheck(stem, r));
     });
   }
   if (!report.fit_html.empty())
     report.fit_html = "<h2>Fits: 3D properties from the images</h2>" + report.fit_html;
+
+  // The checks, and the run's one verdict: never "pass" while a check needs attention.
+  if (!cfg.sphere.empty()) sum.checks.push_back(SphereCheck(cal.sp_report));
+  {
+    PipelineCheck c;
+    c.name = "focus-scan test";
+    c.ok = fr.verdict == compare::Verdict::kPass;
+    std::string passing, failing;
+    for (const auto& m : fr.measures) {
+      std::string& list = m.passes ? passing : failing;
+      list += (list.empty() ? "" : ", ") + std::string(compare::MeasureName(m.measure));
+    }
+    c.result = std::string(fr.verdict == compare::Verdict::kPass      ? "pass"
+                           : fr.verdict == compare::Verdict::kWarning ? "warning"
+                                                                      : "fail") +
+               (passing.empty() ? "" : ": " + passing + " match each plane to its defocus") +
+               (failing.empty() ? "" : "; not " + failing);
+    c.meaning =
+        "says the simulated focus positions agree with the experiment's, not that the model "
+        "fits every pixel (residual maps: compare/report.html)";
+    sum.checks.push_back(c);
+  }
+  for (PipelineCheck& c : fit_checks) sum.checks.push_back(std::move(c));
+  sum.status = sum.verdict;
+  for (const PipelineCheck& c : sum.checks)
+    if (!c.ok) sum.status = std::max(sum.status, 1);
 
   // 5. Report.
   report.out = out;
@@ -602,6 +681,16 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   report.ray_fraction = frac;
   internal::WriteRunReport(report);
   return sum;
+}
+
+std::string PipelineSummary::Overall() const {
+  std::string attention;
+  size_t n = 0;
+  for (const PipelineCheck& c : checks)
+    if (!c.ok) attention += (n++ ? ", " : "") + c.name;
+  if (n == 0) return "pass: all " + std::to_string(checks.size()) + " checks pass";
+  return std::string(status >= 2 ? "fail" : "attention") + ": " + std::to_string(n) + " of " +
+         std::to_string(checks.size()) + " checks need attention (" + attention + ")";
 }
 
 }  // namespace raymatch::pipeline

@@ -21,6 +21,14 @@ std::string Img(const std::string& png, const std::string& alt) { return Embedde
 
 namespace {
 
+/// A value to 4 significant digits.
+std::string Num(double v) {
+  std::ostringstream o;
+  o.precision(4);
+  o << v;
+  return o.str();
+}
+
 /// A map centred on the axis (+-half_x, +-half_y), colours from 0 to its maximum; `relative`:
 /// divided by the maximum first.
 void WriteMapPlot(const fs::path& png, const Image& image, bool relative, double half_x,
@@ -134,11 +142,20 @@ void WriteRunReport(const RunReport& r) {
        "compare</h1>"
     << "<p>" << ProvenanceJson()["date_utc"].get<std::string>() << " &mdash; <code>"
     << CommandLine() << "</code></p><h2>Verdict: <span class='"
-    << (fr.verdict == compare::Verdict::kPass
-            ? "pass'>pass"
-            : "fail'>" + std::string(fr.verdict == compare::Verdict::kWarning ? "warning" : "fail"))
-    << "</span></h2><p>" << fr.message << "</p>"
+    << (sum.status == 0 ? "pass" : "fail") << "'>" << HtmlEscape(sum.Overall())
+    << "</span></h2><table><tr><th>check</th><th>result</th><th>what it means</th></tr>";
+  for (const PipelineCheck& c : sum.checks)
+    h << "<tr><td>" << HtmlEscape(c.name) << "</td><td class='" << (c.ok ? "pass" : "fail") << "'>"
+      << HtmlEscape(c.result) << "</td><td>" << HtmlEscape(c.meaning) << "</td></tr>";
+  h << "</table><p>Exit status of <code>raymatch run</code>: " << sum.status
+    << " (0 every check passes, 1 a check needs attention, 2 the focus-scan test fails).</p>"
     << "<h2>Measured light field</h2><pre>" << lf_report << "</pre>"
+    << (cal.edge_half_angle_deg > 0
+            ? "<p>Beyond the NA the simulation does not use zero: the sphere calibration's soft "
+              "edge, half radiance at " +
+                  Num(cal.edge_half_angle_deg) + " deg, width " + Num(cal.edge_width_deg) +
+                  " deg (Sphere calibration, below).</p>"
+            : std::string())
     << Img((fig / "angular_map.png").string(), "angular map") << " "
     << Img((fig / "radial_profile.png").string(), "light-field radial profile")
     << "<p>Angular map over direction cosines (u right, v up), +-" << cal.angular_extent

@@ -159,6 +159,13 @@ void WriteCalibratedFile(const SphereCalibrationOptions& o, const CalibrationDat
   out.edge_width_deg = res.edge_width_deg;
   out.psf_sigma_um = res.psf_sigma_um;
   out.edge_tilt_deg = {res.edge_tilt_deg[0], res.edge_tilt_deg[1]};
+  // The measured map's note ends with what lies beyond the NA; that is now the fitted edge.
+  const size_t beyond = out.light_field_note.find("; zero beyond it");
+  if (beyond != std::string::npos) out.light_field_note.resize(beyond);
+  std::ostringstream edge;
+  edge << "; beyond the NA: a soft edge fitted by calibrate sphere (half radiance at "
+       << res.edge_half_angle_deg << " deg, width " << res.edge_width_deg << " deg)";
+  out.light_field_note += edge.str();
   // The nuisances' sigmas, for fits that free them with the calibration as a prior. Where the
   // fit determined none (an information matrix that is not positive definite: a dim or short
   // calibration), the value is known only to lie within the fit's bounds: the sigma of a

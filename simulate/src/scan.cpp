@@ -1,6 +1,7 @@
 #include "raymatch/simulate/scan.h"
 
 #include <algorithm>
+#include <charconv>
 #include <chrono>
 #include <cmath>
 #include <cstdlib>
@@ -36,11 +37,9 @@ std::string PlaneStem(const std::string& name, double defocus_um) {
 // Shortest text that reads back as the same double (the CSV index and messages).
 static std::string FormatDefocus(double z) {
   char buf[64];
-  for (int digits = 1; digits <= 17; ++digits) {
-    std::snprintf(buf, sizeof buf, "%.*g", digits, z);
-    if (std::strtod(buf, nullptr) == z) break;
-  }
-  return buf;
+  // The shortest form that reads back exactly, plain where it is no longer (-10, not -1e+01).
+  const auto r = std::to_chars(buf, buf + sizeof buf, z);
+  return std::string(buf, r.ptr);
 }
 
 static const char* PrName(PartialReflection p) {

@@ -227,14 +227,14 @@ TEST(BadInputCli, RunChecksEveryInputBeforeMakingItsFolder) {
   no_sphere.replace(no_sphere.find("sphere = \"drop46\"\n"), 18, "");
   const std::string pipeline2 = dir.Write("pipeline_no_sphere.toml", no_sphere);
   CliRun r = Raymatch("run " + pipeline2 + " -q -o " + (dir / "out/run"), dir);
-  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_EQ(r.code, 3) << r.err;  // run: 3 and above are errors
   EXPECT_TRUE(Has(r.err, "sphere.toml:")) << r.err;
   EXPECT_TRUE(Has(r.err, "light_field_edge.half_angle_deg")) << r.err;
   EXPECT_TRUE(Has(r.err, "[calibration] sphere")) << r.err;
   EXPECT_FALSE(fs::exists(dir / "out")) << r.err;
   dir.Write("merging/merging_drops.obj", kBadMeshes[3].second);  // an open mesh
   r = Raymatch("run " + pipeline + " -q -o " + (dir / "out/run"), dir);
-  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_EQ(r.code, 3) << r.err;  // run: 3 and above are errors
   EXPECT_TRUE(Has(r.err, "merging_drops.obj")) << r.err;
   EXPECT_FALSE(fs::exists(dir / "out")) << r.err;
   dir.Write("merging/merging_drops.obj", kTetra);
@@ -252,7 +252,7 @@ TEST(BadInputCli, RunChecksEveryInputBeforeMakingItsFolder) {
   fit.replace(fit.find(first_dark), first_dark.size(), "");
   dir.Write("fit/sphere.toml", fit);
   r = Raymatch("run " + pipeline + " -q -o " + (dir / "out/run"), dir);
-  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_EQ(r.code, 3) << r.err;  // run: 3 and above are errors
   EXPECT_TRUE(Has(r.err, "sphere.toml:")) << r.err;
   EXPECT_TRUE(Has(r.err, "no signal")) << r.err;
   EXPECT_FALSE(fs::exists(dir / "out")) << r.err;
@@ -268,7 +268,7 @@ TEST(BadInputCli, RunChecksEveryInputBeforeMakingItsFolder) {
   meta.replace(meta.find("tube_focal_mm = 200"), 19, "tube_focal_mm = 9223372036854775807");
   dir.Write("lightfield/metadata.toml", meta);
   r = Raymatch("run " + pipeline + " -q --ray-fraction 0.005 -o " + (dir / "out/run"), dir);
-  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_EQ(r.code, 3) << r.err;  // run: 3 and above are errors
   EXPECT_TRUE(Has(r.err, "error")) << r.err;
   EXPECT_FALSE(fs::exists(dir / "out")) << r.err;
   EXPECT_EQ(Partials(dir.path()), 0);

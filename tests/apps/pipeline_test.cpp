@@ -115,7 +115,18 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
   std::stringstream ls;
   ls << log.rdbuf();
   ASSERT_TRUE(WIFEXITED(status)) << ls.str();
-  EXPECT_EQ(WEXITSTATUS(status), 0) << ls.str();  // focus-scan verdict: pass
+  // One verdict, on stdout and at the top of index.html, with the exit status it gives: the
+  // focus-scan test passes; at 1/16 of the photons the sphere fit's uncertainties are not
+  // determined and its goodness of fit says "model mismatch" (see below), so the run needs
+  // attention (exit 1), and says which check. A run whose checks all pass exits 0.
+  EXPECT_EQ(WEXITSTATUS(status), kUnderAddressSanitizer ? WEXITSTATUS(status) : 1) << ls.str();
+  EXPECT_NE(ls.str().find("ok    focus-scan test: pass"), std::string::npos) << ls.str();
+  if (!kUnderAddressSanitizer) {
+    EXPECT_NE(ls.str().find("verdict: attention: "), std::string::npos) << ls.str();
+    EXPECT_NE(ls.str().find("CHECK fit sphere: converged"), std::string::npos) << ls.str();
+  }
+  EXPECT_EQ(ls.str().find("verdict: pass") != std::string::npos, WEXITSTATUS(status) == 0)
+      << ls.str();
   // Light field: the truth cone (25.5 deg) is cut by the objective at asin(0.42) = 24.83 deg;
   // the measured edge must be within 0.5 deg below that cut.
   const CalibrationData cal = ReadCalibrationFile(dir / "out/calibration.toml");
@@ -157,13 +168,29 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
     EXPECT_GT(cal.edge_width_deg, 0);
     EXPECT_GT(cal.psf_sigma_um, 0);
     EXPECT_TRUE(std::filesystem::exists(dir / "out/sphere_calibration/fit.json"));
+    // The calibration's note says what lies beyond the NA now: the fitted edge, not zero.
+    EXPECT_NE(cal.light_field_note.find("beyond the NA: a soft edge fitted by calibrate sphere"),
+              std::string::npos)
+        << cal.light_field_note;
+    EXPECT_EQ(cal.light_field_note.find("zero beyond"), std::string::npos) << cal.light_field_note;
   }
   {
     std::ifstream html(dir / "out/index.html");
     std::stringstream hs;
     hs << html.rdbuf();
-    if (!kUnderAddressSanitizer) EXPECT_NE(hs.str().find("Sphere calibration"), std::string::npos);
+    if (!kUnderAddressSanitizer) {
+      EXPECT_NE(hs.str().find("Sphere calibration"), std::string::npos);
+      EXPECT_NE(hs.str().find("Beyond the NA the simulation does not use zero"), std::string::npos);
+    }
     EXPECT_NE(hs.str().find("Goodness of fit"), std::string::npos);  // the sphere fit's
+    // The verdict at the top names every check; it never reads "pass" while one needs attention.
+    const size_t verdict = hs.str().find("<h2>Verdict: ");
+    ASSERT_NE(verdict, std::string::npos);
+    EXPECT_LT(verdict, hs.str().find("Measured light field"));
+    EXPECT_NE(hs.str().find("<td>focus-scan test</td>"), std::string::npos);
+    EXPECT_NE(hs.str().find("<td>fit sphere</td>"), std::string::npos);
+    EXPECT_EQ(hs.str().find("Verdict: <span class='pass'>") != std::string::npos,
+              WEXITSTATUS(status) == 0);
   }
   // The drop: the sample's sphere fit (two planes at 1/16 of the photons, half the rays) against
   // truth.toml. The run is deterministic (fixed seeds), so these are golden values with room:
@@ -212,8 +239,11 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
       EXPECT_LT(m["matrix"][0][0].get<double>(), 3.0);
     }
   EXPECT_EQ(found, 1);
-  // Re-running with unchanged inputs reuses the calibration and the simulation.
-  ASSERT_EQ(std::system(cmd.c_str()), 0);
+  // Re-running with unchanged inputs reuses the calibration and the simulation, with the same
+  // verdict (the sphere calibration's check read back from its report).
+  const int again = std::system(cmd.c_str());
+  ASSERT_TRUE(WIFEXITED(again));
+  EXPECT_EQ(WEXITSTATUS(again), WEXITSTATUS(status));
   std::ifstream log2(dir / "log.txt");
   std::stringstream l2;
   l2 << log2.rdbuf();

@@ -152,22 +152,24 @@ TEST(SimulateCli, CloseFocusPositionsGetTheirOwnFiles) {
   const std::string scene = dir.Write("tiny.toml", kScene);
   const CliRun r = Raymatch("simulate " + scene +
                                 " -q --no-png --rays 2000 --defocus-um "
-                                "48.331,48.334,-0.125,0.1 -o " +
+                                "48.331,48.334,-0.125,0.1,-10 -o " +
                                 (dir / "out"),
                             dir);
   ASSERT_EQ(r.code, 0) << r.err;
-  for (const char* z : {"+048.331", "+048.334", "-000.125", "+000.10"})
+  for (const char* z : {"+048.331", "+048.334", "-000.125", "+000.10", "-010.00"})
     EXPECT_TRUE(fs::exists(dir / ("out/tiny_z" + std::string(z) + "um.tif"))) << z;
   std::ifstream idx(dir / "out/tiny_scan.json");
   const auto planes = nlohmann::json::parse(idx)["planes"];
-  ASSERT_EQ(planes.size(), 4u);
+  ASSERT_EQ(planes.size(), 5u);
   std::set<std::string> images;
   for (const auto& p : planes) images.insert(p["image"].get<std::string>());
-  EXPECT_EQ(images.size(), 4u);
+  EXPECT_EQ(images.size(), 5u);
   std::ifstream csv(dir / "out/tiny_scan.csv");
   std::stringstream text;
   text << csv.rdbuf();
   EXPECT_NE(text.str().find("48.331,"), std::string::npos) << text.str();
+  EXPECT_NE(text.str().find("\n-10,tiny_z-010.00um.tif,"), std::string::npos)  // not -1e+01
+      << text.str();
 
   const CliRun twice = Raymatch("simulate " + scene +
                                     " -q --no-png --rays 2000 --defocus-um "

@@ -88,7 +88,7 @@ struct RaySchedule {
   bool fit_exposure = true;
   /// Treat the simulated counts as the Poisson sample they are: the template of each pixel is
   /// the count plus one ray (false: the plain count, which biases the fit by O(1/ray_factor);
-  /// for comparisons only; docs/fit.md, "Finite rays").
+  /// for comparisons only; docs/design/fit-estimator.md, "Finite rays").
   bool finite_ray_correction = true;
   /// The final polish also keeps steps that halve the predicted Gauss-Newton decrease (the
   /// score with a smooth chord Jacobian) instead of only those that lower the rough deviance
@@ -96,11 +96,13 @@ struct RaySchedule {
   bool smooth_polish = true;
   /// Gauss-Newton polish at the final fraction after the coarse levels' search. false: when the
   /// final steps follow (jacobian_seeds > 2, Poisson error), they start from the
-  /// coarse optimum instead (docs/fit.md, "Finite rays"); otherwise the polish runs anyway.
+  /// coarse optimum instead (docs/design/fit-estimator.md, "Finite rays"); otherwise the
+  /// polish runs anyway.
   bool polish = false;
-  /// Independent ray-stream sets whose central differences are averaged at the optimum, for
-  /// the final steps and the uncertainties (2: the two sets the uncertainties
-  /// need, no final steps). docs/fit.md, "Finite rays".
+  /// Independent ray-stream sets whose one-sided differences (forward and backward in turn, so
+  /// that pairs make central differences) are averaged at the optimum, for the final steps and
+  /// the uncertainties (2: the two sets the uncertainties
+  /// need, no final steps). docs/design/fit-estimator.md, "Finite rays".
   int jacobian_seeds = 4;
   /// Pixel binning per fraction (empty: the smallest b with b^2 x ray_factor x fraction >= 1).
   std::vector<int> binning;
@@ -170,9 +172,10 @@ struct ParameterResult {
   double sigma_curvature =
       0;  ///< from the Poisson likelihood's curvature (Gauss-Newton) at the optimum
   /// The reported uncertainty. With the final steps (the default): the covariance of their
-  /// estimating equation's root, A^-1 (B_e + B_t) A^-T (docs/fit.md, "Finite rays"), which
-  /// holds the experiment's and the templates' shot noise and the derivatives' Monte Carlo
-  /// noise. Without them: sigma_curvature x sqrt(1 + 1/k), k = ray_factor x final fraction.
+  /// estimating equation's root, A^-1 (B_e + B_t) A^-T (docs/design/fit-estimator.md, "Finite
+  /// rays"), which holds the experiment's and the templates' shot noise and the derivatives'
+  /// Monte Carlo noise. Without them: sigma_curvature x sqrt(1 + 1/k), k = ray_factor x final
+  /// fraction.
   double sigma = 0;
   /// The part of sigma from the Monte Carlo noise of the derivative images that the final steps'
   /// score used (their scatter between independent ray-stream sets): a noisy derivative turns
@@ -182,9 +185,9 @@ struct ParameterResult {
   /// derivatives'): what the fits of one experiment scatter by over independent ray streams
   /// (`seed`); the rest of sigma is the experiment's shot noise.
   double sigma_simulation = 0;
-  /// The final steps' derivative image of this parameter: "smoothed" ([1/4, 1/2, 1/4] in x and
-  /// y) or "as traced" (central differences), whichever gave the smaller sigmas; "" without
-  /// them.
+  /// The final steps' derivative image of this parameter: "as traced", "smoothed" ([1/4, 1/2,
+  /// 1/4] in x and y) or "a as traced + b smoothed", the mixture weighted for the smallest
+  /// variance of the root; "" without final steps.
   std::string score_derivative;
   /// sigma before the model-mismatch inflation (equal to sigma when the fit is consistent).
   double sigma_statistical = 0;

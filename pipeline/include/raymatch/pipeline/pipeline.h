@@ -18,9 +18,23 @@ struct PipelineOptions {
   bool force = false;     ///< recompute every step
 };
 
+/// One check of a run, as the summary at the top of index.html and on stdout shows it.
+struct PipelineCheck {
+  std::string name;     ///< "focus-scan test", "sphere calibration", "fit sphere", ...
+  bool ok = true;       ///< passes; false: needs attention
+  std::string result;   ///< what it found, one line
+  std::string meaning;  ///< what that says about the model, one line
+};
+
 struct PipelineSummary {
   std::string report;  ///< index.html
   int verdict = 2;     ///< compare-scan verdict: 0 pass, 1 warning, 2 fail
+  /// Every check of the run: the sphere calibration (when run), the focus-scan test, each fit.
+  std::vector<PipelineCheck> checks;
+  /// The run's exit status: 0 every check passes; 1 a check needs attention (a focus-scan
+  /// warning, a model mismatch, a fit that did not converge); 2 the focus-scan test fails.
+  int status = 2;
+  std::string Overall() const;  ///< one line: "all N checks pass" or what needs attention
   double cone_half_angle_deg = 0;
   std::vector<double> transmissions, transmission_sigma;
   std::vector<double> exp_defocus_um;

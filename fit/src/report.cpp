@@ -114,7 +114,7 @@ nlohmann::json ParameterJson(const ParameterResult& p) {
           {"sigma_repeat_seeds", J(p.sigma_repeat)},
           {"sigma_cramer_rao", J(p.sigma_cramer_rao)},
           {"sigma_expected_with_simulation_noise", J(p.sigma_expected)},
-          {"slice", {{"x", p.slice_x}, {"error", p.slice_error}}},
+          {"slice", {{"x", p.slice_x}, {"error", p.slice_error}, {"noise", J(p.slice_noise)}}},
           {"profile_likelihood", ProfileJson(p)},
           {"prior", p.prior_sigma > 0 ? nlohmann::json{{"mean", p.prior_mean},
                                                        {"sigma", p.prior_sigma},
@@ -224,12 +224,18 @@ std::string WriteImages(const FitSpec& spec, const FitResult& res, const fs::pat
   return imgs;
 }
 
-/// The error along one parameter through the optimum, with the optimum marked.
+/// The error along one parameter through the optimum, with the optimum marked and, for the
+/// Poisson deviance, the parabola the curvature's sigma implies (the deviance rises by
+/// ((x - best) / sigma)^2 about a quadratic optimum).
 void WriteSlicePlot(const FitSpec& spec, const ParameterResult& p, const fs::path& png) {
   compare::Series s;
   s.x = p.slice_x, s.y = p.slice_error;
+  s.points = true, s.joined = true;
+  s.label = "error (two ray-stream sets), +- its ray noise";
+  if (p.slice_noise > 0) s.yerr.assign(s.x.size(), p.slice_noise);
   compare::Series dot;
   dot.points = true;
+  dot.label = "estimate";
   dot.x = {p.best};
   // On the curve at the best value (the slice is centred on it; between two samples, linear).
   double at_best = p.slice_error.front();
@@ -242,7 +248,20 @@ void WriteSlicePlot(const FitSpec& spec, const ParameterResult& p, const fs::pat
     }
   if (p.best > p.slice_x.back()) at_best = p.slice_error.back();
   dot.y = {at_best};
-  compare::WritePlot(png.string(), {s, dot}, "error along " + p.key + " through the optimum",
+  std::vector<compare::Series> series{s, dot};
+  const double sc = p.sigma_curvature;
+  if (spec.error == ErrorFunction::kPoisson && std::isfinite(sc) && sc > 0) {
+    compare::Series q;
+    q.label = "parabola of sigma (curvature)";
+    const double lo = p.slice_x.front(), hi = p.slice_x.back();
+    for (int k = 0; k <= 40; ++k) {
+      const double x = lo + (hi - lo) * k / 40.0;
+      q.x.push_back(x);
+      q.y.push_back(at_best + (x - p.best) * (x - p.best) / (sc * sc));
+    }
+    series.push_back(q);
+  }
+  compare::WritePlot(png.string(), series, "error along " + p.key + " through the optimum",
                      p.key + (p.unit.empty() ? "" : " (" + p.unit + ")"),
                      ErrorFunctionName(spec.error));
 }
@@ -250,6 +269,19 @@ void WriteSlicePlot(const FitSpec& spec, const ParameterResult& p, const fs::pat
 /// Slices per parameter and the grid landscape (1 or 2 axes); returns the report's HTML for them.
 std::string WritePlots(const FitSpec& spec, const FitResult& res, const fs::path& dir) {
   std::string plots;
+  bool slices = false;
+  for (const ParameterResult& p : res.parameters) slices = slices || p.slice_x.size() >= 2;
+  if (slices)
+    plots +=
+        "<p>Slices: the error along one parameter with the others at the estimate, the mean of "
+        "two independent ray-stream sets, with error bars of one standard deviation of that "
+        "mean's ray noise (from the two sets' differences). With fixed ray streams such a curve "
+        "is a staircase (rays crossing pixel edges), so its lowest sample need not be the "
+        "estimate: the estimate is the root of the final steps' estimating equation over "
+        "independent ray-stream sets (docs/design/fit-estimator.md, \"Finite rays\"). For the "
+        "Poisson deviance the smooth curve is the parabola the curvature's sigma implies; a "
+        "slice that departs from it by much more than its error bars is a sign to check the "
+        "estimate or its sigma (a profile interval, more rays).</p>\n";
   for (size_t i = 0; i < res.parameters.size(); ++i) {
     if (res.parameters[i].slice_x.size() < 2) continue;
     const fs::path png = dir / ("slice_" + std::to_string(i) + ".png");

@@ -551,17 +551,32 @@ Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vec
         res.parameters[i].sigma_repeat = std::sqrt(v / double(reps.size() - 1));
       }
   }
-  // Error-function slices through the optimum: +-3 sigma (curvature), at least +-step/2.
+  // Error-function slices through the optimum: +-3 sigma (curvature), at least +-step/2, each
+  // point the mean over two ray-stream sets. With fixed streams a slice is a staircase whose
+  // steps can exceed its rise over one sigma; the two sets' differences, less their mean (the
+  // level differs between sets, not the shape), measure that noise for the report.
   if (spec.slice_points >= 3) {
+    const uint64_t second = spec.seed + kDerivativeSetSeedStride;
     for (size_t i = 0; i < P; ++i) {
       ParameterResult& pr = res.parameters[i];
       const double half = std::max(3 * pr.sigma_curvature, 0.5 * spec.parameters[i].step);
+      std::vector<double> diff;
       for (int k = 0; k < spec.slice_points && run.Budget(); ++k) {
         std::vector<double> th = best;
         th[i] = best[i] - half + 2 * half * k / (spec.slice_points - 1);
         if (th[i] < pr.lower || th[i] > pr.upper) continue;
+        const double a = run.Eval(th, final_level, spec.seed, Stage::kSlice);
+        const double b = run.Eval(th, final_level, second, Stage::kSlice);
         pr.slice_x.push_back(th[i]);
-        pr.slice_error.push_back(run.Eval(th, final_level, spec.seed, Stage::kSlice));
+        pr.slice_error.push_back(0.5 * (a + b));
+        diff.push_back(a - b);
+      }
+      const size_t n = diff.size();
+      if (n >= 3) {
+        double m = 0, v = 0;
+        for (double d : diff) m += d / double(n);
+        for (double d : diff) v += (d - m) * (d - m) / double(n - 1);
+        pr.slice_noise = 0.5 * std::sqrt(v);  // sd of (a + b) / 2 = sd(a - b) / 2
       }
     }
   }

@@ -270,6 +270,7 @@ void BindFit(py::module_& m) {
           d["at_bound"] = p.at_bound;
           d["slice_x"] = p.slice_x;
           d["slice_error"] = p.slice_error;
+          d["slice_noise"] = p.slice_noise;
           if (!p.profile_t.empty()) {
             py::dict pl;
             pl["reason"] = p.profile_reason;

@@ -290,6 +290,32 @@ TEST_F(FitFile, ParameterThatDoesNotChangeTheImageIsReportedFlat) {
   }
 }
 
+// Slices by default: 7 points over +-3 sigma (curvature) centred on the estimate, each the mean
+// of two ray-stream sets with the slice's ray noise from their differences, and the report
+// explains why the lowest sample need not be the estimate (fixed ray streams).
+TEST_F(FitFile, SlicesHaveSevenPointsAboutTheEstimateAndTheReportExplainsThem) {
+  const FitSpec spec = LoadFitSpec(
+      Fit("[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 21\nupper = 25\nstep = 0.2\n",
+          "[uncertainty]\nrepeat_seeds = 0\n"));
+  ASSERT_EQ(spec.slice_points, 7);
+  const FitResult r = RunFit(spec);
+  ASSERT_TRUE(r.converged) << r.message;
+  const ParameterResult& p = r.parameters[0];
+  ASSERT_EQ(p.slice_x.size(), 7u);
+  EXPECT_NEAR(p.slice_x[3], p.best, 1e-9 * std::abs(p.best));
+  EXPECT_NEAR(p.slice_x[6] - p.slice_x[3], std::max(3 * p.sigma_curvature, 0.1), 1e-9);
+  EXPECT_GT(p.slice_noise, 0);
+  size_t slice_evaluations = 0;
+  for (const Evaluation& e : r.evaluations) slice_evaluations += e.stage == Stage::kSlice;
+  EXPECT_EQ(slice_evaluations, 14u);
+  const std::string report = WriteFitOutputs(spec, r, dir_ / "out");
+  std::ifstream in(report);
+  std::stringstream html;
+  html << in.rdbuf();
+  EXPECT_NE(html.str().find("its lowest sample need not be the estimate"), std::string::npos);
+  EXPECT_TRUE(std::filesystem::exists(dir_ / "out/slice_0.png"));
+}
+
 // Closed form: for mu_p = theta s_p the Fisher information is sum s_p / theta, so the bound on
 // theta is sqrt(theta / sum s_p) (the Poisson estimate of an amplitude).
 TEST(CramerRao, AmplitudeOfAPoissonImageMatchesTheClosedForm) {

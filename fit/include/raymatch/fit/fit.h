@@ -197,7 +197,11 @@ struct ParameterResult {
   /// CRB x sqrt(1 + 1/(ray_factor x final fraction)).
   double sigma_expected = 0;
   bool at_bound = false;
-  std::vector<double> slice_x, slice_error;  ///< error along this axis through the optimum
+  /// The error along this axis through the optimum: the mean over two independent ray-stream
+  /// sets, and its ray noise (one standard deviation of a point's mean about the slice's shape,
+  /// from the two sets' differences; 0 with fewer than 3 points).
+  std::vector<double> slice_x, slice_error;
+  double slice_noise = 0;
   /// Profile-likelihood interval (68 %), computed where the curvature interval may not be
   /// trustworthy; `profile_reason` says why (empty: not computed). The profile deviance is
   /// followed along the linearised profile path over +-2 sigma (the reported sigma, simulation

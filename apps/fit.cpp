@@ -6,6 +6,7 @@
 #include "commands.h"
 #include "mpi_session.h"
 #include "raymatch/core/error.h"
+#include "raymatch/core/html.h"
 
 namespace raymatch::apps {
 
@@ -26,9 +27,11 @@ int RunFitCommand(const FitCliOptions& o) {
   const std::string report = fit::WriteFitOutputs(spec, r, RankOutput(o.output));
   std::cout << "fit " << fit::StatusName(r.status) << ": " << r.message << "\n";
   for (const auto& p : r.parameters) {
-    std::cout << "  " << p.key << " = " << p.best << (p.unit.empty() ? "" : " " + p.unit) << "  +- "
-              << p.sigma << "  (Cramer-Rao bound " << p.sigma_cramer_rao;
-    if (spec.repeat_seeds >= 2) std::cout << ", repeat-seed scatter " << p.sigma_repeat;
+    std::cout << "  " << p.key << " = " << FormatValue(p.best, p.sigma)
+              << (p.unit.empty() ? "" : " " + p.unit) << "  +- " << FormatUncertainty(p.sigma)
+              << "  (Cramer-Rao bound " << FormatUncertainty(p.sigma_cramer_rao);
+    if (spec.repeat_seeds >= 2)
+      std::cout << ", repeat-seed scatter " << FormatUncertainty(p.sigma_repeat);
     std::cout << ")" << (p.at_bound ? "  AT BOUND" : "");
     if (p.prior_sigma > 0)
       std::cout << "  (prior from the " << p.prior_from << ": " << p.prior_mean << " +- "

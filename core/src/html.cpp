@@ -1,6 +1,9 @@
 #include "raymatch/core/html.h"
 
+#include <algorithm>
+#include <cmath>
 #include <cstdint>
+#include <cstdio>
 #include <fstream>
 #include <sstream>
 
@@ -60,6 +63,26 @@ std::string HtmlEscape(const std::string& text) {
 std::string EmbeddedPng(const std::string& png, const std::string& alt) {
   return "<img alt='" + HtmlEscape(alt) + "' src='data:image/png;base64," +
          Base64(ReadFileBytes(png)) + "'>";
+}
+
+std::string FormatUncertainty(double u) {
+  if (!(std::isfinite(u) && u > 0)) return "not computed";
+  char buf[64];
+  std::snprintf(buf, sizeof buf, "%.2g", u);
+  return buf;
+}
+
+std::string FormatValue(double v, double u, int digits) {
+  char buf[64];
+  if (!std::isfinite(v)) return "not computed";
+  if (!(std::isfinite(u) && u > 0)) {
+    std::snprintf(buf, sizeof buf, "%.*g", digits, v);
+    return buf;
+  }
+  // Decimals down to the uncertainty's second significant digit (none above the units).
+  const int decimals = std::max(0, 1 - int(std::floor(std::log10(u))));
+  std::snprintf(buf, sizeof buf, "%.*f", std::min(decimals, 17), v);
+  return buf;
 }
 
 }  // namespace raymatch

@@ -325,15 +325,18 @@ std::string ParametersHtml(const FitSpec& spec, const FitResult& res) {
       << (p.prior_sigma > 0 ? "<br><small>prior " + Num(p.prior_mean, 8) + " &plusmn; " +
                                   Num(p.prior_sigma, 3) + " (" + Esc(p.prior_from) + ")</small>"
                             : std::string())
-      << "</td><td>" << p.unit << "</td><td>" << Num(p.start) << "</td><td>" << Num(p.best, 8)
-      << (p.at_bound ? " (at bound)" : "") << "</td><td>" << Num(p.sigma, 3) << "</td><td>"
-      << Num(p.sigma_curvature, 3) << "</td><td>" << Num(p.sigma_repeat, 3) << "</td><td>"
-      << Num(p.sigma_cramer_rao, 3) << "</td><td>" << Num(p.sigma_expected, 3) << "</td><td"
-      << (p.profile_t.empty()
-              ? ">not needed"
-              : " title=\"" + Esc(p.profile_reason) + "\">[" +
-                    (p.profile_lower_open ? "&le; " : "") + Num(p.profile_lower, 8) + ", " +
-                    (p.profile_upper_open ? "&ge; " : "") + Num(p.profile_upper, 8) + "]")
+      << "</td><td>" << p.unit << "</td><td>" << Num(p.start) << "</td><td>"
+      << FormatValue(p.best, p.sigma, 8) << (p.at_bound ? " (at bound)" : "") << "</td><td>"
+      << FormatUncertainty(p.sigma) << "</td><td>" << FormatUncertainty(p.sigma_curvature)
+      << "</td><td>" << FormatUncertainty(p.sigma_repeat) << "</td><td>"
+      << FormatUncertainty(p.sigma_cramer_rao) << "</td><td>" << FormatUncertainty(p.sigma_expected)
+      << "</td><td"
+      << (p.profile_t.empty() ? ">not needed"
+                              : " title=\"" + Esc(p.profile_reason) + "\">[" +
+                                    (p.profile_lower_open ? "&le; " : "") +
+                                    FormatValue(p.profile_lower, p.sigma, 8) + ", " +
+                                    (p.profile_upper_open ? "&ge; " : "") +
+                                    FormatValue(p.profile_upper, p.sigma, 8) + "]")
       << "</td><td>[" << Num(p.lower) << ", " << Num(p.upper) << "]</td></tr>\n";
   h << "</table>\n";
   if (!res.correlation.empty()) {

@@ -218,8 +218,9 @@ std::string FitSectionHtml(const std::string& stem, const fit::FitSpec& spec,
     if (p.prior_sigma > 0)
       hh << "<br><small>prior " << p.prior_mean << " &plusmn; " << p.prior_sigma << " ("
          << HtmlEscape(p.prior_from) << ")</small>";
-    hh << "</td><td>" << p.best << " " << p.unit << "</td><td>" << p.sigma << "</td><td>"
-       << p.sigma_cramer_rao << "</td><td>";
+    hh << "</td><td>" << FormatValue(p.best, p.sigma) << " " << p.unit << "</td><td>"
+       << FormatUncertainty(p.sigma) << "</td><td>" << FormatUncertainty(p.sigma_cramer_rao)
+       << "</td><td>";
     if (p.profile_t.empty())
       hh << "not needed";
     else

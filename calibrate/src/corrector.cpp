@@ -4,6 +4,7 @@
 
 #include <Eigen/Dense>
 #include <cmath>
+#include <iomanip>
 #include <sstream>
 
 #include "raymatch/calibrate/lightfield.h"
@@ -163,9 +164,17 @@ TransmissionFit FitTransmissions(const std::vector<std::vector<double>>& W,
     f.gain_sigma = g * std::sqrt(std::max(0.0, cov(P - 1, P - 1)));
   }
   std::ostringstream msg;
-  msg << "fitted " << J - fixed.size() << " zone transmissions from " << K
-      << " flat fields; reduced chi^2 " << f.reduced_chi2;
-  if (!f.verdict.empty()) msg << " (" << f.verdict << ")";
+  msg << "fitted " << J - fixed.size() << " of " << J << " zone transmissions from " << K
+      << " flat fields";
+  if (std::count(fixed.begin(), fixed.end(), 0))
+    msg << " (zone 0, the central disc, fixed at 1: the gain carries the overall level)";
+  msg << "; reduced chi^2 " << f.reduced_chi2;
+  if (!f.verdict.empty())
+    msg << " (" << f.verdict << ")";
+  else if (dof > 0)
+    msg << " for " << dof << " degrees of freedom (" << std::fixed << std::setprecision(1)
+        << f.chi2_z << " standard deviations from its expectation: consistent with the flat "
+        << "fields' stated noise)" << std::defaultfloat << std::setprecision(6);
   for (int j : f.undetermined)
     msg << "; zone " << j << " receives no light in any flat field: undetermined (held at zone "
         << j - 1 << "'s value)";
@@ -264,8 +273,13 @@ std::string CorrectorSummary::BriefReport() const {
   std::ostringstream os;
   os.precision(4);
   os << fit.message << "\n  zone  T        sigma\n";
-  for (size_t j = 0; j < fit.transmissions.size(); ++j)
-    os << "  " << j << "     " << fit.transmissions[j] << "   " << fit.sigma[j] << "\n";
+  for (size_t j = 0; j < fit.transmissions.size(); ++j) {
+    os << "  " << j << "     " << fit.transmissions[j] << "   ";
+    if (fit.sigma[j] > 0)
+      os << fit.sigma[j] << "\n";
+    else
+      os << "(fixed or undetermined)\n";
+  }
   return os.str();  // warnings are separate (apps print them to stderr)
 }
 

@@ -55,6 +55,13 @@ TEST(CorrectorFit, RecoversTransmissionsWithHonestUncertainties) {
     }
     const TransmissionFit f = FitTransmissions(W, S, sg, 0);
     EXPECT_TRUE(f.undetermined.empty());
+    // The message says how many zones were fitted and why zone 0 was not, and reads the
+    // reduced chi-square against its expectation.
+    EXPECT_NE(f.message.find("fitted 8 of 9 zone transmissions"), std::string::npos) << f.message;
+    EXPECT_NE(f.message.find("zone 0, the central disc, fixed at 1"), std::string::npos);
+    if (f.verdict.empty())
+      EXPECT_NE(f.message.find("consistent with the flat fields' stated noise"), std::string::npos)
+          << f.message;
     fits.push_back(f.transmissions);
     if (reported.empty()) reported.assign(J, 0.0);
     for (int j = 0; j < J; ++j) reported[j] += f.sigma[j] / 20;

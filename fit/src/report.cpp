@@ -300,15 +300,31 @@ std::string WritePlots(const FitSpec& spec, const FitResult& res, const fs::path
     for (int r = 0; r < ny; ++r)
       for (int c = 0; c < nx; ++c)
         m.at(c, r) = static_cast<float>(res.grid_errors[size_t(r) * nx + c]);
-    const auto [lo, hi] = std::minmax_element(res.grid_errors.begin(), res.grid_errors.end());
-    compare::WriteFalseColour((dir / "landscape.png").string(), m, *lo, *hi,
-                              std::max(4, 240 / std::max(nx, ny)));
-    plots += "<p>Grid landscape: columns " + Esc(spec.parameters[1].key) + " from " +
-             Num(res.grid_axes[1].front()) + " to " + Num(res.grid_axes[1].back()) + ", rows " +
-             Esc(spec.parameters[0].key) + " from " + Num(res.grid_axes[0].front()) + " (top) to " +
-             Num(res.grid_axes[0].back()) + "; colour: " + ErrorFunctionName(spec.error) +
-             " from " + Num(*lo) + " (dark) to " + Num(*hi) + " (yellow).</p>" +
-             EmbeddedPng((dir / "landscape.png").string()) + "\n";
+    // Each grid node is a cell centred on its value; the cells' edges are midway between nodes.
+    auto edges = [](const std::vector<double>& v) {
+      std::vector<double> e(v.size() + 1);
+      const double h = v.size() > 1 ? v[1] - v[0] : 1;
+      e.front() = v.front() - 0.5 * h;
+      for (size_t k = 1; k < v.size(); ++k) e[k] = 0.5 * (v[k - 1] + v[k]);
+      e.back() = v.back() + 0.5 * (v.size() > 1 ? v.back() - v[v.size() - 2] : 1);
+      return e;
+    };
+    auto label = [&](size_t k) {
+      const ParameterResult& p = res.parameters[k];
+      return spec.parameters[k].key + (p.unit.empty() ? "" : " (" + p.unit + ")");
+    };
+    compare::MapPlot mp;
+    mp.image = m;
+    mp.x_edges = edges(res.grid_axes[1]);
+    mp.y_edges = edges(res.grid_axes[0]);
+    mp.title = "grid scan: " + std::string(ErrorFunctionName(spec.error)) + " at each node";
+    mp.xlabel = label(1);
+    mp.ylabel = label(0);
+    mp.colour_label = ErrorFunctionName(spec.error);
+    mp.markers.push_back({res.parameters[1].best, res.parameters[0].best, true});
+    mp.marker_legend = "square: the estimate";
+    compare::WriteMap((dir / "landscape.png").string(), mp);
+    plots += EmbeddedPng((dir / "landscape.png").string()) + "\n";
   }
   return plots;
 }

@@ -383,7 +383,7 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
   std::ostringstream h;
   h << "<!doctype html><html><head><meta charset=\"utf-8\"><title>raymatch fit</title><style>"
        "body{font-family:sans-serif;max-width:1100px;margin:2em "
-       "auto}table{border-collapse:collapse}"
+       "auto}table{border-collapse:collapse;display:block;overflow-x:auto;max-width:100%}"
        "td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}img{image-rendering:pixelated;"
        "max-width:100%}</style></head><body>\n<h1>raymatch fit</h1>\n<p>"
     << Esc(spec.file) << ": " << MethodName(spec.method) << " on " << ErrorFunctionName(spec.error)

@@ -137,7 +137,8 @@ void WriteRunReport(const RunReport& r) {
   h.precision(4);
   h << "<!doctype html><html><head><meta charset='utf-8'><title>raymatch run</title><style>"
        "body{font-family:sans-serif;margin:2em;max-width:1100px}td,th{border:1px solid #ccc;"
-       "padding:2px 6px;font-size:12px}table{border-collapse:collapse}img{max-width:100%}"
+       "padding:2px 6px;font-size:12px}table{border-collapse:collapse;display:block;"
+       "overflow-x:auto;max-width:100%}img{max-width:100%}"
        ".pass{color:#070}.fail{color:#b00}</style></head><body><h1>raymatch: calibrate, simulate, "
        "compare</h1>"
     << "<p>" << ProvenanceJson()["date_utc"].get<std::string>() << " &mdash; <code>"

@@ -285,17 +285,33 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
       " is the factor the simulation was scaled by (s = 1 when photon-matched: (sim &minus; "
       "exp) / &radic;(sim + exp)). Right: azimuthal means about the image "
       "centre with one pixel's &plusmn;1&sigma; shot-noise band. Each experimental plane is "
-      "paired with the simulation plane nearest in defocus.</p><table class='planes'>";
+      "paired with the simulation plane nearest in defocus.</p>";
+  std::string figures = "<table class='planes'>";
+  std::string fit_table =
+      "<p>Goodness of fit per plane: the focus-scan test says each plane is matched to the "
+      "right defocus; this says whether that simulation describes the plane within the shot "
+      "noise. For two independent Poisson images of one mean the mean square residual is 1 with "
+      "a standard deviation of &radic;(2/N) over N pixels; 3 standard deviations above is a "
+      "misfit.</p><table><tr><th>experiment z (um)</th><th>simulation z (um)</th><th>mean "
+      "square residual</th><th>expected</th><th>standard deviations</th><th>verdict</th></tr>";
   for (int i = 0; i < int(r.exp_images.size()); ++i) {
     const std::string res = (d / ("plane_" + std::to_string(i) + "_residual.png")).string();
     const std::string prof = (d / ("plane_" + std::to_string(i) + "_profile.png")).string();
-    PlaneFigures(r, i, res, prof);
-    html += "<tr><td>" + EmbeddedPng(res, "residual at " + Fmt(r.exp_defocus_um[i]) + " um") +
-            "</td><td>" +
-            EmbeddedPng(prof, "radial profile at " + Fmt(r.exp_defocus_um[i]) + " um") +
-            "</td></tr>";
+    const double ms = PlaneFigures(r, i, res, prof);
+    const double n = double(std::max(1, r.exp_images[i].width * r.exp_images[i].height));
+    const double sd = std::sqrt(2 / n), z = (ms - 1) / sd;
+    std::ostringstream row;
+    row.precision(3);
+    row << "<tr><td>" << r.exp_defocus_um[i] << "</td><td>" << r.sim_defocus_um[NearestSim(r, i)]
+        << "</td><td>" << ms << "</td><td>1 &plusmn; " << sd << "</td><td>" << z << "</td><td>"
+        << (z > 3 ? "misfit beyond the shot noise" : "within the shot noise") << "</td></tr>";
+    fit_table += row.str();
+    figures += "<tr><td>" + EmbeddedPng(res, "residual at " + Fmt(r.exp_defocus_um[i]) + " um") +
+               "</td><td>" +
+               EmbeddedPng(prof, "radial profile at " + Fmt(r.exp_defocus_um[i]) + " um") +
+               "</td></tr>";
   }
-  html += "</table>";
+  html += fit_table + "</table>" + figures + "</table>";
   html += "<p style='color:#777'>raymatch compare-scan, " + UtcTimestamp() + ": " + CommandLine() +
           "</p></body></html>\n";
   const std::string report = (d / "report.html").string();

@@ -155,6 +155,27 @@ TEST(FocusScan, ReportFilesAreWritten) {
        {"compare_scan.json", "best_match.csv", "mse_matrix.csv", "heatmap_ms_ssim.png",
         "montage.png", "plane_0_residual.png", "plane_2_profile.png"})
     EXPECT_TRUE(std::filesystem::exists(dir / ("out/" + std::string(f)))) << f;
+  // Per-plane goodness of fit: two Poisson draws of one mean are within the shot noise.
+  size_t within = 0;
+  for (size_t at = 0;
+       (at = ss.str().find("<td>within the shot noise</td>", at)) != std::string::npos; ++at)
+    ++within;
+  EXPECT_EQ(within, zs.size());
+  EXPECT_EQ(ss.str().find("misfit beyond the shot noise"), std::string::npos);
+}
+
+// A simulation whose planes are each 4 um off in focus (labelled with the experiment's): the
+// per-plane goodness of fit calls it a misfit beyond the shot noise.
+TEST(FocusScan, PerPlaneGoodnessOfFitFlagsAMisfit) {
+  const std::vector<double> zs = {-10, 0, 10}, off = {-6, 4, 14};
+  Stack sim = MakeStack(off, 1, 0, 2, true);
+  sim.defocus_um = zs;
+  const FocusScanResult r = RunFocusScan(MakeStack(zs, 1, 0, 1, true), sim, {});
+  testing::TempDir dir;
+  std::ifstream in(WriteFocusScanReport(r, dir / "out", "test"));
+  std::stringstream ss;
+  ss << in.rdbuf();
+  EXPECT_NE(ss.str().find("misfit beyond the shot noise"), std::string::npos);
 }
 
 FailureKind KindOf(const std::function<void()>& f) {

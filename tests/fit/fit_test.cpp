@@ -1087,7 +1087,9 @@ TEST(GridScan, MergingDropsDefocusAndTiltLandOnTheTruth) {
       << "pixel_pitch_um = 20\n[trace]\nphotons_per_pixel = " << 2500 * kPhotonScale << "\n";
     return s.str();
   };
-  MakeExperiment(dir, "exp", scene(78, 21), 6);  // truth: tilt 12 deg, defocus 6 um
+  // The truth between the grid's nodes (defocus 2, 4, ..., 10 um; rotation 70, 74, ..., 86 deg):
+  // 6.6 um and 79.2 deg, nearest to the node (6, 78).
+  MakeExperiment(dir, "exp", scene(79.2, 21), 6.6);
   dir.Write("model.toml", scene(82, 1));
   for (const char* error : {"poisson", "ms-ssim"}) {
     const std::string fraction = std::string(error) == "poisson" ? "0.0625" : "0.0009765625";
@@ -1104,10 +1106,10 @@ TEST(GridScan, MergingDropsDefocusAndTiltLandOnTheTruth) {
             "[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\ncramer_rao = false\n");
     const FitResult r = RunFit(LoadFitSpec(fit));
     ASSERT_EQ(r.grid_errors.size(), 25u);
-    if (std::string(error) == "poisson") {
+    if (std::string(error) == "poisson") {  // the node nearest the truth
       EXPECT_EQ(r.parameters[0].best, 6) << error;
       EXPECT_EQ(r.parameters[1].best, 78) << error;
-    } else {  // 1/1024 of the rays: within one grid step (2 um, 4 deg) of the truth
+    } else {  // 1/1024 of the rays: within one grid step (2 um, 4 deg) of that node
       EXPECT_NEAR(r.parameters[0].best, 6, 2.0) << error;
       EXPECT_NEAR(r.parameters[1].best, 78, 4.0) << error;
     }

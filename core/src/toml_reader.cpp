@@ -77,11 +77,11 @@ static size_t KeyDistance(const std::string& a, const std::string& b) {
   return d[a.size()][b.size()];
 }
 
-/// A written key close enough to `want` to be a misspelling of it: at most 2 edits, and fewer
-/// than a third of the longer key's letters.
-static bool LooksLike(const std::string& written, const std::string& want) {
+/// The edit distance from `written` to `want` when it is close enough to be a misspelling (at
+/// most 2 edits, and fewer than a third of the longer key's letters); 0 otherwise.
+static size_t MisspellingDistance(const std::string& written, const std::string& want) {
   const size_t d = KeyDistance(written, want);
-  return d > 0 && d <= 2 && 3 * d < std::max(written.size(), want.size());
+  return d <= 2 && 3 * d < std::max(written.size(), want.size()) ? d : 0;
 }
 
 TomlReader::TomlReader(const toml::table& table, std::string file, std::string path_prefix)
@@ -116,7 +116,7 @@ void TomlReader::TypeError(const std::string& key, const std::string& expected) 
     // A key written in its place with a typo: name it, where it is written.
     for (const auto& [k, v] : *table_) {
       const std::string written(k.str());
-      if (!used_.count(written) && LooksLike(written, key))
+      if (!used_.count(written) && MisspellingDistance(written, key) > 0)
         throw Error(LocOf(file_, k.source()), "missing required key '" + Path(key) + "' " + where +
                                                   "; found '" + Path(written) +
                                                   "': did you mean '" + key + "'? (expected " +
@@ -323,7 +323,8 @@ void TomlReader::Finish() const {
     size_t best = SIZE_MAX;
     for (const auto& u : used_) {
       accepted += (accepted.empty() ? "" : ", ") + u;
-      if (LooksLike(key, u) && KeyDistance(key, u) < best) best = KeyDistance(key, u), nearest = u;
+      const size_t d = MisspellingDistance(key, u);
+      if (d > 0 && d < best) best = d, nearest = u;
     }
     throw Error(LocOf(file_, k.source()),
                 "unknown key '" + Path(key) + "'" +

@@ -371,12 +371,10 @@ PipelineCheck FitCheck(const std::string& stem, const fit::FitResult& r) {
     sigmas = sigmas && std::isfinite(p.sigma) && p.sigma > 0;
   const bool graded = r.goodness.pixels > 0;
   c.ok = r.converged && (!graded || (sigmas && !r.goodness.mismatch));
-  c.result =
-      std::string(fit::StatusName(r.status)) +
-      (!graded   ? ""
-       : !sigmas ? "; uncertainties not determined"
-                 : "") +
-      (graded ? (r.goodness.mismatch ? "; model mismatch" : "; consistent with the noise") : "");
+  c.result = std::string(fit::StatusName(r.status));
+  if (graded)
+    c.result += std::string(sigmas ? "" : "; uncertainties not determined") +
+                (r.goodness.mismatch ? "; model mismatch" : "; consistent with the noise");
   const std::string misfit = "the model does not describe the images within their noise";
   c.meaning = !r.converged ? "no estimate: see the fit's report"
               : !graded    ? "a grid search: its minimum, with no statistical test"

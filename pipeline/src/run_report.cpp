@@ -21,14 +21,6 @@ std::string Img(const std::string& png, const std::string& alt) { return Embedde
 
 namespace {
 
-/// A value to 4 significant digits.
-std::string Num(double v) {
-  std::ostringstream o;
-  o.precision(4);
-  o << v;
-  return o.str();
-}
-
 /// A map centred on the axis (+-half_x, +-half_y), colours from 0 to its maximum; `relative`:
 /// divided by the maximum first.
 void WriteMapPlot(const fs::path& png, const Image& image, bool relative, double half_x,
@@ -154,8 +146,8 @@ void WriteRunReport(const RunReport& r) {
     << (cal.edge_half_angle_deg > 0
             ? "<p>Beyond the NA the simulation does not use zero: the sphere calibration's soft "
               "edge, half radiance at " +
-                  Num(cal.edge_half_angle_deg) + " deg, width " + Num(cal.edge_width_deg) +
-                  " deg (Sphere calibration, below).</p>"
+                  FormatValue(cal.edge_half_angle_deg, 0, 4) + " deg, width " +
+                  FormatValue(cal.edge_width_deg, 0, 4) + " deg (Sphere calibration, below).</p>"
             : std::string())
     << Img((fig / "angular_map.png").string(), "angular map") << " "
     << Img((fig / "radial_profile.png").string(), "light-field radial profile")

@@ -677,11 +677,18 @@ void ReadMotion(TomlReader& r, const std::string& path, Scene* s) {
                                "with fwhm_us, or \"file\")");
 }
 
+/// How far an object reaches from its centre: a sphere's radius, the length of the other
+/// shapes' semi-axes; 0 for a mesh (its vertices say).
+static double ObjectExtentUm(const ObjectSpec& o) {
+  return o.shape == ShapeType::kSphere ? o.radius_um
+         : o.shape == ShapeType::kMesh ? 0
+                                       : Length(o.semi_axes_um);
+}
+
 /// Values that load but are unlikely to be what was meant: a sphere smaller than the wavelength
 /// under the ray model (a radius written in mm?) or an object wider than the camera's view.
 static void PlausibilityWarnings(Scene* s) {
-  const double m =
-      s->optics.objective_focal_mm > 0 ? s->optics.tube_focal_mm / s->optics.objective_focal_mm : 0;
+  const double m = s->optics.objective_focal_mm > 0 ? std::abs(Magnification(s->optics)) : 0;
   const double view_um =
       m > 0 ? std::max(s->camera.nx, s->camera.ny) * s->camera.pixel_pitch_um / m : 0;
   auto num = [](double v) {
@@ -697,9 +704,7 @@ static void PlausibilityWarnings(Scene* s) {
                             num(s->wavelength_um) +
                             " um): a sub-wavelength sphere, which rays do not describe (a radius "
                             "meant in mm?)");
-    const double width = o.shape == ShapeType::kSphere ? 2 * o.radius_um
-                         : o.shape == ShapeType::kMesh ? 0
-                                                       : 2 * Length(o.semi_axes_um);
+    const double width = 2 * ObjectExtentUm(o);
     if (view_um > 0 && width > 2 * view_um)
       s->warnings.push_back(o.where.ToString() + ": object '" + o.name + "' is " + num(width) +
                             " um wide, more than twice the camera's view (" + num(view_um) +
@@ -895,9 +900,7 @@ void ValidateScene(const Scene& s) {
     first_plane_um = std::min(first_plane_um, dz + std::min(front, corr));
   }
   for (const ObjectSpec& o : s.objects) {
-    const double extent = o.shape == ShapeType::kSphere ? o.radius_um
-                          : o.shape == ShapeType::kMesh ? 0
-                                                        : Length(o.semi_axes_um);
+    const double extent = ObjectExtentUm(o);
     if (o.center_um.z + extent + o.SweepUm(s.exposure.max_offset_us()) >= first_plane_um)
       throw Error(o.where, "object '" + o.name +
                                "' reaches the objective or corrector plane; move it or the focus");

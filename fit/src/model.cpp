@@ -1,58 +1,19 @@
 #include "model.h"
 
 #include <algorithm>
-#include <chrono>
 #include <cmath>
 #include <sstream>
-#include <thread>
 #include <tuple>
 
 #include "raymatch/compare/measures.h"
-#include "raymatch/core/rng.h"
 #include "raymatch/simulate/wave_image.h"
 
 namespace raymatch::fit {
 
 namespace {
 
-/// Ray streams of the light field's part beyond the NA (a fit with the edge's keys): the plane
-/// index plus this, independent of every plane's own streams.
-constexpr uint32_t kBeyondStreams = 1u << 30;
-/// Streams of the PSF draws of a fit with the PSF as a key (FitModel::ApplyPsf).
-constexpr uint32_t kPsfStreams = 1u << 29;
-
-/// A standard normal deviate from one 32-bit word: the inverse normal CDF tabulated at the
-/// midpoints of 2^14 equal-probability bins and interpolated linearly (tails cut at 4.0 sd:
-/// the variance is 0.1 % short). Several times faster than Box-Muller, for the PSF draws of
-/// every ray of a fit evaluation.
-double NormalFromWord(uint32_t w) {
-  constexpr int kN = 1 << 14;
-  static const std::vector<float> table = [] {
-    std::vector<float> t(kN);
-    for (int k = 0; k < kN; ++k) {
-      const double p = (k + 0.5) / kN;
-      double lo = -10, hi = 10;
-      for (int it = 0; it < 64; ++it) {
-        const double mid = 0.5 * (lo + hi);
-        (0.5 * std::erfc(-mid / std::sqrt(2.0)) < p ? lo : hi) = mid;
-      }
-      t[size_t(k)] = float(0.5 * (lo + hi));
-    }
-    return t;
-  }();
-  const double pos = w * (double(kN) * 0x1p-32) - 0.5;
-  if (pos <= 0) return table.front();
-  const int k = std::min(int(pos), kN - 2);
-  const double f = std::min(pos - k, 1.0);
-  return table[size_t(k)] + f * (table[size_t(k) + 1] - table[size_t(k)]);
-}
-
 /// Whether pixel p enters the likelihood under a FitImage::usable mask (empty: every pixel).
 inline bool Uses(const Image& mask, size_t p) { return mask.pixels.empty() || mask.pixels[p] > 0; }
-
-double Seconds(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-}
 
 /// Signed deviance residual of one pixel: sign(mu - e) sqrt(2 [mu - e + e ln(e/mu)]).
 /// Counts below 0 (dark subtraction of read noise) are taken as 0.
@@ -94,17 +55,19 @@ double PoissonDeviance(const Image& e, const Image& mu) {
 FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const std::string&)> say)
     : spec_(spec), threads_(threads), say_(std::move(say)) {
   const size_t P = spec.parameters.size();
+  built_ = simulate::LoadScene(spec.scene, spec.scene_file);
   bool edge_keys = false, psf_key = false;
   double psf_max = 0;
   for (const Parameter& p : spec.parameters) {
-    if (p.key.starts_with("light_field_edge.")) {
-      edge_keys = true;
-    } else if (p.key == "camera.psf_sigma_um") {
+    bindings_.push_back(internal::Bind(p.key, spec.scene, built_, spec.images.size()));
+    const internal::Binding& b = bindings_.back();
+    read_per_evaluation_ = read_per_evaluation_ || (b.InScene() && !b.Typed());
+    edge_keys = edge_keys || b.kind == internal::Binding::Kind::kEdge;
+    if (b.kind == internal::Binding::Kind::kPsf) {
       psf_key = true;
       psf_max = std::max({psf_max, p.upper, p.start});
-    } else if (!(p.key.starts_with("object") || p.key.starts_with("image"))) {
-      split_allowed_ = false;
     }
+    split_allowed_ = split_allowed_ && b.KeepsSplit();
   }
   split_allowed_ = split_allowed_ && spec.rays.reuse_background;
   edge_split_ = split_allowed_ && edge_keys;
@@ -118,9 +81,18 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
   std::vector<size_t> moving;
   for (size_t i = 0; i < P; ++i) {
     start.push_back(spec.parameters[i].start);
-    const std::string& k = spec.parameters[i].key;
-    if (!(k.starts_with("light_field_edge.") || k == "camera.psf_sigma_um")) moving.push_back(i);
+    if (bindings_[i].SpansRegion()) moving.push_back(i);
   }
+  // Typed keys skip the scene file's range checks per evaluation: read the scene at each key's
+  // bounds once, so a box that leaves a valid range fails here as it would have at its first
+  // evaluation there.
+  for (size_t i = 0; i < P; ++i)
+    if (bindings_[i].Typed() && !bindings_[i].SpansRegion())
+      for (double v : {spec.parameters[i].lower, spec.parameters[i].upper}) {
+        std::vector<double> th = start;
+        th[i] = v;
+        SceneByReading(th);
+      }
   probes.push_back(start);
   object_pixel_um_ = simulate::Simulator(SceneAt(start)).object_pixel_um();
   if (split_allowed_ && psf_key) {
@@ -148,13 +120,14 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
       }
   }
   std::vector<std::pair<Vec3, double>> bounds;
-  double max_field = 0;
+  double max_field = 0, wave_window_um = 0;
   for (const auto& th : probes) {
-    const simulate::Scene sc = SceneAt(th);
+    const simulate::Scene sc = SceneByReading(th);
     if (spec.exact_images)  // one FFT window for every evaluation (MieSettings::window_um)
       for (double dz : sc.defocus_um)
-        wave_window_um_ = std::max(wave_window_um_, simulate::AutomaticMieWindowUm(sc, dz));
-    const simulate::Simulator sim(TracedScene(sc, simulate::SourceSpec::EdgePart::kAll));
+        wave_window_um = std::max(wave_window_um, simulate::AutomaticMieWindowUm(sc, dz));
+    const simulate::Simulator sim(
+        internal::TracedScene(sc, simulate::SourceSpec::EdgePart::kAll, psf_os_, psf_margin_));
     for (const auto& b : sim.ObjectBounds()) bounds.push_back(b);
     max_field = std::max(max_field, sim.field_radius_um());
   }
@@ -194,26 +167,52 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
   if (spec.exact_images) {
     double per_ray = 0;
     if (!(ppp > 0)) simulate::Simulator(s0).RaysForPhotonTarget(1.0, &per_ray);
-    wave_photons_ = ppp > 0 ? ppp : per_ray * double(photon_matched_rays_);
-  }
-  if (edge_split_) {
-    using Part = simulate::SourceSpec::EdgePart;
-    const double all = simulate::Simulator(TracedScene(s0, Part::kAll)).source_weight();
-    const double in = simulate::Simulator(TracedScene(s0, Part::kInside)).source_weight();
-    if (!(all > 0 && in > 0))
-      throw raymatch::Error(FileLocation{spec.file}, "light_field_edge keys need a light field");
-    inside_share_ = in / all;
+    const double photons = ppp > 0 ? ppp : per_ray * double(photon_matched_rays_);
+    images_ = std::make_unique<internal::MieImageModel>(photons, wave_window_um, threads_);
+  } else {
+    internal::RayImageModel::Setup setup;
+    setup.images = spec.images.size();
+    setup.threads = threads_;
+    setup.region_center = region_center_, setup.region_radius = region_radius_;
+    setup.split = split_allowed_, setup.edge_split = edge_split_;
+    setup.psf_os = psf_os_, setup.psf_margin = psf_margin_;
+    setup.object_pixel_um = object_pixel_um_;
+    if (edge_split_) {
+      // The part inside the NA's share of the rays at the start.
+      using Part = simulate::SourceSpec::EdgePart;
+      const double all =
+          simulate::Simulator(internal::TracedScene(s0, Part::kAll, psf_os_, psf_margin_))
+              .source_weight();
+      const double in =
+          simulate::Simulator(internal::TracedScene(s0, Part::kInside, psf_os_, psf_margin_))
+              .source_weight();
+      if (!(all > 0 && in > 0))
+        throw raymatch::Error(FileLocation{spec.file}, "light_field_edge keys need a light field");
+      setup.inside_share = in / all;
+    }
+    images_ = std::make_unique<internal::RayImageModel>(setup);
   }
   for (const FitImage& f : spec.images)
     for (float v : f.photons.pixels) data_range_ = std::max(data_range_, double(v));
 }
 
-simulate::Scene FitModel::SceneAt(const std::vector<double>& theta) const {
+simulate::Scene FitModel::SceneByReading(const std::vector<double>& theta) const {
   toml::table t = spec_.scene;
   for (size_t i = 0; i < theta.size(); ++i)
-    if (!spec_.parameters[i].key.starts_with("image"))
+    if (bindings_[i].InScene())
       SetSceneValue(t, spec_.parameters[i].key, theta[i], spec_.scene_file);
   simulate::Scene s = simulate::LoadScene(t, spec_.scene_file);
+  s.defocus_um = DefocusAt(theta);
+  if (field_radius_ > 0) s.source.field_radius_um = field_radius_;
+  simulate::ValidateScene(s);
+  return s;
+}
+
+simulate::Scene FitModel::SceneAt(const std::vector<double>& theta) const {
+  if (read_per_evaluation_) return SceneByReading(theta);
+  simulate::Scene s = built_;
+  for (size_t i = 0; i < theta.size(); ++i)
+    if (bindings_[i].Typed()) internal::Patch(bindings_[i], theta[i], &s);
   s.defocus_um = DefocusAt(theta);
   if (field_radius_ > 0) s.source.field_radius_um = field_radius_;
   simulate::ValidateScene(s);
@@ -223,11 +222,8 @@ simulate::Scene FitModel::SceneAt(const std::vector<double>& theta) const {
 std::vector<double> FitModel::DefocusAt(const std::vector<double>& theta) const {
   std::vector<double> d;
   for (const FitImage& f : spec_.images) d.push_back(f.defocus_um);
-  for (size_t i = 0; i < theta.size(); ++i) {
-    const std::string& k = spec_.parameters[i].key;
-    if (k.starts_with("image[") && k.ends_with("].defocus_um"))
-      d[std::stoul(k.substr(6))] = theta[i];
-  }
+  for (size_t i = 0; i < theta.size(); ++i)
+    if (bindings_[i].kind == internal::Binding::Kind::kDefocus) d[bindings_[i].image] = theta[i];
   return d;
 }
 
@@ -235,13 +231,11 @@ Image FitModel::BackgroundOf(const std::vector<double>& theta, size_t i, int wid
                              int height) const {
   double level = 0, gx = 0, gy = 0;
   bool any = false;
-  const std::string prefix = "image[" + std::to_string(i) + "].background_";
   for (size_t k = 0; k < theta.size(); ++k) {
-    const std::string& key = spec_.parameters[k].key;
-    if (!key.starts_with(prefix)) continue;
+    const internal::Binding& b = bindings_[k];
+    if (b.kind != internal::Binding::Kind::kBackground || b.image != i) continue;
     any = true;
-    const std::string f = key.substr(prefix.size());
-    (f == "photons" ? level : f == "slope_x" ? gx : gy) = theta[k];
+    (b.background == 0 ? level : b.background == 1 ? gx : gy) = theta[k];
   }
   if (!any) return Image();
   Image b(width, height);
@@ -261,161 +255,18 @@ double FitModel::ScaleAt(double fraction) const {
   return double(photon_matched_rays_) / double(RaysAt(fraction));
 }
 
-const Image* FitModel::BackgroundAt(const simulate::Simulator& sim, size_t i, uint64_t seed,
-                                    double dz, uint64_t n, const simulate::RunControl& rc,
-                                    uint64_t* rays_traced) {
-  const uint32_t plane = static_cast<uint32_t>(i);
-  NearRays& near = near_[{i, seed}];
-  auto it = background_.find({i, seed, dz});
-  if (it != background_.end() && it->second.rays > n) return nullptr;  // cannot take rays away
-  const auto t0 = std::chrono::steady_clock::now();
-  if (it == background_.end()) {
-    if (background_.size() >= 64) background_.erase(background_.begin());  // bounded memory
-    it = background_.emplace(std::make_tuple(i, seed, dz), Background{0, Image(0, 0)}).first;
-  }
-  Background& bg = it->second;
-  const uint64_t start = bg.rays;
-  auto add = [&](const simulate::PlaneResult& r) {
-    if (bg.image.size() == 0) bg.image = Image(r.counts.width, r.counts.height);
-    for (size_t p = 0; p < r.counts.size(); ++p) bg.image.pixels[p] += r.counts.pixels[p];
-  };
-  // Rays whose near/far split is known (another defocus found it): trace the far ones.
-  if (bg.rays < std::min(n, near.rays)) {
-    const uint64_t to = std::min(n, near.rays);
-    add(sim.TraceRangeExcept(dz, plane, bg.rays, to, near.list, rc));
-    bg.rays = to;
-  }
-  // New rays: split and trace the far ones in one sampling pass.
-  if (bg.rays < n) {
-    RAYMATCH_CHECK(bg.rays == near.rays);
-    add(sim.TraceFarRays(dz, plane, bg.rays, n, region_center_, region_radius_, &near.list, rc));
-    bg.rays = near.rays = n;
-  }
-  if (rays_traced && bg.rays > start) {
-    const auto lo = std::lower_bound(near.list.begin(), near.list.end(), start);
-    const auto hi = std::lower_bound(near.list.begin(), near.list.end(), bg.rays);
-    *rays_traced += (bg.rays - start) - uint64_t(hi - lo);
-  }
-  background_seconds_ += Seconds(t0);
-  return &bg.image;
-}
-
-simulate::Scene FitModel::TracedScene(simulate::Scene s,
-                                      simulate::SourceSpec::EdgePart part) const {
-  s.source.edge_part = part;
-  if (psf_os_ > 1) {
-    s.camera.psf_sigma_um = 0;
-    s.camera.nx = s.camera.nx * psf_os_ + 2 * psf_margin_;
-    s.camera.ny = s.camera.ny * psf_os_ + 2 * psf_margin_;
-    s.camera.pixel_pitch_um /= psf_os_;
-  }
-  return s;
-}
-
-Image FitModel::ApplyPsf(const Image& fine, double sigma_um, uint64_t seed, uint32_t plane) const {
-  const int os = psf_os_, m = psf_margin_;
-  const int nx = (fine.width - 2 * m) / os, ny = (fine.height - 2 * m) / os;
-  // Each ray of a fine pixel lands at a point uniform within it plus a Gaussian offset (sigma
-  // in fine pixels), drawn from its own stream (fine pixel, rank in the pixel): the template
-  // stays a Poisson sample whatever the PSF (a smoothing convolution would shrink its noise as
-  // sigma grows, and the deviance would favour wide PSFs), and the draws are common random
-  // numbers across evaluations, so the image changes smoothly with sigma.
-  const double sg = sigma_um / (object_pixel_um_ / os);
-  const int rows = fine.height;
-  const int workers = std::max(
-      1, std::min(threads_ > 0 ? threads_ : int(std::thread::hardware_concurrency()), rows));
-  std::vector<Image> part(size_t(workers), Image(nx, ny));
-  auto run = [&](int w) {
-    Image& out = part[size_t(w)];
-    for (int y = w; y < rows; y += workers)
-      for (int x = 0; x < fine.width; ++x) {
-        const size_t p = size_t(y) * fine.width + x;
-        const uint64_t c = uint64_t(std::llround(fine.pixels[p]));
-        for (uint64_t j = 0; j < c; ++j) {
-          RayRng rng(seed, kPsfStreams + plane, (uint64_t(p) << 32) | j);  // one Philox block
-          const double u0 = rng.Uniform(), u1 = rng.Uniform();
-          const double gx = NormalFromWord(rng.NextU32()), gy = NormalFromWord(rng.NextU32());
-          const double fx = x + u0 + sg * gx - m, fy = y + u1 + sg * gy - m;
-          if (fx < 0 || fy < 0) continue;
-          const int cx = int(fx) / os, cy = int(fy) / os;
-          if (cx < nx && cy < ny) out.at(cx, cy) += 1.0f;
-        }
-      }
-  };
-  std::vector<std::thread> pool;
-  for (int w = 1; w < workers; ++w) pool.emplace_back(run, w);
-  run(0);
-  for (std::thread& t : pool) t.join();
-  for (int w = 1; w < workers; ++w)
-    for (size_t p = 0; p < part[0].size(); ++p) part[0].pixels[p] += part[size_t(w)].pixels[p];
-  return std::move(part[0]);
-}
-
 Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, uint64_t seed,
                              uint64_t* rays_traced) {
-  using Part = simulate::SourceSpec::EdgePart;
-  const simulate::Scene full = SceneAt(theta);
-  if (spec_.exact_images) {
-    // The exact wave image in photons at the experiment's flat-field count; the exposure and
-    // background follow as for traced images.
-    simulate::Scene w = full;
-    w.trace.photons_per_pixel = wave_photons_;
-    w.trace.rays = 0;
-    if (w.trace.mie.window_um == 0) w.trace.mie.window_um = wave_window_um_;
-    const simulate::MieImager mie(w);
-    Simulated out;
-    out.finite_ray_correction = false;
-    for (size_t i = 0; i < spec_.images.size(); ++i)
-      AddExposureAndBackground(theta, i, mie.Expected(w.defocus_um[i], threads_), 1.0, &out);
-    return out;
-  }
-  simulate::Scene scene = TracedScene(full, edge_split_ ? Part::kInside : Part::kAll);
-  scene.trace.seed = seed;
-  const simulate::Simulator sim(scene);
-  uint64_t n = RaysAt(fraction), beyond_rays = 0;
-  const double scale = ScaleAt(fraction);
-  // The rays beyond the NA: their own population and streams, in proportion to their weight.
-  std::unique_ptr<simulate::Simulator> beyond;
-  if (edge_split_) {
-    simulate::Scene b = TracedScene(full, Part::kBeyond);
-    b.trace.seed = seed;
-    beyond = std::make_unique<simulate::Simulator>(b);
-    n = std::max<uint64_t>(1, std::llround(double(n) * inside_share_));
-    beyond_rays = std::llround(double(n) * beyond->source_weight() / sim.source_weight());
-  }
-  simulate::RunControl rc;
-  rc.threads = threads_;
-  bool inside = split_allowed_;
-  if (inside)
-    for (const auto& [c, r] : sim.ObjectBounds())
-      inside = inside && Length(c - region_center_) + r <= region_radius_;
+  internal::Draw draw;
+  draw.fraction = fraction;
+  draw.rays = RaysAt(fraction);
+  draw.photons_per_ray = ScaleAt(fraction);
+  draw.seed = seed;
+  internal::ModelImages m = images_->Images(SceneAt(theta), draw, rays_traced);
   Simulated out;
-  out.finite_ray_correction = spec_.rays.finite_ray_correction;
-  for (size_t i = 0; i < spec_.images.size(); ++i) {
-    const double dz = scene.defocus_um[i];
-    const uint32_t plane = static_cast<uint32_t>(i);
-    Image counts;
-    const Image* bg = inside ? BackgroundAt(sim, i, seed, dz, n, rc, rays_traced) : nullptr;
-    if (bg) {
-      const std::vector<uint64_t>& near = near_.at({i, seed}).list;
-      const auto end = std::lower_bound(near.begin(), near.end(), n);
-      const std::span<const uint64_t> mine(near.data(), size_t(end - near.begin()));
-      counts = sim.TraceRays(dz, plane, mine, rc).counts;
-      for (size_t p = 0; p < counts.size(); ++p) counts.pixels[p] += bg->pixels[p];
-      if (rays_traced) *rays_traced += mine.size();
-      near_fraction_ = double(mine.size()) / double(n);
-    } else {
-      counts = sim.TracePlane(dz, plane, n, rc).counts;
-      if (rays_traced) *rays_traced += n;
-    }
-    if (beyond_rays > 0) {
-      const Image b = beyond->TracePlane(dz, plane + kBeyondStreams, beyond_rays, rc).counts;
-      for (size_t p = 0; p < counts.size(); ++p) counts.pixels[p] += b.pixels[p];
-      if (rays_traced) *rays_traced += beyond_rays;
-    }
-    if (psf_os_ > 1) counts = ApplyPsf(counts, full.camera.psf_sigma_um, seed, plane);
-    AddExposureAndBackground(theta, i, std::move(counts), scale, &out);
-  }
+  out.finite_ray_correction = !images_->exact() && spec_.rays.finite_ray_correction;
+  for (size_t i = 0; i < m.counts.size(); ++i)
+    AddExposureAndBackground(theta, i, std::move(m.counts[i]), m.photons_per_count, &out);
   return out;
 }
 
@@ -449,7 +300,7 @@ void FitModel::AddExposureAndBackground(const std::vector<double>& theta, size_t
       counts.pixels[p] = std::max(0.0f, counts.pixels[p] + bg_image.pixels[p]);
   out->photons.push_back(std::move(counts));
   // An exact model's image has no counting noise: no photons per ray.
-  out->photons_per_ray.push_back(spec_.exact_images ? 0.0 : s);
+  out->photons_per_ray.push_back(images_->exact() ? 0.0 : s);
 }
 
 Image BinImage(const Image& a, int b) {

@@ -7,6 +7,8 @@
 #include <mutex>
 #include <tuple>
 
+#include "binding.h"
+#include "image_model.h"
 #include "raymatch/core/vec.h"
 #include "raymatch/fit/fit.h"
 #include "raymatch/simulate/tracer.h"
@@ -102,12 +104,20 @@ class FitModel {
   uint64_t photon_matched_rays() const { return photon_matched_rays_; }
   const Vec3& region_center() const { return region_center_; }
   double region_radius() const { return region_radius_; }
-  double near_fraction() const { return near_fraction_; }
+  double near_fraction() const { return images_->near_fraction(); }
   /// The camera's pixel at the object plane (micrometres, at the start values).
   double object_pixel_um() const { return object_pixel_um_; }
-  double background_seconds() const { return background_seconds_; }
-  /// The scene with `theta` applied (for metadata and checks).
+  double background_seconds() const { return images_->background_seconds(); }
+  /// The image model the scene's optics (or the fit file's) selects.
+  const internal::ImageModel& image_model() const { return *images_; }
+  /// The scene with `theta` applied: the scene built once with the typed keys patched in
+  /// (Binding), or read again when a key has no typed patch.
   simulate::Scene SceneAt(const std::vector<double>& theta) const;
+  /// The same scene read from the scene file with every key set there (what SceneAt gives
+  /// without typed patches; for its test).
+  simulate::Scene SceneByReading(const std::vector<double>& theta) const;
+  /// What each parameter's key sets, resolved once.
+  const std::vector<internal::Binding>& bindings() const { return bindings_; }
   /// The image defocus values at `theta`.
   std::vector<double> DefocusAt(const std::vector<double>& theta) const;
 
@@ -121,53 +131,26 @@ class FitModel {
   void AddExposureAndBackground(const std::vector<double>& theta, size_t i, Image counts,
                                 double scale, Simulated* out) const;
   const FitSpec& spec_;
+  std::vector<internal::Binding> bindings_;
+  simulate::Scene built_;  // the scene file read once (typed keys are patched into copies)
+  bool read_per_evaluation_ = false;  // a scene key without a typed patch
   int threads_;
-  double wave_photons_ = 0;    // exact images: the flat field's photons per pixel
-  double wave_window_um_ = 0;  // exact images: the FFT window over the parameter box
   std::function<void(const std::string&)> say_;
   bool split_allowed_ = true;
   // Nuisance keys that keep the near/far split (docs/design/fit-estimator.md, "Nuisances that
   // keep the split"): with the light field's edge fitted, the parts inside and beyond the NA
-  // are separate ray populations (the inside rays do not depend on the edge; `inside_share_` of
-  // the rays at the start); with the PSF fitted, the rays are traced without it onto a camera
-  // `psf_os_` times finer with `psf_margin_` fine pixels beyond each side, and each ray's PSF
-  // offset is drawn there.
+  // are separate ray populations (the inside rays do not depend on the edge); with the PSF
+  // fitted, the rays are traced onto a camera `psf_os_` times finer with `psf_margin_` fine
+  // pixels beyond each side and each ray's PSF offset is drawn there (RayImageModel).
   bool edge_split_ = false;
-  double inside_share_ = 1;
   int psf_os_ = 1, psf_margin_ = 0;
   double object_pixel_um_ = 0;  // the camera's pixel at the object plane (at the start)
-  /// The scene the rays are traced in: `s` with the population `part` of its light field and,
-  /// with psf_os_ > 1, the finer camera without the PSF.
-  simulate::Scene TracedScene(simulate::Scene s, simulate::SourceSpec::EdgePart part) const;
-  /// With psf_os_ > 1: the fine image of TracedScene with the PSF sigma (um at the object
-  /// plane) applied ray by ray (streams from `seed` and `plane`), summed to the camera's pixels.
-  Image ApplyPsf(const Image& fine, double sigma_um, uint64_t seed, uint32_t plane) const;
+  std::unique_ptr<internal::ImageModel> images_;
   double field_radius_ = 0;  // fixed source field radius (0: the scene's own)
   Vec3 region_center_;
   double region_radius_ = 0;
   uint64_t photon_matched_rays_ = 0;
   double data_range_ = 1;  // L for the SSIM family (largest experimental pixel)
-  double near_fraction_ = 0;
-  double background_seconds_ = 0;
-  // Caches: rays near the region per (image, rays, seed); background per (..., defocus).
-  // Rays that can meet an object, per (image, seed): the indices below `rays` (ascending).
-  // Coarse-to-fine levels use the first n rays of the same streams, so a finer level extends
-  // the list and the background instead of starting again.
-  struct NearRays {
-    uint64_t rays = 0;
-    std::vector<uint64_t> list;
-  };
-  // The image of the other rays below `rays`, per (image, seed, defocus).
-  struct Background {
-    uint64_t rays = 0;
-    Image image;
-  };
-  /// The background of image i at n rays; extends `near` as needed. Null when it cannot be
-  /// extended (fewer rays than already traced for this defocus): then trace everything.
-  const Image* BackgroundAt(const simulate::Simulator& sim, size_t i, uint64_t seed, double dz,
-                            uint64_t n, const simulate::RunControl& rc, uint64_t* rays_traced);
-  std::map<std::tuple<size_t, uint64_t>, NearRays> near_;
-  std::map<std::tuple<size_t, uint64_t, double>, Background> background_;
   mutable std::map<int, std::vector<Image>> binned_experiment_;
   mutable std::map<int, std::vector<Image>> binned_usable_;
   mutable std::mutex binned_mutex_;

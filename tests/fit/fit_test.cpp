@@ -537,6 +537,110 @@ TEST(FitModelNuisances, EdgeAndPsfAsKeysGiveTheTracersOwnExpectedImage) {
   EXPECT_GT(chi / double(ref_sharp.size()), 1 + 3 * tol) << "the PSF test cannot tell";
 }
 
+// Keys are resolved once into typed bindings, and the model patches the scene it built once
+// instead of reading the scene file at every evaluation. The patched scene must trace exactly
+// the image the file would give with every key set in it: at values away from the file's, each
+// typed key's image is compared bit for bit (a patch that wrote another component or field, or
+// missed one, changes the image). Keys without a typed patch read the file again; a key that
+// changes the light far from the objects (the objective's NA) turns the near/far split off.
+TEST(FitModelBindings, PatchedSceneTracesTheImageTheSceneFileGives) {
+  testing::TempDir dir;
+  CalibrationData c;
+  const int n = 64;
+  c.angular_extent = 0.5;
+  c.na_limit = 0.42;
+  c.angular_map = testing::NaCutAngularMap(
+      n, c.angular_extent, c.na_limit, [](double u, double v) { return 1 + 0.3 * u + 0.1 * v; });
+  c.objective_focal_mm = 10, c.working_distance_mm = 20, c.na = 0.42, c.tube_focal_mm = 200;
+  c.pixel_pitch_um = 20, c.wavelength_um = 0.462;
+  WriteCalibrationFile(dir / "cal.toml", c);
+  dir.Write("model.toml",
+            "calibration = \"cal.toml\"\n[light_field_edge]\nhalf_angle_deg = 27\nwidth_deg = 1.5\n"
+            "tilt_deg = [0.8, -0.5]\n[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = "
+            "[1, 0, 0]\nradius_um = 14\nindex = 1.36\n[[object]]\nname = \"grain\"\ntype = "
+            "\"ellipsoid\"\ncenter_um = [-12, 8, 0]\nsemi_axes_um = [3.0, 2.0, 1.5]\nrotation_deg "
+            "= [0.0, 10.0, 0.0]\n"
+            "index = 1.5\n"
+            "[camera]\npixels = [48, 40]\npsf_sigma_um = 0.6\n[trace]\nphotons_per_pixel = 50\n");
+  Image flat(48, 40);
+  for (size_t p = 0; p < flat.size(); ++p) flat.pixels[p] = float(50 + p % 7);
+  WriteFloatImage(dir / "exp.tif", flat, "flat, a little structure (not a saturated constant)");
+  auto key = [](const std::string& k, double lo, double hi) {
+    return "[[parameter]]\nkey = \"" + k + "\"\nlower = " + std::to_string(lo) +
+           "\nupper = " + std::to_string(hi) + "\n";
+  };
+  const std::string fit = dir.Write(
+      "fit.toml",
+      "scene = \"model.toml\"\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = -6\n" +
+          key("object.drop.center_um[0]", -2, 2) + key("object[0].center_um[2]", -2, 2) +
+          key("object.drop.radius_um", 12, 16) + key("object.drop.index", 1.3, 1.4) +
+          key("object.grain.rotation_deg[1]", -40, 40) +
+          key("light_field_edge.half_angle_deg", 24, 30) +
+          key("light_field_edge.width_deg", 0.5, 3) + key("light_field_edge.tilt_deg[1]", -2, 2) +
+          key("camera.psf_sigma_um", 0, 1.5) + key("image[0].defocus_um", -10, 0));
+  const FitSpec spec = LoadFitSpec(fit);
+  FitModel model(spec, 0, nullptr);
+  using K = internal::Binding::Kind;
+  const std::vector<K> kinds{K::kObject, K::kObject, K::kObject, K::kObject, K::kObject,
+                             K::kEdge,   K::kEdge,   K::kEdge,   K::kPsf,    K::kDefocus};
+  ASSERT_EQ(model.bindings().size(), kinds.size());
+  for (size_t i = 0; i < kinds.size(); ++i) {
+    EXPECT_EQ(model.bindings()[i].kind, kinds[i]) << spec.parameters[i].key;
+    EXPECT_EQ(model.bindings()[i].Typed(), kinds[i] != K::kDefocus) << spec.parameters[i].key;
+  }
+  const std::vector<double> theta{-0.7, 0.9, 13.1, 1.33, 25, 28.5, 2.2, 1.1, 0.9, -4.5};
+  const simulate::Scene patched = model.SceneAt(theta), read = model.SceneByReading(theta);
+  EXPECT_EQ(patched.objects[0].center_um.x, -0.7);
+  EXPECT_EQ(patched.objects[0].center_um.z, 0.9);
+  EXPECT_EQ(patched.objects[1].rotation_deg.y, 25);
+  EXPECT_EQ(patched.source.edge_tilt_deg[1], 1.1);
+  EXPECT_EQ(patched.camera.psf_sigma_um, 0.9);
+  EXPECT_EQ(patched.defocus_um, read.defocus_um);
+  const Image a = simulate::Simulator(patched).TracePlane(-4.5, 0, 400000).counts;
+  const Image b = simulate::Simulator(read).TracePlane(-4.5, 0, 400000).counts;
+  EXPECT_EQ(a.pixels, b.pixels);
+  const Image at_file = simulate::Simulator(simulate::LoadScene(dir / "model.toml"))
+                            .TracePlane(-4.5, 0, 400000)
+                            .counts;
+  EXPECT_NE(a.pixels, at_file.pixels) << "the values must differ from the file's to tell";
+  // Each typed key alone, so a patch that missed one key cannot hide behind another.
+  for (size_t i = 0; i + 1 < theta.size(); ++i) {
+    std::vector<double> one;
+    for (const Parameter& p : spec.parameters) one.push_back(p.start);
+    one[i] = theta[i];
+    const Image pa = simulate::Simulator(model.SceneAt(one)).TracePlane(-6, 0, 100000).counts;
+    const Image pr =
+        simulate::Simulator(model.SceneByReading(one)).TracePlane(-6, 0, 100000).counts;
+    EXPECT_EQ(pa.pixels, pr.pixels) << spec.parameters[i].key;
+  }
+
+  // Untyped keys: a cone's angle and the objective's NA are scene keys read from the file, and
+  // they change the light that misses the objects (no near/far split).
+  dir.Write("cone.toml",
+            "[source]\ntype = \"cone\"\nhalf_angle_deg = 20\n[[object]]\nname = \"drop\"\ntype = "
+            "\"sphere\"\ncenter_um = [0.0, 0.0, 0.0]\nradius_um = 14\nindex = "
+            "1.36\n[objective]\nfocal_length_mm = 10\nna = 0.42\n"
+            "working_distance_mm = 20\n[tube_lens]\nfocal_length_mm = 200\n[camera]\npixels = "
+            "[48, 40]\npixel_pitch_um = 20\n[trace]\nphotons_per_pixel = 50\n");
+  const std::string fit2 = dir.Write(
+      "fit2.toml", "scene = \"cone.toml\"\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = -6\n" +
+                       key("source.half_angle_deg", 10, 25) + key("objective.na", 0.3, 0.5) +
+                       key("object.drop.center_um[1]", -1, 1));
+  const FitSpec spec2 = LoadFitSpec(fit2);
+  FitModel cone(spec2, 0, nullptr);
+  EXPECT_EQ(cone.bindings()[0].kind, K::kScene);
+  EXPECT_EQ(cone.bindings()[1].kind, K::kScene);
+  EXPECT_FALSE(cone.bindings()[1].KeepsSplit());
+  EXPECT_FALSE(cone.bindings()[0].Typed());
+  EXPECT_TRUE(cone.bindings()[2].Typed());
+  const std::vector<double> th2{17, 0.35, 0.4};
+  const simulate::Scene s2 = cone.SceneAt(th2);
+  EXPECT_EQ(s2.source.half_angle_deg, 17);
+  EXPECT_EQ(s2.objects[0].center_um.y, 0.4);
+  EXPECT_EQ(simulate::Simulator(s2).TracePlane(-6, 0, 100000).counts.pixels,
+            simulate::Simulator(cone.SceneByReading(th2)).TracePlane(-6, 0, 100000).counts.pixels);
+}
+
 // Gaussian priors (Parameter::prior_*): the fit maximises likelihood x prior. Known answer for
 // Gaussian likelihood and prior: the marginal posterior of x combines its marginal likelihood
 // (the fit without a prior: x0 +- s0) with the prior N(m, s) as inverse variances,

@@ -1,0 +1,124 @@
+#pragma once
+// How a fit gets its expected images: the image model of the scene's optics. The fit engine
+// (FitModel: parameters, exposure, backgrounds, likelihood) asks an ImageModel for the images
+// of a scene; the ray tracer with its common random numbers and its caches of rays that miss
+// the objects, and the exact wave image of a sphere, are the two models. Not installed.
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <span>
+#include <tuple>
+#include <vector>
+
+#include "raymatch/core/image.h"
+#include "raymatch/core/vec.h"
+#include "raymatch/simulate/scene.h"
+#include "raymatch/simulate/tracer.h"
+
+namespace raymatch::fit::internal {
+
+/// What one evaluation asks for: the ray fraction of the schedule level, the rays it means and
+/// the photons one ray stands for, and the ray streams. Exact models ignore all of it.
+struct Draw {
+  double fraction = 1;
+  uint64_t rays = 0;
+  double photons_per_ray = 1;
+  uint64_t seed = 0;
+};
+
+/// One evaluation's images before the exposure and backgrounds: per experimental image, counts
+/// (rays) times `photons_per_count` are photons.
+struct ModelImages {
+  std::vector<Image> counts;
+  double photons_per_count = 1;
+};
+
+class ImageModel {
+ public:
+  virtual ~ImageModel() = default;
+  /// No simulation noise: one image per evaluation, no ray fractions, no repeats with other
+  /// ray streams (FitSpec::exact_images).
+  virtual bool exact() const = 0;
+  /// The expected images of `scene` (its defocus_um, one per experimental image). Adds the
+  /// rays traced to `*rays_traced`.
+  virtual ModelImages Images(const simulate::Scene& scene, const Draw& draw,
+                             uint64_t* rays_traced) = 0;
+  /// Share of the rays that were traced near the objects in the last evaluation (0: none).
+  virtual double near_fraction() const { return 0; }
+  /// Seconds spent tracing the rays that miss every object (cached per image and ray count).
+  virtual double background_seconds() const { return 0; }
+};
+
+/// The exact wave image of a homogeneous sphere (simulate::MieImager) in photons at a flat
+/// field of `photons_per_pixel`, with one FFT window for every evaluation.
+class MieImageModel : public ImageModel {
+ public:
+  MieImageModel(double photons_per_pixel, double window_um, int threads)
+      : photons_per_pixel_(photons_per_pixel), window_um_(window_um), threads_(threads) {}
+  bool exact() const override { return true; }
+  ModelImages Images(const simulate::Scene& scene, const Draw& draw,
+                     uint64_t* rays_traced) override;
+
+ private:
+  double photons_per_pixel_, window_um_;
+  int threads_;
+};
+
+/// The scene as the ray model traces it: the light field's part `part` and, with `psf_os` > 1,
+/// a camera psf_os times finer with psf_margin fine pixels beyond each side and no PSF (which
+/// RayImageModel applies ray by ray).
+simulate::Scene TracedScene(simulate::Scene s, simulate::SourceSpec::EdgePart part, int psf_os,
+                            int psf_margin);
+
+/// The Monte Carlo ray tracer with common random numbers: every evaluation draws the same rays
+/// (streams from Draw::seed), and rays that cannot meet an object are traced once per image,
+/// seed and defocus and reused (the near/far split).
+class RayImageModel : public ImageModel {
+ public:
+  struct Setup {
+    size_t images = 0;
+    int threads = 0;
+    /// The sphere every object stays inside over the parameter box (the near/far split).
+    Vec3 region_center;
+    double region_radius = 0;
+    bool split = false;       ///< reuse the rays that miss the region
+    bool edge_split = false;  ///< the light field inside and beyond the NA as two populations
+    double inside_share = 1;  ///< the part inside the NA's share of the rays (edge_split)
+    int psf_os = 1, psf_margin = 0;  ///< PSF drawn per ray on a finer camera (psf_os > 1)
+    double object_pixel_um = 0;
+  };
+  explicit RayImageModel(const Setup& setup) : setup_(setup) {}
+  bool exact() const override { return false; }
+  ModelImages Images(const simulate::Scene& scene, const Draw& draw,
+                     uint64_t* rays_traced) override;
+  double near_fraction() const override { return near_fraction_; }
+  double background_seconds() const override { return background_seconds_; }
+
+ private:
+  /// With psf_os > 1: the fine image of TracedScene with the PSF sigma (um at the object plane)
+  /// applied ray by ray (streams from `seed` and `plane`), summed to the camera's pixels.
+  Image ApplyPsf(const Image& fine, double sigma_um, uint64_t seed, uint32_t plane) const;
+  // Rays that can meet an object, per (image, seed): the indices below `rays` (ascending).
+  // Coarse-to-fine levels use the first n rays of the same streams, so a finer level extends
+  // the list and the background instead of starting again.
+  struct NearRays {
+    uint64_t rays = 0;
+    std::vector<uint64_t> list;
+  };
+  // The image of the other rays below `rays`, per (image, seed, defocus).
+  struct Background {
+    uint64_t rays = 0;
+    Image image;
+  };
+  /// The background of image i at n rays; extends `near` as needed. Null when it cannot be
+  /// extended (fewer rays than already traced for this defocus): then trace everything.
+  const Image* BackgroundAt(const simulate::Simulator& sim, size_t i, uint64_t seed, double dz,
+                            uint64_t n, const simulate::RunControl& rc, uint64_t* rays_traced);
+  Setup setup_;
+  std::map<std::tuple<size_t, uint64_t>, NearRays> near_;
+  std::map<std::tuple<size_t, uint64_t, double>, Background> background_;
+  double near_fraction_ = 0;
+  double background_seconds_ = 0;
+};
+
+}  // namespace raymatch::fit::internal

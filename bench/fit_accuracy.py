@@ -1,5 +1,5 @@
 #!/usr/bin/python3
-"""Fit accuracy benchmark (issue 26): are the fits right, not just precise?
+"""Fit accuracy benchmark: are the fits right, not just precise?
 
 Each case is a sphere whose "experiment" is traced by `raymatch simulate` itself with its own
 seed (ray counting is photon counting, so there is no model mismatch), then fitted for x, y, z,
@@ -18,7 +18,7 @@ and the time per fit. The cases:
 Usage: bench/fit_accuracy.py OUT [--cases ABC] [--k 16] [--start nominal|truth]
                              [--offsets 0.4,0.4,1.8,0.6,0.005] [--seed-base 100]
                              [--fit-lines 'key = value' ...]
-(--offsets: |nominal start - truth| of x, y, z, radius, index; issue 26's far starts are
+(--offsets: |nominal start - truth| of x, y, z, radius, index; the far starts are
 0.4,0.4,2,1,0.01)
 Writes OUT/<case>/k<i>/fit/fit.json and OUT/summary.json; prints a Markdown table.
 Environment: RAYMATCH (the executable; default build/release/apps/raymatch).

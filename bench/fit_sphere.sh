@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
-# The issue-11 benchmark: a five-parameter sphere fit (x, y, z, radius, index) on this machine,
+# A five-parameter sphere fit benchmark (x, y, z, radius, index) on this machine,
 # timed, over K independent noise realisations, with the achieved precision (the scatter of the
 # fitted values about the truth) set beside the Cramer-Rao bound the fit reports.
-# Problem (the issue's example): a 31 um sphere (index 1.3371) imaged 4 um out of focus under a
+# Problem: a 31 um sphere (index 1.3371) imaged 4 um out of focus under a
 # 27 deg cone, 1000 photons per flat-field pixel, 120 x 100 pixels of 1 um at the object,
 # unpolarised partial reflection. Each realisation's "experiment" is the truth traced with its
 # own seed (ray counting is photon counting); the fit starts at nominal values (centre 0, radius

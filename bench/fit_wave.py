@@ -1,5 +1,5 @@
 #!/usr/bin/python3
-"""Pressure-wave fit benchmark (issue 23; docs/sensitivity.md): the amplitude of a pressure wave
+"""Pressure-wave fit benchmark (docs/sensitivity.md): the amplitude of a pressure wave
 inside a drop and the misalignment of its axis, fitted from one photon-matched image.
 
 The drop is scripts/make-wave-drop.py's CFD-like 43 um water drop (a +20 kg/m^3 cos^2 shell,

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The issue-13 target run: a photon-matched image of the sample's size (120 x 100 pixels, 2500
+# A gradient-index benchmark: a photon-matched image of the sample's size (120 x 100 pixels, 2500
 # photons per flat-field pixel, 27 deg cone) of the 46 um water drop whose index comes from a
 # 96^3 n(x, y, z) grid (a +20 kg/m^3 pressure-wave shell at r = 15 um, as bench_grin's
 # Grid3DDropImage). Writes the grid with NumPy and the scene into OUT, then times

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# AddressSanitizer + UndefinedBehaviorSanitizer check of everything (issue 15):
+# AddressSanitizer + UndefinedBehaviorSanitizer check of everything:
 #   1. builds every target with the `sanitize` preset (-O1 -g, ASan + UBSan, UB is fatal)
 #      into build/sanitize/,
 #   2. runs the whole test suite (fast and slow tests) under the sanitizers,

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Short libFuzzer run of every parser harness in fuzz/ (issue 15): builds them with clang,
+# Short libFuzzer run of every parser harness in fuzz/: builds them with clang,
 # AddressSanitizer and UndefinedBehaviorSanitizer into build/fuzz/, then fuzzes each for
 # FUZZ_SECONDS (default 60) starting from a copy of its committed corpus fuzz/corpus/<parser>/.
 # New inputs go to build/fuzz/corpus/<parser>/, crashes to build/fuzz/artifacts/ (copy a crash

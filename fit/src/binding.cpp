@@ -1,7 +1,5 @@
 #include "binding.h"
 
-#include <optional>
-
 #include "raymatch/core/error.h"
 #include "raymatch/fit/fit.h"
 
@@ -9,46 +7,17 @@ namespace raymatch::fit::internal {
 
 namespace {
 
-struct Part {
-  std::string name;
-  std::optional<size_t> index;
-};
-
-/// "object.drop.center_um[2]" -> object, drop, center_um[2]. Malformed keys are reported where
-/// the fit file is read (SceneValue); here they only fall back to the untyped path.
-std::vector<Part> Parts(const std::string& key) {
-  std::vector<Part> out;
-  size_t at = 0;
-  while (at <= key.size()) {
-    const size_t dot = key.find('.', at);
-    std::string s = key.substr(at, dot == std::string::npos ? std::string::npos : dot - at);
-    Part p;
-    const size_t b = s.find('[');
-    if (b != std::string::npos && s.back() == ']' && s.size() > b + 2) {
-      const std::string digits = s.substr(b + 1, s.size() - b - 2);
-      if (digits.find_first_not_of("0123456789") != std::string::npos) return {};
-      p.index = std::stoul(digits);
-      s = s.substr(0, b);
-    }
-    p.name = s;
-    out.push_back(p);
-    if (dot == std::string::npos) break;
-    at = dot + 1;
-  }
-  return out;
-}
-
 /// The object a key names (object[i] or object.<name>) and the rest of the key.
-std::optional<std::pair<size_t, std::vector<Part>>> ObjectOf(const std::vector<Part>& parts,
-                                                             const simulate::Scene& built) {
+std::optional<std::pair<size_t, std::vector<KeySegment>>> ObjectOf(
+    const std::vector<KeySegment>& parts, const simulate::Scene& built) {
   if (parts.size() < 2 || parts[0].name != "object") return std::nullopt;
   if (parts[0].index) {
     if (*parts[0].index >= built.objects.size()) return std::nullopt;
-    return std::pair(*parts[0].index, std::vector<Part>(parts.begin() + 1, parts.end()));
+    return std::pair(*parts[0].index, std::vector<KeySegment>(parts.begin() + 1, parts.end()));
   }
   for (size_t k = 0; k < built.objects.size(); ++k)
     if (built.objects[k].name == parts[1].name && parts.size() >= 3 && !parts[1].index)
-      return std::pair(k, std::vector<Part>(parts.begin() + 2, parts.end()));
+      return std::pair(k, std::vector<KeySegment>(parts.begin() + 2, parts.end()));
   return std::nullopt;
 }
 
@@ -70,11 +39,10 @@ Binding Bind(const std::string& key, const toml::table& scene, const simulate::S
     b.background = f == "background_slope_x" ? 1 : f == "background_slope_y" ? 2 : 0;
     return b;
   }
-  const std::vector<Part> parts = Parts(key);
-  if (parts.empty()) return b;
+  const std::vector<KeySegment> parts = SplitKey(key);
   if (parts[0].name == "light_field_edge" && parts.size() == 2) {
     b.kind = K::kEdge;
-    const Part& p = parts[1];
+    const KeySegment& p = parts[1];
     if (p.name == "half_angle_deg" && !p.index) b.field = F::kEdgeHalfAngle;
     if (p.name == "width_deg" && !p.index) b.field = F::kEdgeWidth;
     if (p.name == "tilt_deg" && p.index && *p.index < 2)
@@ -91,7 +59,7 @@ Binding Bind(const std::string& key, const toml::table& scene, const simulate::S
   b.kind = K::kObject;
   if (!object || object->second.size() != 1) return b;
   b.object = object->first;
-  const Part& p = object->second[0];
+  const KeySegment& p = object->second[0];
   const simulate::ObjectSpec& o = built.objects[b.object];
   using simulate::ShapeType;
   if (p.name == "center_um" && p.index && *p.index < 3) {

@@ -6,12 +6,23 @@
 // scene file's value and the scene is read again, as the first build was. Not installed.
 #include <toml++/toml.h>
 
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "raymatch/simulate/scene.h"
 
 namespace raymatch::fit::internal {
+
+/// One dot-separated part of a key: a name and an optional [index].
+struct KeySegment {
+  std::string name;
+  std::optional<size_t> index;
+};
+
+/// "object.drop.center_um[2]" -> object, drop, center_um[2]; throws Error for a malformed key
+/// (fit_file.cpp).
+std::vector<KeySegment> SplitKey(const std::string& key);
 
 struct Binding {
   enum class Kind {

@@ -8,6 +8,7 @@
 #include <set>
 #include <sstream>
 
+#include "binding.h"
 #include "raymatch/compare/focus_scan.h"
 #include "raymatch/core/calibration_file.h"
 #include "raymatch/core/image.h"
@@ -41,19 +42,14 @@ const char* StatusName(FitStatus s) {
   return n[int(s)];
 }
 
-namespace {
+namespace internal {
 
-struct Segment {
-  std::string name;
-  std::optional<size_t> index;
-};
-
-std::vector<Segment> SplitKey(const std::string& key) {
-  std::vector<Segment> out;
+std::vector<KeySegment> SplitKey(const std::string& key) {
+  std::vector<KeySegment> out;
   std::stringstream ss(key);
   std::string part;
   while (std::getline(ss, part, '.')) {
-    Segment s;
+    KeySegment s;
     const size_t b = part.find('[');
     if (b != std::string::npos) {
       const size_t e = part.find(']', b);
@@ -72,6 +68,13 @@ std::vector<Segment> SplitKey(const std::string& key) {
   if (out.empty()) throw Error("empty key");
   return out;
 }
+
+}  // namespace internal
+
+using internal::KeySegment;
+using internal::SplitKey;
+
+namespace {
 
 /// The numeric keys of a table (with [i] for numeric arrays), for messages.
 std::string NumericKeys(const toml::table& t) {
@@ -103,7 +106,7 @@ struct Slot {
 };
 
 Slot Resolve(toml::table& root, const std::string& key, const std::string& scene_file) {
-  const std::vector<Segment> segs = SplitKey(key);
+  const std::vector<KeySegment> segs = SplitKey(key);
   toml::table* t = &root;
   std::string where = "the scene";
   auto fail = [&](const std::string& why) -> Error {
@@ -111,7 +114,7 @@ Slot Resolve(toml::table& root, const std::string& key, const std::string& scene
                                                where + ": " + NumericKeys(*t) + ")");
   };
   for (size_t i = 0; i < segs.size(); ++i) {
-    const Segment& s = segs[i];
+    const KeySegment& s = segs[i];
     toml::node* n = t->get(s.name);
     if (!n) throw fail("no '" + s.name + "' in " + where);
     const bool last = i + 1 == segs.size();

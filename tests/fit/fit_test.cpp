@@ -8,6 +8,7 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <map>
 #include <random>
 #include <set>
@@ -462,6 +463,19 @@ TEST_F(FitFile, ModelWithoutThePsfRaisesTheMismatchWarningAndInflatesSigmas) {
   }
 }
 
+/// A calibration of the sample's optics whose light field is `map` inside the NA 0.42 and cut
+/// there (the edge beyond it comes from the scene's [light_field_edge]).
+void WriteNaCutCalibration(const std::string& path,
+                           const std::function<double(double, double)>& map) {
+  CalibrationData c;
+  c.angular_extent = 0.5;
+  c.na_limit = 0.42;
+  c.angular_map = testing::NaCutAngularMap(64, c.angular_extent, c.na_limit, map);
+  c.objective_focal_mm = 10, c.working_distance_mm = 20, c.na = 0.42, c.tube_focal_mm = 200;
+  c.pixel_pitch_um = 20, c.wavelength_um = 0.462;
+  WriteCalibrationFile(path, c);
+}
+
 // A fit that frees the light field's edge (half-angle, width, tilt) and the PSF keeps the
 // near/far split: the rays inside and beyond the NA are separate populations (the inside ones
 // do not depend on the edge) and each ray's PSF offset is drawn on a 4x finer image traced
@@ -473,15 +487,7 @@ TEST_F(FitFile, ModelWithoutThePsfRaisesTheMismatchWarningAndInflatesSigmas) {
 // wide PSFs), a model without the rays beyond the NA 2.5, one with 1.5x the PSF 1.5.
 TEST(FitModelNuisances, EdgeAndPsfAsKeysGiveTheTracersOwnExpectedImage) {
   testing::TempDir dir;
-  CalibrationData c;
-  const int n = 64;
-  c.angular_extent = 0.5;
-  c.na_limit = 0.42;
-  c.angular_map = testing::NaCutAngularMap(n, c.angular_extent, c.na_limit,
-                                           [](double u, double) { return 1 + 0.3 * u; });
-  c.objective_focal_mm = 10, c.working_distance_mm = 20, c.na = 0.42, c.tube_focal_mm = 200;
-  c.pixel_pitch_um = 20, c.wavelength_um = 0.462;
-  WriteCalibrationFile(dir / "cal.toml", c);
+  WriteNaCutCalibration(dir / "cal.toml", [](double u, double) { return 1 + 0.3 * u; });
   const double ppp = 2000 * kPhotonScale;
   std::ostringstream scene;
   scene << "calibration = \"cal.toml\"\n[light_field_edge]\nhalf_angle_deg = 27\nwidth_deg = 1.5\n"
@@ -545,15 +551,7 @@ TEST(FitModelNuisances, EdgeAndPsfAsKeysGiveTheTracersOwnExpectedImage) {
 // changes the light far from the objects (the objective's NA) turns the near/far split off.
 TEST(FitModelBindings, PatchedSceneTracesTheImageTheSceneFileGives) {
   testing::TempDir dir;
-  CalibrationData c;
-  const int n = 64;
-  c.angular_extent = 0.5;
-  c.na_limit = 0.42;
-  c.angular_map = testing::NaCutAngularMap(
-      n, c.angular_extent, c.na_limit, [](double u, double v) { return 1 + 0.3 * u + 0.1 * v; });
-  c.objective_focal_mm = 10, c.working_distance_mm = 20, c.na = 0.42, c.tube_focal_mm = 200;
-  c.pixel_pitch_um = 20, c.wavelength_um = 0.462;
-  WriteCalibrationFile(dir / "cal.toml", c);
+  WriteNaCutCalibration(dir / "cal.toml", [](double u, double v) { return 1 + 0.3 * u + 0.1 * v; });
   dir.Write("model.toml",
             "calibration = \"cal.toml\"\n[light_field_edge]\nhalf_angle_deg = 27\nwidth_deg = 1.5\n"
             "tilt_deg = [0.8, -0.5]\n[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = "

@@ -610,6 +610,23 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
       res.message += "; " + res.goodness.verdict;
     }
   }
+  if (spec.error != ErrorFunction::kPoisson && res.status != FitStatus::kFlat &&
+      spec.uncertainties) {
+    // MSE and the SSIM family are not likelihoods: the Poisson deviance's curvature at their
+    // optimum is not the scatter of their estimate, so no sigma is reported. The Cramer-Rao
+    // bound (what the images allow any estimator) and the scatter over repeated ray streams
+    // (repeat_seeds) stay.
+    for (ParameterResult& p : res.parameters) {
+      p.sigma = p.sigma_statistical = p.sigma_curvature = p.sigma_derivatives = p.sigma_simulation =
+          0;
+      p.profile_reason.clear(), p.profile_t.clear(), p.profile_delta.clear();
+    }
+    res.correlation.clear();
+    res.message += std::string("; error = ") + ErrorFunctionName(spec.error) +
+                   " is not a likelihood: no sigma (the Cramer-Rao bound says what the images "
+                   "allow; repeat_seeds measure the scatter over ray streams" +
+                   (spec.method == Method::kGrid ? "; the grid's step is its resolution)" : ")");
+  }
   ProfileValues(&res);  // the profile intervals' ends with the final sigmas
   const double unc_s = Since(t_unc);
   const double bg_total = model.background_seconds();

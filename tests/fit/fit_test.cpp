@@ -1215,6 +1215,18 @@ TEST(GridScan, MergingDropsDefocusAndTiltLandOnTheTruth) {
       EXPECT_NEAR(r.parameters[0].best, 6, 2.0) << error;
       EXPECT_NEAR(r.parameters[1].best, 78, 4.0) << error;
     }
+    // MS-SSIM is not a likelihood: no sigma from the Poisson deviance's curvature.
+    for (const ParameterResult& p : r.parameters) {
+      if (std::string(error) == "poisson") {
+        EXPECT_GT(p.sigma, 0) << p.key;
+      } else {
+        EXPECT_EQ(p.sigma, 0) << p.key;
+        EXPECT_EQ(p.sigma_curvature, 0) << p.key;
+      }
+    }
+    EXPECT_EQ(r.message.find("not a likelihood") != std::string::npos,
+              std::string(error) != "poisson")
+        << r.message;
     EXPECT_GT(r.near_ray_fraction, 0);  // rays that cannot meet the drops were reused
     EXPECT_LT(r.near_ray_fraction, 0.6);
   }

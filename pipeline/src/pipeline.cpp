@@ -236,9 +236,11 @@ void CheckFitFiles(const std::vector<std::string>& fits, const calibrate::LightF
   for (const std::string& file : fits) fit::LoadFitSpec(file, "", cal);
 }
 
-/// A string field of a JSON report this command wrote earlier (a reused step's summary): any
+/// A field of a JSON report this command wrote earlier (a reused step's summary), or with
+/// `member` a member of an object field; a string as it is, a boolean as "true" / "false". Any
 /// damage is an error naming the file and the field, never a JSON library exception.
-std::string ReportField(const fs::path& file, const std::string& field) {
+std::string ReportField(const fs::path& file, const std::string& field,
+                        const std::string& member = "") {
   std::ifstream in(file);
   nlohmann::json j;
   try {
@@ -248,11 +250,14 @@ std::string ReportField(const fs::path& file, const std::string& field) {
                 std::string("not valid JSON (") + e.what() +
                     "); delete it or run with --force to recompute the step");
   }
-  if (!j.is_object() || !j.contains(field) || !j[field].is_string())
-    throw Error(FileLocation{file.string()}, "field '" + field +
+  const std::string name = field + (member.empty() ? "" : "." + member);
+  const nlohmann::json* v = j.is_object() && j.contains(field) ? &j[field] : nullptr;
+  if (v && !member.empty()) v = v->is_object() && v->contains(member) ? &(*v)[member] : nullptr;
+  if (!v || !(v->is_string() || v->is_boolean()))
+    throw Error(FileLocation{file.string()}, "field '" + name +
                                                  "' is missing or not a string; delete the "
                                                  "file or run with --force to recompute the step");
-  return j[field].get<std::string>();
+  return v->is_boolean() ? (v->get<bool>() ? "true" : "false") : v->get<std::string>();
 }
 
 /// Every input of a run, read and checked before the output folder is made: a
@@ -339,19 +344,15 @@ class StepRunner {
 };
 
 /// The sphere calibration's check, from its brief report (made now or read back).
-PipelineCheck SphereCheck(const std::string& brief) {
+PipelineCheck SphereCheck(const std::string& status, const std::string& goodness, bool mismatch) {
   PipelineCheck c;
   c.name = "sphere calibration";
-  const size_t g = brief.find("goodness of fit: ");
-  const std::string good =
-      g == std::string::npos ? "" : brief.substr(g + 17, brief.find('\n', g) - g - 17);
-  const bool converged = brief.find("sphere calibration: converged") != std::string::npos;
-  const bool mismatch = good.rfind("model mismatch", 0) == 0;
-  c.ok = converged && !mismatch && !good.empty();
+  const bool converged = status == fit::StatusName(fit::FitStatus::kConverged);
+  c.ok = converged && !mismatch && !goodness.empty();
   c.result = std::string(converged ? "converged" : "did not converge") + "; " +
-             (mismatch       ? "model mismatch"
-              : good.empty() ? "no goodness of fit"
-                             : "consistent with the noise");
+             (mismatch           ? "model mismatch"
+              : goodness.empty() ? "no goodness of fit"
+                                 : "consistent with the noise");
   c.meaning = c.ok ? "the light field beyond the NA and the PSF describe the calibration drop's "
                      "images within their noise"
               : mismatch
@@ -391,12 +392,15 @@ PipelineCheck FitCheck(const std::string& stem, const fit::FitResult& r) {
 struct Calibration {
   CalibrationData data;
   std::string lf_report, co_report, sp_report;
+  /// The sphere calibration fit's status name, goodness-of-fit verdict and mismatch flag.
+  std::string sp_status, sp_goodness;
+  bool sp_mismatch = false;
 };
 
 /// Bumped when the calibration's model or file changes so that a calibration made by an older
 /// raymatch is not reused (2: the edge model from 3 map pixels inside the NA cut and the
-/// [uncertainty] table).
-constexpr int kCalibrationModel = 2;
+/// [uncertainty] table; 3: the sphere fit's verdict as fields of calibration_report.json).
+constexpr int kCalibrationModel = 3;
 
 std::string CalibrationInputs(const RunInputs& in) {
   const PipelineFile& cfg = in.cfg;
@@ -448,12 +452,17 @@ void Calibrate(const RunInputs& in, const fs::path& out, const fs::path& cal_fil
     so.say = [&](const std::string& m) { steps.Say(m); };
     const SphereCalibrationResult sr = CalibrateSphere(so);
     c->sp_report = sr.Brief();
+    c->sp_status = sr.status, c->sp_goodness = sr.goodness, c->sp_mismatch = sr.mismatch;
     if (sr.mismatch)
       std::cerr << "raymatch run: warning: the sphere calibration reports a model mismatch\n";
     c->data = ReadCalibrationFile(cal_file.string());
   }
   nlohmann::json rep{{"light_field", c->lf_report}, {"corrector", c->co_report}};
-  if (!c->sp_report.empty()) rep["sphere"] = c->sp_report;
+  if (!c->sp_report.empty()) {
+    rep["sphere"] = c->sp_report;
+    rep["sphere_fit"] = {
+        {"status", c->sp_status}, {"goodness", c->sp_goodness}, {"mismatch", c->sp_mismatch}};
+  }
   WriteTextFileAtomic(cal_report, rep.dump(2) + "\n");
 }
 
@@ -560,7 +569,12 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
                cal.data = ReadCalibrationFile(cal_file.string());
                cal.lf_report = ReportField(cal_report, "light_field");
                cal.co_report = ReportField(cal_report, "corrector");
-               if (!cfg.sphere.empty()) cal.sp_report = ReportField(cal_report, "sphere");
+               if (!cfg.sphere.empty()) {
+                 cal.sp_report = ReportField(cal_report, "sphere");
+                 cal.sp_status = ReportField(cal_report, "sphere_fit", "status");
+                 cal.sp_goodness = ReportField(cal_report, "sphere_fit", "goodness");
+                 cal.sp_mismatch = ReportField(cal_report, "sphere_fit", "mismatch") == "true";
+               }
              }});
   sum.cone_half_angle_deg = cal.data.cone_half_angle_deg;
   sum.transmissions = cal.data.transmissions;
@@ -643,7 +657,8 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     report.fit_html = "<h2>Fits: 3D properties from the images</h2>" + report.fit_html;
 
   // The checks, and the run's one verdict: never "pass" while a check needs attention.
-  if (!cfg.sphere.empty()) sum.checks.push_back(SphereCheck(cal.sp_report));
+  if (!cfg.sphere.empty())
+    sum.checks.push_back(SphereCheck(cal.sp_status, cal.sp_goodness, cal.sp_mismatch));
   {
     PipelineCheck c;
     c.name = "focus-scan test";

@@ -249,6 +249,18 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
   l2 << log2.rdbuf();
   EXPECT_NE(l2.str().find("calibration inputs unchanged: reusing"), std::string::npos) << l2.str();
   EXPECT_NE(l2.str().find("simulation unchanged: reusing"), std::string::npos) << l2.str();
+  // The sphere calibration's check line, from the fit's fields (calibration_report.json's
+  // sphere_fit when reused): the same in both runs.
+  auto sphere_check = [](const std::string& log) {
+    for (const char* prefix : {"ok    sphere calibration: ", "CHECK sphere calibration: "})
+      if (const size_t a = log.find(prefix); a != std::string::npos)
+        return log.substr(a, log.find('\n', a) - a);
+    return std::string();
+  };
+  if (!kUnderAddressSanitizer) {
+    EXPECT_FALSE(sphere_check(ls.str()).empty()) << ls.str();
+    EXPECT_EQ(sphere_check(l2.str()), sphere_check(ls.str()));
+  }
 }
 
 // raymatch bench accuracy on a small scene: every fraction is reported, and the similarity to the

@@ -87,8 +87,44 @@ std::string WriteCalibrationFigures(const CalibrationData& cal, const fs::path& 
       }
     compare::PlotPanel p;
     p.series = {s};
-    p.title = "light field: radial profile (cone edge " +
-              std::to_string(cal.cone_half_angle_deg).substr(0, 5) + "°)";
+    if (cal.edge_half_angle_deg > 0 && cal.edge_width_deg > 0 && cal.na_limit > 0 &&
+        s.x.size() > 1) {
+      // The sphere calibration's edge beyond the NA: the map's ring 3 map pixels inside the cut
+      // continued under (1 - tanh((theta - edge) / width)) / 2, relative to its value at that
+      // ring (the tilt, a fraction of a degree, left out of this azimuthal mean).
+      const double deg = 180 / M_PI;
+      const double ring =
+          std::asin(std::max(0.0, cal.na_limit - 3 * 2 * cal.angular_extent / n)) * deg;
+      const double cut = std::asin(std::min(1.0, cal.na_limit)) * deg;
+      auto edge = [&](double t) {
+        return 0.5 * (1 - std::tanh((t - cal.edge_half_angle_deg) / cal.edge_width_deg));
+      };
+      size_t j = 1;
+      while (j + 1 < s.x.size() && s.x[j] < ring) ++j;
+      const double f = std::clamp((ring - s.x[j - 1]) / (s.x[j] - s.x[j - 1]), 0.0, 1.0);
+      const double level = s.y[j - 1] + f * (s.y[j] - s.y[j - 1]);
+      Series e;
+      e.label = "edge beyond the NA (sphere calibration)";
+      const double end = cal.edge_half_angle_deg + 3 * cal.edge_width_deg;
+      for (int k = 0; k <= 60; ++k) {
+        const double t = ring + (end - ring) * k / 60.0;
+        e.x.push_back(t);
+        e.y.push_back(level * edge(t) / edge(ring));
+      }
+      Series na;
+      na.label = "objective's NA (the map's cut)";
+      na.x = {cut, cut};
+      na.y = {0, 1.05};
+      p.series.push_back(e);
+      p.series.push_back(na);
+    }
+    p.title =
+        "light field: radial profile (cone edge " +
+        std::to_string(cal.cone_half_angle_deg).substr(0, 5) + "°" +
+        (cal.edge_half_angle_deg > 0
+             ? "; edge beyond the NA " + std::to_string(cal.edge_half_angle_deg).substr(0, 5) + "°"
+             : std::string()) +
+        ")";
     p.xlabel = "angle to the optical axis (degrees)";
     p.ylabel = "radiance (relative to the maximum)";
     WritePlot((fig / "radial_profile.png").string(), {p}, 560, 380);

@@ -14,6 +14,7 @@ struct ScanCliOptions {
   compare::FocusScanOptions scan;
   std::vector<int> roi;
   bool no_register = false, no_normalize = false;
+  double pixel_um = 0;
 };
 
 int RunScanCompare(ScanCliOptions o) {
@@ -27,7 +28,8 @@ int RunScanCompare(ScanCliOptions o) {
   o.scan.normalize_background = !o.no_normalize;
   const compare::Stack e = compare::ReadStack(o.experiment);
   const compare::Stack s = compare::ReadStack(o.simulation);
-  const compare::FocusScanResult r = compare::RunFocusScan(e, s, o.scan);
+  compare::FocusScanResult r = compare::RunFocusScan(e, s, o.scan);
+  r.object_pixel_um = o.pixel_um;
   const std::string report = compare::WriteFocusScanReport(r, o.output, "raymatch focus-scan test");
   std::cout << "raymatch compare-scan: " << r.message << "\n";
   for (const auto& m : r.measures) {
@@ -67,6 +69,10 @@ void RegisterCompareScan(CLI::App& app, int* exit_code) {
       ->check(DataRangeCheck(true));
   AddMultiscaleOptions(sub, &o->scan.ms_ssim, &o->scan.cw_ssim);
   sub->add_flag("--no-register", o->no_register, "Skip sub-pixel registration");
+  sub->add_option("--pixel-um", o->pixel_um,
+                  "The camera pixel at the object plane in micrometres, for the report's axes "
+                  "(default: axes in pixels)")
+      ->check(CLI::PositiveNumber);
   sub->add_flag("--no-normalize", o->no_normalize,
                 "Do not scale the simulation to the experiment's background");
   sub->callback(

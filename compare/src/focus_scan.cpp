@@ -534,6 +534,8 @@ nlohmann::json FocusScanResult::ToJson() const {
             {"rule", "a shift is applied on an axis only where |estimate| > 3 sigma (shot noise)"},
             {"summary", RegistrationSummary()}}},
           {"simulation_scale", sim_scale},
+          {"object_pixel_um",
+           object_pixel_um > 0 ? nlohmann::json(object_pixel_um) : nlohmann::json(nullptr)},
           {"ms_ssim_scales", ms_ssim.num_scales},
           {"ms_ssim_weights", MsSsimWeightsName(ms_ssim.weights)},
           {"ms_ssim_sigma_px", ms_ssim.sigma},

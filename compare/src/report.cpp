@@ -146,7 +146,11 @@ double PlaneFigures(const FocusScanResult& r, int i, const std::string& residual
       ms += v * v;
     }
   ms /= std::max(1, w * h);
-  p.x_left = -0.5 * w, p.x_right = 0.5 * w, p.y_top = 0.5 * h, p.y_bottom = -0.5 * h;
+  // Axes at the object (um) when the pixel's size there is known, else in pixels.
+  const double px = r.object_pixel_um > 0 ? r.object_pixel_um : 1.0;
+  const std::string unit = r.object_pixel_um > 0 ? "um at the object" : "px";
+  p.x_left = -0.5 * w * px, p.x_right = 0.5 * w * px;
+  p.y_top = 0.5 * h * px, p.y_bottom = -0.5 * h * px;
   p.lo = -4, p.hi = 4;
   p.map = ColourMap::kDiverging;
   std::ostringstream t;
@@ -154,8 +158,8 @@ double PlaneFigures(const FocusScanResult& r, int i, const std::string& residual
   t << "z = " << Um(r.exp_defocus_um[i]) << ": residual, mean square " << ms;
   if (!(r.sim_scale > 0.98 && r.sim_scale < 1.02)) t << "; s = " << r.sim_scale;
   p.title = t.str();
-  p.xlabel = "x (px from the image centre)";
-  p.ylabel = "y (px from the image centre)";
+  p.xlabel = "x (" + unit + " from the image centre)";
+  p.ylabel = "y (" + unit + " from the image centre)";
   p.colour_label = r.sim_scale > 0.98 && r.sim_scale < 1.02 ? "(sim − exp) / √(sim + exp)  (σ)"
                                                             : "(sim − exp) / √(s·sim + exp)  (σ)";
   p.max_side_px = 380;
@@ -178,14 +182,14 @@ double PlaneFigures(const FocusScanResult& r, int i, const std::string& residual
     // The simulation was scaled by sim_scale: its variance is sim_scale times its value.
     const double sde = std::sqrt(std::max(0.0, me)),
                  sds = std::sqrt(std::max(0.0, r.sim_scale * msim));
-    for (Series* q : {&ex, &sim}) q->x.push_back(k + 0.5);
+    for (Series* q : {&ex, &sim}) q->x.push_back((k + 0.5) * px);
     ex.y.push_back(me), ex.band_lo.push_back(me - sde), ex.band_hi.push_back(me + sde);
     sim.y.push_back(msim), sim.band_lo.push_back(msim - sds), sim.band_hi.push_back(msim + sds);
   }
   PlotPanel panel;
   panel.series = {ex, sim};
   panel.title = "z = " + Um(r.exp_defocus_um[i]) + ": radial profile (azimuthal mean)";
-  panel.xlabel = "radius from the image centre (px)";
+  panel.xlabel = "radius from the image centre (" + unit + ")";
   panel.ylabel = "photons per pixel";
   WritePlot(profile_png, {panel}, 560, 380);
   return ms;

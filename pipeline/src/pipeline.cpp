@@ -617,6 +617,8 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     compare::FocusScanOptions fo;
     fo.prepare = in.prep;
     fr = compare::RunFocusScan(in.exp, compare::ReadStack(sim_index.string()), fo);
+    fr.object_pixel_um =
+        simulate::Simulator(simulate::LoadScene(scene_file.string())).object_pixel_um();
     compare::WriteFocusScanReport(fr, (out / "compare").string(), "focus-scan test");
   });
   sum.verdict = int(fr.verdict);

@@ -157,6 +157,8 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
           << name << " at " << b["experiment_defocus_um"];
   }
   EXPECT_EQ(exact, 3u);  // mse, ms_ssim, poisson_chi2
+  // The report's axes at the object: the sample's 10 um pixels through 200 / 10 mm lenses.
+  EXPECT_NEAR(j["object_pixel_um"].get<double>(), 0.5, 0.01);
   EXPECT_TRUE(std::filesystem::exists(dir / "out/index.html"));
   // The sample's pipeline calibrates with its drop too ([calibration] sphere): the light field's
   // edge beyond the NA (24.83 deg) and the PSF are in the calibration the fits use, and the

@@ -87,6 +87,8 @@ struct FocusScanResult {
   Verdict verdict = Verdict::kFail;
   std::string message;
   std::vector<Image> exp_images, sim_images;  ///< prepared, for reports
+  /// The camera pixel at the object plane (um), for the report's axes; 0: not known (pixels).
+  double object_pixel_um = 0;
   nlohmann::json ToJson() const;
 };
 

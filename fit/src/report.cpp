@@ -97,6 +97,10 @@ nlohmann::json ProfileJson(const ParameterResult& p) {
           {"delta_deviance", p.profile_delta}};
 }
 
+/// An uncertainty that is 0 when it was not computed: null then, as "not computed" in the
+/// report and on the terminal.
+nlohmann::json Uncertainty(double v) { return v > 0 ? J(v) : nlohmann::json(nullptr); }
+
 nlohmann::json ParameterJson(const ParameterResult& p) {
   return {{"key", p.key},
           {"unit", p.unit},
@@ -105,15 +109,15 @@ nlohmann::json ParameterJson(const ParameterResult& p) {
           {"lower", p.lower},
           {"upper", p.upper},
           {"at_bound", p.at_bound},
-          {"sigma", J(p.sigma)},
-          {"sigma_statistical", J(p.sigma_statistical)},
-          {"sigma_curvature", J(p.sigma_curvature)},
+          {"sigma", Uncertainty(p.sigma)},
+          {"sigma_statistical", Uncertainty(p.sigma_statistical)},
+          {"sigma_curvature", Uncertainty(p.sigma_curvature)},
           {"sigma_derivatives", J(p.sigma_derivatives)},
           {"sigma_simulation", J(p.sigma_simulation)},
           {"score_derivative", p.score_derivative},
-          {"sigma_repeat_seeds", J(p.sigma_repeat)},
-          {"sigma_cramer_rao", J(p.sigma_cramer_rao)},
-          {"sigma_expected_with_simulation_noise", J(p.sigma_expected)},
+          {"sigma_repeat_seeds", Uncertainty(p.sigma_repeat)},
+          {"sigma_cramer_rao", Uncertainty(p.sigma_cramer_rao)},
+          {"sigma_expected_with_simulation_noise", Uncertainty(p.sigma_expected)},
           {"slice", {{"x", p.slice_x}, {"error", p.slice_error}, {"noise", J(p.slice_noise)}}},
           {"profile_likelihood", ProfileJson(p)},
           {"prior", p.prior_sigma > 0 ? nlohmann::json{{"mean", p.prior_mean},

@@ -15,22 +15,27 @@ std::optional<std::pair<size_t, std::vector<KeySegment>>> ObjectOf(
     if (*parts[0].index >= built.objects.size()) return std::nullopt;
     return std::pair(*parts[0].index, std::vector<KeySegment>(parts.begin() + 1, parts.end()));
   }
+  // By name: the one object of that name (two of one name are left to the scene file's
+  // reading, which takes the last).
+  std::optional<size_t> found;
   for (size_t k = 0; k < built.objects.size(); ++k)
-    if (built.objects[k].name == parts[1].name && parts.size() >= 3 && !parts[1].index)
-      return std::pair(k, std::vector<KeySegment>(parts.begin() + 2, parts.end()));
-  return std::nullopt;
+    if (built.objects[k].name == parts[1].name) {
+      if (found) return std::nullopt;
+      found = k;
+    }
+  if (!found || parts.size() < 3 || parts[1].index) return std::nullopt;
+  return std::pair(*found, std::vector<KeySegment>(parts.begin() + 2, parts.end()));
 }
 
 }  // namespace
 
-Binding Bind(const std::string& key, const toml::table& scene, const simulate::Scene& built,
-             size_t images) {
-  (void)scene;
+Binding Bind(const std::string& key, const simulate::Scene& built, size_t images) {
   Binding b;
   b.key = key;
   using K = Binding::Kind;
   using F = Binding::Field;
-  if (key.starts_with("image")) {
+  const std::vector<KeySegment> parts = SplitKey(key);
+  if (parts[0].name == "image") {
     const auto image_key = ParseImageKey(key, images);
     if (!image_key) throw Error("key '" + key + "': " + ImageKeysHelp(images));
     b.image = image_key->first;
@@ -39,7 +44,6 @@ Binding Bind(const std::string& key, const toml::table& scene, const simulate::S
     b.background = f == "background_slope_x" ? 1 : f == "background_slope_y" ? 2 : 0;
     return b;
   }
-  const std::vector<KeySegment> parts = SplitKey(key);
   if (parts[0].name == "light_field_edge" && parts.size() == 2) {
     b.kind = K::kEdge;
     const KeySegment& p = parts[1];

@@ -4,8 +4,6 @@
 // builds the scene once and patches the bound values into a copy per evaluation; keys without
 // a typed patch (an index field's scale, a cone's angle, a generated shape's size...) set the
 // scene file's value and the scene is read again, as the first build was. Not installed.
-#include <toml++/toml.h>
-
 #include <optional>
 #include <string>
 #include <vector>
@@ -67,11 +65,10 @@ struct Binding {
   bool Typed() const { return InScene() && field != Field::kNone; }
 };
 
-/// Resolves `key` against the scene file's table `scene` and its build `built` (the same
-/// scene read once) for a fit with `images` images. Throws Error for an image key that does not
-/// exist (scene keys are checked where the fit file is read).
-Binding Bind(const std::string& key, const toml::table& scene, const simulate::Scene& built,
-             size_t images);
+/// Resolves `key` against the scene `built` (the scene file read once) for a fit with `images`
+/// images. Throws Error for a malformed key or an image key that does not exist (scene keys are
+/// checked where the fit file is read).
+Binding Bind(const std::string& key, const simulate::Scene& built, size_t images);
 
 /// Writes a typed binding's value into `scene` (Binding::Typed()).
 void Patch(const Binding& b, double value, simulate::Scene* scene);

@@ -59,7 +59,7 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
   bool edge_keys = false, psf_key = false;
   double psf_max = 0;
   for (const Parameter& p : spec.parameters) {
-    bindings_.push_back(internal::Bind(p.key, spec.scene, built_, spec.images.size()));
+    bindings_.push_back(internal::Bind(p.key, built_, spec.images.size()));
     const internal::Binding& b = bindings_.back();
     read_per_evaluation_ = read_per_evaluation_ || (b.InScene() && !b.Typed());
     edge_keys = edge_keys || b.kind == internal::Binding::Kind::kEdge;

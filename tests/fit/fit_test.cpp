@@ -631,6 +631,23 @@ TEST(FitModelBindings, PatchedSceneTracesTheImageTheSceneFileGives) {
   EXPECT_FALSE(cone.bindings()[1].KeepsSplit());
   EXPECT_FALSE(cone.bindings()[0].Typed());
   EXPECT_TRUE(cone.bindings()[2].Typed());
+  // Two objects of one name: the scene file's reading decides which one a key sets.
+  dir.Write("twins.toml",
+            "[source]\ntype = \"cone\"\nhalf_angle_deg = 20\n[[object]]\nname = \"twin\"\ntype = "
+            "\"sphere\"\ncenter_um = [-12.0, 0.0, 0.0]\nradius_um = 5\nindex = 1.36\n[[object]]\n"
+            "name = \"twin\"\ntype = \"sphere\"\ncenter_um = [12.0, 0.0, 0.0]\nradius_um = 5\n"
+            "index = 1.36\n[objective]\nfocal_length_mm = 10\nna = 0.42\nworking_distance_mm = 20\n"
+            "[tube_lens]\nfocal_length_mm = 200\n[camera]\npixels = [48, 40]\npixel_pitch_um = 20\n"
+            "[trace]\nphotons_per_pixel = 50\n");
+  const FitSpec spec3 =
+      LoadFitSpec(dir.Write("fit3.toml",
+                            "scene = \"twins.toml\"\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = "
+                            "-6\n" +
+                                key("object.twin.center_um[1]", -2, 2)));
+  FitModel twins(spec3, 0, nullptr);
+  EXPECT_FALSE(twins.bindings()[0].Typed());
+  EXPECT_EQ(twins.SceneAt({1.5}).objects[1].center_um.y, 1.5);
+  EXPECT_EQ(twins.SceneAt({1.5}).objects[0].center_um.y, 0);
   const std::vector<double> th2{17, 0.35, 0.4};
   const simulate::Scene s2 = cone.SceneAt(th2);
   EXPECT_EQ(s2.source.half_angle_deg, 17);

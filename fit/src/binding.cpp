@@ -7,10 +7,10 @@ namespace raymatch::fit::internal {
 
 namespace {
 
-/// The object a key names (object[i] or object.<name>) and the rest of the key.
+/// The object an object key names (object[i] or object.<name>) and the rest of the key.
 std::optional<std::pair<size_t, std::vector<KeySegment>>> ObjectOf(
     const std::vector<KeySegment>& parts, const simulate::Scene& built) {
-  if (parts.size() < 2 || parts[0].name != "object") return std::nullopt;
+  if (parts.size() < 2) return std::nullopt;
   if (parts[0].index) {
     if (*parts[0].index >= built.objects.size()) return std::nullopt;
     return std::pair(*parts[0].index, std::vector<KeySegment>(parts.begin() + 1, parts.end()));
@@ -31,7 +31,6 @@ std::optional<std::pair<size_t, std::vector<KeySegment>>> ObjectOf(
 
 Binding Bind(const std::string& key, const simulate::Scene& built, size_t images) {
   Binding b;
-  b.key = key;
   using K = Binding::Kind;
   using F = Binding::Field;
   const std::vector<KeySegment> parts = SplitKey(key);
@@ -58,9 +57,9 @@ Binding Bind(const std::string& key, const simulate::Scene& built, size_t images
     b.field = F::kPsfSigma;
     return b;
   }
-  const auto object = ObjectOf(parts, built);
   if (parts[0].name != "object") return b;  // another scene value
   b.kind = K::kObject;
+  const auto object = ObjectOf(parts, built);
   if (!object || object->second.size() != 1) return b;
   b.object = object->first;
   const KeySegment& p = object->second[0];

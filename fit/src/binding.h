@@ -50,7 +50,6 @@ struct Binding {
   int component = 0;   ///< vector component ([i] of center_um, rotation_deg, tilt_deg)
   size_t image = 0;    ///< kDefocus, kBackground
   int background = 0;  ///< kBackground: 0 level, 1 slope x, 2 slope y
-  std::string key;
 
   /// Set in the scene (not an image's own value).
   bool InScene() const { return kind != Kind::kDefocus && kind != Kind::kBackground; }

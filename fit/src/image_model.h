@@ -17,10 +17,9 @@
 
 namespace raymatch::fit::internal {
 
-/// What one evaluation asks for: the ray fraction of the schedule level, the rays it means and
-/// the photons one ray stands for, and the ray streams. Exact models ignore all of it.
+/// What one evaluation asks for: the rays of its schedule level, the photons one ray stands
+/// for, and the ray streams. Exact models ignore all of it.
 struct Draw {
-  double fraction = 1;
   uint64_t rays = 0;
   double photons_per_ray = 1;
   uint64_t seed = 0;

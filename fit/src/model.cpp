@@ -201,11 +201,7 @@ simulate::Scene FitModel::SceneByReading(const std::vector<double>& theta) const
   for (size_t i = 0; i < theta.size(); ++i)
     if (bindings_[i].InScene())
       SetSceneValue(t, spec_.parameters[i].key, theta[i], spec_.scene_file);
-  simulate::Scene s = simulate::LoadScene(t, spec_.scene_file);
-  s.defocus_um = DefocusAt(theta);
-  if (field_radius_ > 0) s.source.field_radius_um = field_radius_;
-  simulate::ValidateScene(s);
-  return s;
+  return Finished(simulate::LoadScene(t, spec_.scene_file), theta);
 }
 
 simulate::Scene FitModel::SceneAt(const std::vector<double>& theta) const {
@@ -213,6 +209,10 @@ simulate::Scene FitModel::SceneAt(const std::vector<double>& theta) const {
   simulate::Scene s = built_;
   for (size_t i = 0; i < theta.size(); ++i)
     if (bindings_[i].Typed()) internal::Patch(bindings_[i], theta[i], &s);
+  return Finished(std::move(s), theta);
+}
+
+simulate::Scene FitModel::Finished(simulate::Scene s, const std::vector<double>& theta) const {
   s.defocus_um = DefocusAt(theta);
   if (field_radius_ > 0) s.source.field_radius_um = field_radius_;
   simulate::ValidateScene(s);
@@ -258,7 +258,6 @@ double FitModel::ScaleAt(double fraction) const {
 Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, uint64_t seed,
                              uint64_t* rays_traced) {
   internal::Draw draw;
-  draw.fraction = fraction;
   draw.rays = RaysAt(fraction);
   draw.photons_per_ray = ScaleAt(fraction);
   draw.seed = seed;

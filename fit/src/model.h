@@ -108,8 +108,6 @@ class FitModel {
   /// The camera's pixel at the object plane (micrometres, at the start values).
   double object_pixel_um() const { return object_pixel_um_; }
   double background_seconds() const { return images_->background_seconds(); }
-  /// The image model the scene's optics (or the fit file's) selects.
-  const internal::ImageModel& image_model() const { return *images_; }
   /// The scene with `theta` applied: the scene built once with the typed keys patched in
   /// (Binding), or read again when a key has no typed patch.
   simulate::Scene SceneAt(const std::vector<double>& theta) const;
@@ -128,6 +126,8 @@ class FitModel {
                               const std::function<std::vector<double>(size_t)>& residual) const;
   /// Scales image i's counts by the exposure (fitted or `scale`), adds its background keys and
   /// appends it to `out`.
+  /// `s` with the images' defocus at `theta` and the fixed source field, checked.
+  simulate::Scene Finished(simulate::Scene s, const std::vector<double>& theta) const;
   void AddExposureAndBackground(const std::vector<double>& theta, size_t i, Image counts,
                                 double scale, Simulated* out) const;
   const FitSpec& spec_;

@@ -617,8 +617,9 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     compare::FocusScanOptions fo;
     fo.prepare = in.prep;
     fr = compare::RunFocusScan(in.exp, compare::ReadStack(sim_index.string()), fo);
+    const simulate::Scene scene = simulate::LoadScene(scene_file.string());
     fr.object_pixel_um =
-        simulate::Simulator(simulate::LoadScene(scene_file.string())).object_pixel_um();
+        scene.camera.pixel_pitch_um / std::abs(simulate::Magnification(scene.optics));
     compare::WriteFocusScanReport(fr, (out / "compare").string(), "focus-scan test");
   });
   sum.verdict = int(fr.verdict);

@@ -10,6 +10,7 @@
 #include "raymatch/core/html.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/provenance.h"
+#include "raymatch/simulate/scene.h"
 
 namespace fs = std::filesystem;
 
@@ -89,15 +90,16 @@ std::string WriteCalibrationFigures(const CalibrationData& cal, const fs::path& 
     p.series = {s};
     if (cal.edge_half_angle_deg > 0 && cal.edge_width_deg > 0 && cal.na_limit > 0 &&
         s.x.size() > 1) {
-      // The sphere calibration's edge beyond the NA: the map's ring 3 map pixels inside the cut
-      // continued under (1 - tanh((theta - edge) / width)) / 2, relative to its value at that
-      // ring (the tilt, a fraction of a degree, left out of this azimuthal mean).
+      // The sphere calibration's edge beyond the NA: the map's reference ring inside the cut
+      // continued under the soft edge, relative to its value at that ring (the tilt, a fraction
+      // of a degree, left out of this azimuthal mean).
       const double deg = 180 / M_PI;
-      const double ring =
-          std::asin(std::max(0.0, cal.na_limit - 3 * 2 * cal.angular_extent / n)) * deg;
+      const double ring = std::asin(std::max(0.0, cal.na_limit - simulate::kEdgeRingPixels * 2 *
+                                                                     cal.angular_extent / n)) *
+                          deg;
       const double cut = std::asin(std::min(1.0, cal.na_limit)) * deg;
       auto edge = [&](double t) {
-        return 0.5 * (1 - std::tanh((t - cal.edge_half_angle_deg) / cal.edge_width_deg));
+        return simulate::LightFieldSoftEdge(t, cal.edge_half_angle_deg, cal.edge_width_deg);
       };
       size_t j = 1;
       while (j + 1 < s.x.size() && s.x[j] < ring) ++j;
@@ -118,13 +120,12 @@ std::string WriteCalibrationFigures(const CalibrationData& cal, const fs::path& 
       p.series.push_back(e);
       p.series.push_back(na);
     }
-    p.title =
-        "light field: radial profile (cone edge " +
-        std::to_string(cal.cone_half_angle_deg).substr(0, 5) + "°" +
-        (cal.edge_half_angle_deg > 0
-             ? "; edge beyond the NA " + std::to_string(cal.edge_half_angle_deg).substr(0, 5) + "°"
-             : std::string()) +
-        ")";
+    p.title = "light field: radial profile (cone edge " +
+              FormatValue(cal.cone_half_angle_deg, 0, 4) + "°" +
+              (cal.edge_half_angle_deg > 0
+                   ? "; edge beyond the NA " + FormatValue(cal.edge_half_angle_deg, 0, 4) + "°"
+                   : std::string()) +
+              ")";
     p.xlabel = "angle to the optical axis (degrees)";
     p.ylabel = "radiance (relative to the maximum)";
     WritePlot((fig / "radial_profile.png").string(), {p}, 560, 380);

@@ -65,7 +65,7 @@ Image ContinuedMap(const SourceSpec& ss, double* extent) {
   auto E = [&](double u, double v) {  // the soft edge about the axis (tu, tv)
     const double s = std::hypot(u - tu, v - tv);
     if (s >= 1) return 0.0;
-    return 0.5 * (1 - std::tanh((std::asin(s) / kDeg - edge) / width));
+    return LightFieldSoftEdge(std::asin(s) / kDeg, edge, width);
   };
   const bool keep_in = ss.edge_part != SourceSpec::EdgePart::kBeyond;
   const bool keep_out = ss.edge_part != SourceSpec::EdgePart::kInside;

@@ -143,9 +143,6 @@ Field MakeField(const Scene& s, double auto_radius);
 /// map's: the angular map the source samples; `*extent` receives its half-width (direction
 /// cosines).
 Image ContinuedMap(const SourceSpec& ss, double* extent);
-/// Where ContinuedMap's edge model takes over from the measured map: this many map pixels
-/// inside the NA cut (the cone images' angular blur near the cut, about 2 deg on the sample).
-inline constexpr double kEdgeRingPixels = 3;
 
 /// The scene's source; `angular_table` receives a light field's table for the packet path.
 /// `own` must outlive the source (a ray list is not copied).

@@ -8,6 +8,7 @@
 #include <toml++/toml.h>
 
 #include <array>
+#include <cmath>
 #include <memory>
 #include <optional>
 #include <string>
@@ -60,6 +61,17 @@ struct SpectrumSpec {
 /// Illumination. Collimated, cone and light-field sources define rays by where they cross the
 /// reference plane z = 0 and their direction, then start them on a source plane before every
 /// object (back-traced along straight lines, paper Fig. 1b).
+/// A calibrated light field's soft edge beyond the NA at `theta_deg` from the edge's axis:
+/// (1 - tanh((theta - edge_half_angle_deg) / edge_width_deg)) / 2 (SourceSpec::edge_*).
+inline double LightFieldSoftEdge(double theta_deg, double edge_half_angle_deg,
+                                 double edge_width_deg) {
+  return 0.5 * (1 - std::tanh((theta_deg - edge_half_angle_deg) / edge_width_deg));
+}
+/// Where a continued light field's edge model takes over from the measured map: this many map
+/// pixels inside the NA cut (the cone images' angular blur near the cut, about 2 deg on the
+/// sample).
+inline constexpr double kEdgeRingPixels = 3;
+
 struct SourceSpec {
   SourceType type = SourceType::kCone;
   FieldShape field_shape = FieldShape::kDisc;

@@ -390,16 +390,32 @@ void MieImager::Impl::NodeHarmonics(const Node& nd, double dz, int n, double h, 
   const Vec3 kin(nd.s, 0, nd.cos);
   const double kz_in = k * nd.cos;
   const Vec3 p1(0, 1, 0), p2(nd.cos, 0, -nd.s);  // TE and TM polarisations of the wave
-  std::array<cv::Mat, 4> u;                      // (p1, p2) x (Ex, Ey) at the camera
-  for (cv::Mat& a : u) a = cv::Mat::zeros(n, n, CV_64FC2);
   const double kna = k * s_na, kna_out = kna + dk;
   const int i_lo = int(std::ceil((-kna_out - k * nd.s) / dk));
   const int i_hi = int(std::floor((kna_out - k * nd.s) / dk));
   const int j_hi = int(std::floor(kna_out / dk));
+  // The sphere on the axis and a wave in the x-z plane are symmetric under y -> -y, so of each
+  // polarisation's field at the camera one component is even in y and the other odd (TE: Ey
+  // even, Ex odd; TM: Ex even, Ey odd). One transform of their sum gives both: the even part
+  // is (G(y) + G(-y)) / 2, the odd part (G(y) - G(-y)) / 2. The modes fill only the rows
+  // |ky| <= kna_out, so the transform along x runs on those rows alone (row j_hi + j holds
+  // ky = j dk), and the one along y on the transposed result.
+  const int rows = 2 * j_hi + 1;
+  // Buffers kept per thread: allocating them per node costs more in page faults than the
+  // transforms.
+  thread_local struct {
+    std::array<cv::Mat, 2> g, t;
+    cv::Mat gt;
+    std::vector<double> dev;
+  } work;
+  std::array<cv::Mat, 2>& g = work.g;  // per polarisation: the modes of Ex + Ey
+  for (cv::Mat& a : g) {
+    a.create(rows, n, CV_64FC2);
+    a.setTo(cv::Scalar::all(0));
+  }
   const double norm = -2 * M_PI / (k * k * L * L);
   for (int j = -j_hi; j <= j_hi; ++j) {
     const double ky = dk * j;
-    const int row = ((j % n) + n) % n;
     for (int i = i_lo; i <= i_hi; ++i) {
       const double kx = k * nd.s + dk * i, kt2 = kx * kx + ky * ky;
       if (kt2 > kna_out * kna_out) continue;
@@ -436,26 +452,52 @@ void MieImager::Impl::NodeHarmonics(const Node& nd, double dz, int n, double h, 
         // E_s = a_par e_par_s + a_perp e_perp, resolved on e_theta, e_phi of the direction.
         const Complex a_th = a_par * Dot(e_par_s, e_th) + a_perp * Dot(e_perp, e_th);
         const Complex a_ph = a_par * Dot(e_par_s, e_ph) + a_perp * Dot(e_perp, e_ph);
-        const Complex ex = f * (a_th * cp - a_ph * sp), ey = f * (a_th * sp + a_ph * cp);
-        u[2 * p].at<cv::Vec2d>(row, col) += cv::Vec2d(ex.real(), ex.imag());
-        u[2 * p + 1].at<cv::Vec2d>(row, col) += cv::Vec2d(ey.real(), ey.imag());
+        const Complex e = f * (a_th * (cp + sp) + a_ph * (cp - sp));  // Ex + Ey
+        g[p].at<cv::Vec2d>(j + j_hi, col) += cv::Vec2d(e.real(), e.imag());
       }
     }
   }
-  for (cv::Mat& a : u) cv::dft(a, a, cv::DFT_INVERSE);  // sum over modes, no 1/N^2
+  // t[p](x, y): the field sum at grid point (x, y), x the row (the transposed layout).
+  // The polar resampling below reads grid points with |x|, |y| <= `need` only.
+  const int need = std::min(n / 2 - 1, int(std::ceil((n_rho - 1) * drho / h)) + 3);
+  std::array<cv::Mat, 2>& t = work.t;
+  cv::Mat& gt = work.gt;
+  for (int p = 0; p < 2; ++p) {
+    cv::dft(g[p], g[p], cv::DFT_INVERSE | cv::DFT_ROWS);  // along x; sums, no 1/N
+    cv::transpose(g[p], gt);                              // n x rows: x, then ky from -j_hi
+    t[p].create(n, n, CV_64FC2);
+    for (int c = 0; c < n; ++c) {
+      if (c > need && c < n - need) continue;
+      const cv::Vec2d* src = gt.ptr<cv::Vec2d>(c);
+      cv::Vec2d* dst = t[p].ptr<cv::Vec2d>(c);
+      std::copy(src + j_hi, src + rows, dst);  // ky >= 0 at 0 .. j_hi
+      std::fill(dst + j_hi + 1, dst + n - j_hi, cv::Vec2d(0, 0));
+      std::copy(src, src + j_hi, dst + n - j_hi);  // ky < 0 wrapped to the end
+    }
+    // Along y, for the x rows that are read.
+    cv::Mat lo = t[p].rowRange(0, need + 1), hi = t[p].rowRange(n - need, n);
+    cv::dft(lo, lo, cv::DFT_INVERSE | cv::DFT_ROWS);
+    cv::dft(hi, hi, cv::DFT_INVERSE | cv::DFT_ROWS);
+  }
   // The direct wave: amplitude sqrt(T cos) on the polarisation's image direction.
   const double a0 = std::sqrt(Transmission(nd.s) * nd.cos);
-  std::vector<double> dev(size_t(n) * n);
-  for (int r = 0; r < n; ++r) {
-    const cv::Vec2d *ux1 = u[0].ptr<cv::Vec2d>(r), *uy1 = u[1].ptr<cv::Vec2d>(r),
-                    *ux2 = u[2].ptr<cv::Vec2d>(r), *uy2 = u[3].ptr<cv::Vec2d>(r);
-    for (int c = 0; c < n; ++c) {
-      // p1 = y: direct (0, a0); p2: direct (a0, 0). |a0 + U|^2 - a0^2 = 2 a0 Re U + |U|^2.
-      const double v1 = ux1[c][0] * ux1[c][0] + ux1[c][1] * ux1[c][1] + uy1[c][0] * uy1[c][0] +
-                        uy1[c][1] * uy1[c][1] + 2 * a0 * uy1[c][0];
-      const double v2 = ux2[c][0] * ux2[c][0] + ux2[c][1] * ux2[c][1] + uy2[c][0] * uy2[c][0] +
-                        uy2[c][1] * uy2[c][1] + 2 * a0 * ux2[c][0];
-      dev[size_t(r) * n + c] = 0.5 * (v1 + v2);
+  // dev[x * n + y]: the intensity change at grid point (x, y), for 0 <= y <= need (it is even
+  // in y).
+  std::vector<double>& dev = work.dev;
+  dev.resize(size_t(n) * n);
+  for (int c = 0; c < n; ++c) {
+    if (c > need && c < n - need) continue;
+    const cv::Vec2d *g1 = t[0].ptr<cv::Vec2d>(c), *g2 = t[1].ptr<cv::Vec2d>(c);
+    for (int r = 0; r <= need; ++r) {
+      const int rm = r == 0 ? 0 : n - r;  // -y
+      // |E|^2 + |O|^2 = (|G(y)|^2 + |G(-y)|^2) / 2; the even part's real part is
+      // Re(G(y) + G(-y)) / 2. TE: direct (0, a0) on the even Ey; TM: direct (a0, 0) on the even
+      // Ex. |a0 + U|^2 - a0^2 = 2 a0 Re U + |U|^2.
+      auto one = [&](const cv::Vec2d* gp) {
+        const cv::Vec2d &a = gp[r], &b = gp[rm];
+        return 0.5 * (a[0] * a[0] + a[1] * a[1] + b[0] * b[0] + b[1] * b[1]) + a0 * (a[0] + b[0]);
+      };
+      dev[size_t(c) * n + r] = 0.5 * (one(g1) + one(g2));
     }
   }
   // Azimuthal harmonics about the sphere (grid point 0): the pattern is even in psi (the
@@ -470,14 +512,15 @@ void MieImager::Impl::NodeHarmonics(const Node& nd, double dz, int n, double h, 
     double wx[4], wy[4];
     KeysWeights(gx - fx, wx);
     KeysWeights(gy - fy, wy);
+    // |x| <= need: one wrap at most; y >= 0 (the half circle), taps below 0 mirrored.
+    auto wrap = [n](int i) { return i < 0 ? i + n : (i >= n ? i - n : i); };
     const int ix = int(fx) - 1, iy = int(fy) - 1;
+    const int yb[4] = {std::abs(iy), std::abs(iy + 1), iy + 2, iy + 3};
     double sum = 0;
-    for (int b = 0; b < 4; ++b) {
-      const int rr = (((iy + b) % n) + n) % n;
-      const double* rowp = &dev[size_t(rr) * n];
-      double rs = 0;
-      for (int a = 0; a < 4; ++a) rs += wx[a] * rowp[(((ix + a) % n) + n) % n];
-      sum += wy[b] * rs;
+    for (int a = 0; a < 4; ++a) {
+      const double* xp = &dev[size_t(wrap(ix + a)) * n];
+      sum +=
+          wx[a] * (wy[0] * xp[yb[0]] + wy[1] * xp[yb[1]] + wy[2] * xp[yb[2]] + wy[3] * xp[yb[3]]);
     }
     return sum;
   };
@@ -486,11 +529,22 @@ void MieImager::Impl::NodeHarmonics(const Node& nd, double dz, int n, double h, 
     const int nf = 2 * int(std::ceil((band * rho + mh + 16) / 2));
     const int half = nf / 2;
     std::vector<double> acc(mh + 1, 0.0);
+    // cos and sin of psi_l by rotation (rounding grows as l eps), cos(m psi) by Chebyshev's
+    // recurrence cos(m psi) = 2 cos(psi) cos((m - 1) psi) - cos((m - 2) psi).
+    const double c1 = std::cos(2 * M_PI / nf), s1 = std::sin(2 * M_PI / nf);
+    double cl = 1, sl = 0;
     for (int l = 0; l <= half; ++l) {
-      const double psi = 2 * M_PI * l / nf;
       const double w = (l == 0 || l == half) ? 1.0 : 2.0;
-      const double v = w * sample(rho * std::cos(psi), rho * std::sin(psi));
-      for (int m = 0; m <= mh; ++m) acc[m] += v * std::cos(m * psi);
+      const double v = w * sample(rho * cl, rho * sl);
+      acc[0] += v;
+      double cm2 = 1, cm1 = cl;
+      for (int m = 1; m <= mh; ++m) {
+        acc[m] += v * cm1;
+        const double next = 2 * cl * cm1 - cm2;
+        cm2 = cm1, cm1 = next;
+      }
+      const double cn = cl * c1 - sl * s1;
+      sl = sl * c1 + cl * s1, cl = cn;
     }
     for (int m = 0; m <= mh; ++m) (*d)[m][q] = acc[m] * (m == 0 ? 1.0 : 2.0) / nf;
   }

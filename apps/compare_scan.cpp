@@ -29,7 +29,10 @@ int RunScanCompare(ScanCliOptions o) {
   const compare::Stack e = compare::ReadStack(o.experiment);
   const compare::Stack s = compare::ReadStack(o.simulation);
   compare::FocusScanResult r = compare::RunFocusScan(e, s, o.scan);
-  r.object_pixel_um = o.pixel_um;
+  // The report's scale: --pixel-um, else the simulated planes' sidecars, else the experiment's.
+  r.object_pixel_um = o.pixel_um > 0          ? o.pixel_um
+                      : s.object_pixel_um > 0 ? s.object_pixel_um
+                                              : e.object_pixel_um;
   const std::string report = compare::WriteFocusScanReport(r, o.output, "raymatch focus-scan test");
   std::cout << "raymatch compare-scan: " << r.message << "\n";
   for (const auto& m : r.measures) {
@@ -71,7 +74,8 @@ void RegisterCompareScan(CLI::App& app, int* exit_code) {
   sub->add_flag("--no-register", o->no_register, "Skip sub-pixel registration");
   sub->add_option("--pixel-um", o->pixel_um,
                   "The camera pixel at the object plane in micrometres, for the report's axes "
-                  "(default: axes in pixels)")
+                  "(default: from the planes' sidecars, simulate's image.object_pixel_um; axes in "
+                  "pixels when they give none)")
       ->check(CLI::PositiveNumber);
   sub->add_flag("--no-normalize", o->no_normalize,
                 "Do not scale the simulation to the experiment's background");

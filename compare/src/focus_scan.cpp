@@ -55,7 +55,8 @@ bool ParseDefocus(const std::string& text, double* z) {
   }
 }
 
-void ReadJsonIndex(const std::string& index, std::istream& in, const fs::path& base, Stack* s) {
+void ReadJsonIndex(const std::string& index, std::istream& in, const fs::path& base, Stack* s,
+                   std::vector<std::string>* sidecars) {
   nlohmann::json j;
   try {
     j = nlohmann::json::parse(in);
@@ -87,6 +88,10 @@ void ReadJsonIndex(const std::string& index, std::istream& in, const fs::path& b
                                           std::string(im.type_name()) + " " + im.dump());
     s->defocus_um.push_back(dz);
     s->files.push_back((base / im.get<std::string>()).string());
+    const auto sc = p.find("sidecar");
+    sidecars->push_back(sc != p.end() && sc->is_string() && !sc->get<std::string>().empty()
+                            ? (base / sc->get<std::string>()).string()
+                            : "");
   }
 }
 
@@ -108,10 +113,11 @@ std::vector<std::string> SplitCsv(const std::string& line) {
 /// A CSV index: `defocus_um,file` per line (the file: the rest of the line), or, after a header
 /// that names a `defocus_um` and an `image` (or `file`) column (simulate's <stem>_scan.csv),
 /// those two columns.
-void ReadCsvIndex(const std::string& index, std::istream& in, const fs::path& base, Stack* s) {
+void ReadCsvIndex(const std::string& index, std::istream& in, const fs::path& base, Stack* s,
+                  std::vector<std::string>* sidecars) {
   std::string line;
   int n = 0;
-  int z_col = -1, file_col = -1;  // from a header naming its columns
+  int z_col = -1, file_col = -1, sidecar_col = -1;  // from a header naming its columns
   while (std::getline(in, line)) {
     ++n;
     while (!line.empty() && line.back() == '\r') line.pop_back();
@@ -134,6 +140,8 @@ void ReadCsvIndex(const std::string& index, std::istream& in, const fs::path& ba
                    "no image file in column " + std::to_string(file_col + 1));
       s->defocus_um.push_back(z);
       s->files.push_back((base / f[size_t(file_col)]).string());
+      const bool named = sidecar_col >= 0 && int(f.size()) > sidecar_col && !f[sidecar_col].empty();
+      sidecars->push_back(named ? (base / f[size_t(sidecar_col)]).string() : "");
       continue;
     }
     const bool number = comma != std::string::npos && ParseDefocus(line.substr(0, comma), &z);
@@ -143,6 +151,7 @@ void ReadCsvIndex(const std::string& index, std::istream& in, const fs::path& ba
         for (size_t c = 0; c < h.size(); ++c) {
           if (h[c] == "defocus_um" && z_col < 0) z_col = int(c);
           if ((h[c] == "image" || h[c] == "file") && file_col < 0) file_col = int(c);
+          if (h[c] == "sidecar" && sidecar_col < 0) sidecar_col = int(c);
         }
         if (z_col < 0 || file_col < 0) z_col = file_col = -1;  // the plain two-column form
         continue;
@@ -162,7 +171,30 @@ void ReadCsvIndex(const std::string& index, std::istream& in, const fs::path& ba
       IndexError(FileLocation{index, n, int(comma) + 2}, "no image file after the defocus");
     s->defocus_um.push_back(z);
     s->files.push_back((base / f).string());
+    sidecars->push_back("");
   }
+}
+
+/// The object pixel a sidecar records (image.object_pixel_um); 0 when the file does not exist.
+double SidecarPixelUm(const std::string& file) {
+  if (file.empty() || !fs::exists(file)) return 0;
+  std::ifstream in(file);
+  nlohmann::json j;
+  try {
+    j = nlohmann::json::parse(in);
+  } catch (const std::exception& e) {
+    IndexError(FileLocation{file},
+               std::string("the plane's sidecar is not valid JSON: ") + e.what());
+  }
+  const nlohmann::json* v = nullptr;
+  if (j.is_object() && j.contains("image") && j["image"].is_object() &&
+      j["image"].contains("object_pixel_um"))
+    v = &j["image"]["object_pixel_um"];
+  if (!v) return 0;  // a sidecar of another kind: no pixel size
+  if (!v->is_number() || !(v->get<double>() > 0) || !std::isfinite(v->get<double>()))
+    IndexError(FileLocation{file},
+               "image.object_pixel_um must be a positive number (micrometres), got " + v->dump());
+  return v->get<double>();
 }
 
 }  // namespace
@@ -178,10 +210,11 @@ Stack ReadStack(const std::string& index) {
   std::ifstream in(index);
   if (!in)
     throw CompareError(FailureKind::kFileError, FileLocation{index}, "cannot open the stack index");
+  std::vector<std::string> sidecars;
   if (fs::path(index).extension() == ".json")
-    ReadJsonIndex(index, in, base, &s);
+    ReadJsonIndex(index, in, base, &s, &sidecars);
   else
-    ReadCsvIndex(index, in, base, &s);
+    ReadCsvIndex(index, in, base, &s, &sidecars);
   if (s.files.empty())
     throw CompareError(FailureKind::kInvalidInput, FileLocation{index}, "the stack is empty");
   for (const auto& f : s.files) {
@@ -189,6 +222,15 @@ Stack ReadStack(const std::string& index) {
     if (s.images.back().width != s.images[0].width || s.images.back().height != s.images[0].height)
       throw CompareError(FailureKind::kSizeMismatch, FileLocation{f},
                          "image size differs from the stack's first image");
+  }
+  // The pixel size when every plane's sidecar gives the same one.
+  for (size_t i = 0; i < sidecars.size(); ++i) {
+    const double px = SidecarPixelUm(sidecars[i]);
+    if (!(px > 0) || (i > 0 && std::abs(px - s.object_pixel_um) > 1e-9 * px)) {
+      s.object_pixel_um = 0;
+      break;
+    }
+    s.object_pixel_um = px;
   }
   return s;
 }

@@ -241,6 +241,41 @@ TEST(FocusScan, SimulatesOwnCsvIndexReads) {
   EXPECT_NE(what.find("short.csv:3"), std::string::npos) << what;
 }
 
+// The report's scale comes from simulate's sidecars (image.object_pixel_um) when every plane of
+// the index names one and they agree; a missing sidecar, or planes that disagree, leave it
+// unknown; a sidecar that is not JSON, or a pixel that is not a positive number, is a file error
+// naming the sidecar.
+TEST(FocusScan, PixelSizeComesFromThePlanesSidecars) {
+  testing::TempDir dir;
+  WriteFloatImage(dir / "a.tif", Plane(0), "");
+  WriteFloatImage(dir / "b.tif", Plane(1), "");
+  dir.Write("a.json", R"({"image": {"object_pixel_um": 0.5, "width": 32}})");
+  dir.Write("b.json", R"({"image": {"object_pixel_um": 0.5}})");
+  dir.Write("c.json", R"({"image": {"object_pixel_um": 0.25}})");
+  dir.Write("bad.json", R"({"image": {"object_pixel_um": -1}})");
+  dir.Write("broken.json", R"({"image": )");
+  const char* header = "defocus_um,image,png,sidecar,rays\n";
+  auto csv = [&](const std::string& name, const char* sa, const char* sb) {
+    return ReadStack(
+        dir.Write(name, std::string(header) + "-5,a.tif,," + sa + ",1\n5,b.tif,," + sb + ",1\n"));
+  };
+  EXPECT_DOUBLE_EQ(csv("ok.csv", "a.json", "b.json").object_pixel_um, 0.5);
+  EXPECT_EQ(csv("differ.csv", "a.json", "c.json").object_pixel_um, 0);
+  EXPECT_EQ(csv("missing.csv", "a.json", "none.json").object_pixel_um, 0);
+  EXPECT_EQ(csv("unnamed.csv", "a.json", "").object_pixel_um, 0);
+  EXPECT_EQ(ReadStack(dir.Write("plain.csv", "-5,a.tif\n")).object_pixel_um, 0);
+  const Stack j = ReadStack(
+      dir.Write("ok.json", R"({"planes": [{"defocus_um": -5, "image": "a.tif", "sidecar": "a.json"},
+                               {"defocus_um": 5, "image": "b.tif", "sidecar": "b.json"}]})"));
+  EXPECT_DOUBLE_EQ(j.object_pixel_um, 0.5);
+  for (const char* bad : {"bad.json", "broken.json"}) {
+    const auto [kind, what] =
+        ErrorOf([&] { csv(std::string("e_") + bad + ".csv", "a.json", bad); });
+    EXPECT_EQ(kind, FailureKind::kFileError);
+    EXPECT_NE(what.find(bad), std::string::npos) << what;
+  }
+}
+
 // Issue 25, defect 1: every field of a JSON stack index is type-checked; a wrong type is a file
 // error naming the file and the field (it was an uncaught nlohmann::json::type_error).
 TEST(FocusScan, JsonIndexFieldsAreTypeChecked) {

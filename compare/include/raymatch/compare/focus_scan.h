@@ -16,10 +16,16 @@ struct Stack {
   std::vector<double> defocus_um;
   std::vector<Image> images;
   std::vector<std::string> files;
+  /// The camera pixel at the object in micrometres, from the planes' sidecars (simulate's
+  /// `image.object_pixel_um`) when every plane names one and they agree; 0: unknown.
+  double object_pixel_um = 0;
 };
 
 /// Reads a stack index: a CSV "defocus_um,file" (header allowed) or the simulator's JSON index
-/// ({"planes": [{"defocus_um": .., "image": ..}]}). Paths are relative to the index. Throws
+/// ({"planes": [{"defocus_um": .., "image": .., "sidecar": ..}]}). Paths are relative to the
+/// index. A `sidecar` (JSON field or CSV column) that exists is read for the object pixel; one
+/// that is not valid JSON, or whose `image.object_pixel_um` is not a positive number, is a file
+/// error; a missing one leaves the pixel size unknown. Throws
 /// CompareError: kFileError for missing files and for an index that cannot be read as one (not
 /// JSON, a field of the wrong type, a defocus that is not a whole finite number), naming the
 /// file and the field or line; kInvalidInput for an empty stack or NaN pixels; kSizeMismatch

@@ -107,19 +107,22 @@ class Stack:
     defocus_um: list[float]
     images: list[np.ndarray]
     files: list[str] = field(default_factory=list)
+    object_pixel_um: float = 0.0  # the camera pixel at the object (um); 0: unknown
 
 
 def read_stack(index: str | os.PathLike) -> Stack:
-    """Reads a stack index: a CSV 'defocus_um,file' or the simulator's <name>_scan.json."""
-    z, images, files = _raymatch._read_stack(index)
-    return Stack(z, images, files)
+    """Reads a stack index: a CSV 'defocus_um,file' or the simulator's <name>_scan.json. The
+    object pixel comes from the planes' sidecars when every plane names one and they agree."""
+    z, images, files, pixel_um = _raymatch._read_stack(index)
+    return Stack(z, images, files, pixel_um)
 
 
 def _as_stack(x: Any, what: str) -> Stack:
     if isinstance(x, (str, os.PathLike)):
         return read_stack(x)
     if isinstance(x, (Stack, SimulationResult)):
-        return Stack(list(x.defocus_um), list(x.images), list(getattr(x, "files", [])))
+        return Stack(list(x.defocus_um), list(x.images), list(getattr(x, "files", [])),
+                     float(getattr(x, "object_pixel_um", 0.0)))
     if isinstance(x, tuple) and len(x) == 2:
         z, images = x
         if isinstance(images, np.ndarray) and images.ndim == 3:
@@ -136,6 +139,7 @@ def focus_scan(experiment: Any, simulation: Any, data_range: float = 0.0, *,
                ms_ssim_weights: str | Sequence[float] = "matlab", ms_ssim_sigma: float = 1.5,
                cw_ssim_level: int = 0, cw_ssim_orientations: int = 16, cw_ssim_k: float = 0.0,
                measures: Sequence[str] | None = None, primary: Sequence[str] | None = None,
+               pixel_um: float = 0.0,
                report_dir: str | os.PathLike | None = None) -> FocusScanResult:
     """The focus-scan test of ``raymatch compare-scan``: every experimental plane against every
     simulated plane for each measure; a measure passes when every best match is the plane of the
@@ -144,8 +148,10 @@ def focus_scan(experiment: Any, simulation: Any, data_range: float = 0.0, *,
     experiment, simulation: a stack index path (CSV or _scan.json), a :class:`Stack`, a
     :class:`SimulationResult` or a ``(defocus_um, images)`` tuple. data_range: L in photons (0 =
     the largest pixel of both stacks). dark/flat: files applied to the experiment (code values);
-    gain: photons per code value; roi: (x, y, width, height) in pixels. report_dir: also write
-    the CLI's report (JSON, CSV, PNGs, report.html) there.
+    gain: photons per code value; roi: (x, y, width, height) in pixels. pixel_um: the camera
+    pixel at the object in um for the report's axes (0: the simulation's stack's, then the
+    experiment's, as read from the sidecars; pixels when neither has one). report_dir: also
+    write the CLI's report (JSON, CSV, PNGs, report.html) there.
     """
     e = _as_stack(experiment, "experiment")
     s = _as_stack(simulation, "simulation")
@@ -155,7 +161,8 @@ def focus_scan(experiment: Any, simulation: Any, data_range: float = 0.0, *,
         float(gain), None if roi is None else tuple(int(v) for v in roi), register, normalize,
         ms_ssim_scales, ms_ssim_weights, ms_ssim_sigma, cw_ssim_level, cw_ssim_orientations,
         cw_ssim_k, None if measures is None else list(measures),
-        None if primary is None else list(primary))
+        None if primary is None else list(primary),
+        float(pixel_um or s.object_pixel_um or e.object_pixel_um))
     if report_dir is not None:
         r.write_report(report_dir)
     return r

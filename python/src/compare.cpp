@@ -280,7 +280,7 @@ void BindCompare(py::module_& m) {
         compare::Stack s = compare::ReadStack(PathArg(path));
         py::list images;
         for (auto& img : s.images) images.append(ToArray(std::move(img)));
-        return py::make_tuple(s.defocus_um, images, s.files);
+        return py::make_tuple(s.defocus_um, images, s.files, s.object_pixel_um);
       },
       py::arg("index"));
 
@@ -364,7 +364,7 @@ void BindCompare(py::module_& m) {
          std::optional<std::array<int, 4>> roi, bool register_shift, bool normalize, int ms_scales,
          const py::object& ms_weights, double ms_sigma, int cw_level, int cw_orientations,
          double cw_k, std::optional<std::vector<std::string>> measures,
-         std::optional<std::vector<std::string>> primary) {
+         std::optional<std::vector<std::string>> primary, double pixel_um) {
         const compare::Stack e = MakeStack(exp_z, exp_images, exp_files, "experiment");
         const compare::Stack s = MakeStack(sim_z, sim_images, sim_files, "simulation");
         compare::FocusScanOptions o;
@@ -386,14 +386,16 @@ void BindCompare(py::module_& m) {
           for (const auto& n : *primary) o.primary.push_back(MeasureFromName(n));
         }
         py::gil_scoped_release nogil;
-        return compare::RunFocusScan(e, s, o);
+        compare::FocusScanResult r = compare::RunFocusScan(e, s, o);
+        r.object_pixel_um = pixel_um;
+        return r;
       },
       py::arg("exp_defocus_um"), py::arg("exp_images"), py::arg("exp_files"),
       py::arg("sim_defocus_um"), py::arg("sim_images"), py::arg("sim_files"), py::arg("data_range"),
       py::arg("dark"), py::arg("flat"), py::arg("gain"), py::arg("roi"), py::arg("register_shift"),
       py::arg("normalize"), py::arg("ms_ssim_scales"), py::arg("ms_ssim_weights"),
       py::arg("ms_ssim_sigma"), py::arg("cw_ssim_level"), py::arg("cw_ssim_orientations"),
-      py::arg("cw_ssim_k"), py::arg("measures"), py::arg("primary"));
+      py::arg("cw_ssim_k"), py::arg("measures"), py::arg("primary"), py::arg("pixel_um") = 0.0);
 }
 
 }  // namespace raymatch::python

@@ -102,6 +102,10 @@ def test_focus_scan_equals_cli_and_accepts_arrays(exe, tiny_scene_file, tmp_path
     assert r.exit_code == cli.returncode
     py_json = r.to_dict()
     assert py_json["measures"] == cli_json["measures"]
+    # The report's scale from simulate's sidecars, as the CLI reads it.
+    assert cli_json["object_pixel_um"] > 0
+    assert raymatch.read_stack(sim_index).object_pixel_um == cli_json["object_pixel_um"]
+    assert py_json["object_pixel_um"] == cli_json["object_pixel_um"]
     assert r.exp_defocus_um == [-6, -3, 0, 3, 6]
     mse = r.measures["mse"]
     assert mse["matrix"].shape == (5, 5) and not mse["higher_is_better"]

@@ -60,6 +60,10 @@ struct Binding {
   /// the images', the edge (its own ray population) and the PSF (applied per ray) keep the
   /// near/far split of the traced rays; other scene values (the source, the optics) do not.
   bool KeepsSplit() const { return kind != Kind::kScene; }
+  /// Moves its object across the optical axis only (x or y of its centre).
+  bool MovesAcross() const {
+    return kind == Kind::kObject && field == Field::kCenter && component < 2;
+  }
   /// Patched into the built scene without reading the scene file again.
   bool Typed() const { return InScene() && field != Field::kNone; }
 };

@@ -47,15 +47,25 @@ double NormalFromWord(uint32_t w) {
 
 }  // namespace
 
-ModelImages MieImageModel::Images(const simulate::Scene& scene, const Draw&, uint64_t*) {
-  // The exact wave image in photons at the experiment's flat-field count.
-  simulate::Scene w = scene;
-  w.trace.photons_per_pixel = photons_per_pixel_;
-  w.trace.rays = 0;
-  if (w.trace.mie.window_um == 0) w.trace.mie.window_um = window_um_;
-  const simulate::MieImager mie(w);
+MieImageModel::MieImageModel(double photons_per_pixel, double window_um, int threads)
+    : photons_per_pixel_(photons_per_pixel), window_um_(window_um), threads_(threads) {}
+MieImageModel::~MieImageModel() = default;
+
+ModelImages MieImageModel::Images(const simulate::Scene& scene, const Draw& draw, uint64_t*) {
+  if (last_ && !draw.across_key.empty() && draw.across_key == last_key_) {
+    const Vec3& c = scene.objects.at(0).center_um;
+    last_->MoveAcross(c.x, c.y);
+  } else {
+    // The exact wave image in photons at the experiment's flat-field count.
+    simulate::Scene w = scene;
+    w.trace.photons_per_pixel = photons_per_pixel_;
+    w.trace.rays = 0;
+    if (w.trace.mie.window_um == 0) w.trace.mie.window_um = window_um_;
+    last_ = std::make_unique<simulate::MieImager>(w);
+    last_key_ = draw.across_key;
+  }
   ModelImages out;
-  for (double dz : w.defocus_um) out.counts.push_back(mie.Expected(dz, threads_));
+  for (double dz : scene.defocus_um) out.counts.push_back(last_->Expected(dz, threads_));
   return out;
 }
 

@@ -14,6 +14,7 @@
 #include "raymatch/core/vec.h"
 #include "raymatch/simulate/scene.h"
 #include "raymatch/simulate/tracer.h"
+#include "raymatch/simulate/wave_image.h"
 
 namespace raymatch::fit::internal {
 
@@ -23,6 +24,10 @@ struct Draw {
   uint64_t rays = 0;
   double photons_per_ray = 1;
   uint64_t seed = 0;
+  /// The evaluation's parameters with those that only move the scene's one object across the
+  /// axis (Binding::MovesAcross) set to 0: two evaluations with equal keys have scenes that
+  /// differ at most by that move. Empty: no such promise.
+  std::vector<double> across_key;
 };
 
 /// One evaluation's images before the exposure and backgrounds: per experimental image, counts
@@ -52,15 +57,19 @@ class ImageModel {
 /// field of `photons_per_pixel`, with one FFT window for every evaluation.
 class MieImageModel : public ImageModel {
  public:
-  MieImageModel(double photons_per_pixel, double window_um, int threads)
-      : photons_per_pixel_(photons_per_pixel), window_um_(window_um), threads_(threads) {}
+  MieImageModel(double photons_per_pixel, double window_um, int threads);
+  ~MieImageModel() override;
   bool exact() const override { return true; }
+  /// An evaluation whose Draw::across_key equals the last one's moves the last imager's sphere
+  /// (simulate::MieImager::MoveAcross) instead of building a new one: its fields are kept.
   ModelImages Images(const simulate::Scene& scene, const Draw& draw,
                      uint64_t* rays_traced) override;
 
  private:
   double photons_per_pixel_, window_um_;
   int threads_;
+  std::unique_ptr<simulate::MieImager> last_;
+  std::vector<double> last_key_;
 };
 
 /// The scene as the ray model traces it: the light field's part `part` and, with `psf_os` > 1,

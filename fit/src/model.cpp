@@ -261,6 +261,11 @@ Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, 
   draw.rays = RaysAt(fraction);
   draw.photons_per_ray = ScaleAt(fraction);
   draw.seed = seed;
+  if (built_.objects.size() == 1) {  // the scene is a function of theta
+    draw.across_key = theta;
+    for (size_t i = 0; i < theta.size(); ++i)
+      if (bindings_[i].MovesAcross()) draw.across_key[i] = 0;
+  }
   internal::ModelImages m = images_->Images(SceneAt(theta), draw, rays_traced);
   Simulated out;
   out.finite_ray_correction = !images_->exact() && spec_.rays.finite_ray_correction;

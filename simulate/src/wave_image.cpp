@@ -13,6 +13,7 @@
 #include <cmath>
 #include <complex>
 #include <functional>
+#include <map>
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
 
@@ -164,6 +165,19 @@ struct MieImager::Impl {
     return spatial.at(cx, cy);
   }
 
+  /// The image's azimuthal harmonics about the sphere for one axial offset `dz` of the focal
+  /// plane from its centre: the illumination nodes' intensity changes, summed with their
+  /// weights, on the radial grid rho = q drho. They do not depend on the sphere's lateral
+  /// position, so they are kept per dz (MoveAcross renders them at another).
+  struct Pattern {
+    int n = 0;     // FFT grid
+    double h = 0;  // its spacing
+    double drho = 0;
+    int n_rho = 0;
+    std::vector<std::vector<double>> cm, sm;  // cos and sin harmonics, [m][q]
+  };
+  mutable std::map<double, Pattern> patterns;
+  const Pattern& PatternAt(double dz, tbb::task_arena& arena) const;
   void BuildSource();
   void BuildNodes(const std::vector<double>& breaks, double s_max,
                   const std::function<double(double, double)>& density);
@@ -572,6 +586,52 @@ double AutomaticMieWindowUm(const Scene& scene, double defocus_um) {
   return 2 * (w.rho_light + w.margin);
 }
 
+const MieImager::Impl::Pattern& MieImager::Impl::PatternAt(double dz,
+                                                           tbb::task_arena& arena) const {
+  if (auto it = patterns.find(dz); it != patterns.end()) return it->second;
+  if (patterns.size() >= 64) patterns.clear();  // bounded memory
+  Pattern& pat = patterns[dz];
+  const Window win = WindowFor(scene, radius, dz);
+  const double margin = win.margin;
+  double h = lambda_medium / (4 * s_na) / set.oversample;
+  int n = cv::getOptimalDFTSize(int(std::ceil(2 * (win.rho_light + margin) / h)));
+  double rho_max = win.rho_light + margin / 2;
+  if (set.window_um > 0) {  // a fixed window: the same grid for every radius and defocus
+    n = cv::getOptimalDFTSize(int(std::ceil(set.window_um / h)));
+    h = set.window_um / n;
+    rho_max = set.window_um / 2 - margin / 2;
+  }
+  const double drho = h / 2;
+  const int n_rho = int(std::ceil(rho_max / drho)) + 3;
+  // Per-node harmonics, summed in node order (the same image for any thread count).
+  std::vector<std::vector<std::vector<double>>> per(nodes.size());
+  arena.execute([&] {
+    tbb::parallel_for(size_t(0), nodes.size(),
+                      [&](size_t j) { NodeHarmonics(nodes[j], dz, n, h, drho, n_rho, &per[j]); });
+  });
+  const int mh = harmonics;
+  std::vector<std::vector<double>> cm(mh + 1, std::vector<double>(n_rho, 0.0)), sm = cm;
+  for (size_t j = 0; j < nodes.size(); ++j) {
+    const Node& nd = nodes[j];
+    const double w = nd.omega / nd.cos;  // unit flux through the z-plane: amplitude^2 = 1/cos
+    for (int m = 0; m <= mh; ++m)
+      for (int q = 0; q < n_rho; ++q) {
+        cm[m][q] += w * nd.wc[m] * per[j][m][q];
+        if (m > 0) sm[m][q] += w * nd.ws[m] * per[j][m][q];
+      }
+  }
+  pat.n = n, pat.h = h, pat.drho = drho, pat.n_rho = n_rho;
+  pat.cm = std::move(cm), pat.sm = std::move(sm);
+  return pat;
+}
+
+void MieImager::MoveAcross(double x_um, double y_um) {
+  Impl& im = *impl_;
+  im.center.x = x_um, im.center.y = y_um;
+  im.scene.objects[0].center_um.x = x_um, im.scene.objects[0].center_um.y = y_um;
+  for (auto& [w, one] : im.wavelengths) one->MoveAcross(x_um, y_um);
+}
+
 Image MieImager::Expected(double defocus_um, int threads) const {
   const Impl& im = *impl_;
   if (!im.wavelengths.empty()) {
@@ -619,36 +679,12 @@ Image MieImager::Expected(double defocus_um, int threads) const {
   double h = 0;
   for (const Group& g : groups) {
     const double dz = defocus_um - g.z;
-    const Window win = WindowFor(s, im.radius, dz);
-    const double margin = win.margin;
-    h = im.lambda_medium / (4 * im.s_na) / set.oversample;
-    n = cv::getOptimalDFTSize(int(std::ceil(2 * (win.rho_light + margin) / h)));
-    double rho_max = win.rho_light + margin / 2;
-    if (set.window_um > 0) {  // a fixed window: the same grid for every radius and defocus
-      n = cv::getOptimalDFTSize(int(std::ceil(set.window_um / h)));
-      h = set.window_um / n;
-      rho_max = set.window_um / 2 - margin / 2;
-    }
-    const double drho = h / 2;
-    const int n_rho = int(std::ceil(rho_max / drho)) + 3;
-    // Per-node harmonics, summed in node order (the same image for any thread count).
-    std::vector<std::vector<std::vector<double>>> per(im.nodes.size());
-    arena.execute([&] {
-      tbb::parallel_for(size_t(0), im.nodes.size(), [&](size_t j) {
-        im.NodeHarmonics(im.nodes[j], dz, n, h, drho, n_rho, &per[j]);
-      });
-    });
+    const Impl::Pattern& pat = im.PatternAt(dz, arena);
+    n = pat.n, h = pat.h;
+    const double drho = pat.drho;
+    const int n_rho = pat.n_rho;
     const int mh = im.harmonics;
-    std::vector<std::vector<double>> cm(mh + 1, std::vector<double>(n_rho, 0.0)), sm = cm;
-    for (size_t j = 0; j < im.nodes.size(); ++j) {
-      const Node& nd = im.nodes[j];
-      const double w = nd.omega / nd.cos;  // unit flux through the z-plane: amplitude^2 = 1/cos
-      for (int m = 0; m <= mh; ++m)
-        for (int q = 0; q < n_rho; ++q) {
-          cm[m][q] += w * nd.wc[m] * per[j][m][q];
-          if (m > 0) sm[m][q] += w * nd.ws[m] * per[j][m][q];
-        }
-    }
+    const std::vector<std::vector<double>>&cm = pat.cm, &sm = pat.sm;
     auto deviation = [&](double dx, double dy) {
       const double rho = std::hypot(dx, dy);
       const double gr = rho / drho;

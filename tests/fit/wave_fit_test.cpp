@@ -6,6 +6,7 @@
 #include <cmath>
 #include <sstream>
 
+#include "model.h"
 #include "raymatch/core/error.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/fit/fit.h"
@@ -90,6 +91,35 @@ TEST(WaveFit, ErrorsMatchSigmaAndTheBoundOverRealisations) {
   for (size_t i = 0; i < 5; ++i) {
     const double mean = sum[i] / kRealisations, se = sigma_sum[i] / kRealisations / std::sqrt(6.0);
     EXPECT_LT(std::abs(mean), 3 * se) << "parameter " << i;
+  }
+}
+
+// An evaluation that only moves the sphere across the axis reuses the last wave imager's fields
+// (MieImageModel): its images are those a new model computes, bit for bit, and a change of z
+// after it computes new fields.
+TEST(WaveFit, LateralMovesReuseTheFieldsAndGiveTheSameImages) {
+  testing::TempDir dir;
+  dir.Write("s.toml", WaveScene(0, 0, 0, 4, 1.4));
+  Image flat(40, 40);
+  for (size_t q = 0; q < flat.size(); ++q) flat.pixels[q] = float(1450 + q % 97);
+  WriteFloatImage(dir / "e.tif", flat, "flat");
+  const FitSpec spec = LoadFitSpec(dir.Write("f.toml",
+                                             "scene = \"s.toml\"\n[[image]]\nfile = \"e.tif\"\n"
+                                             "defocus_um = 3\n" +
+                                                 std::string(kParameters)));
+  ASSERT_TRUE(spec.exact_images);
+  const std::vector<std::vector<double>> thetas = {{0.1, -0.1, 0.2, 4.0, 1.4},
+                                                   {0.5, 0.3, 0.2, 4.0, 1.4},   // across
+                                                   {-0.4, 0.3, 0.2, 4.0, 1.4},  // across
+                                                   {-0.4, 0.3, 0.6, 4.0, 1.4},  // z
+                                                   {0.2, 0.0, 0.6, 4.0, 1.4}};  // across
+  FitModel reuse(spec, 2, nullptr);
+  for (size_t k = 0; k < thetas.size(); ++k) {
+    SCOPED_TRACE("evaluation " + std::to_string(k));
+    const Simulated a = reuse.Expected(thetas[k], 1, 1, nullptr);
+    const Simulated b = FitModel(spec, 2, nullptr).Expected(thetas[k], 1, 1, nullptr);
+    ASSERT_EQ(a.photons.size(), 1u);
+    EXPECT_EQ(a.photons[0].pixels, b.photons[0].pixels);
   }
 }
 

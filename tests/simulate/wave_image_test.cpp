@@ -125,6 +125,29 @@ Scene LightFieldScene(F f, int n = 32) {
   return s;
 }
 
+// MoveAcross keeps the fields computed for each axial offset and renders them about the new
+// centre: the image is the one a new imager of the moved sphere gives, bit for bit, for an
+// asymmetric light field (azimuthal harmonics) and planes computed before and after the move.
+TEST(WaveImage, MovingAcrossGivesTheImageOfTheMovedSphere) {
+  Scene s = LightFieldScene([](double u, double v) { return 1 + 2 * u + 0.5 * v * v; });
+  s.objects[0].center_um = Vec3(0.3, -0.2, 0.4);
+  MieImager moved(s);
+  const Image before = moved.Expected(2.0, 2);
+  moved.MoveAcross(1.7, 0.9);
+  const Image a = moved.Expected(2.0, 2), b = moved.Expected(-1.0, 2);
+  s.objects[0].center_um = Vec3(1.7, 0.9, 0.4);
+  const MieImager fresh(s);
+  const Image fa = fresh.Expected(2.0, 2), fb = fresh.Expected(-1.0, 2);
+  ASSERT_EQ(a.size(), fa.size());
+  size_t differ = 0, moved_pixels = 0;
+  for (size_t i = 0; i < a.size(); ++i) {
+    differ += a.pixels[i] != fa.pixels[i] || b.pixels[i] != fb.pixels[i];
+    moved_pixels += a.pixels[i] != before.pixels[i];
+  }
+  EXPECT_EQ(differ, 0u);
+  EXPECT_GT(moved_pixels, a.size() / 4);  // the move changed the image
+}
+
 // Turning the illumination by 90 degrees about the axis turns the image by 90 degrees about the
 // sphere: the azimuthal harmonics carry the source's asymmetry with the right orientation and
 // sign (u -> v, v -> -u turns the map counter-clockwise, and the image's +x to +y).

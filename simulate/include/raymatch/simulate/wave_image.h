@@ -73,6 +73,11 @@ class MieImager {
   /// `defocus_um`; `threads` 0: all cores. The same for any thread count.
   Image Expected(double defocus_um, int threads = 0) const;
 
+  /// Moves the sphere to (x_um, y_um) across the axis, keeping its z: the image of the scene
+  /// with that centre, without recomputing the fields (they are kept per axial offset from the
+  /// focal plane; a lateral move only shifts where they are rendered).
+  void MoveAcross(double x_um, double y_um);
+
   /// The sampling used by the last Expected call (or the constructor's, before one).
   MieSampling sampling() const;
   /// The stages this model runs, e.g. {"optics:mie", "source:cone", "corrector", "psf"}.

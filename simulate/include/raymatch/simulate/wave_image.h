@@ -70,7 +70,9 @@ class MieImager {
   MieImager& operator=(const MieImager&) = delete;
 
   /// The expected image (photons per pixel, no noise) with the objective focused at
-  /// `defocus_um`; `threads` 0: all cores. The same for any thread count.
+  /// `defocus_um`; `threads` 0: all cores. The same for any thread count. It keeps the fields
+  /// of each axial offset for later calls, so one imager must not be used from two threads at
+  /// once.
   Image Expected(double defocus_um, int threads = 0) const;
 
   /// Moves the sphere to (x_um, y_um) across the axis, keeping its z: the image of the scene

@@ -589,8 +589,7 @@ double AutomaticMieWindowUm(const Scene& scene, double defocus_um) {
 const MieImager::Impl::Pattern& MieImager::Impl::PatternAt(double dz,
                                                            tbb::task_arena& arena) const {
   if (auto it = patterns.find(dz); it != patterns.end()) return it->second;
-  if (patterns.size() >= 64) patterns.clear();  // bounded memory
-  Pattern& pat = patterns[dz];
+  Pattern pat;  // stored once complete, so a failed computation leaves no entry behind
   const Window win = WindowFor(scene, radius, dz);
   const double margin = win.margin;
   double h = lambda_medium / (4 * s_na) / set.oversample;
@@ -622,7 +621,8 @@ const MieImager::Impl::Pattern& MieImager::Impl::PatternAt(double dz,
   }
   pat.n = n, pat.h = h, pat.drho = drho, pat.n_rho = n_rho;
   pat.cm = std::move(cm), pat.sm = std::move(sm);
-  return pat;
+  if (patterns.size() >= 64) patterns.clear();  // bounded memory
+  return patterns.emplace(dz, std::move(pat)).first->second;
 }
 
 void MieImager::MoveAcross(double x_um, double y_um) {

@@ -14,7 +14,6 @@ struct ScanCliOptions {
   compare::FocusScanOptions scan;
   std::vector<int> roi;
   bool no_register = false, no_normalize = false;
-  double pixel_um = 0;
 };
 
 int RunScanCompare(ScanCliOptions o) {
@@ -28,11 +27,7 @@ int RunScanCompare(ScanCliOptions o) {
   o.scan.normalize_background = !o.no_normalize;
   const compare::Stack e = compare::ReadStack(o.experiment);
   const compare::Stack s = compare::ReadStack(o.simulation);
-  compare::FocusScanResult r = compare::RunFocusScan(e, s, o.scan);
-  // The report's scale: --pixel-um, else the simulated planes' sidecars, else the experiment's.
-  r.object_pixel_um = o.pixel_um > 0          ? o.pixel_um
-                      : s.object_pixel_um > 0 ? s.object_pixel_um
-                                              : e.object_pixel_um;
+  const compare::FocusScanResult r = compare::RunFocusScan(e, s, o.scan);
   const std::string report = compare::WriteFocusScanReport(r, o.output, "raymatch focus-scan test");
   std::cout << "raymatch compare-scan: " << r.message << "\n";
   for (const auto& m : r.measures) {
@@ -72,7 +67,7 @@ void RegisterCompareScan(CLI::App& app, int* exit_code) {
       ->check(DataRangeCheck(true));
   AddMultiscaleOptions(sub, &o->scan.ms_ssim, &o->scan.cw_ssim);
   sub->add_flag("--no-register", o->no_register, "Skip sub-pixel registration");
-  sub->add_option("--pixel-um", o->pixel_um,
+  sub->add_option("--pixel-um", o->scan.object_pixel_um,
                   "The camera pixel at the object plane in micrometres, for the report's axes "
                   "(default: from the planes' sidecars, simulate's image.object_pixel_um; axes in "
                   "pixels when they give none)")

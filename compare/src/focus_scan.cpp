@@ -419,6 +419,9 @@ FocusScanResult RunFocusScan(const Stack& exp, const Stack& sim, const FocusScan
   if (exp.images.empty() || sim.images.empty())
     throw CompareError(FailureKind::kInvalidInput, "a focus stack is empty");
   FocusScanResult r;
+  r.object_pixel_um = o.object_pixel_um > 0     ? o.object_pixel_um
+                      : sim.object_pixel_um > 0 ? sim.object_pixel_um
+                                                : exp.object_pixel_um;
   r.exp_defocus_um = exp.defocus_um;
   r.sim_defocus_um = sim.defocus_um;
   Image dark, flat;

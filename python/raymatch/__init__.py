@@ -156,13 +156,13 @@ def focus_scan(experiment: Any, simulation: Any, data_range: float = 0.0, *,
     e = _as_stack(experiment, "experiment")
     s = _as_stack(simulation, "simulation")
     r = _raymatch._focus_scan(
-        e.defocus_um, e.images, e.files, s.defocus_um, s.images, s.files, float(data_range),
+        e.defocus_um, e.images, e.files, e.object_pixel_um, s.defocus_um, s.images, s.files,
+        s.object_pixel_um, float(data_range),
         os.fspath(dark) if dark is not None else "", os.fspath(flat) if flat is not None else "",
         float(gain), None if roi is None else tuple(int(v) for v in roi), register, normalize,
         ms_ssim_scales, ms_ssim_weights, ms_ssim_sigma, cw_ssim_level, cw_ssim_orientations,
         cw_ssim_k, None if measures is None else list(measures),
-        None if primary is None else list(primary),
-        float(pixel_um or s.object_pixel_um or e.object_pixel_um))
+        None if primary is None else list(primary), float(pixel_um))
     if report_dir is not None:
         r.write_report(report_dir)
     return r

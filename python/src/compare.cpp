@@ -117,8 +117,9 @@ compare::Measure MeasureFromName(const std::string& n) {
 }
 
 compare::Stack MakeStack(const std::vector<double>& defocus_um, const py::iterable& images,
-                         const std::vector<std::string>& files, const char* what) {
+                         const std::vector<std::string>& files, double pixel_um, const char* what) {
   compare::Stack s;
+  s.object_pixel_um = pixel_um;
   s.defocus_um = defocus_um;
   s.images = FromArrays(images, what);
   s.files = files;
@@ -358,16 +359,20 @@ void BindCompare(py::module_& m) {
   m.def(
       "_focus_scan",
       [](const std::vector<double>& exp_z, const py::iterable& exp_images,
-         const std::vector<std::string>& exp_files, const std::vector<double>& sim_z,
-         const py::iterable& sim_images, const std::vector<std::string>& sim_files, double L,
+         const std::vector<std::string>& exp_files, double exp_pixel_um,
+         const std::vector<double>& sim_z, const py::iterable& sim_images,
+         const std::vector<std::string>& sim_files, double sim_pixel_um, double L,
          const std::string& dark, const std::string& flat, double gain,
          std::optional<std::array<int, 4>> roi, bool register_shift, bool normalize, int ms_scales,
          const py::object& ms_weights, double ms_sigma, int cw_level, int cw_orientations,
          double cw_k, std::optional<std::vector<std::string>> measures,
          std::optional<std::vector<std::string>> primary, double pixel_um) {
-        const compare::Stack e = MakeStack(exp_z, exp_images, exp_files, "experiment");
-        const compare::Stack s = MakeStack(sim_z, sim_images, sim_files, "simulation");
+        const compare::Stack e =
+            MakeStack(exp_z, exp_images, exp_files, exp_pixel_um, "experiment");
+        const compare::Stack s =
+            MakeStack(sim_z, sim_images, sim_files, sim_pixel_um, "simulation");
         compare::FocusScanOptions o;
+        o.object_pixel_um = pixel_um;
         o.prepare.roi = roi;
         o.prepare.dark_file = dark;
         o.prepare.flat_file = flat;
@@ -386,13 +391,12 @@ void BindCompare(py::module_& m) {
           for (const auto& n : *primary) o.primary.push_back(MeasureFromName(n));
         }
         py::gil_scoped_release nogil;
-        compare::FocusScanResult r = compare::RunFocusScan(e, s, o);
-        r.object_pixel_um = pixel_um;
-        return r;
+        return compare::RunFocusScan(e, s, o);
       },
       py::arg("exp_defocus_um"), py::arg("exp_images"), py::arg("exp_files"),
-      py::arg("sim_defocus_um"), py::arg("sim_images"), py::arg("sim_files"), py::arg("data_range"),
-      py::arg("dark"), py::arg("flat"), py::arg("gain"), py::arg("roi"), py::arg("register_shift"),
+      py::arg("exp_pixel_um"), py::arg("sim_defocus_um"), py::arg("sim_images"),
+      py::arg("sim_files"), py::arg("sim_pixel_um"), py::arg("data_range"), py::arg("dark"),
+      py::arg("flat"), py::arg("gain"), py::arg("roi"), py::arg("register_shift"),
       py::arg("normalize"), py::arg("ms_ssim_scales"), py::arg("ms_ssim_weights"),
       py::arg("ms_ssim_sigma"), py::arg("cw_ssim_level"), py::arg("cw_ssim_orientations"),
       py::arg("cw_ssim_k"), py::arg("measures"), py::arg("primary"), py::arg("pixel_um") = 0.0);

@@ -268,6 +268,16 @@ TEST(FocusScan, PixelSizeComesFromThePlanesSidecars) {
       dir.Write("ok.json", R"({"planes": [{"defocus_um": -5, "image": "a.tif", "sidecar": "a.json"},
                                {"defocus_um": 5, "image": "b.tif", "sidecar": "b.json"}]})"));
   EXPECT_DOUBLE_EQ(j.object_pixel_um, 0.5);
+  // The scan's scale: the option, else the simulation's sidecars, else the experiment's.
+  Stack known = csv("known.csv", "c.json", "c.json"), unknown = csv("u.csv", "a.json", "");
+  FocusScanOptions o;
+  o.register_shift = false;
+  EXPECT_DOUBLE_EQ(RunFocusScan(unknown, known, o).object_pixel_um, 0.25);
+  EXPECT_DOUBLE_EQ(RunFocusScan(known, j, o).object_pixel_um, 0.5);
+  EXPECT_DOUBLE_EQ(RunFocusScan(known, unknown, o).object_pixel_um, 0.25);
+  EXPECT_EQ(RunFocusScan(unknown, unknown, o).object_pixel_um, 0);
+  o.object_pixel_um = 2;
+  EXPECT_DOUBLE_EQ(RunFocusScan(known, j, o).object_pixel_um, 2);
   for (const char* bad : {"bad.json", "broken.json"}) {
     const auto [kind, what] =
         ErrorOf([&] { csv(std::string("e_") + bad + ".csv", "a.json", bad); });

@@ -61,6 +61,9 @@ struct FocusScanOptions {
                                    Measure::kCwSsim, Measure::kPoissonChi2};
   /// Measures whose failure fails the test (the paper: MSE, MS-SSIM and CW-SSIM pass, SSIM not).
   std::vector<Measure> primary = {Measure::kMse, Measure::kMsSsim, Measure::kCwSsim};
+  /// The camera pixel at the object plane (um) for the report's axes; 0: the simulated stack's,
+  /// else the experimental stack's (from their sidecars), else pixels.
+  double object_pixel_um = 0;
 };
 
 struct MeasureScan {
@@ -93,7 +96,8 @@ struct FocusScanResult {
   Verdict verdict = Verdict::kFail;
   std::string message;
   std::vector<Image> exp_images, sim_images;  ///< prepared, for reports
-  /// The camera pixel at the object plane (um), for the report's axes; 0: not known (pixels).
+  /// The camera pixel at the object plane (um), for the report's axes (FocusScanOptions'
+  /// precedence); 0: not known (pixels).
   double object_pixel_um = 0;
   nlohmann::json ToJson() const;
 };

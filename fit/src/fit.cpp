@@ -526,7 +526,10 @@ Matrix FisherInformation(const std::vector<Image>& mu, const std::vector<std::ve
   return F;
 }
 
-FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
+namespace {
+
+/// The fit from the parameters' starts (RunFit without the [search] stages).
+FitResult RunFitFromStart(const FitSpec& spec, const FitOptions& options) {
   const auto t_start = Clock::now();
   FitResult res;
   Runner run(spec, options, &res);
@@ -640,6 +643,65 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
   for (const ParameterResult& p : res.parameters)
     if (p.at_bound && res.status == FitStatus::kConverged)
       res.message += "; " + p.key + " ended at a bound: widen [lower, upper]";
+  return res;
+}
+
+}  // namespace
+
+FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
+  if (!spec.start_fit && spec.scan.empty()) return RunFitFromStart(spec, options);
+  const auto t_start = Clock::now();
+  FitSpec main = spec;  // the same fit from the stages' start
+  main.start_fit.reset();
+  main.scan.clear();
+  std::vector<Evaluation> before;
+  std::vector<std::pair<std::string, double>> seconds;
+  auto say = [&](const std::string& m) {
+    if (options.progress)
+      std::fprintf(stderr, "%sraymatch fit: %s\n", isatty(2) ? "\r\033[K" : "", m.c_str());
+  };
+  if (spec.start_fit) {
+    // 1. The ray model's fit from the parameters' starts: its optimum is near the truth in
+    // position and size, where the exact model's likelihood has its main valley.
+    const auto t0 = Clock::now();
+    say("start: fitting the ray model from the parameters' starts");
+    const FitResult rays = RunFitFromStart(*spec.start_fit, options);
+    for (Evaluation e : rays.evaluations) {
+      e.stage = Stage::kStart;
+      before.push_back(std::move(e));
+    }
+    for (size_t i = 0; i < main.parameters.size(); ++i)
+      main.parameters[i].start = rays.parameters[i].best;
+    seconds.push_back({"start: the ray model's fit", Since(t0)});
+  }
+  if (!spec.scan.empty()) {
+    // 2. Each scanned parameter over its points at this fit's model, the others held.
+    const auto t0 = Clock::now();
+    FitResult scan;
+    Runner run(main, options, &scan);
+    const size_t level = main.rays.fractions.size() - 1;
+    for (size_t i : spec.scan) {
+      Parameter& p = main.parameters[i];
+      say("scan: " + p.key + " over " + std::to_string(p.points) + " points");
+      std::vector<double> th;
+      for (const Parameter& q : main.parameters) th.push_back(q.start);
+      double best_e = 0, best_v = p.start;
+      for (int k = 0; k < p.points; ++k) {
+        th[i] = p.lower + (p.upper - p.lower) * k / (p.points - 1);
+        const double e = run.Eval(th, level, run.Seed(), Stage::kScan);
+        if (k == 0 || e < best_e) best_e = e, best_v = th[i];
+      }
+      p.start = best_v;
+    }
+    for (Evaluation& e : scan.evaluations) before.push_back(std::move(e));
+    seconds.push_back({"scan", Since(t0)});
+  }
+  FitResult res = RunFitFromStart(main, options);
+  res.evaluations.insert(res.evaluations.begin(), before.begin(), before.end());
+  res.seconds.insert(res.seconds.begin(), seconds.begin(), seconds.end());
+  for (size_t i = 0; i < res.parameters.size(); ++i)
+    res.parameters[i].start = spec.parameters[i].start;
+  res.total_seconds = Since(t_start);
   return res;
 }
 

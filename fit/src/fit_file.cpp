@@ -32,8 +32,8 @@ const char* MethodName(Method m) {
 }
 
 const char* StageName(Stage s) {
-  static const char* n[] = {"grid",  "poll",   "lm",    "polish", "fisher",
-                            "final", "repeat", "slice", "best",   "profile"};
+  static const char* n[] = {"grid",   "poll",  "lm",   "polish",  "fisher", "final",
+                            "repeat", "slice", "best", "profile", "start",  "scan"};
   return n[int(s)];
 }
 
@@ -290,13 +290,27 @@ void CheckExperimentImage(const FitImage& fi, double expected_photons_per_pixel,
 
 FitSpec LoadFitSpec(const std::string& path) { return LoadFitSpec(path, ""); }
 
+namespace {
+FitSpec LoadFitFile(const std::string& path, const std::string& scene_override,
+                    const std::string& calibration_override, bool ray_start_fit);
+}  // namespace
+
+FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
+                    const std::string& calibration_override) {
+  return LoadFitFile(path, scene_override, calibration_override, false);
+}
+
 double FitSpec::RaysPerPhoton() const {
   return exact_images ? std::numeric_limits<double>::infinity()
                       : rays.ray_factor * rays.fractions.back();
 }
 
-FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
-                    const std::string& calibration_override) {
+namespace {
+
+/// `ray_start_fit`: the ray model's fit of a [search] start = "rays" (the scene's and the fit
+/// file's optics replaced by rays, search only, no [search] stages of its own).
+FitSpec LoadFitFile(const std::string& path, const std::string& scene_override,
+                    const std::string& calibration_override, bool ray_start_fit) {
   const toml::table t = ParseTomlFile(path);
   TomlReader r(t, path, "");
   FitSpec f;
@@ -323,6 +337,12 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     const std::string optics = r.Choice("optics", {"rays", "mie"});
     if (!f.scene.contains("trace")) f.scene.insert("trace", toml::table{});
     f.scene["trace"].as_table()->insert_or_assign("optics", optics);
+  }
+  if (ray_start_fit) {
+    if (!f.scene.contains("trace")) f.scene.insert("trace", toml::table{});
+    toml::table& trace = *f.scene["trace"].as_table();
+    trace.insert_or_assign("optics", "rays");
+    trace.erase("mie");
   }
   const simulate::Scene scene = simulate::LoadScene(f.scene, f.scene_file);  // checks it
   if (scene.trace.optics == simulate::ImageOptics::kMie) {
@@ -556,6 +576,45 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
     f.profile_correlation = u.InRange("profile_correlation", 0, 1, 0.9);
     u.Finish();
   }
+  if (r.Has("search")) {
+    TomlReader sr = r.Table("search");
+    const std::string start = sr.Choice("start", {"parameters", "rays"}, "parameters");
+    std::vector<std::string> scan;
+    if (sr.Has("scan")) scan = sr.Strings("scan");
+    if (!ray_start_fit) {
+      if (f.method == Method::kGrid && (start == "rays" || !scan.empty()))
+        sr.Fail(start == "rays" ? "start" : "scan",
+                "method = \"grid\" evaluates every point already: [search] is for lm and pattern");
+      if (start == "rays") {
+        if (!f.exact_images)
+          sr.Fail("start",
+                  "start = \"rays\" fits the ray model first, before an exact model (optics = "
+                  "\"mie\"); this fit's model is the rays already");
+        f.start_fit = std::make_shared<const FitSpec>(
+            LoadFitFile(path, scene_override, calibration_override, true));
+      }
+      for (const std::string& key : scan) {
+        size_t i = 0;
+        while (i < f.parameters.size() && f.parameters[i].key != key) ++i;
+        if (i == f.parameters.size()) {
+          std::string names;
+          for (const Parameter& q : f.parameters) names += (names.empty() ? "" : ", ") + q.key;
+          sr.Fail("scan",
+                  "'" + key + "' is not a [[parameter]] of this fit (they are: " + names + ")");
+        }
+        if (std::find(f.scan.begin(), f.scan.end(), i) != f.scan.end())
+          sr.Fail("scan", "'" + key + "' is listed twice");
+        f.scan.push_back(i);
+      }
+    }
+    sr.Finish();
+  }
+  if (ray_start_fit) {  // its optimum is the main fit's start: the estimator without extras
+    f.repeat_seeds = 0;
+    f.slice_points = 0;
+    f.cramer_rao = false;
+    f.profile = ProfileMode::kNever;
+  }
   r.Finish();
   // The images against the scene's photon count ([trace] photons_per_pixel, or signal x
   // well_capacity). A fit file's [rays] photons_per_pixel replaces it as the count the fit traces
@@ -565,5 +624,7 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
   for (const FitImage& fi : f.images) CheckExperimentImage(fi, expected, f.scene_file + " [trace]");
   return f;
 }
+
+}  // namespace
 
 }  // namespace raymatch::fit

@@ -123,6 +123,60 @@ TEST(WaveFit, LateralMovesReuseTheFieldsAndGiveTheSameImages) {
   }
 }
 
+// A start two fringe orders off (index 0.10 above the truth, radius 0.3 um): the wave fit alone
+// stops in another fringe order's valley (deviance about 60 times its expectation). Each [search]
+// stage alone gets it to the truth within its sigmas: scanning the radius and then the index at
+// the wave model, each over its bounds with the others held; or a ray fit from the start (the
+// ray model has no fringes to be caught in). The evaluations say which stage asked for them.
+TEST(WaveFit, SearchStagesFindTheValleyFromAStartFringeOrdersOff) {
+  testing::TempDir dir;
+  const double truth[5] = {0.15, -0.1, 0.3, 4.0, 1.40};
+  const std::string truth_scene = dir.Write("truth.toml", WaveScene(0.15, -0.1, 0.3, 4.0, 1.40));
+  const Image expected = simulate::MieImager(simulate::LoadScene(truth_scene)).Expected(3.0, 2);
+  WriteFloatImage(dir / "e.tif", simulate::PoissonSample(expected, 7, 0), "wave experiment");
+  dir.Write("start.toml", WaveScene(0.0, 0.0, 0.0, 4.3, 1.50));
+  std::string fit = "scene = \"start.toml\"\n[[image]]\nfile = \"e.tif\"\ndefocus_um = 3\n" +
+                    std::string(kParameters);
+  fit.replace(fit.find("lower = 1.37\nupper = 1.43"), 25, "lower = 1.28\nupper = 1.52");
+  fit.replace(fit.find("step = 0.002"), 12, "step = 0.002\npoints = 25");
+  FitOptions o;
+  o.threads = 2;
+  const FitResult plain = RunFit(LoadFitSpec(dir.Write("plain.toml", fit)), o);
+  EXPECT_GT(std::abs(plain.parameters[4].best - truth[4]), 0.03);
+  EXPECT_TRUE(plain.goodness.mismatch);
+
+  const struct {
+    const char* search;
+    int starts, scans;
+  } stages[] = {{"scan = [\"object.s.radius_um\", \"object.s.index\"]", 0, 21 + 25},
+                {"start = \"rays\"", 20, 0}};
+  for (const auto& st : stages) {
+    SCOPED_TRACE(st.search);
+    const FitSpec spec =
+        LoadFitSpec(dir.Write("search.toml", fit + "[search]\n" + st.search + "\n"));
+    EXPECT_EQ(spec.start_fit != nullptr, st.starts > 0);
+    if (spec.start_fit) EXPECT_FALSE(spec.start_fit->exact_images);
+    const FitResult r = RunFit(spec, o);
+    EXPECT_FALSE(r.goodness.mismatch) << r.goodness.verdict;
+    for (size_t i = 0; i < 5; ++i) {
+      SCOPED_TRACE(r.parameters[i].key);
+      EXPECT_LT(std::abs(r.parameters[i].best - truth[i]), 4 * r.parameters[i].sigma);
+      EXPECT_EQ(r.parameters[i].start, spec.parameters[i].start);
+    }
+    int starts = 0, scans = 0;
+    for (const Evaluation& e : r.evaluations) {
+      starts += e.stage == Stage::kStart;
+      scans += e.stage == Stage::kScan;
+    }
+    if (st.starts > 0)
+      EXPECT_GT(starts, st.starts);
+    else
+      EXPECT_EQ(starts, 0);
+    EXPECT_EQ(scans, st.scans);
+    EXPECT_EQ(r.evaluations.front().stage, st.starts > 0 ? Stage::kStart : Stage::kScan);
+  }
+}
+
 TEST(WaveFit, FitFileChoosesTheOptics) {
   testing::TempDir dir;
   std::string rays_scene = WaveScene(0, 0, 0, 4, 1.4);
@@ -149,6 +203,32 @@ TEST(WaveFit, FitFileChoosesTheOptics) {
     FAIL() << "expected an error";
   } catch (const Error& e) {
     EXPECT_NE(std::string(e.what()).find("exactly one object"), std::string::npos) << e.what();
+  }
+  // [search]: a ray start only before an exact model, scans of the fit's own parameters, no
+  // stages for a grid; each error names the key.
+  struct Bad {
+    std::string fit, key, says;
+  };
+  const Bad bad[] = {
+      {base + "[search]\nstart = \"rays\"\n", "search.start", "the rays already"},
+      {"optics = \"mie\"\n" + base + "[search]\nscan = [\"object.s.radius\"]\n", "search.scan",
+       "object.s.radius_um"},
+      {"optics = \"mie\"\n" + base + "[search]\nscan = [\"object.s.index\", \"object.s.index\"]\n",
+       "search.scan", "twice"},
+      {"optics = \"mie\"\nmethod = \"grid\"\nmax_evaluations = 10000000\n" + base +
+           "[search]\nstart = \"rays\"\n",
+       "search.start", "every point"},
+      {"optics = \"mie\"\n" + base + "[search]\nstart = \"ray\"\n", "search.start", "rays"},
+  };
+  int i = 0;
+  for (const Bad& b : bad) {
+    try {
+      LoadFitSpec(dir.Write("bad" + std::to_string(i++) + ".toml", b.fit));
+      ADD_FAILURE() << "expected an error for " << b.fit;
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find(b.key), std::string::npos) << e.what();
+      EXPECT_NE(std::string(e.what()).find(b.says), std::string::npos) << e.what();
+    }
   }
 }
 

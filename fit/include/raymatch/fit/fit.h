@@ -12,6 +12,7 @@
 
 #include <array>
 #include <functional>
+#include <memory>
 #include <optional>
 #include <string>
 #include <utility>
@@ -37,7 +38,20 @@ const char* StatusName(FitStatus s);  ///< "", "converged", "failed", "max_evalu
 /// levels, the Gauss-Newton polish), the derivative sets and final steps at the optimum, the
 /// repeated fits, the error-function slices, the images at a grid or pattern optimum, the
 /// points of the profile-likelihood paths.
-enum class Stage { kGrid, kPoll, kLm, kPolish, kFisher, kFinal, kRepeat, kSlice, kBest, kProfile };
+enum class Stage {
+  kGrid,
+  kPoll,
+  kLm,
+  kPolish,
+  kFisher,
+  kFinal,
+  kRepeat,
+  kSlice,
+  kBest,
+  kProfile,
+  kStart,
+  kScan
+};
 const char* StageName(Stage s);  ///< "grid", "poll", "lm", "polish", "fisher", "final", ...
 
 /// One experimental image (photon counts after dark subtraction and gain).
@@ -137,6 +151,13 @@ struct FitSpec {
   /// simulation noise, so one image per evaluation, no ray fractions, no repeats with other ray
   /// streams, and every (1 + 1 / k) of the finite-ray formulas is 1.
   bool exact_images = false;
+  /// Search stages before the method's own search (the fit file's [search] table, docs/fit.md
+  /// "Starts far from the truth"). `start_fit`: the same fit with the ray model (search only),
+  /// whose optimum becomes the start. `scan`: parameters (indices) scanned in turn at this fit's
+  /// model, each over its `points` from lower to upper with the others held; the best point
+  /// becomes its start.
+  std::shared_ptr<const FitSpec> start_fit;
+  std::vector<size_t> scan;
   /// Simulated rays per experimental photon at the final level (infinite for exact images).
   double RaysPerPhoton() const;
 };

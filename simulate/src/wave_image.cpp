@@ -136,6 +136,16 @@ struct MieImager::Impl {
   // A spectrum: one monochromatic image per wavelength node, with its share of the power
   // (each normalised to the photon target, so the weighted sum is too).
   std::vector<std::pair<double, std::unique_ptr<MieImager>>> wavelengths;
+  int interleave = 1;  // classes of illumination nodes with their own wavelengths
+
+  /// A spectrum's sampling: the first wavelength's, with every class's directions.
+  MieSampling SpectrumSampling() const {
+    MieSampling m = wavelengths[0].second->sampling();
+    for (int j = 1; j < interleave; ++j)
+      m.directions += wavelengths[j].second->sampling().directions;
+    m.wavelengths = int(wavelengths.size());
+    return m;
+  }
 
   double Transmission(double s) const {
     if (s > s_na) return 0;
@@ -274,7 +284,9 @@ void MieImager::Impl::BuildSource() {
     throw Error(FileLocation{scene.file}, "optics = \"mie\": the source emits no light");
 }
 
-MieImager::MieImager(const Scene& scene) : impl_(std::make_unique<Impl>()) {
+MieImager::MieImager(const Scene& scene) : MieImager(scene, 1, 0) {}
+
+MieImager::MieImager(const Scene& scene, int stride, int offset) : impl_(std::make_unique<Impl>()) {
   const std::string why = MieUnsupportedReason(scene);
   if (!why.empty()) throw Error(FileLocation{scene.file}, why);
   Impl& im = *impl_;
@@ -285,23 +297,39 @@ MieImager::MieImager(const Scene& scene) : impl_(std::make_unique<Impl>()) {
     // Incoherent over wavelengths: lines as given; a Gaussian or tabulated spectrum at the
     // midpoints of K equal-power quantiles (the ray model draws from the same distribution),
     // each node with the sphere's index at its wavelength.
-    std::vector<std::pair<double, double>> nodes;  // wavelength, power share
+    // Interleaved (spectrum_interleave S > 1): the illumination nodes split into S classes by
+    // index modulo S, class j at the quantiles (k S + j + 1/2) / (K S): each direction sees K
+    // stratified wavelengths, shifted from class to class, so that together they sample K S
+    // (a monochromatic image's sharp resonances weigh 1 / (K S), not 1 / K).
+    struct Node {
+      double wavelength, share;
+      int cls;
+    };
+    std::vector<Node> nodes;
+    int S = 1;
+    Scene one = scene;
+    one.source.spectrum = SpectrumSpec{};
     if (sp.type == SpectrumType::kLines) {
       for (size_t k = 0; k < sp.wavelengths_um.size(); ++k)
-        nodes.emplace_back(sp.wavelengths_um[k], sp.weights[k]);
+        nodes.push_back({sp.wavelengths_um[k], sp.weights[k], 0});
     } else {
       const int K = im.set.spectrum_nodes;
-      for (int k = 0; k < K; ++k) nodes.emplace_back(sp.Sample((k + 0.5) / K), 1.0 / K);
+      if (im.set.spectrum_interleave > 1) {
+        one.wavelength_um = sp.Sample(0.5);
+        S = std::min(im.set.spectrum_interleave, MieImager(one).sampling().directions);
+      }
+      for (int k = 0; k < K; ++k)
+        for (int j = 0; j < S; ++j)
+          nodes.push_back({sp.Sample((k * S + j + 0.5) / (K * S)), 1.0 / K, j});
     }
-    for (const auto& [l, w] : nodes) {
-      Scene one = scene;
-      one.source.spectrum = SpectrumSpec{};
-      one.wavelength_um = l;
+    for (const Node& nd : nodes) {
+      one.wavelength_um = nd.wavelength;
       ObjectSpec& o = one.objects[0];
-      if (o.dispersion.law != DispersionLaw::kNone) o.index = o.dispersion.IndexAt(l);
-      im.wavelengths.emplace_back(w, std::make_unique<MieImager>(one));
+      if (o.dispersion.law != DispersionLaw::kNone) o.index = o.dispersion.IndexAt(nd.wavelength);
+      im.wavelengths.emplace_back(nd.share, std::make_unique<MieImager>(one, S, nd.cls));
     }
-    im.last = im.wavelengths[0].second->sampling();
+    im.interleave = S;
+    im.last = im.SpectrumSampling();
     return;
   }
   const ObjectSpec& o = scene.objects[0];
@@ -329,12 +357,22 @@ MieImager::MieImager(const Scene& scene) : impl_(std::make_unique<Impl>()) {
   im.pupil_edges.push_back(im.s_na);
   im.pupil_amp.push_back(std::sqrt(im.Transmission(im.s_na)));
   im.BuildSource();
+  // The photon scale is the flat field of all nodes; a class of an interleaved spectrum keeps
+  // its own nodes (and their direct light) only.
+  double flat_all = 0;
+  for (const Node& nd : im.nodes) flat_all += nd.omega * nd.wc[0] * im.Transmission(nd.s);
+  if (stride > 1) {
+    std::vector<Node> mine;
+    for (size_t i = size_t(offset); i < im.nodes.size(); i += size_t(stride))
+      mine.push_back(std::move(im.nodes[i]));
+    im.nodes = std::move(mine);
+  }
   // The largest scattering angle: the steepest wave to the farthest accepted direction.
   double s_max = 0;
   for (const Node& nd : im.nodes) s_max = std::max(s_max, nd.s);
   im.table = MieTable(im.mie, std::asin(std::min(1.0, s_max)) + std::asin(im.s_na) + 0.01);
   for (const Node& nd : im.nodes) im.flat += nd.omega * nd.wc[0] * im.Transmission(nd.s);
-  if (!(im.flat > 0))
+  if (!(flat_all > 0))
     throw Error(FileLocation{scene.file},
                 "optics = \"mie\": no direct light passes the objective (a dark field): the "
                 "photon scale is defined by the flat field");
@@ -371,7 +409,7 @@ MieImager::MieImager(const Scene& scene) : impl_(std::make_unique<Impl>()) {
     throw Error(FileLocation{scene.file},
                 "optics = \"mie\": the light field's spatial map is "
                 "zero over the whole sensor");
-  im.scale = photons / (im.flat * im.spatial_mean);
+  im.scale = photons / (flat_all * im.spatial_mean);
   im.last.directions = int(im.nodes.size());
   im.last.harmonics = im.harmonics;
   im.last.terms = im.mie.terms();
@@ -641,8 +679,7 @@ Image MieImager::Expected(double defocus_um, int threads) const {
       if (sum.empty()) sum = Image(a.width, a.height);
       for (size_t i = 0; i < a.size(); ++i) sum.pixels[i] += float(w * a.pixels[i]);
     }
-    im.last = im.wavelengths[0].second->sampling();
-    im.last.wavelengths = int(im.wavelengths.size());
+    im.last = im.SpectrumSampling();
     return sum;
   }
   const Scene& s = im.scene;

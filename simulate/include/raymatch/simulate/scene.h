@@ -247,7 +247,12 @@ struct MieSettings {
   double window_um = 0;
   int pixel_subsamples = 0;  ///< per pixel side (0: spacing at most lambda_medium / (8 NA / n))
   int spectrum_nodes = 8;    ///< wavelengths of a Gaussian or tabulated spectrum (equal power)
-  int motion_nodes = 8;      ///< times over the pulse of a moving sphere (equal power)
+  /// Wavelengths per illumination direction class: the directions are split into this many
+  /// interleaved classes, each with its own `spectrum_nodes` wavelengths shifted along the
+  /// spectrum, so the image samples spectrum_nodes x spectrum_interleave wavelengths at the
+  /// cost of spectrum_nodes (at one wavelength the classes add up to the full image).
+  int spectrum_interleave = 1;
+  int motion_nodes = 8;  ///< times over the pulse of a moving sphere (equal power)
 };
 
 struct TraceSpec {

@@ -65,6 +65,10 @@ class MieImager {
  public:
   /// Throws Error (naming the scene file) when MieUnsupportedReason is not empty.
   explicit MieImager(const Scene& scene);
+  /// One class of an interleaved spectrum (MieSettings::spectrum_interleave): a monochromatic
+  /// `scene`'s image from the illumination nodes whose index is `offset` modulo `stride`, in
+  /// the photon scale of all of them (the classes' images add up to the full one).
+  MieImager(const Scene& scene, int stride, int offset);
   ~MieImager();
   MieImager(const MieImager&) = delete;
   MieImager& operator=(const MieImager&) = delete;

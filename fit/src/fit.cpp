@@ -20,15 +20,18 @@ namespace internal {
 
 // ------------------------------------------------------------------------------------ grid
 
+/// The k-th of a parameter's `points` from lower to upper (its start when it has one point).
+double GridPoint(const Parameter& p, int k) {
+  return p.points == 1 ? p.start : p.lower + (p.upper - p.lower) * k / (p.points - 1);
+}
+
 std::vector<double> Grid(Runner& run, const FitSpec& spec, FitResult* res) {
   const size_t P = spec.parameters.size();
   res->grid_axes.assign(P, {});
   size_t total = 1;
   for (size_t i = 0; i < P; ++i) {
     const Parameter& p = spec.parameters[i];
-    for (int k = 0; k < p.points; ++k)
-      res->grid_axes[i].push_back(
-          p.points == 1 ? p.start : p.lower + (p.upper - p.lower) * k / (p.points - 1));
+    for (int k = 0; k < p.points; ++k) res->grid_axes[i].push_back(GridPoint(p, k));
     total *= p.points;
   }
   const size_t level = spec.rays.fractions.size() - 1;
@@ -687,7 +690,7 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
       for (const Parameter& q : main.parameters) th.push_back(q.start);
       double best_e = 0, best_v = p.start;
       for (int k = 0; k < p.points; ++k) {
-        th[i] = p.lower + (p.upper - p.lower) * k / (p.points - 1);
+        th[i] = GridPoint(p, k);
         const double e = run.Eval(th, level, run.Seed(), Stage::kScan);
         if (k == 0 || e < best_e) best_e = e, best_v = th[i];
       }

@@ -333,16 +333,14 @@ FitSpec LoadFitFile(const std::string& path, const std::string& scene_override,
     f.calibration_file = fs::absolute(ResolvePath(path, r.String("calibration"))).string();
   }
   if (!f.calibration_file.empty()) f.scene.insert_or_assign("calibration", f.calibration_file);
-  if (r.Has("optics")) {  // the fit file's choice of image model replaces the scene's
-    const std::string optics = r.Choice("optics", {"rays", "mie"});
-    if (!f.scene.contains("trace")) f.scene.insert("trace", toml::table{});
-    f.scene["trace"].as_table()->insert_or_assign("optics", optics);
-  }
-  if (ray_start_fit) {
+  // The fit file's choice of image model replaces the scene's; a ray start fit's is the rays.
+  std::string optics = r.Has("optics") ? r.Choice("optics", {"rays", "mie"}) : "";
+  if (ray_start_fit) optics = "rays";
+  if (!optics.empty()) {
     if (!f.scene.contains("trace")) f.scene.insert("trace", toml::table{});
     toml::table& trace = *f.scene["trace"].as_table();
-    trace.insert_or_assign("optics", "rays");
-    trace.erase("mie");
+    trace.insert_or_assign("optics", optics);
+    if (ray_start_fit) trace.erase("mie");
   }
   const simulate::Scene scene = simulate::LoadScene(f.scene, f.scene_file);  // checks it
   if (scene.trace.optics == simulate::ImageOptics::kMie) {

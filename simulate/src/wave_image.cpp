@@ -137,6 +137,7 @@ struct MieImager::Impl {
   // (each normalised to the photon target, so the weighted sum is too).
   std::vector<std::pair<double, std::unique_ptr<MieImager>>> wavelengths;
   int interleave = 1;  // classes of illumination nodes with their own wavelengths
+  int all_nodes = 0;   // illumination nodes before a class kept its own
 
   /// A spectrum's sampling: the first wavelength's, with every class's directions.
   MieSampling SpectrumSampling() const {
@@ -305,29 +306,34 @@ MieImager::MieImager(const Scene& scene, int stride, int offset) : impl_(std::ma
       double wavelength, share;
       int cls;
     };
-    std::vector<Node> nodes;
-    int S = 1;
-    Scene one = scene;
-    one.source.spectrum = SpectrumSpec{};
-    if (sp.type == SpectrumType::kLines) {
-      for (size_t k = 0; k < sp.wavelengths_um.size(); ++k)
-        nodes.push_back({sp.wavelengths_um[k], sp.weights[k], 0});
-    } else {
-      const int K = im.set.spectrum_nodes;
-      if (im.set.spectrum_interleave > 1) {
-        one.wavelength_um = sp.Sample(0.5);
-        S = std::min(im.set.spectrum_interleave, MieImager(one).sampling().directions);
+    // No more classes than illumination nodes: with fewer, the first class says how many
+    // there are and the spectrum is built again.
+    auto build = [&](int S) {
+      std::vector<Node> nodes;
+      if (sp.type == SpectrumType::kLines) {
+        for (size_t k = 0; k < sp.wavelengths_um.size(); ++k)
+          nodes.push_back({sp.wavelengths_um[k], sp.weights[k], 0});
+      } else {
+        const int K = im.set.spectrum_nodes;
+        for (int k = 0; k < K; ++k)
+          for (int j = 0; j < S; ++j)
+            nodes.push_back({sp.Sample((k * S + j + 0.5) / (K * S)), 1.0 / K, j});
       }
-      for (int k = 0; k < K; ++k)
-        for (int j = 0; j < S; ++j)
-          nodes.push_back({sp.Sample((k * S + j + 0.5) / (K * S)), 1.0 / K, j});
-    }
-    for (const Node& nd : nodes) {
-      one.wavelength_um = nd.wavelength;
-      ObjectSpec& o = one.objects[0];
-      if (o.dispersion.law != DispersionLaw::kNone) o.index = o.dispersion.IndexAt(nd.wavelength);
-      im.wavelengths.emplace_back(nd.share, std::make_unique<MieImager>(one, S, nd.cls));
-    }
+      im.wavelengths.clear();
+      Scene one = scene;
+      one.source.spectrum = SpectrumSpec{};
+      for (const Node& nd : nodes) {
+        one.wavelength_um = nd.wavelength;
+        ObjectSpec& o = one.objects[0];
+        if (o.dispersion.law != DispersionLaw::kNone) o.index = o.dispersion.IndexAt(nd.wavelength);
+        im.wavelengths.emplace_back(nd.share, std::make_unique<MieImager>(one, S, nd.cls));
+        if (S > 1 && im.wavelengths.size() == 1 && im.wavelengths[0].second->impl_->all_nodes < S)
+          return im.wavelengths[0].second->impl_->all_nodes;
+      }
+      return S;
+    };
+    int S = sp.type == SpectrumType::kLines ? 1 : im.set.spectrum_interleave;
+    if (const int fewer = build(S); fewer < S) build(S = fewer);
     im.interleave = S;
     im.last = im.SpectrumSampling();
     return;
@@ -361,6 +367,7 @@ MieImager::MieImager(const Scene& scene, int stride, int offset) : impl_(std::ma
   // its own nodes (and their direct light) only.
   double flat_all = 0;
   for (const Node& nd : im.nodes) flat_all += nd.omega * nd.wc[0] * im.Transmission(nd.s);
+  im.all_nodes = int(im.nodes.size());
   if (stride > 1) {
     std::vector<Node> mine;
     for (size_t i = size_t(offset); i < im.nodes.size(); i += size_t(stride))

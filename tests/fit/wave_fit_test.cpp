@@ -175,6 +175,15 @@ TEST(WaveFit, SearchStagesFindTheValleyFromAStartFringeOrdersOff) {
     EXPECT_EQ(scans, st.scans);
     EXPECT_EQ(r.evaluations.front().stage, st.starts > 0 ? Stage::kStart : Stage::kScan);
   }
+  // A parameter with one point (its step wider than its range) is scanned at its start.
+  std::string one = fit;
+  one.replace(one.find("step = 0.05"), 11, "step = 2");
+  const FitResult r = RunFit(
+      LoadFitSpec(dir.Write("one.toml", one + "[search]\nscan = [\"object.s.radius_um\"]\n")), o);
+  ASSERT_EQ(r.evaluations.front().stage, Stage::kScan);
+  EXPECT_EQ(r.evaluations.front().theta[3], 4.3);
+  EXPECT_TRUE(std::isfinite(r.evaluations.front().error));
+  EXPECT_EQ(r.evaluations[1].stage, Stage::kLm);
 }
 
 TEST(WaveFit, FitFileChoosesTheOptics) {

@@ -236,6 +236,16 @@ TEST(WaveImage, InterleavedSpectrumClassesAddUpAndSampleTheBandFiner) {
   for (size_t i = 0; i < one.size(); ++i) ASSERT_NEAR(classes.pixels[i], one.pixels[i], 2e-3) << i;
   EXPECT_EQ(MieImager(s).sampling().directions, MieImager(mono).sampling().directions);
   EXPECT_EQ(MieImager(s).sampling().wavelengths, 8);
+  // More classes than illumination directions: one class per direction.
+  Scene many = s;
+  many.trace.mie.spectrum_interleave = 64;
+  const int directions = MieImager(mono).sampling().directions;
+  ASSERT_LT(directions, 64);
+  const MieImager per_direction(many);
+  EXPECT_EQ(per_direction.sampling().wavelengths, 2 * directions);
+  EXPECT_EQ(per_direction.sampling().directions, directions);
+  const Image each = per_direction.Expected(2.0, 2);
+  for (size_t i = 0; i < one.size(); ++i) ASSERT_NEAR(each.pixels[i], one.pixels[i], 2e-3) << i;
   Scene flat = s;
   flat.objects[0].index = flat.medium_index;
   for (float v : MieImager(flat).Expected(2.0, 2).pixels) ASSERT_NEAR(v, 1000.0, 1e-6);

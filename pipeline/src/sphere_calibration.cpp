@@ -14,6 +14,7 @@
 #include "raymatch/core/atomic_file.h"
 #include "raymatch/core/calibration_file.h"
 #include "raymatch/core/error.h"
+#include "raymatch/core/html.h"
 #include "raymatch/core/provenance.h"
 #include "raymatch/fit/fit.h"
 #include "raymatch/pipeline/pipeline.h"
@@ -183,7 +184,8 @@ void WriteCalibratedFile(const SphereCalibrationOptions& o, const CalibrationDat
   for (size_t i : planes) rec << " " << scan.defocus_um[i];
   rec << " um: " << fit::StatusName(fr.status) << "; " << fr.goodness.verdict << ";";
   for (const auto& v : res.values)
-    rec << " " << v.key << " = " << v.value << " +- " << v.sigma << ";";
+    rec << " " << v.key << " = " << FormatValue(v.value, v.sigma) << " +- "
+        << FormatUncertainty(v.sigma) << ";";
   out.provenance["sphere_calibration"] = rec.str();
   out.provenance["sphere_calibration_base"] = fs::absolute(o.base).string();
   WriteCalibrationFile(o.output, out);
@@ -196,8 +198,9 @@ std::string SphereCalibrationResult::Brief() const {
   os.precision(6);
   os << "sphere calibration: " << status << " (" << seconds << " s)\n";
   for (const auto& v : values)
-    os << "  " << v.key << " = " << v.value << " +- " << v.sigma << " (Cramer-Rao " << v.cramer_rao
-       << ")" << (v.at_bound ? "  AT BOUND" : "") << "\n";
+    os << "  " << v.key << " = " << FormatValue(v.value, v.sigma) << " +- "
+       << FormatUncertainty(v.sigma) << " (Cramer-Rao " << FormatUncertainty(v.cramer_rao) << ")"
+       << (v.at_bound ? "  AT BOUND" : "") << "\n";
   os << "  goodness of fit: " << goodness << "\n";
   return os.str();
 }

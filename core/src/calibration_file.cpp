@@ -154,6 +154,7 @@ CalibrationData ReadCalibrationFile(const std::string& path) {
     const std::string side = (fs::path(path).parent_path() / l.String("angular_map")).string();
     try {
       d.angular_map = ReadImage(side);
+      d.sidecar_files.push_back(side);
     } catch (const Error& e) {
       l.Fail("angular_map", e.what());
     }
@@ -179,6 +180,7 @@ CalibrationData ReadCalibrationFile(const std::string& path) {
       const std::string sp = (fs::path(path).parent_path() / l.String("spatial_map")).string();
       try {
         d.spatial_map = ReadImage(sp);
+        d.sidecar_files.push_back(sp);
       } catch (const Error& e) {
         l.Fail("spatial_map", e.what());
       }

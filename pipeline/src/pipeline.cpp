@@ -413,6 +413,52 @@ std::string CalibrationInputs(const RunInputs& in) {
   return s;
 }
 
+/// Bumped when what a fit step keeps for reuse (run_step.json) changes.
+constexpr int kFitStepModel = 1;
+
+/// What a fit of the main job depends on: this raymatch, the fit file, its scene and every
+/// file the scene reads (this run's calibration among them), the images and dark frames.
+std::string FitInputs(const fit::FitSpec& spec) {
+  std::vector<std::string> files{spec.file, spec.scene_file};
+  const simulate::Scene scene = simulate::LoadScene(spec.scene, spec.scene_file);
+  files.insert(files.end(), scene.input_files.begin(), scene.input_files.end());
+  for (const fit::FitImage& im : spec.images) {
+    files.push_back(im.file);
+    if (!im.dark_file.empty()) files.push_back(im.dark_file);
+  }
+  std::string s = "fit step " + std::to_string(kFitStepModel) + "|" +
+                  ProvenanceJson().value("version", std::string()) + "\n";
+  for (const std::string& f : files) s += fs::absolute(f).string() + ":" + FileChecksum(f) + "\n";
+  return s;
+}
+
+/// A fit step's part of the run: its status, its check and its section of index.html.
+struct FitStep {
+  std::string status;
+  PipelineCheck check;
+  std::string html;
+};
+
+void WriteFitStep(const fs::path& file, const FitStep& f) {
+  const nlohmann::json j{{"status", f.status},
+                         {"check",
+                          {{"name", f.check.name},
+                           {"ok", f.check.ok},
+                           {"result", f.check.result},
+                           {"meaning", f.check.meaning}}},
+                         {"html", f.html}};
+  WriteTextFileAtomic(file, j.dump(1) + "\n");
+}
+
+FitStep ReadFitStep(const fs::path& file) {
+  FitStep f;
+  f.status = ReportField(file, "status");
+  f.check = {ReportField(file, "check", "name"), ReportField(file, "check", "ok") == "true",
+             ReportField(file, "check", "result"), ReportField(file, "check", "meaning")};
+  f.html = ReportField(file, "html");
+  return f;
+}
+
 /// Light field, corrector and (with a sphere folder) the sphere calibration into cal_file and
 /// its brief reports into cal_report (JSON); intermediate files go to `out`.
 void Calibrate(const RunInputs& in, const fs::path& out, const fs::path& cal_file,
@@ -643,18 +689,29 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   std::vector<PipelineCheck> fit_checks;
   for (const std::string& file : cfg.fits) {
     const std::string stem = fs::path(file).stem().string();
-    steps.Timed("fit " + stem, [&] {
-      steps.Say("fitting " + file);
-      const fit::FitSpec spec = fit::LoadFitSpec(file, "", fs::absolute(cal_file).string());
-      fit::FitOptions fo;
-      fo.threads = opt.threads;
-      fo.progress = opt.progress;
-      const fit::FitResult r = fit::RunFit(spec, fo);
-      fit::WriteFitOutputs(spec, r, (out / "fit" / stem).string());
-      report.fit_html += internal::FitSectionHtml(stem, spec, r);
-      sum.fits.push_back({stem, fit::StatusName(r.status)});
-      fit_checks.push_back(FitCheck(stem, r));
-    });
+    const fit::FitSpec spec = fit::LoadFitSpec(file, "", fs::absolute(cal_file).string());
+    const fs::path fit_dir = out / "fit" / stem, kept = fit_dir / "run_step.json";
+    FitStep done;
+    steps.Run({"fit " + stem,
+               ".fit_" + stem + ".stamp",
+               FitInputs(spec),
+               {fit_dir / "fit.json", kept},
+               "fit " + stem + " unchanged: reusing " + (fit_dir / "fit.json").string(),
+               [&] {
+                 steps.Say("fitting " + file);
+                 fit::FitOptions fo;
+                 fo.threads = opt.threads;
+                 fo.progress = opt.progress;
+                 const fit::FitResult r = fit::RunFit(spec, fo);
+                 fit::WriteFitOutputs(spec, r, fit_dir.string());
+                 done = {fit::StatusName(r.status), FitCheck(stem, r),
+                         internal::FitSectionHtml(stem, spec, r)};
+                 WriteFitStep(kept, done);
+               },
+               [&] { done = ReadFitStep(kept); }});
+    report.fit_html += done.html;
+    sum.fits.push_back({stem, done.status});
+    fit_checks.push_back(done.check);
   }
   if (!report.fit_html.empty())
     report.fit_html = "<h2>Fits: 3D properties from the images</h2>" + report.fit_html;

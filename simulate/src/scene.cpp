@@ -1,5 +1,6 @@
 #include "raymatch/simulate/scene.h"
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <sstream>
@@ -22,6 +23,13 @@ std::string Resolve(const std::string& scene_file, const std::string& p) {
   const fs::path path(p);
   if (path.is_absolute()) return p;
   return (fs::path(scene_file).parent_path() / path).lexically_normal().string();
+}
+
+/// A file the scene names, resolved against the scene file and recorded in its input_files.
+std::string Input(Scene& s, const std::string& p) {
+  std::string f = Resolve(s.file, p);
+  s.input_files.push_back(f);
+  return f;
 }
 
 Image ReadMap(TomlReader& r, const std::string& key, const std::string& scene_file,
@@ -309,7 +317,7 @@ std::shared_ptr<const IndexField> ReadIndexField(TomlReader r, Scene& scene, con
   } else {
     const bool rz = type == "grid_rz";
     f->type = rz ? IndexFieldType::kGridRZ : IndexFieldType::kGrid3D;
-    const std::string file = Resolve(scene.file, r.String("file"));
+    const std::string file = Input(scene, r.String("file"));
     const std::string dataset = r.String("dataset", "");
     NdArray a;
     try {
@@ -352,7 +360,7 @@ std::shared_ptr<const IndexField> ReadIndexField(TomlReader r, Scene& scene, con
       if (r.Has("temperature_file")) {
         NdArray t;
         try {
-          t = ReadArrayFile(Resolve(scene.file, r.String("temperature_file")), dataset);
+          t = ReadArrayFile(Input(scene, r.String("temperature_file")), dataset);
         } catch (const Error& e) {
           r.Fail("temperature_file", e.what());
         }
@@ -458,11 +466,11 @@ ObjectSpec ReadObject(TomlReader r, Scene& scene, int i) {
           outline.push_back({row[0], row[1]});
         o.shape_description = "revolved outline (" + std::to_string(outline.size()) + " points)";
       } else if (r.Has("outline_file")) {
-        const std::string f = Resolve(scene.file, r.String("outline_file"));
+        const std::string f = Input(scene, r.String("outline_file"));
         outline = ReadOutlineCsv(f);
         o.shape_description = "revolved outline from " + f;
       } else {
-        const std::string f = Resolve(scene.file, r.String("outline_image"));
+        const std::string f = Input(scene, r.String("outline_image"));
         SilhouetteOptions so;
         so.pixel_um = r.Positive("pixel_um");
         so.threshold = r.InRange("threshold", 0, 1, 0.5, true, true);
@@ -486,7 +494,7 @@ ObjectSpec ReadObject(TomlReader r, Scene& scene, int i) {
     read_rot();
   } else if (type == "volume_fraction") {
     o.shape = ShapeType::kMesh;
-    const std::string f = Resolve(scene.file, r.String("file"));
+    const std::string f = Input(scene, r.String("file"));
     NdArray a;
     try {
       a = ReadArrayFile(f, r.String("dataset", ""));
@@ -508,7 +516,7 @@ ObjectSpec ReadObject(TomlReader r, Scene& scene, int i) {
     read_rot();
   } else {
     o.shape = ShapeType::kMesh;
-    o.mesh_file = Resolve(scene.file, r.String("file"));
+    o.mesh_file = Input(scene, r.String("file"));
     if (!fs::exists(o.mesh_file)) r.Fail("file", "mesh file not found: " + o.mesh_file);
     o.mesh_scale_um = r.Positive("scale_um", 1.0);
     read_rot();
@@ -659,7 +667,7 @@ void ReadMotion(TomlReader& r, const std::string& path, Scene* s) {
       s->exposure.shape = PulseShape::kGaussian;
       s->exposure.fwhm_us = e.Positive("fwhm_us");
     } else {
-      const std::string file = Resolve(path, e.String("file"));
+      const std::string file = Input(*s, e.String("file"));
       try {
         s->exposure = TabulatedExposure(file);
       } catch (const Error& err) {
@@ -725,7 +733,7 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
   std::optional<CalibrationData> cal;
   std::string cal_file;
   if (r.Has("calibration")) {
-    cal_file = Resolve(path, r.String("calibration"));
+    cal_file = Input(s, r.String("calibration"));
     try {
       cal = ReadCalibrationFile(cal_file);
     } catch (const Error& e) {
@@ -748,6 +756,11 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
       src.Finish();
     }
   }
+  if (cal)
+    s.input_files.insert(s.input_files.end(), cal->sidecar_files.begin(), cal->sidecar_files.end());
+  for (const std::string* f : {&s.source.ray_file, &s.source.angular_map_file,
+                               &s.source.spatial_map_file, &s.source.spectrum.file})
+    if (!f->empty()) s.input_files.push_back(*f);
   // With a spectrum, indices are quoted at its mean unless wavelength_um is given.
   if (s.source.spectrum.type != SpectrumType::kNone && !r.Has("wavelength_um"))
     s.wavelength_um = s.source.spectrum.mean_um();
@@ -868,6 +881,10 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
   r.Finish();
   ValidateScene(s);
   PlausibilityWarnings(&s);
+  std::vector<std::string> once;
+  for (std::string& f : s.input_files)
+    if (std::find(once.begin(), once.end(), f) == once.end()) once.push_back(std::move(f));
+  s.input_files = std::move(once);
   return s;
 }
 

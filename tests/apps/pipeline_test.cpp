@@ -258,6 +258,17 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
   l2 << log2.rdbuf();
   EXPECT_NE(l2.str().find("calibration inputs unchanged: reusing"), std::string::npos) << l2.str();
   EXPECT_NE(l2.str().find("simulation unchanged: reusing"), std::string::npos) << l2.str();
+  EXPECT_NE(l2.str().find("fit sphere unchanged: reusing"), std::string::npos) << l2.str();
+  EXPECT_NE(l2.str().find("fit merging_grid unchanged: reusing"), std::string::npos) << l2.str();
+  {
+    // The reused fits' results are read back: the same report section and check lines.
+    std::ifstream html(dir / "out/index.html");
+    std::stringstream hs;
+    hs << html.rdbuf();
+    EXPECT_NE(hs.str().find("<td>fit sphere</td>"), std::string::npos);
+    EXPECT_NE(hs.str().find("Goodness of fit"), std::string::npos);
+    EXPECT_NE(l2.str().find("ok    fit merging_grid: converged"), std::string::npos) << l2.str();
+  }
   // The sphere calibration's check line, from the fit's fields (calibration_report.json's
   // sphere_fit when reused): the same in both runs.
   auto sphere_check = [](const std::string& log) {
@@ -270,6 +281,26 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
     EXPECT_FALSE(sphere_check(ls.str()).empty()) << ls.str();
     EXPECT_EQ(sphere_check(l2.str()), sphere_check(ls.str()));
   }
+  // The verdict's fit lines come back from the reused fits unchanged.
+  auto fit_lines = [](const std::string& log) {
+    std::string lines;
+    for (size_t a = log.find(" fit "); a != std::string::npos; a = log.find(" fit ", a + 1))
+      if (a >= 5 && (log.compare(a - 5, 5, "CHECK") == 0 || log.compare(a - 5, 5, "ok   ") == 0))
+        lines += log.substr(a, log.find('\n', a) - a) + "\n";
+    return lines;
+  };
+  EXPECT_FALSE(fit_lines(ls.str()).empty()) << ls.str();
+  EXPECT_EQ(fit_lines(l2.str()), fit_lines(ls.str()));
+  // A fit whose file changed runs again; the other is still reused.
+  { std::ofstream(data + "/fit/merging_grid.toml", std::ios::app) << "# edited\n"; }
+  const int third = std::system(cmd.c_str());
+  ASSERT_TRUE(WIFEXITED(third));
+  std::ifstream log3(dir / "log.txt");
+  std::stringstream l3;
+  l3 << log3.rdbuf();
+  EXPECT_NE(l3.str().find("fitting "), std::string::npos) << l3.str();
+  EXPECT_EQ(l3.str().find("fit merging_grid unchanged"), std::string::npos) << l3.str();
+  EXPECT_NE(l3.str().find("fit sphere unchanged: reusing"), std::string::npos) << l3.str();
 }
 
 // raymatch bench accuracy on a small scene: every fraction is reported, and the similarity to the

@@ -239,6 +239,17 @@ TEST(SceneFile, CalibrationFileSuppliesSourceCorrectorAndOptics) {
   EXPECT_EQ(s.optics.tube_focal_mm, 180);
   EXPECT_EQ(s.camera.pixel_pitch_um, 12);
   EXPECT_EQ(s.wavelength_um, 0.405);
+  // What the scene read, for the main job's step reuse: the calibration and its map, once each.
+  EXPECT_EQ(s.input_files, (std::vector<std::string>{dir / "cal.toml", dir / "cal.angular.tif"}));
+  // A spectrum table is one more; a scene that names no file has none.
+  dir.Write("led.csv", "wavelength_um,relative_power\n0.44,0\n0.46,1\n0.48,0\n");
+  const Scene spectral = LoadScene(
+      dir.Write("s2.toml",
+                "calibration = \"cal.toml\"\n[source]\nspectrum = { file = \"led.csv\" }\n"
+                "[camera]\npixels = [16, 16]\n"));
+  EXPECT_EQ(spectral.input_files,
+            (std::vector<std::string>{dir / "cal.toml", dir / "cal.angular.tif", dir / "led.csv"}));
+  EXPECT_TRUE(LoadScene(dir.Write("s3.toml", kGood)).input_files.empty());
   EXPECT_NE(LoadError("calibration = \"missing.toml\"\n[camera]\npixels = [4, 4]\n")
                 .find("scene.toml:1:15: error: 'calibration'"),
             std::string::npos);

@@ -49,6 +49,8 @@ struct CalibrationData {
   double objective_focal_mm = 0, working_distance_mm = 0, na = 0, tube_focal_mm = 0;
   double pixel_pitch_um = 0, wavelength_um = 0;
   nlohmann::json provenance;  ///< version, date, command line, input checksums
+  /// The sidecar images ReadCalibrationFile read (angular and spatial maps); not written.
+  std::vector<std::string> sidecar_files;
 
   bool has_light_field() const { return !angular_map.empty(); }
   bool has_corrector() const { return !transmissions.empty(); }

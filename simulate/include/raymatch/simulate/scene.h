@@ -284,6 +284,10 @@ struct Scene {
   bool is_spectral() const;
   std::vector<double> defocus_um{0.0};  ///< focal-plane positions (see docs: sign convention)
   std::vector<std::string> warnings;    ///< non-fatal notes from loading (printed by apps)
+  /// Every file the scene read besides itself (calibration and its maps, maps, tables, fields,
+  /// outlines), and the meshes it names, resolved, once each: what a result made from the
+  /// scene depends on.
+  std::vector<std::string> input_files;
 };
 
 /// Reads and validates a scene file. Throws raymatch::Error "file:line:col: error: ..." for

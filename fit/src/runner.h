@@ -102,9 +102,11 @@ class Runner {
                    double* error) {
     // With fixed ray streams an image is a function of (theta, level, seed): the searches come
     // back to points they have traced (Ceres evaluates the Jacobian where it accepted a step;
-    // the uncertainties start from where the polish ended), so recent images are kept.
+    // the uncertainties start from where the polish ended), so recent images are kept. An
+    // exact image model's images do not depend on the seed: the uncertainties' derivative set
+    // is then the polish's last stencil.
     for (const Cached& c : cache_)
-      if (c.level == level && c.seed == seed && c.theta == th) {
+      if (c.level == level && (c.seed == seed || spec_.exact_images) && c.theta == th) {
         if (error) *error = c.error;
         return c.images;
       }

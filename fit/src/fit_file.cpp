@@ -435,32 +435,39 @@ FitSpec LoadFitFile(const std::string& path, const std::string& scene_override,
     q.where = p.Where();
     q.key = p.String("key");
     if (!keys.insert(q.key).second) p.Fail("key", "parameter '" + q.key + "' is given twice");
+    // What the key sets, resolved against the scene once (binding.h; the model binds it
+    // against its own copy the same way).
+    internal::Binding bound;
+    try {
+      bound = internal::Bind(q.key, scene, f.images.size());
+    } catch (const Error& err) {
+      p.Fail("key", err.what());
+    }
+    using Kind = internal::Binding::Kind;
     // The calibration's edge and PSF as keys of a scene that takes them from the calibration:
     // written into the scene's tables with the calibration's values, so they can be set.
-    if (q.key.starts_with("light_field_edge.") && !f.scene.contains("light_field_edge") &&
+    if (bound.kind == Kind::kEdge && !f.scene.contains("light_field_edge") &&
         !(scene.source.edge_half_angle_deg > 0))
       p.Fail("key", "'" + q.key +
                         "' needs the light field's edge beyond the NA: a [light_field_edge] "
                         "table in the scene, or a calibration with one (`raymatch calibrate "
                         "sphere`; in a pipeline, [calibration] sphere)");
-    if (q.key.starts_with("light_field_edge.") && !f.scene.contains("light_field_edge")) {
+    if (bound.kind == Kind::kEdge && !f.scene.contains("light_field_edge")) {
       toml::array tilt{scene.source.edge_tilt_deg[0], scene.source.edge_tilt_deg[1]};
       f.scene.insert_or_assign("light_field_edge",
                                toml::table{{"half_angle_deg", scene.source.edge_half_angle_deg},
                                            {"width_deg", scene.source.edge_width_deg},
                                            {"tilt_deg", std::move(tilt)}});
     }
-    if (q.key == "camera.psf_sigma_um" && f.scene["camera"].as_table() &&
+    if (bound.kind == Kind::kPsf && f.scene["camera"].as_table() &&
         !f.scene["camera"].as_table()->contains("psf_sigma_um"))
       f.scene["camera"].as_table()->insert_or_assign("psf_sigma_um", scene.camera.psf_sigma_um);
     double current = 0;
-    if (q.key.starts_with("image")) {
+    if (!bound.InScene()) {
       // image[i].defocus_um: the defocus of one of this file's images; image[i].background_*:
       // an additive background of its expected image (photons per pixel; slopes per pixel).
-      const auto image_key = ParseImageKey(q.key, f.images.size());
-      if (!image_key) p.Fail("key", ImageKeysHelp(f.images.size()));
-      if (image_key->second == "defocus_um") {
-        current = f.images[image_key->first].defocus_um;
+      if (bound.kind == Kind::kDefocus) {
+        current = f.images[bound.image].defocus_um;
         if (!(std::abs(p.Number("lower")) <= kMaxDefocusUm &&
               std::abs(p.Number("upper")) <= kMaxDefocusUm))
           p.Fail("lower", "focus positions lie within +-1e5 um (10 cm)");

@@ -236,6 +236,25 @@ void MieImager::Impl::BuildNodes(const std::vector<double>& breaks_in, double s_
       }
     }
   }
+  // A soft edge's tail (radiance falling as exp(-2 (theta - edge) / width)) reaches to the end
+  // of the map with radiances of 1e-12 and less, and each of its nodes would cost a field: the
+  // outermost nodes that together carry less than kTailPower of the source's power are left out
+  // (their light, direct or scattered, is that fraction of the image's or less).
+  constexpr double kTailPower = 1e-9;
+  std::vector<std::pair<double, double>> by_s;  // (s, power), outermost first
+  double total = 0;
+  for (const Node& nd : nodes) {
+    by_s.emplace_back(nd.s, nd.omega * nd.wc[0]);
+    total += nd.omega * nd.wc[0];
+  }
+  std::sort(by_s.begin(), by_s.end(), std::greater<>());
+  double tail = 0, s_cut = 2;
+  for (const auto& [s, power] : by_s) {
+    if (tail + power > kTailPower * total) break;
+    tail += power;
+    s_cut = s;
+  }
+  std::erase_if(nodes, [s_cut](const Node& nd) { return nd.s >= s_cut; });
 }
 
 void MieImager::Impl::BuildSource() {

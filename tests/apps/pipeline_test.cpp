@@ -111,22 +111,26 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
   const std::string cmd = std::string(RAYMATCH_BIN) + " run " + data + "/pipeline.toml -o " +
                           (dir / "out") + " --ray-fraction 0.5 >" + (dir / "log.txt") + " 2>&1";
   const int status = std::system(cmd.c_str());
-  std::ifstream log(dir / "log.txt");
-  std::stringstream ls;
-  ls << log.rdbuf();
-  ASSERT_TRUE(WIFEXITED(status)) << ls.str();
+  // The run's log, read again after each run.
+  auto read_log = [&] {
+    std::ifstream log(dir / "log.txt");
+    std::stringstream text;
+    text << log.rdbuf();
+    return text.str();
+  };
+  const std::string log1 = read_log();
+  ASSERT_TRUE(WIFEXITED(status)) << log1;
   // One verdict, on stdout and at the top of index.html, with the exit status it gives: the
   // focus-scan test passes; at 1/16 of the photons the sphere fit's uncertainties are not
   // determined and its goodness of fit says "model mismatch" (see below), so the run needs
   // attention (exit 1), and says which check. A run whose checks all pass exits 0.
-  EXPECT_EQ(WEXITSTATUS(status), kUnderAddressSanitizer ? WEXITSTATUS(status) : 1) << ls.str();
-  EXPECT_NE(ls.str().find("ok    focus-scan test: pass"), std::string::npos) << ls.str();
+  EXPECT_EQ(WEXITSTATUS(status), kUnderAddressSanitizer ? WEXITSTATUS(status) : 1) << log1;
+  EXPECT_NE(log1.find("ok    focus-scan test: pass"), std::string::npos) << log1;
   if (!kUnderAddressSanitizer) {
-    EXPECT_NE(ls.str().find("verdict: attention: "), std::string::npos) << ls.str();
-    EXPECT_NE(ls.str().find("CHECK fit sphere: converged"), std::string::npos) << ls.str();
+    EXPECT_NE(log1.find("verdict: attention: "), std::string::npos) << log1;
+    EXPECT_NE(log1.find("CHECK fit sphere: converged"), std::string::npos) << log1;
   }
-  EXPECT_EQ(ls.str().find("verdict: pass") != std::string::npos, WEXITSTATUS(status) == 0)
-      << ls.str();
+  EXPECT_EQ(log1.find("verdict: pass") != std::string::npos, WEXITSTATUS(status) == 0) << log1;
   // Light field: the truth cone (25.5 deg) is cut by the objective at asin(0.42) = 24.83 deg;
   // the measured edge must be within 0.5 deg below that cut.
   const CalibrationData cal = ReadCalibrationFile(dir / "out/calibration.toml");
@@ -134,9 +138,9 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
   EXPECT_LT(cal.cone_half_angle_deg, 24.9);
   // Exposure recovered from the background: 2520/16 photons less the corrector's losses at the
   // full aperture (truth ~2.5 %); +-5 % covers the losses and the median's noise.
-  const size_t at = ls.str().find("exposure ");
-  ASSERT_NE(at, std::string::npos) << ls.str();
-  EXPECT_NEAR(std::stod(ls.str().substr(at + 9)), 2520.0 / 16 * 0.975, 0.05 * 2520.0 / 16);
+  const size_t at = log1.find("exposure ");
+  ASSERT_NE(at, std::string::npos) << log1;
+  EXPECT_NEAR(std::stod(log1.substr(at + 9)), 2520.0 / 16 * 0.975, 0.05 * 2520.0 / 16);
   // Best-matching focus planes: the drop sits 0.8 um beyond the nominal centre, so each
   // experimental plane's best match is the simulation at the same defocus (5 um steps) by MSE,
   // MS-SSIM and the Poisson chi-square; CW-SSIM, which weighs structure over level, may pick the
@@ -253,13 +257,11 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
   const int again = std::system(cmd.c_str());
   ASSERT_TRUE(WIFEXITED(again));
   EXPECT_EQ(WEXITSTATUS(again), WEXITSTATUS(status));
-  std::ifstream log2(dir / "log.txt");
-  std::stringstream l2;
-  l2 << log2.rdbuf();
-  EXPECT_NE(l2.str().find("calibration inputs unchanged: reusing"), std::string::npos) << l2.str();
-  EXPECT_NE(l2.str().find("simulation unchanged: reusing"), std::string::npos) << l2.str();
-  EXPECT_NE(l2.str().find("fit sphere unchanged: reusing"), std::string::npos) << l2.str();
-  EXPECT_NE(l2.str().find("fit merging_grid unchanged: reusing"), std::string::npos) << l2.str();
+  const std::string log2 = read_log();
+  EXPECT_NE(log2.find("calibration inputs unchanged: reusing"), std::string::npos) << log2;
+  EXPECT_NE(log2.find("simulation unchanged: reusing"), std::string::npos) << log2;
+  EXPECT_NE(log2.find("fit sphere unchanged: reusing"), std::string::npos) << log2;
+  EXPECT_NE(log2.find("fit merging_grid unchanged: reusing"), std::string::npos) << log2;
   {
     // The reused fits' results are read back: the same report section and check lines.
     std::ifstream html(dir / "out/index.html");
@@ -267,7 +269,7 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
     hs << html.rdbuf();
     EXPECT_NE(hs.str().find("<td>fit sphere</td>"), std::string::npos);
     EXPECT_NE(hs.str().find("Goodness of fit"), std::string::npos);
-    EXPECT_NE(l2.str().find("ok    fit merging_grid: converged"), std::string::npos) << l2.str();
+    EXPECT_NE(log2.find("ok    fit merging_grid: converged"), std::string::npos) << log2;
   }
   // The sphere calibration's check line, from the fit's fields (calibration_report.json's
   // sphere_fit when reused): the same in both runs.
@@ -278,8 +280,8 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
     return std::string();
   };
   if (!kUnderAddressSanitizer) {
-    EXPECT_FALSE(sphere_check(ls.str()).empty()) << ls.str();
-    EXPECT_EQ(sphere_check(l2.str()), sphere_check(ls.str()));
+    EXPECT_FALSE(sphere_check(log1).empty()) << log1;
+    EXPECT_EQ(sphere_check(log2), sphere_check(log1));
   }
   // The verdict's fit lines come back from the reused fits unchanged.
   auto fit_lines = [](const std::string& log) {
@@ -289,18 +291,16 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
         lines += log.substr(a, log.find('\n', a) - a) + "\n";
     return lines;
   };
-  EXPECT_FALSE(fit_lines(ls.str()).empty()) << ls.str();
-  EXPECT_EQ(fit_lines(l2.str()), fit_lines(ls.str()));
+  EXPECT_FALSE(fit_lines(log1).empty()) << log1;
+  EXPECT_EQ(fit_lines(log2), fit_lines(log1));
   // A fit whose file changed runs again; the other is still reused.
   { std::ofstream(data + "/fit/merging_grid.toml", std::ios::app) << "# edited\n"; }
   const int third = std::system(cmd.c_str());
   ASSERT_TRUE(WIFEXITED(third));
-  std::ifstream log3(dir / "log.txt");
-  std::stringstream l3;
-  l3 << log3.rdbuf();
-  EXPECT_NE(l3.str().find("fitting "), std::string::npos) << l3.str();
-  EXPECT_EQ(l3.str().find("fit merging_grid unchanged"), std::string::npos) << l3.str();
-  EXPECT_NE(l3.str().find("fit sphere unchanged: reusing"), std::string::npos) << l3.str();
+  const std::string log3 = read_log();
+  EXPECT_NE(log3.find("fitting "), std::string::npos) << log3;
+  EXPECT_EQ(log3.find("fit merging_grid unchanged"), std::string::npos) << log3;
+  EXPECT_NE(log3.find("fit sphere unchanged: reusing"), std::string::npos) << log3;
 }
 
 // raymatch bench accuracy on a small scene: every fraction is reported, and the similarity to the

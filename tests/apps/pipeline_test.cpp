@@ -111,14 +111,14 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
   const std::string cmd = std::string(RAYMATCH_BIN) + " run " + data + "/pipeline.toml -o " +
                           (dir / "out") + " --ray-fraction 0.5 >" + (dir / "log.txt") + " 2>&1";
   const int status = std::system(cmd.c_str());
-  // The run's log, read again after each run.
-  auto read_log = [&] {
-    std::ifstream log(dir / "log.txt");
+  // A file's text: the run's log, read again after each run, and its report.
+  auto read = [](const std::filesystem::path& file) {
+    std::ifstream in(file);
     std::stringstream text;
-    text << log.rdbuf();
+    text << in.rdbuf();
     return text.str();
   };
-  const std::string log1 = read_log();
+  const std::string log1 = read(dir / "log.txt");
   ASSERT_TRUE(WIFEXITED(status)) << log1;
   // One verdict, on stdout and at the top of index.html, with the exit status it gives: the
   // focus-scan test passes; at 1/16 of the photons the sphere fit's uncertainties are not
@@ -257,47 +257,37 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
   const int again = std::system(cmd.c_str());
   ASSERT_TRUE(WIFEXITED(again));
   EXPECT_EQ(WEXITSTATUS(again), WEXITSTATUS(status));
-  const std::string log2 = read_log();
+  const std::string log2 = read(dir / "log.txt");
   EXPECT_NE(log2.find("calibration inputs unchanged: reusing"), std::string::npos) << log2;
   EXPECT_NE(log2.find("simulation unchanged: reusing"), std::string::npos) << log2;
   EXPECT_NE(log2.find("fit sphere unchanged: reusing"), std::string::npos) << log2;
   EXPECT_NE(log2.find("fit merging_grid unchanged: reusing"), std::string::npos) << log2;
-  {
-    // The reused fits' results are read back: the same report section and check lines.
-    std::ifstream html(dir / "out/index.html");
-    std::stringstream hs;
-    hs << html.rdbuf();
-    EXPECT_NE(hs.str().find("<td>fit sphere</td>"), std::string::npos);
-    EXPECT_NE(hs.str().find("Goodness of fit"), std::string::npos);
-    EXPECT_NE(log2.find("ok    fit merging_grid: converged"), std::string::npos) << log2;
-  }
-  // The sphere calibration's check line, from the fit's fields (calibration_report.json's
-  // sphere_fit when reused): the same in both runs.
-  auto sphere_check = [](const std::string& log) {
-    for (const char* prefix : {"ok    sphere calibration: ", "CHECK sphere calibration: "})
+  // The reused fits' results are read back: their report sections.
+  const std::string html2 = read(dir / "out/index.html");
+  EXPECT_NE(html2.find("<td>fit sphere</td>"), std::string::npos);
+  EXPECT_NE(html2.find("Goodness of fit"), std::string::npos);
+  EXPECT_NE(log2.find("ok    fit merging_grid: converged"), std::string::npos) << log2;
+  // A check's line of the verdict: the same in both runs, for the sphere calibration (from the
+  // fit's fields, calibration_report.json's sphere_fit when reused) and for each reused fit.
+  auto check_line = [](const std::string& log, const std::string& name) {
+    for (const std::string& prefix : {"ok    " + name + ": ", "CHECK " + name + ": "})
       if (const size_t a = log.find(prefix); a != std::string::npos)
         return log.substr(a, log.find('\n', a) - a);
     return std::string();
   };
   if (!kUnderAddressSanitizer) {
-    EXPECT_FALSE(sphere_check(log1).empty()) << log1;
-    EXPECT_EQ(sphere_check(log2), sphere_check(log1));
+    EXPECT_FALSE(check_line(log1, "sphere calibration").empty()) << log1;
+    EXPECT_EQ(check_line(log2, "sphere calibration"), check_line(log1, "sphere calibration"));
   }
-  // The verdict's fit lines come back from the reused fits unchanged.
-  auto fit_lines = [](const std::string& log) {
-    std::string lines;
-    for (size_t a = log.find(" fit "); a != std::string::npos; a = log.find(" fit ", a + 1))
-      if (a >= 5 && (log.compare(a - 5, 5, "CHECK") == 0 || log.compare(a - 5, 5, "ok   ") == 0))
-        lines += log.substr(a, log.find('\n', a) - a) + "\n";
-    return lines;
-  };
-  EXPECT_FALSE(fit_lines(log1).empty()) << log1;
-  EXPECT_EQ(fit_lines(log2), fit_lines(log1));
+  for (const char* fit : {"fit sphere", "fit merging_grid"}) {
+    EXPECT_FALSE(check_line(log1, fit).empty()) << fit << "\n" << log1;
+    EXPECT_EQ(check_line(log2, fit), check_line(log1, fit));
+  }
   // A fit whose file changed runs again; the other is still reused.
   { std::ofstream(data + "/fit/merging_grid.toml", std::ios::app) << "# edited\n"; }
   const int third = std::system(cmd.c_str());
   ASSERT_TRUE(WIFEXITED(third));
-  const std::string log3 = read_log();
+  const std::string log3 = read(dir / "log.txt");
   EXPECT_NE(log3.find("fitting "), std::string::npos) << log3;
   EXPECT_EQ(log3.find("fit merging_grid unchanged"), std::string::npos) << log3;
   EXPECT_NE(log3.find("fit sphere unchanged: reusing"), std::string::npos) << log3;

@@ -12,7 +12,7 @@ PacketSupport PacketSupportFor(const Simulator::Impl& im) {
   } else if (const auto* col = std::get_if<CollimatedSource>(&im.source)) {
     field = &col->field;
   } else if (const auto* lf = std::get_if<LightFieldSource>(&im.source)) {
-    if (im.angular_table.height == 0) return {false, "empty_angular_map"};
+    if (!im.angular_table || im.angular_table->height == 0) return {false, "empty_angular_map"};
     field = &lf->field;
   } else {
     return {false,
@@ -43,7 +43,7 @@ PacketPlan MakePacketPlan(const Simulator::Impl& im, const Scene& scene, Partial
   } else if (const auto* lf = std::get_if<LightFieldSource>(&im.source)) {
     set_field(lf->field);
     ps.direction = packet::SourceParams::kTabulated;
-    ps.table = &im.angular_table;
+    ps.table = im.angular_table.get();
   }
   packet::NearParams& near = plan.near;
   near.source_z = im.source_z;

@@ -1,6 +1,8 @@
 #include "sources.h"
 
 #include <algorithm>
+#include <list>
+#include <mutex>
 
 #include "raymatch/core/error.h"
 
@@ -108,12 +110,11 @@ Image ContinuedMap(const SourceSpec& ss, double* extent) {
 }
 
 /// The light field's angular table, flattened for packet::Tabulated.
-packet::Table2D PacketTable(const LightFieldSource& lf) {
+packet::Table2D PacketTable(const Distribution2D& d, double extent) {
   packet::Table2D t;
-  const Distribution2D& d = lf.angular;
   t.height = d.height();
   t.width = t.height > 0 ? d.row(0).size() : 0;
-  t.extent = lf.extent;
+  t.extent = extent;
   t.marginal_cdf = d.marginal().cdf();
   t.marginal_guide.assign(d.marginal().guide().begin(), d.marginal().guide().end());
   t.marginal_guide_size = static_cast<int64_t>(t.marginal_guide.size());
@@ -125,7 +126,82 @@ packet::Table2D PacketTable(const LightFieldSource& lf) {
   return t;
 }
 
-SourceVariant MakeSource(const Scene& own, double auto_radius, packet::Table2D* angular_table) {
+namespace {
+
+/// A light field's angular tables: what a source needs from its map and edge alone.
+struct AngularTables {
+  std::shared_ptr<const Distribution2D> angular;
+  std::shared_ptr<const packet::Table2D> table;
+  double extent = 0, weight = 0;
+};
+
+AngularTables BuildTables(const SourceSpec& ss) {
+  AngularTables t;
+  t.extent = ss.angular_extent;
+  const bool edge = ss.edge_half_angle_deg > 0 && ss.map_na_limit > 0;
+  const Image map = edge ? ContinuedMap(ss, &t.extent) : ss.angular_map;
+  auto d = std::make_shared<Distribution2D>(map);
+  t.table = std::make_shared<packet::Table2D>(PacketTable(*d, t.extent));
+  t.angular = std::move(d);
+  double sum = 0;
+  for (float v : map.pixels) sum += v;
+  t.weight = map.width > 0 ? sum * std::pow(2 * t.extent / map.width, 2) : 0;
+  return t;
+}
+
+/// Everything BuildTables reads, compared exactly.
+struct TablesKey {
+  std::vector<float> map;
+  int width = 0, height = 0;
+  double extent = 0, na_limit = 0, edge = 0, width_deg = 0;
+  std::array<double, 2> tilt{0, 0};
+  SourceSpec::EdgePart part = SourceSpec::EdgePart::kAll;
+  explicit TablesKey(const SourceSpec& ss)
+      : map(ss.angular_map.pixels),
+        width(ss.angular_map.width),
+        height(ss.angular_map.height),
+        extent(ss.angular_extent),
+        na_limit(ss.map_na_limit),
+        edge(ss.edge_half_angle_deg),
+        width_deg(ss.edge_width_deg),
+        tilt(ss.edge_tilt_deg),
+        part(ss.edge_part) {
+    if (part == SourceSpec::EdgePart::kInside) {  // the measured part: the edge's shape unused
+      edge = edge > 0 ? 1 : 0;
+      width_deg = 0, tilt = {0, 0};
+    }
+  }
+  bool operator==(const TablesKey&) const = default;
+};
+
+/// The tables of the last few light fields built in this process. A fit builds its Simulators
+/// per evaluation, most of them with the same map and edge (every parameter but the edge's; the
+/// measured part inside the ring never changes), and a continued map costs about as much as
+/// tracing a small image; the tables are immutable, so the Simulators share them.
+std::shared_ptr<const AngularTables> TablesFor(const SourceSpec& ss) {
+  static std::mutex mutex;
+  static std::list<std::pair<TablesKey, std::shared_ptr<const AngularTables>>> recent;
+  constexpr size_t kKept = 4;  // a fit's inside part and its beyond part at a few edges
+  TablesKey key(ss);
+  {
+    const std::lock_guard<std::mutex> lock(mutex);
+    for (auto it = recent.begin(); it != recent.end(); ++it)
+      if (it->first == key) {
+        recent.splice(recent.begin(), recent, it);
+        return recent.front().second;
+      }
+  }
+  auto t = std::make_shared<const AngularTables>(BuildTables(ss));
+  const std::lock_guard<std::mutex> lock(mutex);
+  recent.emplace_front(std::move(key), t);
+  if (recent.size() > kKept) recent.pop_back();
+  return t;
+}
+
+}  // namespace
+
+SourceVariant MakeSource(const Scene& own, double auto_radius,
+                         std::shared_ptr<const packet::Table2D>* angular_table) {
   const SourceSpec& ss = own.source;
   switch (ss.type) {
     case SourceType::kCollimated: {
@@ -139,14 +215,10 @@ SourceVariant MakeSource(const Scene& own, double auto_radius, packet::Table2D* 
     case SourceType::kPoint:
       return PointSource{ss.position_um, std::cos(ss.half_angle_deg * kDeg)};
     case SourceType::kLightField: {
-      double extent = ss.angular_extent;
-      const bool edge = ss.edge_half_angle_deg > 0 && ss.map_na_limit > 0;
-      const Image map = edge ? ContinuedMap(ss, &extent) : ss.angular_map;
-      LightFieldSource lf{MakeField(own, auto_radius), Distribution2D(map), extent};
-      double sum = 0;
-      for (float v : map.pixels) sum += v;
-      lf.weight = map.width > 0 ? sum * std::pow(2 * extent / map.width, 2) : 0;
-      *angular_table = PacketTable(lf);
+      const std::shared_ptr<const AngularTables> t = TablesFor(ss);
+      LightFieldSource lf{MakeField(own, auto_radius), t->angular, t->extent};
+      lf.weight = t->weight;
+      *angular_table = t->table;
       return lf;
     }
     case SourceType::kRayList: {

@@ -4,6 +4,7 @@
 // the tracer then starts it on the source plane before all objects.
 #include <array>
 #include <cmath>
+#include <memory>
 #include <variant>
 
 #include "packet.h"
@@ -93,7 +94,9 @@ struct PointSource {
 /// Tabulated angular radiance over direction cosines (the calibration's light field).
 struct LightFieldSource {
   Field field;
-  Distribution2D angular;
+  /// The angular table, shared by the Simulators that trace the same light field and edge
+  /// (MakeSource).
+  std::shared_ptr<const Distribution2D> angular;
   double extent;
   /// The map's radiance integrated over direction cosines (sum x cell area): the populations
   /// of one continued light field (SourceSpec::edge_part) get rays in proportion to it.
@@ -109,7 +112,7 @@ struct LightFieldSource {
   /// The direction for the uniforms (u0, u1); false for a map cell beyond the unit circle.
   bool Direction(double u0, double u1, Vec3* d) const {
     double x, y;
-    angular.Sample(u0, u1, &x, &y);
+    angular->Sample(u0, u1, &x, &y);
     st::V3<L1> dir;
     if (st::TabulatedDirection<L1>(x, y, extent, dir)) return false;  // no physical direction
     *d = Vec3(dir.x, dir.y, dir.z);
@@ -146,6 +149,7 @@ Image ContinuedMap(const SourceSpec& ss, double* extent);
 
 /// The scene's source; `angular_table` receives a light field's table for the packet path.
 /// `own` must outlive the source (a ray list is not copied).
-SourceVariant MakeSource(const Scene& own, double auto_radius, packet::Table2D* angular_table);
+SourceVariant MakeSource(const Scene& own, double auto_radius,
+                         std::shared_ptr<const packet::Table2D>* angular_table);
 
 }  // namespace raymatch::simulate

@@ -89,8 +89,8 @@ struct Simulator::Impl {
   std::vector<Vec3> center;
   std::vector<double> size;  // characteristic size (for first GRIN steps)
   bool has_grin = false;
-  packet::Table2D angular_table;  // the light field's table for the packet path
-  double field_radius_um = 0;     // resolved source field radius (automatic or given)
+  std::shared_ptr<const packet::Table2D> angular_table;  // a light field's, for the packet path
+  double field_radius_um = 0;  // resolved source field radius (automatic or given)
   double medium;
   double source_z;
   /// Motion during the exposure (Scene::has_motion): each object's velocity and the pulse.

@@ -307,6 +307,51 @@ TEST(SceneFile, LightFieldEdgeSendsTheSoftEdgesShareOfRaysBeyondTheNa) {
             std::string::npos);
 }
 
+// A light field's tables are built once per map and edge and shared by the Simulators that use
+// them (a fit builds one per evaluation): a scene traced again after another edge gives its own
+// image to the bit, another edge or another map of the same size a different one; the measured
+// part (inside the reference ring), which fits trace as their own population, does not depend on
+// the edge, so it is shared across edges too.
+TEST(SceneFile, LightFieldTablesAreSharedOnlyWhereMapAndEdgeAgree) {
+  testing::TempDir dir;
+  CalibrationData c;
+  const int n = 64;
+  c.angular_extent = 0.5;
+  c.na_limit = 0.42;
+  c.angular_map =
+      testing::NaCutAngularMap(n, c.angular_extent, c.na_limit, [](double, double) { return 1.0; });
+  c.objective_focal_mm = 10, c.working_distance_mm = 20, c.na = 0.42, c.tube_focal_mm = 200;
+  c.pixel_pitch_um = 10, c.wavelength_um = 0.462;
+  WriteCalibrationFile(dir / "cal.toml", c);
+  c.angular_map = testing::NaCutAngularMap(n, c.angular_extent, c.na_limit,
+                                           [](double u, double) { return u > 0 ? 2.0 : 1.0; });
+  WriteCalibrationFile(dir / "cal2.toml", c);
+  auto image = [&](const std::string& cal, double edge, double width) {
+    const Scene s = LoadScene(
+        dir.Write("s.toml", "calibration = \"" + cal + "\"\n[light_field_edge]\nhalf_angle_deg = " +
+                                std::to_string(edge) + "\nwidth_deg = " + std::to_string(width) +
+                                "\n[camera]\npixels = [16, 16]\n"));
+    return Simulator(s).TracePlane(0, 0, 100000).counts.pixels;
+  };
+  const std::vector<float> a = image("cal.toml", 26, 1);
+  EXPECT_NE(image("cal.toml", 29, 2), a);
+  EXPECT_NE(image("cal.toml", 26, 1.5), a);
+  EXPECT_NE(image("cal2.toml", 26, 1), a);
+  EXPECT_EQ(image("cal.toml", 26, 1), a);
+  // The measured part, computed afresh (ContinuedMap keeps nothing): the same for any edge.
+  SourceSpec ss;
+  ss.type = SourceType::kLightField;
+  ss.angular_extent = c.angular_extent;
+  ss.map_na_limit = c.na_limit;
+  ss.angular_map = c.angular_map;
+  ss.edge_part = SourceSpec::EdgePart::kInside;
+  double extent = 0;
+  ss.edge_half_angle_deg = 26, ss.edge_width_deg = 1, ss.edge_tilt_deg = {0, 0};
+  const Image in_a = ContinuedMap(ss, &extent);
+  ss.edge_half_angle_deg = 29, ss.edge_width_deg = 2, ss.edge_tilt_deg = {1.2, -0.4};
+  EXPECT_EQ(ContinuedMap(ss, &extent).pixels, in_a.pixels);
+}
+
 // The edge's axis tilted by t = (sin tx, sin ty) in direction cosines: from the reference ring
 // s_r (kEdgeRingPixels map pixels inside the cut) outwards, across the cut, the map is its ring
 // value times E(|w - t|) / E(|s_r e_phi - t|) at each azimuth phi. Known answer for

@@ -177,8 +177,9 @@ std::string ResolvePath(const std::string& base_file, const std::string& p) {
 }  // namespace
 
 std::string UnitOf(const std::string& key) {
-  std::string base = key.substr(0, key.find('['));
-  base = base.substr(base.rfind('.') == std::string::npos ? 0 : base.rfind('.') + 1);
+  // The key's last name, without its index: image[0].defocus_um, object.a.rotation_deg[1].
+  std::string base = key.substr(key.rfind('.') == std::string::npos ? 0 : key.rfind('.') + 1);
+  base = base.substr(0, base.find('['));
   for (const char* u : {"_um", "_mm", "_deg", "_K", "_kg_m3"})
     if (base.size() > std::string(u).size() && base.ends_with(u)) return std::string(u).substr(1);
   return "";

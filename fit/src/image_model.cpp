@@ -163,58 +163,119 @@ Image RayImageModel::ApplyPsf(const Image& fine, double sigma_um, uint64_t seed,
   return std::move(part[0]);
 }
 
-ModelImages RayImageModel::Images(const simulate::Scene& full, const Draw& draw,
-                                  uint64_t* rays_traced) {
+const RayImageModel::Traced* RayImageModel::Recall(const std::vector<Traced>& kept,
+                                                   const Traced& want) {
+  if (want.key.empty()) return nullptr;
+  for (const Traced& t : kept)
+    if (t.seed == want.seed && t.rays == want.rays && t.key == want.key) return &t;
+  return nullptr;
+}
+
+const RayImageModel::Traced* RayImageModel::Remember(std::vector<Traced>* kept, Traced t) {
+  // A derivative set's centre and its steps share a key where a step moves only what the key
+  // leaves out, and the steps of the other parameters come in between: enough for a set of
+  // sixteen parameters (the counts of one evaluation's images each).
+  constexpr size_t kKept = 16;
+  if (kept->size() >= kKept) kept->erase(kept->begin());
+  kept->push_back(std::move(t));
+  return &kept->back();
+}
+
+RayImageModel::Traced RayImageModel::TraceInside(const simulate::Scene& full, const Traced& want,
+                                                 uint64_t* rays_traced) {
   using Part = simulate::SourceSpec::EdgePart;
+  Traced t = want;
   simulate::Scene scene = TracedScene(full, setup_.edge_split ? Part::kInside : Part::kAll,
                                       setup_.psf_os, setup_.psf_margin);
-  scene.trace.seed = draw.seed;
+  scene.trace.seed = want.seed;
   const simulate::Simulator sim(scene);
-  const uint64_t seed = draw.seed;
-  uint64_t n = draw.rays, beyond_rays = 0;
-  // The rays beyond the NA: their own population and streams, in proportion to their weight.
-  std::unique_ptr<simulate::Simulator> beyond;
-  if (setup_.edge_split) {
-    simulate::Scene b = TracedScene(full, Part::kBeyond, setup_.psf_os, setup_.psf_margin);
-    b.trace.seed = seed;
-    beyond = std::make_unique<simulate::Simulator>(b);
-    n = std::max<uint64_t>(1, std::llround(double(n) * setup_.inside_share));
-    beyond_rays = std::llround(double(n) * beyond->source_weight() / sim.source_weight());
-  }
+  t.weight = sim.source_weight();
+  const uint64_t n = want.rays;
   simulate::RunControl rc;
   rc.threads = setup_.threads;
   bool inside = setup_.split;
   if (inside)
     for (const auto& [c, r] : sim.ObjectBounds())
       inside = inside && Length(c - setup_.region_center) + r <= setup_.region_radius;
-  ModelImages out;
-  out.photons_per_count = draw.photons_per_ray;
   for (size_t i = 0; i < setup_.images; ++i) {
     const double dz = scene.defocus_um[i];
     const uint32_t plane = static_cast<uint32_t>(i);
-    Image counts;
-    const Image* bg = inside ? BackgroundAt(sim, i, seed, dz, n, rc, rays_traced) : nullptr;
+    const Image* bg = inside ? BackgroundAt(sim, i, want.seed, dz, n, rc, rays_traced) : nullptr;
     if (bg) {
-      const std::vector<uint64_t>& near = near_.at({i, seed}).list;
+      const std::vector<uint64_t>& near = near_.at({i, want.seed}).list;
       const auto end = std::lower_bound(near.begin(), near.end(), n);
       const std::span<const uint64_t> mine(near.data(), size_t(end - near.begin()));
-      counts = sim.TraceRays(dz, plane, mine, rc).counts;
+      Image counts = sim.TraceRays(dz, plane, mine, rc).counts;
       for (size_t p = 0; p < counts.size(); ++p) counts.pixels[p] += bg->pixels[p];
       if (rays_traced) *rays_traced += mine.size();
-      near_fraction_ = double(mine.size()) / double(n);
+      t.near_fraction = double(mine.size()) / double(n);
+      t.counts.push_back(std::move(counts));
     } else {
-      counts = sim.TracePlane(dz, plane, n, rc).counts;
+      t.counts.push_back(sim.TracePlane(dz, plane, n, rc).counts);
       if (rays_traced) *rays_traced += n;
     }
-    if (beyond_rays > 0) {
-      const Image b = beyond->TracePlane(dz, plane + kBeyondStreams, beyond_rays, rc).counts;
-      for (size_t p = 0; p < counts.size(); ++p) counts.pixels[p] += b.pixels[p];
-      if (rays_traced) *rays_traced += beyond_rays;
-    }
-    if (setup_.psf_os > 1) counts = ApplyPsf(counts, full.camera.psf_sigma_um, seed, plane);
-    out.counts.push_back(std::move(counts));
   }
-  return out;
+  return t;
+}
+
+RayImageModel::Traced RayImageModel::TraceBeyond(const simulate::Scene& full, const Traced& want,
+                                                 double inside_weight,
+                                                 uint64_t* rays_traced) const {
+  // The rays beyond the NA: their own population and streams, in proportion to their weight.
+  // (They are traced whole: kept per edge like the inside part's, the rays that miss the region
+  // saved no time, as a fit's steps move the edge at almost every evaluation, and doubled the
+  // memory.)
+  Traced t = want;
+  simulate::Scene b =
+      TracedScene(full, simulate::SourceSpec::EdgePart::kBeyond, setup_.psf_os, setup_.psf_margin);
+  b.trace.seed = want.seed;
+  const simulate::Simulator beyond(b);
+  t.weight = beyond.source_weight();
+  const uint64_t rays = std::llround(double(want.rays) * t.weight / inside_weight);
+  simulate::RunControl rc;
+  rc.threads = setup_.threads;
+  for (size_t i = 0; i < setup_.images && rays > 0; ++i) {
+    const uint32_t plane = static_cast<uint32_t>(i) + kBeyondStreams;
+    t.counts.push_back(beyond.TracePlane(b.defocus_um[i], plane, rays, rc).counts);
+    if (rays_traced) *rays_traced += rays;
+  }
+  return t;
+}
+
+ModelImages RayImageModel::Images(const simulate::Scene& full, const Draw& draw,
+                                  uint64_t* rays_traced) {
+  // Each part is traced, or taken from an evaluation whose key says it traced the same rays
+  // along the same paths (a derivative step of the edge or of the PSF): the same counts.
+  Traced want_in;
+  want_in.key = draw.inside_key, want_in.seed = draw.seed, want_in.rays = draw.rays;
+  if (setup_.edge_split)
+    want_in.rays = std::max<uint64_t>(1, std::llround(double(draw.rays) * setup_.inside_share));
+  Traced fresh_in, fresh_out;
+  const Traced* in = Recall(inside_, want_in);
+  if (!in) {
+    fresh_in = TraceInside(full, want_in, rays_traced);
+    in = want_in.key.empty() ? &fresh_in : Remember(&inside_, std::move(fresh_in));
+  }
+  near_fraction_ = in->near_fraction;
+  std::vector<Image> counts = in->counts;
+  if (setup_.edge_split) {
+    Traced want_out;
+    want_out.key = draw.beyond_key, want_out.seed = draw.seed, want_out.rays = want_in.rays;
+    const Traced* out = Recall(beyond_, want_out);
+    if (!out) {
+      fresh_out = TraceBeyond(full, want_out, in->weight, rays_traced);
+      out = want_out.key.empty() ? &fresh_out : Remember(&beyond_, std::move(fresh_out));
+    }
+    for (size_t i = 0; i < out->counts.size(); ++i)
+      for (size_t p = 0; p < counts[i].size(); ++p) counts[i].pixels[p] += out->counts[i].pixels[p];
+  }
+  ModelImages result;
+  result.photons_per_count = draw.photons_per_ray;
+  for (size_t i = 0; i < counts.size(); ++i)
+    result.counts.push_back(setup_.psf_os > 1 ? ApplyPsf(counts[i], full.camera.psf_sigma_um,
+                                                         draw.seed, static_cast<uint32_t>(i))
+                                              : std::move(counts[i]));
+  return result;
 }
 
 }  // namespace raymatch::fit::internal

@@ -28,6 +28,14 @@ struct Draw {
   /// axis (Binding::MovesAcross) set to 0: two evaluations with equal keys have scenes that
   /// differ at most by that move. Empty: no such promise.
   std::vector<double> across_key;
+  /// The evaluation's parameters with those that leave the rays of the light field's part
+  /// inside the NA (or of the whole source) on the same paths set to 0: the edge's keys where
+  /// the part beyond the NA is its own population, the PSF where it is drawn per ray on a finer
+  /// camera, the images' backgrounds. Two evaluations with equal keys, seeds and rays trace
+  /// the same image of that part. Empty: no such promise.
+  std::vector<double> inside_key;
+  /// The same for the part beyond the NA (the edge's keys kept).
+  std::vector<double> beyond_key;
 };
 
 /// One evaluation's images before the exposure and backgrounds: per experimental image, counts
@@ -118,6 +126,21 @@ class RayImageModel : public ImageModel {
     uint64_t rays = 0;
     Image image;
   };
+  // One part's traced counts per image (before the PSF drawn per ray), for Draw::inside_key or
+  // beyond_key, its seed and ray count; with the part's source weight and near share.
+  struct Traced {
+    std::vector<double> key;
+    uint64_t seed = 0, rays = 0;
+    std::vector<Image> counts;
+    double weight = 0, near_fraction = 0;
+  };
+  /// The kept part with this key, seed and rays, or null (an empty key is never kept).
+  static const Traced* Recall(const std::vector<Traced>& kept, const Traced& want);
+  /// Keeps `t` (the last few per part) and returns it.
+  static const Traced* Remember(std::vector<Traced>* kept, Traced t);
+  Traced TraceInside(const simulate::Scene& full, const Traced& want, uint64_t* rays_traced);
+  Traced TraceBeyond(const simulate::Scene& full, const Traced& want, double inside_weight,
+                     uint64_t* rays_traced) const;
   /// The background of image i at n rays; extends `near` as needed. Null when it cannot be
   /// extended (fewer rays than already traced for this defocus): then trace everything.
   const Image* BackgroundAt(const simulate::Simulator& sim, size_t i, uint64_t seed, double dz,
@@ -125,6 +148,7 @@ class RayImageModel : public ImageModel {
   Setup setup_;
   std::map<std::tuple<size_t, uint64_t>, NearRays> near_;
   std::map<std::tuple<size_t, uint64_t, double>, Background> background_;
+  std::vector<Traced> inside_, beyond_;  // most recent last
   double near_fraction_ = 0;
   double background_seconds_ = 0;
 };

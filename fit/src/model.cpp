@@ -266,6 +266,14 @@ Simulated FitModel::Expected(const std::vector<double>& theta, double fraction, 
     for (size_t i = 0; i < theta.size(); ++i)
       if (bindings_[i].MovesAcross()) draw.across_key[i] = 0;
   }
+  draw.inside_key = draw.beyond_key = theta;
+  for (size_t i = 0; i < theta.size(); ++i) {
+    using Kind = internal::Binding::Kind;
+    const Kind k = bindings_[i].kind;
+    if (k == Kind::kBackground || (k == Kind::kPsf && psf_os_ > 1))  // not traced
+      draw.inside_key[i] = draw.beyond_key[i] = 0;
+    if (k == Kind::kEdge && edge_split_) draw.inside_key[i] = 0;  // the other population's
+  }
   internal::ModelImages m = images_->Images(SceneAt(theta), draw, rays_traced);
   Simulated out;
   out.finite_ray_correction = !images_->exact() && spec_.rays.finite_ray_correction;

@@ -554,6 +554,53 @@ TEST(FitModelNuisances, EdgeAndPsfAsKeysGiveTheTracersOwnExpectedImage) {
   EXPECT_GT(chi / double(ref_sharp.size()), 1 + 3 * tol) << "the PSF test cannot tell";
 }
 
+// A derivative step of the edge or of the PSF traces only the rays it changes: the part inside
+// the NA does not depend on the edge, and neither part on a PSF drawn per ray after tracing, so
+// the model takes those parts from the evaluation at the same rays and seed it remembers
+// (RayImageModel). The images must be a fresh model's to the bit, and the PSF's step must
+// trace no ray, the edge's only the rays beyond the NA.
+TEST(FitModelNuisances, StepsOfTheEdgeAndThePsfTraceOnlyWhatTheyChange) {
+  testing::TempDir dir;
+  WriteNaCutCalibration(dir / "cal.toml", [](double u, double) { return 1 + 0.3 * u; });
+  const double ppp = 500 * kPhotonScale;
+  std::ostringstream scene;
+  scene << "calibration = \"cal.toml\"\n[light_field_edge]\nhalf_angle_deg = 27\nwidth_deg = 1.5\n"
+        << "[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = [1, 0, 0]\n"
+        << "radius_um = 14\nindex = 1.36\n[camera]\npixels = [48, 40]\npsf_sigma_um = 1.2\n"
+        << "[trace]\nphotons_per_pixel = " << ppp << "\n";
+  dir.Write("model.toml", scene.str());
+  Image flat(48, 40);
+  for (size_t p = 0; p < flat.size(); ++p) flat.pixels[p] = float(ppp + double(p % 7));
+  WriteFloatImage(dir / "exp.tif", flat, "flat, a little structure (not a saturated constant)");
+  const FitSpec spec = LoadFitSpec(dir.Write(
+      "fit.toml",
+      "scene = \"model.toml\"\n[rays]\nfit_exposure = false\n[[image]]\nfile = "
+      "\"exp.tif\"\ndefocus_um = -6\n"
+      "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
+      "[[parameter]]\nkey = \"light_field_edge.half_angle_deg\"\nlower = 24\nupper = 30\nstep = "
+      "0.2\n"
+      "[[parameter]]\nkey = \"camera.psf_sigma_um\"\nlower = 0\nupper = 1.5\nstep = 0.05\n"));
+  FitModel model(spec, 0, nullptr);
+  const std::vector<double> start{1, 27, 1.2};
+  uint64_t centre = 0;
+  model.Expected(start, 1.0, 11, &centre);
+  ASSERT_GT(centre, 0u);
+  std::map<std::string, uint64_t> traced;
+  for (const auto& [name, step] : std::vector<std::pair<std::string, std::vector<double>>>{
+           {"x", {1.2, 27, 1.2}}, {"edge", {1, 27.2, 1.2}}, {"psf", {1, 27, 1.25}}}) {
+    uint64_t rays = 0;
+    const Simulated got = model.Expected(step, 1.0, 11, &rays);
+    traced[name] = rays;
+    FitModel fresh(spec, 0, nullptr);
+    EXPECT_EQ(got.photons[0].pixels, fresh.Expected(step, 1.0, 11, nullptr).photons[0].pixels)
+        << name;
+  }
+  EXPECT_GT(traced["x"], 0u);  // both parts again (the far rays inside the NA were kept before)
+  EXPECT_GT(traced["edge"], 0u);
+  EXPECT_LT(traced["edge"], traced["x"]);  // the rays beyond the NA only
+  EXPECT_EQ(traced["psf"], 0u);
+}
+
 // Keys are resolved once into typed bindings, and the model patches the scene it built once
 // instead of reading the scene file at every evaluation. The patched scene must trace exactly
 // the image the file would give with every key set in it: at values away from the file's, each

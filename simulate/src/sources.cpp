@@ -181,7 +181,7 @@ struct TablesKey {
 std::shared_ptr<const AngularTables> TablesFor(const SourceSpec& ss) {
   static std::mutex mutex;
   static std::list<std::pair<TablesKey, std::shared_ptr<const AngularTables>>> recent;
-  constexpr size_t kKept = 4;  // a fit's inside part and its beyond part at a few edges
+  constexpr size_t kKept = 8;  // a fit's inside part and its beyond part at a few edges
   TablesKey key(ss);
   {
     const std::lock_guard<std::mutex> lock(mutex);

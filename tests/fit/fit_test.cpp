@@ -478,13 +478,35 @@ TEST_F(FitFile, ModelWithoutThePsfRaisesTheMismatchWarningAndInflatesSigmas) {
 /// there (the edge beyond it comes from the scene's [light_field_edge]).
 void WriteNaCutCalibration(const std::string& path,
                            const std::function<double(double, double)>& map) {
-  CalibrationData c;
-  c.angular_extent = 0.5;
-  c.na_limit = 0.42;
-  c.angular_map = testing::NaCutAngularMap(64, c.angular_extent, c.na_limit, map);
-  c.objective_focal_mm = 10, c.working_distance_mm = 20, c.na = 0.42, c.tube_focal_mm = 200;
-  c.pixel_pitch_um = 20, c.wavelength_um = 0.462;
-  WriteCalibrationFile(path, c);
+  WriteCalibrationFile(path, testing::NaCutCalibration(map, 20));
+}
+
+/// A 14 um drop at x = 1 um under a light field cut at the NA with its edge beyond it (27 deg,
+/// width 1.5, then `edge_more`) and a 1.2 um PSF, one 48 x 40 image at -6 um and `ppp` photons
+/// per pixel, and a fit file freeing x, the edge's half-angle, `more_parameters` and the PSF
+/// (fit_exposure = false: the flat stand-in experiment is needed by the file only). Returns
+/// the fit file.
+std::string WriteEdgeAndPsfFit(testing::TempDir& dir, double ppp, const std::string& edge_more,
+                               const std::string& more_parameters) {
+  WriteNaCutCalibration(dir / "cal.toml", [](double u, double) { return 1 + 0.3 * u; });
+  std::ostringstream scene;
+  scene << "calibration = \"cal.toml\"\n[light_field_edge]\nhalf_angle_deg = 27\nwidth_deg = 1.5\n"
+        << edge_more << "[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = [1, 0, 0]\n"
+        << "radius_um = 14\nindex = 1.36\n[camera]\npixels = [48, 40]\npsf_sigma_um = 1.2\n"
+        << "[trace]\nphotons_per_pixel = " << ppp << "\n";
+  dir.Write("model.toml", scene.str());
+  Image flat(48, 40);
+  for (size_t p = 0; p < flat.size(); ++p) flat.pixels[p] = float(ppp + double(p % 7));
+  WriteFloatImage(dir / "exp.tif", flat, "flat, a little structure (not a saturated constant)");
+  return dir.Write(
+      "fit.toml",
+      "scene = \"model.toml\"\n[rays]\nfit_exposure = false\n[[image]]\nfile = "
+      "\"exp.tif\"\ndefocus_um = -6\n"
+      "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
+      "[[parameter]]\nkey = \"light_field_edge.half_angle_deg\"\nlower = 24\nupper = 30\nstep = "
+      "0.2\n" +
+          more_parameters +
+          "[[parameter]]\nkey = \"camera.psf_sigma_um\"\nlower = 0\nupper = 1.5\nstep = 0.05\n");
 }
 
 // A fit that frees the light field's edge (half-angle, width, tilt) and the PSF keeps the
@@ -498,29 +520,11 @@ void WriteNaCutCalibration(const std::string& path,
 // wide PSFs), a model without the rays beyond the NA 2.5, one with 1.5x the PSF 1.5.
 TEST(FitModelNuisances, EdgeAndPsfAsKeysGiveTheTracersOwnExpectedImage) {
   testing::TempDir dir;
-  WriteNaCutCalibration(dir / "cal.toml", [](double u, double) { return 1 + 0.3 * u; });
   const double ppp = 2000 * kPhotonScale;
-  std::ostringstream scene;
-  scene << "calibration = \"cal.toml\"\n[light_field_edge]\nhalf_angle_deg = 27\nwidth_deg = 1.5\n"
-        << "tilt_deg = [0.8, -0.5]\n[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = "
-           "[1, 0, 0]\n"
-        << "radius_um = 14\nindex = 1.36\n[camera]\npixels = [48, 40]\npsf_sigma_um = 1.2\n"
-        << "[trace]\nphotons_per_pixel = " << ppp << "\n";
-  dir.Write("model.toml", scene.str());
-  // An experiment is needed by the fit file only (fit_exposure = false: no profiling).
-  Image flat(48, 40);
-  for (size_t p = 0; p < flat.size(); ++p) flat.pixels[p] = float(ppp + double(p % 7));
-  WriteFloatImage(dir / "exp.tif", flat, "flat, a little structure (not a saturated constant)");
-  const std::string fit = dir.Write(
-      "fit.toml",
-      "scene = \"model.toml\"\n[rays]\nfit_exposure = false\n[[image]]\nfile = "
-      "\"exp.tif\"\ndefocus_um = -6\n"
-      "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
-      "[[parameter]]\nkey = \"light_field_edge.half_angle_deg\"\nlower = 24\nupper = 30\nstep = "
-      "0.2\n"
-      "[[parameter]]\nkey = \"light_field_edge.tilt_deg[1]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
-      "[[parameter]]\nkey = \"camera.psf_sigma_um\"\nlower = 0\nupper = 1.5\nstep = 0.05\n");
-  const FitSpec spec = LoadFitSpec(fit);
+  const FitSpec spec = LoadFitSpec(WriteEdgeAndPsfFit(
+      dir, ppp, "tilt_deg = [0.8, -0.5]\n",
+      "[[parameter]]\nkey = \"light_field_edge.tilt_deg[1]\"\nlower = -2\nupper = 2\nstep = "
+      "0.2\n"));
   FitModel model(spec, 0, nullptr);
   const std::vector<double> start{1, 27, -0.5, 1.2};
   const Simulated got = model.Expected(start, 1.0, 11, nullptr);
@@ -561,25 +565,7 @@ TEST(FitModelNuisances, EdgeAndPsfAsKeysGiveTheTracersOwnExpectedImage) {
 // trace no ray, the edge's only the rays beyond the NA.
 TEST(FitModelNuisances, StepsOfTheEdgeAndThePsfTraceOnlyWhatTheyChange) {
   testing::TempDir dir;
-  WriteNaCutCalibration(dir / "cal.toml", [](double u, double) { return 1 + 0.3 * u; });
-  const double ppp = 500 * kPhotonScale;
-  std::ostringstream scene;
-  scene << "calibration = \"cal.toml\"\n[light_field_edge]\nhalf_angle_deg = 27\nwidth_deg = 1.5\n"
-        << "[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = [1, 0, 0]\n"
-        << "radius_um = 14\nindex = 1.36\n[camera]\npixels = [48, 40]\npsf_sigma_um = 1.2\n"
-        << "[trace]\nphotons_per_pixel = " << ppp << "\n";
-  dir.Write("model.toml", scene.str());
-  Image flat(48, 40);
-  for (size_t p = 0; p < flat.size(); ++p) flat.pixels[p] = float(ppp + double(p % 7));
-  WriteFloatImage(dir / "exp.tif", flat, "flat, a little structure (not a saturated constant)");
-  const FitSpec spec = LoadFitSpec(dir.Write(
-      "fit.toml",
-      "scene = \"model.toml\"\n[rays]\nfit_exposure = false\n[[image]]\nfile = "
-      "\"exp.tif\"\ndefocus_um = -6\n"
-      "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
-      "[[parameter]]\nkey = \"light_field_edge.half_angle_deg\"\nlower = 24\nupper = 30\nstep = "
-      "0.2\n"
-      "[[parameter]]\nkey = \"camera.psf_sigma_um\"\nlower = 0\nupper = 1.5\nstep = 0.05\n"));
+  const FitSpec spec = LoadFitSpec(WriteEdgeAndPsfFit(dir, 500 * kPhotonScale, "", ""));
   FitModel model(spec, 0, nullptr);
   const std::vector<double> start{1, 27, 1.2};
   uint64_t centre = 0;

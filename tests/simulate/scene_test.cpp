@@ -264,14 +264,7 @@ TEST(SceneFile, CalibrationFileSuppliesSourceCorrectorAndOptics) {
 // standard deviations.
 TEST(SceneFile, LightFieldEdgeSendsTheSoftEdgesShareOfRaysBeyondTheNa) {
   testing::TempDir dir;
-  CalibrationData c;
-  const int n = 64;
-  c.angular_extent = 0.5;
-  c.na_limit = 0.42;
-  c.angular_map =
-      testing::NaCutAngularMap(n, c.angular_extent, c.na_limit, [](double, double) { return 1.0; });
-  c.objective_focal_mm = 10, c.working_distance_mm = 20, c.na = 0.42, c.tube_focal_mm = 200;
-  c.pixel_pitch_um = 10, c.wavelength_um = 0.462;
+  CalibrationData c = testing::NaCutCalibration([](double, double) { return 1.0; }, 10);
   WriteCalibrationFile(dir / "cal.toml", c);
   const double kPi = 3.14159265358979323846;
   for (const auto& [edge, width] : {std::pair{26.0, 1.0}, std::pair{29.0, 2.0}}) {
@@ -280,7 +273,7 @@ TEST(SceneFile, LightFieldEdgeSendsTheSoftEdgesShareOfRaysBeyondTheNa) {
     };
     double a_out = 0;
     const int steps = 200000;
-    const double ring = c.na_limit - 1.5 * (2 * c.angular_extent / n);  // the continued ring
+    const double ring = c.na_limit - 1.5 * (2 * c.angular_extent / c.angular_map.width);  // ring
     for (int i = 0; i < steps; ++i) {
       const double s = c.na_limit + (1 - c.na_limit) * (i + 0.5) / steps;
       a_out += 2 * kPi * s * E(s) / E(ring) * (1 - c.na_limit) / steps;
@@ -314,18 +307,11 @@ TEST(SceneFile, LightFieldEdgeSendsTheSoftEdgesShareOfRaysBeyondTheNa) {
 // the edge, so it is shared across edges too.
 TEST(SceneFile, LightFieldTablesAreSharedOnlyWhereMapAndEdgeAgree) {
   testing::TempDir dir;
-  CalibrationData c;
-  const int n = 64;
-  c.angular_extent = 0.5;
-  c.na_limit = 0.42;
-  c.angular_map =
-      testing::NaCutAngularMap(n, c.angular_extent, c.na_limit, [](double, double) { return 1.0; });
-  c.objective_focal_mm = 10, c.working_distance_mm = 20, c.na = 0.42, c.tube_focal_mm = 200;
-  c.pixel_pitch_um = 10, c.wavelength_um = 0.462;
+  CalibrationData c = testing::NaCutCalibration([](double, double) { return 1.0; }, 10);
   WriteCalibrationFile(dir / "cal.toml", c);
-  c.angular_map = testing::NaCutAngularMap(n, c.angular_extent, c.na_limit,
-                                           [](double u, double) { return u > 0 ? 2.0 : 1.0; });
-  WriteCalibrationFile(dir / "cal2.toml", c);
+  WriteCalibrationFile(
+      dir / "cal2.toml",
+      testing::NaCutCalibration([](double u, double) { return u > 0 ? 2.0 : 1.0; }, 10));
   auto image = [&](const std::string& cal, double edge, double width) {
     const Scene s = LoadScene(
         dir.Write("s.toml", "calibration = \"" + cal + "\"\n[light_field_edge]\nhalf_angle_deg = " +

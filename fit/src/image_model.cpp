@@ -221,10 +221,9 @@ RayImageModel::Traced RayImageModel::TraceInside(const simulate::Scene& full, co
 RayImageModel::Traced RayImageModel::TraceBeyond(const simulate::Scene& full, const Traced& want,
                                                  double inside_weight,
                                                  uint64_t* rays_traced) const {
-  // The rays beyond the NA: their own population and streams, in proportion to their weight.
-  // (They are traced whole: kept per edge like the inside part's, the rays that miss the region
-  // saved no time, as a fit's steps move the edge at almost every evaluation, and doubled the
-  // memory.)
+  // The rays beyond the NA: their own population and streams, in proportion to their weight,
+  // traced whole. Their far rays are not kept as the inside part's are: those would be kept per
+  // edge, and a fit's steps move the edge at almost every evaluation.
   Traced t = want;
   simulate::Scene b =
       TracedScene(full, simulate::SourceSpec::EdgePart::kBeyond, setup_.psf_os, setup_.psf_margin);

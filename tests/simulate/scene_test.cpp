@@ -273,7 +273,8 @@ TEST(SceneFile, LightFieldEdgeSendsTheSoftEdgesShareOfRaysBeyondTheNa) {
     };
     double a_out = 0;
     const int steps = 200000;
-    const double ring = c.na_limit - 1.5 * (2 * c.angular_extent / c.angular_map.width);  // ring
+    // The continued ring, 1.5 map pixels inside the cut.
+    const double ring = c.na_limit - 1.5 * (2 * c.angular_extent / c.angular_map.width);
     for (int i = 0; i < steps; ++i) {
       const double s = c.na_limit + (1 - c.na_limit) * (i + 0.5) / steps;
       a_out += 2 * kPi * s * E(s) / E(ring) * (1 - c.na_limit) / steps;

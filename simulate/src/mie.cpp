@@ -1,5 +1,7 @@
 #include "raymatch/simulate/mie.h"
 
+#include <tbb/parallel_for.h>
+
 #include <algorithm>
 #include <cmath>
 #include <stdexcept>
@@ -119,11 +121,29 @@ MieTable::MieTable(const MieCoefficients& c, double theta_max, double step_per_x
   const int n = static_cast<int>(std::ceil(theta_max_ / step_)) + 4;
   s1_.resize(n);
   s2_.resize(n);
-  for (int i = 0; i < n; ++i) {
-    const MieAmplitudes s = Amplitudes(c, std::abs((i - 1) * step_));
-    s1_[i] = s.s1;
-    s2_[i] = s.s2;
+  // Amplitudes' sums with the factors of each term computed once (no division per term).
+  const int terms = c.terms();
+  std::vector<Complex> fa(terms + 1), fb(terms + 1);
+  std::vector<double> up(terms + 1), down(terms + 1);  // pi_{n+1} = up mu pi_n - down pi_{n-1}
+  for (int k = 1; k <= terms; ++k) {
+    const double fn = (2.0 * k + 1.0) / (k * (k + 1.0));
+    fa[k] = fn * c.a[k - 1], fb[k] = fn * c.b[k - 1];
+    up[k] = (2.0 * k + 1.0) / k, down[k] = (k + 1.0) / k;
   }
+  tbb::parallel_for(0, n, [&](int i) {  // each node on its own: the same table for any threads
+    const double mu = std::cos(std::abs((i - 1) * step_));
+    double pi0 = 0, pi1 = 1;
+    Complex s1 = 0, s2 = 0;
+    for (int k = 1; k <= terms; ++k) {
+      const double tau = k * mu * pi1 - (k + 1) * pi0;
+      s1 += fa[k] * pi1 + fb[k] * tau;
+      s2 += fa[k] * tau + fb[k] * pi1;
+      const double pi2 = up[k] * mu * pi1 - down[k] * pi0;
+      pi0 = pi1, pi1 = pi2;
+    }
+    s1_[i] = s1;
+    s2_[i] = s2;
+  });
 }
 
 MieAmplitudes MieTable::At(double theta) const {

@@ -133,8 +133,9 @@ struct MieImager::Impl {
   double sp_x0 = 0, sp_y0 = 0, sp_w = 0, sp_h = 0, spatial_mean = 1;
   bool spatial_clamp = false;
   mutable MieSampling last;
-  // A spectrum: one monochromatic image per wavelength node, with its share of the power
-  // (each normalised to the photon target, so the weighted sum is too).
+  // A spectrum: one monochromatic imager per wavelength node, with its share of the power
+  // (each normalised to the photon target, so the weighted sum is too); their nodes'
+  // harmonics are summed on one radial grid and rendered once.
   std::vector<std::pair<double, std::unique_ptr<MieImager>>> wavelengths;
   int interleave = 1;  // classes of illumination nodes with their own wavelengths
   int all_nodes = 0;   // illumination nodes before a class kept its own
@@ -188,7 +189,21 @@ struct MieImager::Impl {
     std::vector<std::vector<double>> cm, sm;  // cos and sin harmonics, [m][q]
   };
   mutable std::map<double, Pattern> patterns;
+  /// The harmonics at `dz`: this wavelength's nodes on its own grid or, for a spectrum, every
+  /// wavelength's nodes with their shares of the photons on one radial grid (rendered once).
   const Pattern& PatternAt(double dz, tbb::task_arena& arena) const;
+  /// A monochromatic imager's FFT grid at `dz` and its own radial grid.
+  struct Grid {
+    int n = 0;
+    double h = 0, drho = 0;
+    int n_rho = 0;
+  };
+  Grid GridAt(double dz) const;
+  /// Adds the harmonics of the illumination nodes of `parts` (monochromatic imagers, each with
+  /// its factor) at `dz` on the radial grid (drho, n_rho) to `pat`, in a fixed order (the same
+  /// sums for any thread count).
+  static void SumNodes(const std::vector<std::pair<const Impl*, double>>& parts, double dz,
+                       double drho, int n_rho, int harmonics, tbb::task_arena& arena, Pattern* pat);
   void BuildSource();
   void BuildNodes(const std::vector<double>& breaks, double s_max,
                   const std::function<double(double, double)>& density);
@@ -339,21 +354,47 @@ MieImager::MieImager(const Scene& scene, int stride, int offset) : impl_(std::ma
             nodes.push_back({sp.Sample((k * S + j + 0.5) / (K * S)), 1.0 / K, j});
       }
       im.wavelengths.clear();
-      Scene one = scene;
-      one.source.spectrum = SpectrumSpec{};
-      for (const Node& nd : nodes) {
-        one.wavelength_um = nd.wavelength;
+      im.wavelengths.resize(nodes.size());
+      auto make = [&](size_t k) {
+        Scene one = scene;
+        one.source.spectrum = SpectrumSpec{};
+        one.wavelength_um = nodes[k].wavelength;
         ObjectSpec& o = one.objects[0];
-        if (o.dispersion.law != DispersionLaw::kNone) o.index = o.dispersion.IndexAt(nd.wavelength);
-        im.wavelengths.emplace_back(nd.share, std::make_unique<MieImager>(one, S, nd.cls));
-        if (S > 1 && im.wavelengths.size() == 1 && im.wavelengths[0].second->impl_->all_nodes < S)
-          return im.wavelengths[0].second->impl_->all_nodes;
-      }
+        if (o.dispersion.law != DispersionLaw::kNone)
+          o.index = o.dispersion.IndexAt(nodes[k].wavelength);
+        im.wavelengths[k] = {nodes[k].share, std::make_unique<MieImager>(one, S, nodes[k].cls)};
+      };
+      make(0);
+      if (S > 1 && im.wavelengths[0].second->impl_->all_nodes < S)
+        return im.wavelengths[0].second->impl_->all_nodes;
+      tbb::parallel_for(size_t(1), nodes.size(), make);  // independent imagers
       return S;
     };
     int S = sp.type == SpectrumType::kLines ? 1 : im.set.spectrum_interleave;
     if (const int fewer = build(S); fewer < S) build(S = fewer);
     im.interleave = S;
+    // Rendered once from the wavelengths' summed harmonics (PatternAt), already in photons:
+    // what the render reads is the wavelengths' common geometry, the flat field their sum.
+    const Impl& c0 = *im.wavelengths[0].second->impl_;
+    im.radius = c0.radius;
+    im.center = c0.center;
+    im.s_na = c0.s_na;
+    im.lambda_medium = c0.lambda_medium;
+    im.harmonics = c0.harmonics;
+    im.zone_s = c0.zone_s, im.zone_t = c0.zone_t;
+    im.magnification = c0.magnification;
+    im.sensor_sign = c0.sensor_sign;
+    im.spatial = c0.spatial;
+    im.sp_x0 = c0.sp_x0, im.sp_y0 = c0.sp_y0, im.sp_w = c0.sp_w, im.sp_h = c0.sp_h;
+    im.spatial_mean = c0.spatial_mean;
+    im.spatial_clamp = c0.spatial_clamp;
+    im.scale = 1;
+    im.flat = 0;
+    for (const auto& [share, one] : im.wavelengths) {
+      const Impl& c = *one->impl_;
+      im.lambda_medium = std::min(im.lambda_medium, c.lambda_medium);  // pixel sub-samples
+      im.flat += share * c.scale * c.flat;
+    }
     im.last = im.SpectrumSampling();
     return;
   }
@@ -520,8 +561,7 @@ void MieImager::Impl::NodeHarmonics(const Node& nd, double dz, int n, double h, 
       const Vec3 e_par_i = Cross(e_perp, kin), e_par_s = Cross(e_perp, ks);
       const Complex f =
           norm / ct * amp * std::sqrt(ct) * std::exp(Complex(0, (k * ct - kz_in) * dz));
-      const double phi = kt2 > 0 ? std::atan2(ky, kx) : 0.0;
-      const double cp = std::cos(phi), sp = std::sin(phi);
+      const double cp = kt2 > 0 ? kx / kt : 1.0, sp = kt2 > 0 ? ky / kt : 0.0;  // of its azimuth
       const Vec3 e_th(ct * cp, ct * sp, -st), e_ph(-sp, cp, 0);
       const int col = ((i % n) + n) % n;
       for (int p = 0; p < 2; ++p) {
@@ -650,41 +690,90 @@ double AutomaticMieWindowUm(const Scene& scene, double defocus_um) {
   return 2 * (w.rho_light + w.margin);
 }
 
+MieImager::Impl::Grid MieImager::Impl::GridAt(double dz) const {
+  const Window win = WindowFor(scene, radius, dz);
+  const double margin = win.margin;
+  Grid g;
+  g.h = lambda_medium / (4 * s_na) / set.oversample;
+  g.n = cv::getOptimalDFTSize(int(std::ceil(2 * (win.rho_light + margin) / g.h)));
+  double rho_max = win.rho_light + margin / 2;
+  if (set.window_um > 0) {  // a fixed window: the same grid for every radius and defocus
+    g.n = cv::getOptimalDFTSize(int(std::ceil(set.window_um / g.h)));
+    g.h = set.window_um / g.n;
+    rho_max = set.window_um / 2 - margin / 2;
+  }
+  g.drho = g.h / 2;
+  g.n_rho = int(std::ceil(rho_max / g.drho)) + 3;
+  return g;
+}
+
+void MieImager::Impl::SumNodes(const std::vector<std::pair<const Impl*, double>>& parts, double dz,
+                               double drho, int n_rho, int harmonics, tbb::task_arena& arena,
+                               Pattern* pat) {
+  struct Task {
+    const Impl* im;
+    const Node* node;
+    Grid grid;
+    double factor;
+  };
+  std::vector<Task> tasks;
+  for (const auto& [im, factor] : parts) {
+    const Grid g = im->GridAt(dz);
+    for (const Node& nd : im->nodes) tasks.push_back({im, &nd, g, factor});
+  }
+  const int mh = harmonics;
+  pat->cm.assign(mh + 1, std::vector<double>(n_rho, 0.0));
+  pat->sm = pat->cm;
+  // In blocks of a fixed size (the memory of the per-node harmonics stays bounded for a
+  // spectrum of many wavelengths), each summed in task order.
+  constexpr size_t kBlock = 128;
+  std::vector<std::vector<std::vector<double>>> per(std::min(kBlock, tasks.size()));
+  for (size_t b0 = 0; b0 < tasks.size(); b0 += kBlock) {
+    const size_t nb = std::min(kBlock, tasks.size() - b0);
+    arena.execute([&] {
+      tbb::parallel_for(size_t(0), nb, [&](size_t j) {
+        const Task& t = tasks[b0 + j];
+        t.im->NodeHarmonics(*t.node, dz, t.grid.n, t.grid.h, drho, n_rho, &per[j]);
+      });
+    });
+    for (size_t j = 0; j < nb; ++j) {
+      const Task& t = tasks[b0 + j];
+      // Unit flux through the z-plane: amplitude^2 = 1 / cos.
+      const double w = t.factor * t.node->omega / t.node->cos;
+      for (int m = 0; m <= mh; ++m)
+        for (int q = 0; q < n_rho; ++q) {
+          pat->cm[m][q] += w * t.node->wc[m] * per[j][m][q];
+          if (m > 0) pat->sm[m][q] += w * t.node->ws[m] * per[j][m][q];
+        }
+    }
+  }
+}
+
 const MieImager::Impl::Pattern& MieImager::Impl::PatternAt(double dz,
                                                            tbb::task_arena& arena) const {
   if (auto it = patterns.find(dz); it != patterns.end()) return it->second;
   Pattern pat;  // stored once complete, so a failed computation leaves no entry behind
-  const Window win = WindowFor(scene, radius, dz);
-  const double margin = win.margin;
-  double h = lambda_medium / (4 * s_na) / set.oversample;
-  int n = cv::getOptimalDFTSize(int(std::ceil(2 * (win.rho_light + margin) / h)));
-  double rho_max = win.rho_light + margin / 2;
-  if (set.window_um > 0) {  // a fixed window: the same grid for every radius and defocus
-    n = cv::getOptimalDFTSize(int(std::ceil(set.window_um / h)));
-    h = set.window_um / n;
-    rho_max = set.window_um / 2 - margin / 2;
+  if (wavelengths.empty()) {
+    const Grid g = GridAt(dz);
+    SumNodes({{this, 1.0}}, dz, g.drho, g.n_rho, harmonics, arena, &pat);
+    pat.n = g.n, pat.h = g.h, pat.drho = g.drho, pat.n_rho = g.n_rho;
+  } else {
+    // A spectrum: each wavelength's harmonics in photons (its share x its photon scale) on one
+    // radial grid, the finest of the wavelengths' reaching as far as the farthest.
+    std::vector<std::pair<const Impl*, double>> parts;
+    double drho = 0, reach = 0;
+    for (const auto& [share, one] : wavelengths) {
+      const Impl& c = *one->impl_;
+      parts.emplace_back(&c, share * c.scale);
+      const Grid g = c.GridAt(dz);
+      drho = drho > 0 ? std::min(drho, g.drho) : g.drho;
+      reach = std::max(reach, (g.n_rho - 3) * g.drho);
+    }
+    const int n_rho = int(std::ceil(reach / drho)) + 3;
+    SumNodes(parts, dz, drho, n_rho, harmonics, arena, &pat);
+    const Grid g0 = parts[0].first->GridAt(dz);  // the first wavelength's, for the record
+    pat.n = g0.n, pat.h = g0.h, pat.drho = drho, pat.n_rho = n_rho;
   }
-  const double drho = h / 2;
-  const int n_rho = int(std::ceil(rho_max / drho)) + 3;
-  // Per-node harmonics, summed in node order (the same image for any thread count).
-  std::vector<std::vector<std::vector<double>>> per(nodes.size());
-  arena.execute([&] {
-    tbb::parallel_for(size_t(0), nodes.size(),
-                      [&](size_t j) { NodeHarmonics(nodes[j], dz, n, h, drho, n_rho, &per[j]); });
-  });
-  const int mh = harmonics;
-  std::vector<std::vector<double>> cm(mh + 1, std::vector<double>(n_rho, 0.0)), sm = cm;
-  for (size_t j = 0; j < nodes.size(); ++j) {
-    const Node& nd = nodes[j];
-    const double w = nd.omega / nd.cos;  // unit flux through the z-plane: amplitude^2 = 1/cos
-    for (int m = 0; m <= mh; ++m)
-      for (int q = 0; q < n_rho; ++q) {
-        cm[m][q] += w * nd.wc[m] * per[j][m][q];
-        if (m > 0) sm[m][q] += w * nd.ws[m] * per[j][m][q];
-      }
-  }
-  pat.n = n, pat.h = h, pat.drho = drho, pat.n_rho = n_rho;
-  pat.cm = std::move(cm), pat.sm = std::move(sm);
   if (patterns.size() >= 64) patterns.clear();  // bounded memory
   return patterns.emplace(dz, std::move(pat)).first->second;
 }
@@ -698,16 +787,7 @@ void MieImager::MoveAcross(double x_um, double y_um) {
 
 Image MieImager::Expected(double defocus_um, int threads) const {
   const Impl& im = *impl_;
-  if (!im.wavelengths.empty()) {
-    Image sum;
-    for (const auto& [w, one] : im.wavelengths) {
-      const Image a = one->Expected(defocus_um, threads);
-      if (sum.empty()) sum = Image(a.width, a.height);
-      for (size_t i = 0; i < a.size(); ++i) sum.pixels[i] += float(w * a.pixels[i]);
-    }
-    im.last = im.SpectrumSampling();
-    return sum;
-  }
+  if (!im.wavelengths.empty()) im.last = im.SpectrumSampling();
   const Scene& s = im.scene;
   const MieSettings& set = im.set;
   // Motion: the pulse's equal-power quantiles (midpoints) as times, the sphere where it is at

@@ -231,17 +231,29 @@ TEST(WaveImage, SpectrumIsThePowerWeightedSumOfItsWavelengths) {
   s.source.spectrum.weights = {0.3, 0.7};
   const Image both = MieImager(s).Expected(2.0, 2);
   Image sum(32, 32);
+  std::vector<Image> line;
   for (int k = 0; k < 2; ++k) {
     Scene one = s;
     one.source.spectrum = SpectrumSpec{};
     one.wavelength_um = s.source.spectrum.wavelengths_um[k];
     one.objects[0].dispersion.law = DispersionLaw::kNone;
     one.objects[0].index = 1.38 + 0.004 / (one.wavelength_um * one.wavelength_um);
-    const Image a = MieImager(one).Expected(2.0, 2);
-    for (size_t i = 0; i < a.size(); ++i)
-      sum.pixels[i] += float(s.source.spectrum.weights[k] * a.pixels[i]);
+    line.push_back(MieImager(one).Expected(2.0, 2));
+    for (size_t i = 0; i < sum.size(); ++i)
+      sum.pixels[i] += float(s.source.spectrum.weights[k] * line[k].pixels[i]);
   }
-  for (size_t i = 0; i < sum.size(); ++i) ASSERT_NEAR(both.pixels[i], sum.pixels[i], 1e-3) << i;
+  // The wavelengths' harmonics are summed on one radial grid (the finer of the two) and
+  // rendered once: against each rendered from its own grid, 0.2 photons of 1000 at most here
+  // (the render's radial interpolation; the convergence goal is 0.1 % of the background).
+  // In RMS 0.035 photons here against the two lines' difference of 15.7: shares 0.005 off
+  // would move the image by the bound below.
+  double off = 0, apart = 0;
+  for (size_t i = 0; i < sum.size(); ++i) {
+    ASSERT_NEAR(both.pixels[i], sum.pixels[i], 0.5) << i;
+    off += std::pow(both.pixels[i] - sum.pixels[i], 2);
+    apart += std::pow(line[0].pixels[i] - line[1].pixels[i], 2);
+  }
+  EXPECT_LT(std::sqrt(off), std::sqrt(apart) / 200);
   s.objects[0].dispersion.coefficients = {1.0};  // no sphere: the flat field
   for (float v : MieImager(s).Expected(2.0, 2).pixels) ASSERT_NEAR(v, 1000.0, 1e-6);
 }

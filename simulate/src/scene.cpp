@@ -850,7 +850,7 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
       m.window_um = mr.InRange("window_um", 0.0, 100000.0, m.window_um);
       m.spectrum_nodes = static_cast<int>(mr.Integer("spectrum_nodes", m.spectrum_nodes, 1, 256));
       m.spectrum_interleave =
-          static_cast<int>(mr.Integer("spectrum_interleave", m.spectrum_interleave, 1, 64));
+          static_cast<int>(mr.Integer("spectrum_interleave", m.spectrum_interleave, 1, 1024));
       m.motion_nodes = static_cast<int>(mr.Integer("motion_nodes", m.motion_nodes, 1, 256));
       m.pixel_subsamples =
           static_cast<int>(mr.Integer("pixel_subsamples", m.pixel_subsamples, 0, 64));

@@ -90,10 +90,19 @@ TEST(WaveImage, LightRemovedIsExtinctionMinusLightScatteredIntoTheNa) {
 TEST(WaveImage, SameImageForAnyThreadCount) {
   Scene s = WaveScene(4, 1.38, 15, 48);
   s.objects[0].center_um = Vec3(1.3, -0.7, 0.5);
-  const MieImager imager(s);
-  const Image a = imager.Expected(-2.0, 1), b = imager.Expected(-2.0, 2);
-  ASSERT_EQ(a.pixels.size(), b.pixels.size());
-  for (size_t i = 0; i < a.pixels.size(); ++i) ASSERT_EQ(a.pixels[i], b.pixels[i]) << i;
+  Scene spectrum = s;  // one class per direction: more wavelengths' nodes than one block
+  spectrum.source.spectrum.type = SpectrumType::kGaussian;
+  spectrum.source.spectrum.center_um = s.wavelength_um;
+  spectrum.source.spectrum.fwhm_um = 0.02;
+  spectrum.trace.mie.spectrum_nodes = 4;
+  spectrum.trace.mie.spectrum_interleave = 1024;
+  for (const Scene& t : {s, spectrum}) {
+    // Separate imagers: the second must not reuse the first's fields.
+    const Image a = MieImager(t).Expected(-2.0, 1), b = MieImager(t).Expected(-2.0, 3);
+    ASSERT_EQ(a.pixels.size(), b.pixels.size());
+    for (size_t i = 0; i < a.pixels.size(); ++i) ASSERT_EQ(a.pixels[i], b.pixels[i]) << i;
+  }
+  EXPECT_GT(MieImager(spectrum).sampling().wavelengths, 128);
 }
 
 // Moving the sphere by whole pixels moves its image by those pixels (the microscope is

@@ -14,7 +14,9 @@ direction: 1152 wavelengths in case 1); the fit's model has coarse directions (3
 panel of sin theta, `oversample = 1.0`) with 16 wavelengths per direction, one class each. Every
 fit starts from the same nominal start (x 0.3 um, y 0.3 um, z 1.5 um, radius 0.6 um and index
 0.008 off) with `[search] start = "rays"` and `scan = [index, radius]` (the index over 61
-points of 1.30-1.45, the radius over 0.01 um steps). Prints per key the mean error and RMS
+points of 1.30-1.45, the radius over 0.01 um steps), then hops of the radius by one resonance
+spacing, lambda / (2 pi) arctan(q) / q with q = sqrt(n^2 - 1) (`hop`, `hop_step`; --no-hop
+leaves them out). Prints per key the mean error and RMS
 error in Cramer-Rao bounds, RMS(error / reported sigma), the goodness-of-fit verdicts and the
 time per fit.
 
@@ -24,6 +26,7 @@ Environment: RAYMATCH (the executable; default build/release/apps/raymatch).
 """
 import argparse
 import json
+import math
 import os
 import subprocess
 import sys
@@ -82,7 +85,12 @@ defocus_um = [{planes}]
 {mie}"""
 
 
-def fit_file(case, images):
+def resonance_spacing(case):
+    q = math.sqrt(case["index"] ** 2 - 1)
+    return 0.462 / (2 * math.pi) * math.atan(q) / q
+
+
+def fit_file(case, images, hop):
     lo, hi = case["radius_bounds"]
     points = int(round((hi - lo) / 0.01)) + 1
     text = 'scene = "start.toml"\nmethod = "lm"\nerror = "poisson"\n'
@@ -95,12 +103,14 @@ def fit_file(case, images):
             ("index", 1.30, 1.45, 0.002, "points = 61\n")]:
         text += (f'[[parameter]]\nkey = "object.s.{key}"\nlower = {lower}\nupper = {upper}\n'
                  f"step = {step}\n{extra}")
-    text += ('[search]\nstart = "rays"\nscan = ["object.s.index", "object.s.radius_um"]\n'
-             "[uncertainty]\nslice_points = 0\n")
+    text += '[search]\nstart = "rays"\nscan = ["object.s.index", "object.s.radius_um"]\n'
+    if hop:
+        text += f'hop = "object.s.radius_um"\nhop_step = {resonance_spacing(case):.4f}\n'
+    text += "[uncertainty]\nslice_points = 0\n"
     return text
 
 
-def run(out, case, k, seed):
+def run(out, case, k, seed, hop):
     d = os.path.join(out, f"k{k}")
     os.makedirs(d, exist_ok=True)
     truth = (*POSITION, case["radius"], case["index"])
@@ -114,7 +124,7 @@ def run(out, case, k, seed):
     with open(os.path.join(d, "start.toml"), "w") as f:
         f.write(scene(case, *start, seed, MODEL))
     with open(os.path.join(d, "fit.toml"), "w") as f:
-        f.write(fit_file(case, images))
+        f.write(fit_file(case, images, hop))
     t0 = time.time()
     rc = subprocess.run([RAYMATCH, "fit", "fit.toml", "-o", "fit", "-q"], cwd=d).returncode
     wall = time.time() - t0
@@ -129,12 +139,13 @@ def main():
     ap.add_argument("--case", choices=sorted(CASES), default="1")
     ap.add_argument("--k", type=int, default=16, help="noise realisations")
     ap.add_argument("--seed-base", type=int, default=200)
+    ap.add_argument("--no-hop", action="store_true", help="no hops after the fit")
     a = ap.parse_args()
     case = CASES[a.case]
     truth = (*POSITION, case["radius"], case["index"])
     rows = []
     for k in range(a.k):
-        r = run(a.out, case, k, a.seed_base + k)
+        r = run(a.out, case, k, a.seed_base + k, not a.no_hop)
         rows.append(r)
         p = r["fit"]["parameters"]
         print(f"k{k}: rc {r['rc']}, {r['wall']:.0f} s, errors in bounds " +

@@ -652,11 +652,12 @@ FitResult RunFitFromStart(const FitSpec& spec, const FitOptions& options) {
 }  // namespace
 
 FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
-  if (!spec.start_fit && spec.scan.empty()) return RunFitFromStart(spec, options);
+  if (!spec.start_fit && spec.scan.empty() && spec.hop < 0) return RunFitFromStart(spec, options);
   const auto t_start = Clock::now();
   FitSpec main = spec;  // the same fit from the stages' start
   main.start_fit.reset();
   main.scan.clear();
+  main.hop = -1;
   std::vector<Evaluation> before;
   std::vector<std::pair<std::string, double>> seconds;
   auto say = [&](const std::string& m) {
@@ -700,6 +701,45 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
     seconds.push_back({"scan", Since(t0)});
   }
   FitResult res = RunFitFromStart(main, options);
+  if (spec.hop >= 0) {
+    // 3. Hops: the fit again from its optimum moved by one step along the hop parameter, down
+    // and up; a lower error wins and the hops go on that way. The fits that lose keep their
+    // evaluations, as stage "hop".
+    const auto t0 = Clock::now();
+    const size_t h = size_t(spec.hop);
+    auto lose = [&](FitResult& r) {
+      for (Evaluation& e : r.evaluations) {
+        e.stage = Stage::kHop;
+        before.push_back(std::move(e));
+      }
+    };
+    double won = 0;  // the time of a hop's fit that won (it is the fit reported)
+    for (int dir : {-1, 1}) {
+      bool moved = false;
+      for (;;) {
+        FitSpec from = main;
+        for (size_t i = 0; i < from.parameters.size(); ++i)
+          from.parameters[i].start = res.parameters[i].best;
+        Parameter& p = from.parameters[h];
+        p.start += dir * spec.hop_step;
+        if (p.start < p.lower || p.start > p.upper) break;
+        std::ostringstream m;
+        m << "hop: " << p.key << " from " << res.parameters[h].best << " to " << p.start;
+        say(m.str());
+        FitResult r = RunFitFromStart(from, options);
+        if (!(r.best_error < res.best_error)) {
+          lose(r);
+          break;
+        }
+        lose(res);
+        won = r.total_seconds;
+        res = std::move(r);
+        moved = true;
+      }
+      if (moved) break;  // the other way leads back to the valley just left
+    }
+    seconds.push_back({"hops (the fits that lost)", Since(t0) - won});
+  }
   res.evaluations.insert(res.evaluations.begin(), before.begin(), before.end());
   res.seconds.insert(res.seconds.begin(), seconds.begin(), seconds.end());
   for (size_t i = 0; i < res.parameters.size(); ++i)

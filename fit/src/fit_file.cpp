@@ -32,8 +32,8 @@ const char* MethodName(Method m) {
 }
 
 const char* StageName(Stage s) {
-  static const char* n[] = {"grid",   "poll",  "lm",   "polish",  "fisher", "final",
-                            "repeat", "slice", "best", "profile", "start",  "scan"};
+  static const char* n[] = {"grid",  "poll", "lm",      "polish", "fisher", "final", "repeat",
+                            "slice", "best", "profile", "start",  "scan",   "hop"};
   return n[int(s)];
 }
 
@@ -587,6 +587,8 @@ FitSpec LoadFitFile(const std::string& path, const std::string& scene_override,
     const std::string start = sr.Choice("start", {"parameters", "rays"}, "parameters");
     std::vector<std::string> scan;
     if (sr.Has("scan")) scan = sr.Strings("scan");
+    const std::string hop_key = sr.String("hop", "");
+    const double hop_step = sr.Number("hop_step", 0.0);
     if (!ray_start_fit) {
       if (f.method == Method::kGrid && (start == "rays" || !scan.empty()))
         sr.Fail(start == "rays" ? "start" : "scan",
@@ -611,6 +613,27 @@ FitSpec LoadFitFile(const std::string& path, const std::string& scene_override,
         if (std::find(f.scan.begin(), f.scan.end(), i) != f.scan.end())
           sr.Fail("scan", "'" + key + "' is listed twice");
         f.scan.push_back(i);
+      }
+      if (!hop_key.empty()) {
+        const std::string& key = hop_key;
+        const auto it = std::find_if(f.parameters.begin(), f.parameters.end(),
+                                     [&](const Parameter& q) { return q.key == key; });
+        if (it == f.parameters.end())
+          sr.Fail("hop", "'" + key + "' is not a [[parameter]] of this fit");
+        if (f.method == Method::kGrid)
+          sr.Fail(
+              "hop",
+              "method = \"grid\" evaluates every point already: [search] is for lm and pattern");
+        f.hop = int(it - f.parameters.begin());
+        f.hop_step = hop_step;
+        if (!(hop_step > 0))
+          sr.Fail("hop_step", "hop = \"" + key + "\" needs hop_step > 0 (in its units)");
+        if (f.hop_step >= it->upper - it->lower)
+          sr.Fail("hop_step", "a hop of " + std::to_string(f.hop_step) +
+                                  " leaves the parameter's bounds [" + std::to_string(it->lower) +
+                                  ", " + std::to_string(it->upper) + "]");
+      } else if (hop_step != 0) {
+        sr.Fail("hop_step", "hop_step needs hop = \"<key>\" (the parameter to hop along)");
       }
     }
     sr.Finish();

@@ -181,6 +181,26 @@ TEST(WaveFit, SearchStagesFindTheValleyFromAStartFringeOrdersOff) {
     EXPECT_EQ(scans, st.scans);
     EXPECT_EQ(r.evaluations.front().stage, st.starts > 0 ? Stage::kStart : Stage::kScan);
   }
+  // Hops: the plain fit, then the fit again from its optimum one fringe order of the index
+  // (lambda / diameter = 0.058) down and up; the lower error wins and the hops go on that way.
+  {
+    const FitResult r =
+        RunFit(LoadFitSpec(dir.Write(
+                   "hop.toml", fit + "[search]\nhop = \"object.s.index\"\nhop_step = 0.058\n")),
+               o);
+    EXPECT_FALSE(r.goodness.mismatch) << r.goodness.verdict;
+    for (size_t i = 0; i < 5; ++i)
+      EXPECT_LT(std::abs(r.parameters[i].best - truth[i]), 4 * r.parameters[i].sigma)
+          << r.parameters[i].key;
+    EXPECT_LT(r.best_error, plain.best_error);
+    int hops = 0;
+    for (const Evaluation& e : r.evaluations) hops += e.stage == Stage::kHop;
+    EXPECT_GT(hops, 0);
+    std::printf(
+        "plain: index %.4f error %.1f; hops: index %.4f error %.1f, %d hop evaluations of %zu\n",
+        plain.parameters[4].best, plain.best_error, r.parameters[4].best, r.best_error, hops,
+        r.evaluations.size());
+  }
   // A parameter with one point (its step wider than its range) is scanned at its start.
   std::string one = fit;
   one.replace(one.find("step = 0.05"), 11, "step = 2");
@@ -234,6 +254,13 @@ TEST(WaveFit, FitFileChoosesTheOptics) {
            "[search]\nstart = \"rays\"\n",
        "search.start", "every point"},
       {"optics = \"mie\"\n" + base + "[search]\nstart = \"ray\"\n", "search.start", "rays"},
+      {"optics = \"mie\"\n" + base + "[search]\nhop = \"object.s.radius\"\nhop_step = 0.1\n",
+       "search.hop", "not a [[parameter]]"},
+      {"optics = \"mie\"\n" + base + "[search]\nhop = \"object.s.index\"\n", "search.hop_step",
+       "hop_step > 0"},
+      {"optics = \"mie\"\n" + base + "[search]\nhop = \"object.s.index\"\nhop_step = 0.5\n",
+       "search.hop_step", "leaves the parameter's bounds"},
+      {"optics = \"mie\"\n" + base + "[search]\nhop_step = 0.01\n", "search.hop_step", "needs hop"},
   };
   int i = 0;
   for (const Bad& b : bad) {

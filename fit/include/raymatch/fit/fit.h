@@ -50,7 +50,8 @@ enum class Stage {
   kBest,
   kProfile,
   kStart,
-  kScan
+  kScan,
+  kHop
 };
 const char* StageName(Stage s);  ///< "grid", "poll", "lm", "polish", "fisher", "final", ...
 
@@ -158,6 +159,11 @@ struct FitSpec {
   /// becomes its start.
   std::shared_ptr<const FitSpec> start_fit;
   std::vector<size_t> scan;
+  /// After the fit: the fit again from its optimum moved by -hop_step and +hop_step along
+  /// parameter `hop` (-1: none), the lowest error kept, hops going on in the direction that
+  /// lowered it (neighbouring valleys of a resonant sphere's likelihood).
+  int hop = -1;
+  double hop_step = 0;
   /// Simulated rays per experimental photon at the final level (infinite for exact images).
   double RaysPerPhoton() const;
 };

@@ -51,6 +51,16 @@ KEYS = ["object.drop.center_um[0]", "object.drop.center_um[1]", "object.drop.cen
 OFFSETS = [0.4, 0.4, 1.8, 0.6, 0.005]  # nominal start - truth (signs alternate per realisation)
 
 
+# The paper's microscope: 20x / 0.42 objective, 200 mm tube lens.
+MICROSCOPE = """[objective]
+focal_length_mm = 10
+na = 0.42
+working_distance_mm = 20
+[tube_lens]
+focal_length_mm = 200
+"""
+
+
 def scene(case, theta, seed):
     x, y, z, r, n = theta
     return f"""name = "sphere"
@@ -64,13 +74,7 @@ type = "sphere"
 center_um = [{x}, {y}, {z}]
 radius_um = {r}
 index = {n}
-[objective]
-focal_length_mm = 10
-na = 0.42
-working_distance_mm = 20
-[tube_lens]
-focal_length_mm = 200
-[camera]
+{MICROSCOPE}[camera]
 pixels = [{case['pixels'][0]}, {case['pixels'][1]}]
 pixel_pitch_um = {case['pitch']}
 [trace]

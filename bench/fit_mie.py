@@ -32,7 +32,7 @@ import subprocess
 import sys
 import time
 
-from fit_accuracy import error_stats  # the same statistics (bench/)
+from fit_accuracy import MICROSCOPE, error_stats  # the same statistics and microscope
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RAYMATCH = os.environ.get("RAYMATCH", os.path.join(ROOT, "build/release/apps/raymatch"))
@@ -67,13 +67,7 @@ type = "sphere"
 center_um = [{x!r}, {y!r}, {z!r}]
 radius_um = {radius!r}
 index = {index!r}
-[objective]
-focal_length_mm = 10
-na = 0.42
-working_distance_mm = 20
-[tube_lens]
-focal_length_mm = 200
-[camera]
+{MICROSCOPE}[camera]
 pixels = [72, 72]
 pixel_pitch_um = {case["pixel_pitch"]}
 [trace]

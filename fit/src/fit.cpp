@@ -700,12 +700,12 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
     for (Evaluation& e : scan.evaluations) before.push_back(std::move(e));
     seconds.push_back({"scan", Since(t0)});
   }
+  const auto t_fit = Clock::now();
   FitResult res = RunFitFromStart(main, options);
   if (spec.hop >= 0) {
     // 3. Hops: the fit again from its optimum moved by one step along the hop parameter, down
     // and up; a lower error wins and the hops go on that way. The fits that lose keep their
     // evaluations, as stage "hop".
-    const auto t0 = Clock::now();
     const size_t h = size_t(spec.hop);
     auto lose = [&](FitResult& r) {
       for (Evaluation& e : r.evaluations) {
@@ -713,7 +713,6 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
         before.push_back(std::move(e));
       }
     };
-    double won = 0;  // the time of a hop's fit that won (it is the fit reported)
     for (int dir : {-1, 1}) {
       bool moved = false;
       for (;;) {
@@ -732,13 +731,14 @@ FitResult RunFit(const FitSpec& spec, const FitOptions& options) {
           break;
         }
         lose(res);
-        won = r.total_seconds;
         res = std::move(r);
         moved = true;
       }
       if (moved) break;  // the other way leads back to the valley just left
     }
-    seconds.push_back({"hops (the fits that lost)", Since(t0) - won});
+    // The fit reported is the one that won; the others' time (the first fit's too, when a hop
+    // won) is the hops'.
+    seconds.push_back({"hops (the fits that lost)", Since(t_fit) - res.total_seconds});
   }
   res.evaluations.insert(res.evaluations.begin(), before.begin(), before.end());
   res.seconds.insert(res.seconds.begin(), seconds.begin(), seconds.end());

@@ -196,6 +196,16 @@ TEST(WaveFit, SearchStagesFindTheValleyFromAStartFringeOrdersOff) {
     int hops = 0;
     for (const Evaluation& e : r.evaluations) hops += e.stage == Stage::kHop;
     EXPECT_GT(hops, 0);
+    // The losing fits' time is itemised with the hops, the winner's in its own items: together
+    // the fit's whole time.
+    double hop_s = 0, items = 0;
+    for (const auto& [name, t] : r.seconds) {
+      if (name.starts_with("hops")) hop_s = t;
+      items += t;
+    }
+    EXPECT_GT(hop_s, 0);
+    EXPECT_LE(items, r.total_seconds * 1.001);
+    EXPECT_GT(items, 0.99 * r.total_seconds);
     std::printf(
         "plain: index %.4f error %.1f; hops: index %.4f error %.1f, %d hop evaluations of %zu\n",
         plain.parameters[4].best, plain.best_error, r.parameters[4].best, r.best_error, hops,

@@ -97,20 +97,42 @@ MieEfficiencies Efficiencies(const MieCoefficients& c) {
   return e;
 }
 
-MieAmplitudes Amplitudes(const MieCoefficients& c, double theta) {
-  const double mu = std::cos(theta);
-  double pi0 = 0, pi1 = 1;  // pi_{n-1}, pi_n
-  MieAmplitudes s{0, 0};
-  for (int n = 1; n <= c.terms(); ++n) {
-    const double tau = n * mu * pi1 - (n + 1) * pi0;
-    const double fn = (2.0 * n + 1.0) / (n * (n + 1.0));
-    const Complex an = c.a[n - 1], bn = c.b[n - 1];
-    s.s1 += fn * (an * pi1 + bn * tau);
-    s.s2 += fn * (an * tau + bn * pi1);
-    const double pi2 = ((2.0 * n + 1.0) * mu * pi1 - (n + 1.0) * pi0) / n;
-    pi0 = pi1, pi1 = pi2;
+namespace {
+/// S1 and S2 (Bohren and Huffman eq. 4.74) as sums over the terms, with each term's factors
+/// (2n + 1) / (n (n + 1)) a_n, b_n and the recurrence's for pi_n computed once.
+class AmplitudeSums {
+ public:
+  explicit AmplitudeSums(const MieCoefficients& c)
+      : terms_(c.terms()), fa_(terms_ + 1), fb_(terms_ + 1), up_(terms_ + 1), down_(terms_ + 1) {
+    for (int k = 1; k <= terms_; ++k) {
+      const double fn = (2.0 * k + 1.0) / (k * (k + 1.0));
+      fa_[k] = fn * c.a[k - 1], fb_[k] = fn * c.b[k - 1];
+      up_[k] = (2.0 * k + 1.0) / k, down_[k] = (k + 1.0) / k;
+    }
   }
-  return s;
+  MieAmplitudes At(double theta) const {
+    const double mu = std::cos(theta);
+    double pi0 = 0, pi1 = 1;  // pi_{n-1}, pi_n
+    MieAmplitudes s{0, 0};
+    for (int k = 1; k <= terms_; ++k) {
+      const double tau = k * mu * pi1 - (k + 1) * pi0;
+      s.s1 += fa_[k] * pi1 + fb_[k] * tau;
+      s.s2 += fa_[k] * tau + fb_[k] * pi1;
+      const double pi2 = up_[k] * mu * pi1 - down_[k] * pi0;  // pi_{n+1}
+      pi0 = pi1, pi1 = pi2;
+    }
+    return s;
+  }
+
+ private:
+  int terms_;
+  std::vector<Complex> fa_, fb_;
+  std::vector<double> up_, down_;
+};
+}  // namespace
+
+MieAmplitudes Amplitudes(const MieCoefficients& c, double theta) {
+  return AmplitudeSums(c).At(theta);
 }
 
 MieTable::MieTable(const MieCoefficients& c, double theta_max, double step_per_x) {
@@ -121,28 +143,11 @@ MieTable::MieTable(const MieCoefficients& c, double theta_max, double step_per_x
   const int n = static_cast<int>(std::ceil(theta_max_ / step_)) + 4;
   s1_.resize(n);
   s2_.resize(n);
-  // Amplitudes' sums with the factors of each term computed once (no division per term).
-  const int terms = c.terms();
-  std::vector<Complex> fa(terms + 1), fb(terms + 1);
-  std::vector<double> up(terms + 1), down(terms + 1);  // pi_{n+1} = up mu pi_n - down pi_{n-1}
-  for (int k = 1; k <= terms; ++k) {
-    const double fn = (2.0 * k + 1.0) / (k * (k + 1.0));
-    fa[k] = fn * c.a[k - 1], fb[k] = fn * c.b[k - 1];
-    up[k] = (2.0 * k + 1.0) / k, down[k] = (k + 1.0) / k;
-  }
+  const AmplitudeSums sums(c);
   tbb::parallel_for(0, n, [&](int i) {  // each node on its own: the same table for any threads
-    const double mu = std::cos(std::abs((i - 1) * step_));
-    double pi0 = 0, pi1 = 1;
-    Complex s1 = 0, s2 = 0;
-    for (int k = 1; k <= terms; ++k) {
-      const double tau = k * mu * pi1 - (k + 1) * pi0;
-      s1 += fa[k] * pi1 + fb[k] * tau;
-      s2 += fa[k] * tau + fb[k] * pi1;
-      const double pi2 = up[k] * mu * pi1 - down[k] * pi0;
-      pi0 = pi1, pi1 = pi2;
-    }
-    s1_[i] = s1;
-    s2_[i] = s2;
+    const MieAmplitudes s = sums.At(std::abs((i - 1) * step_));
+    s1_[i] = s.s1;
+    s2_[i] = s.s2;
   });
 }
 

@@ -590,8 +590,10 @@ FitSpec LoadFitFile(const std::string& path, const std::string& scene_override,
     const std::string hop_key = sr.String("hop", "");
     const double hop_step = sr.Number("hop_step", 0.0);
     if (!ray_start_fit) {
-      if (f.method == Method::kGrid && (start == "rays" || !scan.empty()))
-        sr.Fail(start == "rays" ? "start" : "scan",
+      if (f.method == Method::kGrid && (start == "rays" || !scan.empty() || !hop_key.empty()))
+        sr.Fail(start == "rays" ? "start"
+                : !scan.empty() ? "scan"
+                                : "hop",
                 "method = \"grid\" evaluates every point already: [search] is for lm and pattern");
       if (start == "rays") {
         if (!f.exact_images)
@@ -601,37 +603,34 @@ FitSpec LoadFitFile(const std::string& path, const std::string& scene_override,
         f.start_fit = std::make_shared<const FitSpec>(
             LoadFitFile(path, scene_override, calibration_override, true));
       }
-      for (const std::string& key : scan) {
+      // The index of a [search] entry's parameter, or an error listing the fit's parameters.
+      auto parameter = [&](const std::string& field, const std::string& key) {
         size_t i = 0;
         while (i < f.parameters.size() && f.parameters[i].key != key) ++i;
         if (i == f.parameters.size()) {
           std::string names;
           for (const Parameter& q : f.parameters) names += (names.empty() ? "" : ", ") + q.key;
-          sr.Fail("scan",
+          sr.Fail(field,
                   "'" + key + "' is not a [[parameter]] of this fit (they are: " + names + ")");
         }
+        return i;
+      };
+      for (const std::string& key : scan) {
+        const size_t i = parameter("scan", key);
         if (std::find(f.scan.begin(), f.scan.end(), i) != f.scan.end())
           sr.Fail("scan", "'" + key + "' is listed twice");
         f.scan.push_back(i);
       }
       if (!hop_key.empty()) {
-        const std::string& key = hop_key;
-        const auto it = std::find_if(f.parameters.begin(), f.parameters.end(),
-                                     [&](const Parameter& q) { return q.key == key; });
-        if (it == f.parameters.end())
-          sr.Fail("hop", "'" + key + "' is not a [[parameter]] of this fit");
-        if (f.method == Method::kGrid)
-          sr.Fail(
-              "hop",
-              "method = \"grid\" evaluates every point already: [search] is for lm and pattern");
-        f.hop = int(it - f.parameters.begin());
-        f.hop_step = hop_step;
+        const Parameter& p = f.parameters[parameter("hop", hop_key)];
         if (!(hop_step > 0))
-          sr.Fail("hop_step", "hop = \"" + key + "\" needs hop_step > 0 (in its units)");
-        if (f.hop_step >= it->upper - it->lower)
-          sr.Fail("hop_step", "a hop of " + std::to_string(f.hop_step) +
-                                  " leaves the parameter's bounds [" + std::to_string(it->lower) +
-                                  ", " + std::to_string(it->upper) + "]");
+          sr.Fail("hop_step", "hop = \"" + hop_key + "\" needs hop_step > 0 (in its units)");
+        if (hop_step >= p.upper - p.lower)
+          sr.Fail("hop_step", "a hop of " + std::to_string(hop_step) +
+                                  " leaves the parameter's bounds [" + std::to_string(p.lower) +
+                                  ", " + std::to_string(p.upper) + "]");
+        f.hop = int(&p - f.parameters.data());
+        f.hop_step = hop_step;
       } else if (hop_step != 0) {
         sr.Fail("hop_step", "hop_step needs hop = \"<key>\" (the parameter to hop along)");
       }

@@ -126,9 +126,16 @@ void RegisterCalibrate(CLI::App& app, int* exit_code) {
                "Also fit the edge width (default: fixed at 1 deg; with two planes it is hardly "
                "separable from the half-angle and tilt)");
   sc->add_flag("!--fixed-psf", sp->fit_psf,
-               "Keep the PSF at the diffraction-limited 0.21 lambda/NA instead of fitting it");
+               "Keep the PSF at its start instead of fitting it (0.21 lambda/NA with the rays, a "
+               "diffraction-limited Airy core; 0.05 lambda/NA with mie)");
   sc->add_flag("!--fixed-tilt", sp->fit_tilt,
                "Keep the edge's axis on the optical axis instead of fitting its tilt");
+  sc->add_option("--optics", sp->optics,
+                 "Image model of the fit: rays (a Gaussian PSF stands in for diffraction) or mie "
+                 "(the exact wave image of the drop, docs/wave-optics.md; the PSF is then the "
+                 "camera's blur beyond diffraction)")
+      ->check(CLI::IsMember({"rays", "mie"}))
+      ->capture_default_str();
   sc->add_option("--threads", sp->threads, "Threads (0 = all cores)")->capture_default_str();
   sc->callback([sp, exit_code] {
     *exit_code = RunGuarded([&] {

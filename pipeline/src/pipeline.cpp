@@ -60,6 +60,11 @@ PipelineFile ReadPipelineFile(const std::string& path) {
       cal.Fail("sphere_planes_um", "needs 'sphere' (the drop's focus-scan folder)");
     c.sphere_planes_um = cal.Numbers("sphere_planes_um", 1, 64);
   }
+  if (cal.Has("sphere_optics")) {
+    if (!cal.Has("sphere"))
+      cal.Fail("sphere_optics", "needs 'sphere' (the drop's focus-scan folder)");
+    c.sphere_optics = cal.Choice("sphere_optics", {"rays", "mie"});
+  }
   cal.Finish();
   TomlReader ex = r.Table("experiment");
   c.experiment = rel(ex, "scan");
@@ -410,6 +415,7 @@ std::string CalibrationInputs(const RunInputs& in) {
       "|" + std::to_string(cfg.extrapolate_to_deg) + "|" + std::to_string(cfg.zones) + "|" +
       std::to_string(cfg.smoothness) + "|" + (cfg.sphere.empty() ? "" : FolderStamp(cfg.sphere));
   for (double d : cfg.sphere_planes_um) s += "|" + std::to_string(d);
+  if (cfg.sphere_optics != "rays") s += "|" + cfg.sphere_optics;
   return s;
 }
 
@@ -493,6 +499,7 @@ void Calibrate(const RunInputs& in, const fs::path& out, const fs::path& cal_fil
     so.output = cal_file.string();
     so.work_dir = (out / "sphere_calibration").string();
     so.planes_um = cfg.sphere_planes_um;
+    so.optics = cfg.sphere_optics;
     so.threads = opt.threads;
     so.progress = opt.progress;
     so.say = [&](const std::string& m) { steps.Say(m); };

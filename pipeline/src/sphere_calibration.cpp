@@ -68,7 +68,10 @@ struct Start {  // the scene's start values and the fitted keys
 
 // Start values: the nominal drop on the axis, water's index (IAPWS R9-97) at the metadata's
 // temperature and the calibration's wavelength, the edge 1 deg beyond the NA and 1 deg wide,
-// a diffraction-limited PSF (Gaussian approximation of the Airy core, sigma = 0.21 lambda/NA).
+// a diffraction-limited PSF (Gaussian approximation of the Airy core, sigma = 0.21 lambda/NA;
+// Zhang, Zerubia and Olivo-Marin, Appl. Opt. 46, 1819 (2007)) for the rays. The wave model
+// images diffraction itself, so its PSF is only the camera's blur beyond it: a small start,
+// 0.05 lambda/NA, away from zero, where a Gaussian blur's derivative in sigma vanishes.
 Start StartValues(const CalibrationData& base, const ExperimentMetadata& ex, double radius,
                   const SphereCalibrationOptions& o) {
   Start s;
@@ -78,7 +81,7 @@ Start StartValues(const CalibrationData& base, const ExperimentMetadata& ex, dou
                   base.wavelength_um)
                   .n;
   const double na_deg = std::asin(base.na_limit) / kDeg;
-  s.psf_sigma_um = 0.21 * base.wavelength_um / base.na;
+  s.psf_sigma_um = (o.optics == "mie" ? 0.05 : 0.21) * base.wavelength_um / base.na;
   s.edge_deg = na_deg + 1;
   s.free = {{"object.drop.center_um[0]", -radius / 4, radius / 4, 0.2},
             {"object.drop.center_um[1]", -radius / 4, radius / 4, 0.2},
@@ -135,15 +138,18 @@ void WriteSceneAndFitFile(const fs::path& work, const SphereCalibrationOptions& 
                                      {"step", Sig10(f.step)}});
   toml::array fractions;
   for (double f : o.fractions) fractions.push_back(Sig10(f));
-  const toml::table fit{{"scene", "scene.toml"},
-                        {"method", "lm"},
-                        {"error", "poisson"},
-                        {"seed", int64_t(o.seed)},
-                        {"image", std::move(images)},
-                        {"parameter", std::move(parameters)},
-                        {"rays", toml::table{{"ray_factor", Sig10(o.ray_factor)},
-                                             {"fractions", std::move(fractions)}}},
-                        {"uncertainty", toml::table{{"repeat_seeds", 0}, {"slice_points", 0}}}};
+  toml::table fit{{"scene", "scene.toml"},
+                  {"method", "lm"},
+                  {"error", "poisson"},
+                  {"seed", int64_t(o.seed)},
+                  {"image", std::move(images)},
+                  {"parameter", std::move(parameters)},
+                  {"uncertainty", toml::table{{"repeat_seeds", 0}, {"slice_points", 0}}}};
+  if (o.optics == "rays")
+    fit.insert("rays", toml::table{{"ray_factor", Sig10(o.ray_factor)},
+                                   {"fractions", std::move(fractions)}});
+  else
+    fit.insert("optics", o.optics);  // an exact image: no ray levels
   WriteToml(work / "fit.toml",
             "# Written by `raymatch calibrate sphere` (docs/calibration.md): the drop's five "
             "parameters and\n# the light field's edge beyond the NA and the PSF, from " +
@@ -182,7 +188,8 @@ void WriteCalibratedFile(const SphereCalibrationOptions& o, const CalibrationDat
   rec.precision(6);
   rec << "fit of " << fs::absolute(o.scan_folder).string() << " planes";
   for (size_t i : planes) rec << " " << scan.defocus_um[i];
-  rec << " um: " << fit::StatusName(fr.status) << "; " << fr.goodness.verdict << ";";
+  rec << " um with the " << (o.optics == "mie" ? "wave model (optics mie)" : "rays") << ": "
+      << fit::StatusName(fr.status) << "; " << fr.goodness.verdict << ";";
   for (const auto& v : res.values)
     rec << " " << v.key << " = " << FormatValue(v.value, v.sigma) << " +- "
         << FormatUncertainty(v.sigma) << ";";
@@ -207,6 +214,8 @@ std::string SphereCalibrationResult::Brief() const {
 
 SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
   const auto t0 = std::chrono::steady_clock::now();
+  if (o.optics != "rays" && o.optics != "mie")
+    throw Error("calibrate sphere: optics must be \"rays\" or \"mie\", not \"" + o.optics + "\"");
   auto say = [&](const std::string& s) {
     if (o.say) o.say(s);
   };
@@ -231,7 +240,7 @@ SphereCalibrationResult CalibrateSphere(const SphereCalibrationOptions& o) {
   msg << "sphere calibration: " << start.free.size() << " parameters from " << planes.size()
       << " planes (";
   for (size_t k = 0; k < planes.size(); ++k) msg << (k ? ", " : "") << scan.defocus_um[planes[k]];
-  msg << " um) of " << o.scan_folder;
+  msg << " um) of " << o.scan_folder << (o.optics == "mie" ? ", wave model" : ", rays");
   say(msg.str());
   const fit::FitSpec spec = fit::LoadFitSpec((work / "fit.toml").string());
   fit::FitOptions fo;

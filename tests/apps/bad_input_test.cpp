@@ -213,6 +213,31 @@ std::string SamplePipeline(const testing::TempDir& dir, const std::string& fits)
           fits);
 }
 
+// The sphere calibration's image model: a choice other than "rays" or "mie", or one without a
+// sphere folder, is refused at its key before anything is made.
+TEST(BadInputCli, RunChecksTheSphereCalibrationsOptics) {
+  testing::TempDir dir;
+  const std::string pipeline = SamplePipeline(dir, "");
+  std::ifstream pin(pipeline);
+  std::stringstream ps;
+  ps << pin.rdbuf();
+  const std::string text = ps.str(), sphere = "sphere = \"drop46\"\n";
+  ASSERT_NE(text.find(sphere), std::string::npos) << text;
+  std::string waves = text, alone = text;
+  waves.insert(waves.find(sphere) + sphere.size(), "sphere_optics = \"waves\"\n");
+  alone.replace(alone.find(sphere), sphere.size(), "sphere_optics = \"mie\"\n");
+  CliRun r = Raymatch("run " + dir.Write("waves.toml", waves) + " -q -o " + (dir / "out/run"), dir);
+  EXPECT_EQ(r.code, 3) << r.err;
+  EXPECT_TRUE(Has(r.err, "waves.toml")) << r.err;
+  EXPECT_TRUE(Has(r.err, "sphere_optics")) << r.err;
+  EXPECT_TRUE(Has(r.err, "mie")) << r.err;
+  r = Raymatch("run " + dir.Write("alone.toml", alone) + " -q -o " + (dir / "out/run"), dir);
+  EXPECT_EQ(r.code, 3) << r.err;
+  EXPECT_TRUE(Has(r.err, "sphere_optics")) << r.err;
+  EXPECT_TRUE(Has(r.err, "needs 'sphere'")) << r.err;
+  EXPECT_FALSE(fs::exists(dir / "out")) << r.err;
+}
+
 // Defect 3 for `run`: every input (the mesh object's mesh, the fit files and their images) is
 // checked before the output folder is made.
 TEST(BadInputCli, RunChecksEveryInputBeforeMakingItsFolder) {

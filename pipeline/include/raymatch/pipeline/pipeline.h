@@ -52,9 +52,11 @@ struct PipelineFile {
   std::string output = "out/pipeline";  ///< relative to the working directory
   std::string lightfield, flatfield;    ///< [calibration] lightfield, corrector
   /// [calibration] sphere: a drop's focus-scan folder for `calibrate sphere` (empty: none), and
-  /// sphere_planes_um: the planes it fits (empty: its default pair).
+  /// sphere_planes_um: the planes it fits (empty: its default pair); sphere_optics: its image
+  /// model ("rays" or "mie").
   std::string sphere;
   std::vector<double> sphere_planes_um;
+  std::string sphere_optics = "rays";
   std::string experiment;  ///< [experiment] scan
   std::string merging;     ///< [experiment] mesh_object (empty: none)
   double extrapolate_to_deg = 0;

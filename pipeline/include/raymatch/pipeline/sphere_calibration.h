@@ -29,8 +29,14 @@ struct SphereCalibrationOptions {
   /// bounds) and 0.6 deg in half-angle, the drop's index 2 sigma off; fixed, every drop
   /// parameter within 1 sigma (docs/calibration.md, "Sphere calibration").
   bool fit_width = false;
-  bool fit_psf = true;   ///< free the PSF sigma (else fixed at 0.21 lambda / NA)
+  /// Free the PSF sigma (else fixed at its start: 0.21 lambda / NA with the rays, 0.05 lambda /
+  /// NA with the wave model).
+  bool fit_psf = true;
   bool fit_tilt = true;  ///< free the edge axis' tilt [x, y] (else fixed at 0)
+  /// The fit's image model: "rays" (the tracer, with a Gaussian PSF standing in for the
+  /// objective's diffraction too) or "mie" (the exact wave image of the sphere,
+  /// docs/wave-optics.md: the PSF is then the camera's own blur beyond diffraction).
+  std::string optics = "rays";
   uint64_t seed = 5;
   int threads = 0;
   bool progress = false;

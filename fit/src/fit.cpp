@@ -455,11 +455,13 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
     ceres::Solve(so, &problem, &sum);
     term = sum.termination_type;
     if (record)
-      run.Say("level " + std::to_string(f + 1) + " (ray fraction " +
-              Fmt(spec.rays.fractions[f], 3) + ", bin " + std::to_string(run.model().BinAt(f)) +
-              "): " + std::to_string(sum.iterations.size()) + " iterations, deviance " +
-              Fmt(2 * sum.initial_cost) + " -> " + Fmt(2 * sum.final_cost) + ", " +
-              std::to_string(run.Count() - level_start) + " evaluations");
+      run.Say(
+          "level " + std::to_string(f + 1) + " (" +
+          (spec.exact_images ? "exact image" : "ray fraction " + Fmt(spec.rays.fractions[f], 3)) +
+          ", bin " + std::to_string(run.model().BinAt(f)) +
+          "): " + std::to_string(sum.iterations.size()) + " iterations, deviance " +
+          Fmt(2 * sum.initial_cost) + " -> " + Fmt(2 * sum.final_cost) + ", " +
+          std::to_string(run.Count() - level_start) + " evaluations");
     ok = ok && sum.IsSolutionUsable();
     if (record && std::all_of(flat.begin(), flat.end(), [](bool b) { return b; })) break;
   }

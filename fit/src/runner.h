@@ -135,12 +135,15 @@ class Runner {
     const double now = Since(t0_);
     if (opt_.progress && now - last_progress_ >= (tty_ ? 0.5 : 10.0)) {
       last_progress_ = now;
+      // An exact image model has no rays: its fractions only name the levels.
+      const std::string model =
+          spec_.exact_images ? "exact image" : "ray fraction " + Fmt(fraction, 3);
       std::fprintf(stderr,
                    "%sraymatch fit: %-8s eval %4zu of at most %d  error %-12s best %-12s "
-                   "ray fraction %-6s  %.0f s%s",
+                   "%-19s  %.0f s%s",
                    tty_ ? "\r\033[K" : "", StageName(stage), res_->evaluations.size(),
                    spec_.max_evaluations, Fmt(ev.error).c_str(), Fmt(best_error_).c_str(),
-                   Fmt(fraction, 3).c_str(), now, tty_ ? "" : "\n");
+                   model.c_str(), now, tty_ ? "" : "\n");
       std::fflush(stderr);
     }
     return mu;

@@ -108,30 +108,35 @@ nlohmann::json MieSampling::ToJson() const {
           {"size_parameter", size_parameter}};
 }
 
-struct MieImager::Impl {
-  Scene scene;
-  MieSettings set;
-  double k = 0;  // wavenumber in the medium (rad / um)
+/// What the render reads besides the harmonics: the sphere's place, the pupil, the sensor's map
+/// and the illumination's spatial envelope. A spectrum's wavelengths share it.
+struct RenderGeometry {
   double lambda_medium = 0;
   double s_na = 0;    // sin of the objective's acceptance angle in the medium
   double radius = 0;  // sphere radius
   Vec3 center;
-  MieCoefficients mie;
-  MieTable table;
-  std::vector<Node> nodes;
   int harmonics = 0;
   // Corrector: zone outer edges in sin(theta) and intensity transmissions (empty: none).
   std::vector<double> zone_s, zone_t;
-  // The pupil as zones in sin(theta): outer edges (the last is the NA) and amplitudes sqrt(T).
-  std::vector<double> pupil_edges, pupil_amp;
-  double flat = 0;   // flat-field flux (source units)
-  double scale = 1;  // photons per pixel per flat-field unit
   double magnification = 1;
   double sensor_sign = -1;  // sign x M: sensor coordinate per object coordinate
   // Spatial envelope (light field's spatial map; empty: uniform).
   Image spatial;
   double sp_x0 = 0, sp_y0 = 0, sp_w = 0, sp_h = 0, spatial_mean = 1;
   bool spatial_clamp = false;
+};
+
+struct MieImager::Impl : RenderGeometry {
+  Scene scene;
+  MieSettings set;
+  double k = 0;  // wavenumber in the medium (rad / um)
+  MieCoefficients mie;
+  MieTable table;
+  std::vector<Node> nodes;
+  // The pupil as zones in sin(theta): outer edges (the last is the NA) and amplitudes sqrt(T).
+  std::vector<double> pupil_edges, pupil_amp;
+  double flat = 0;   // flat-field flux (source units)
+  double scale = 1;  // photons per pixel per flat-field unit
   mutable MieSampling last;
   // A spectrum: one monochromatic imager per wavelength node, with its share of the power
   // (each normalised to the photon target, so the weighted sum is too); their nodes'
@@ -375,19 +380,7 @@ MieImager::MieImager(const Scene& scene, int stride, int offset) : impl_(std::ma
     im.interleave = S;
     // Rendered once from the wavelengths' summed harmonics (PatternAt), already in photons:
     // what the render reads is the wavelengths' common geometry, the flat field their sum.
-    const Impl& c0 = *im.wavelengths[0].second->impl_;
-    im.radius = c0.radius;
-    im.center = c0.center;
-    im.s_na = c0.s_na;
-    im.lambda_medium = c0.lambda_medium;
-    im.harmonics = c0.harmonics;
-    im.zone_s = c0.zone_s, im.zone_t = c0.zone_t;
-    im.magnification = c0.magnification;
-    im.sensor_sign = c0.sensor_sign;
-    im.spatial = c0.spatial;
-    im.sp_x0 = c0.sp_x0, im.sp_y0 = c0.sp_y0, im.sp_w = c0.sp_w, im.sp_h = c0.sp_h;
-    im.spatial_mean = c0.spatial_mean;
-    im.spatial_clamp = c0.spatial_clamp;
+    static_cast<RenderGeometry&>(im) = *im.wavelengths[0].second->impl_;
     im.scale = 1;
     im.flat = 0;
     for (const auto& [share, one] : im.wavelengths) {

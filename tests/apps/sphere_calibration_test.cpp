@@ -33,6 +33,15 @@ std::string Slurp(const std::string& path) {
   return s.str();
 }
 
+// `calibrate lightfield` on the sample's pinhole and cone images, into `out`.
+void CalibrateSampleLightField(const std::string& out, const std::string& log) {
+  ASSERT_EQ(Raymatch("calibrate lightfield " + std::string(RAYMATCH_SOURCE_DIR) +
+                         "/datasets-sample/lightfield -o " + out,
+                     log),
+            0)
+      << Slurp(log);
+}
+
 // The drop's five parameters, the PSF and the edge's tilt come out within 3 reported sigma of
 // the generator's truth (the sigmas include the fit's model-mismatch inflation, if any), every
 // nuisance is written into the calibration file with the fit's values, and the calibration's
@@ -42,9 +51,7 @@ TEST(SphereCalibration, ReducedSampleRecoversTheDropAndThePsf) {
   testing::TempDir dir;
   const std::string data = std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample",
                     log = dir / "log.txt";
-  ASSERT_EQ(Raymatch("calibrate lightfield " + data + "/lightfield -o " + (dir / "lf.toml"), log),
-            0)
-      << Slurp(log);
+  ASSERT_NO_FATAL_FAILURE(CalibrateSampleLightField(dir / "lf.toml", log));
   ASSERT_EQ(Raymatch("calibrate corrector " + data + "/flatfield --base " + (dir / "lf.toml") +
                          " -o " + (dir / "cal.toml"),
                      log),
@@ -121,9 +128,7 @@ TEST(SphereCalibration, WaveModelFitsAWaveImagedDropAndWritesItsCalibration) {
   testing::TempDir dir;
   const std::string data = std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample",
                     log = dir / "log.txt";
-  ASSERT_EQ(Raymatch("calibrate lightfield " + data + "/lightfield -o " + (dir / "lf.toml"), log),
-            0)
-      << Slurp(log);
+  ASSERT_NO_FATAL_FAILURE(CalibrateSampleLightField(dir / "lf.toml", log));
   const CalibrationData lf = ReadCalibrationFile(dir / "lf.toml");
   const double kDeg = 3.14159265358979323846 / 180, na_deg = std::asin(lf.na_limit) / kDeg;
   const double n_water = 1.33885;  // IAPWS R9-97 at 293.15 K and 0.462 um (the sample's truth)

@@ -9,10 +9,13 @@ continued by a soft edge 0.6 deg beyond the NA, 1 deg wide, its axis tilted [0.3
 pixel (--large: 64 x 64 pixels, planes -6, 0, +6 um fitted jointly, 2500 photons). The
 metadata gives the nominal diameter 0.02 um large and 293.15 K (water's index 0.0005 below the
 truth); the calibration starts the edge 1 deg beyond the NA, untilted, the PSF at 0.05 lambda/NA.
-With --from-truth the calibration's fit file is also run from the truth (the deviance the fit
-from the user's start can be compared with).
+With --from truth the calibration's fit file is also run from the truth (the deviance the fit
+from the user's start can be compared with); --from drop and --from nuisances start only the
+drop's five parameters, or only the edge, PSF and tilt, at the truth (the others at the
+calibration's starts).
 
-Usage: bench/calibrate_sphere_mie.py OUT [--seeds 1 2 3] [--large] [--from-truth] [--rays]
+Usage: bench/calibrate_sphere_mie.py OUT [--seeds 1 2 3] [--large] [--from truth drop nuisances]
+       [--rays]
 Prints per seed the errors in reported sigmas (x, y, z, radius, index, edge half-angle, PSF,
 tilt x, tilt y), the deviance against its expectation and the time.
 Environment: RAYMATCH (the executable; default build/release/apps/raymatch).
@@ -95,7 +98,9 @@ def main():
     ap.add_argument("out")
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5, 7])
     ap.add_argument("--large", action="store_true", help="64 x 64 pixels, 3 planes, 2500 photons")
-    ap.add_argument("--from-truth", action="store_true", help="also fit from the truth")
+    ap.add_argument("--from", dest="starts", nargs="+", default=[],
+                    choices=["truth", "drop", "nuisances"],
+                    help="also fit from these starts at the truth")
     ap.add_argument("--rays", action="store_true", help="calibrate with rays instead")
     a = ap.parse_args()
     os.makedirs(a.out, exist_ok=True)
@@ -128,11 +133,12 @@ def main():
         wall = time.time() - t0
         work = os.path.join(d, "sphere_sphere")
         print(f"{seed} | {line(json.load(open(os.path.join(work, 'fit.json'))), wall)}", flush=True)
-        if a.from_truth:  # the same fit file from the truth
+        for start in a.starts:  # the same fit file from (part of) the truth
             scene = open(os.path.join(work, "scene.toml")).read()
             for key, value in TRUTH.items():
-                scene = set_key(scene, key, value)
-            t = os.path.join(d, "from_truth")
+                if start == "truth" or (start == "drop") == key.startswith("object."):
+                    scene = set_key(scene, key, value)
+            t = os.path.join(d, "from_" + start)
             os.makedirs(t, exist_ok=True)
             with open(os.path.join(t, "scene.toml"), "w") as f:
                 f.write(scene)
@@ -142,7 +148,7 @@ def main():
             subprocess.run([RAYMATCH, "fit", "fit.toml", "-o", ".", "-q"], cwd=t,
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             wall = time.time() - t0
-            print(f"{seed} from the truth | "
+            print(f"{seed} from the truth ({start}) | "
                   f"{line(json.load(open(os.path.join(t, 'fit.json'))), wall)}", flush=True)
     return 0
 

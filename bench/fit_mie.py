@@ -18,7 +18,8 @@ points of 1.30-1.45, the radius over 0.01 um steps), then hops of the radius by 
 spacing, lambda / (2 pi) arctan(q) / q with q = sqrt(n^2 - 1) (`hop`, `hop_step`; --no-hop
 leaves them out). Prints per key the mean error and RMS
 error in Cramer-Rao bounds, RMS(error / reported sigma), the goodness-of-fit verdicts and the
-time per fit.
+time per fit. The model's sampling is right for case 1 only: case 2's minimum moves with it
+(docs/wave-optics.md, "Case 2 needs a finer model than case 1").
 
 Usage: bench/fit_mie.py OUT [--case 1] [--k 16] [--seed-base 200]
 Writes OUT/k<i>/ (experiment, scene, fit) and OUT/summary.json; prints a Markdown table.

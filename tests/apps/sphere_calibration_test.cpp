@@ -42,6 +42,17 @@ void CalibrateSampleLightField(const std::string& out, const std::string& log) {
       << Slurp(log);
 }
 
+// A fitted nuisance's value as the calibration file carries it (12 significant digits: equal to
+// 1e-9); the drop's keys are not written.
+void ExpectWrittenIntoTheCalibration(const CalibrationData& cal, const std::string& key,
+                                     double best) {
+  if (key == "camera.psf_sigma_um") EXPECT_NEAR(cal.psf_sigma_um, best, 1e-9);
+  if (key == "light_field_edge.half_angle_deg") EXPECT_NEAR(cal.edge_half_angle_deg, best, 1e-9);
+  if (key == "light_field_edge.width_deg") EXPECT_NEAR(cal.edge_width_deg, best, 1e-9);
+  if (key == "light_field_edge.tilt_deg[0]") EXPECT_NEAR(cal.edge_tilt_deg[0], best, 1e-9);
+  if (key == "light_field_edge.tilt_deg[1]") EXPECT_NEAR(cal.edge_tilt_deg[1], best, 1e-9);
+}
+
 // The drop's five parameters, the PSF and the edge's tilt come out within 3 reported sigma of
 // the generator's truth (the sigmas include the fit's model-mismatch inflation, if any), every
 // nuisance is written into the calibration file with the fit's values, and the calibration's
@@ -85,7 +96,6 @@ TEST(SphereCalibration, ReducedSampleRecoversTheDropAndThePsf) {
   const auto j = nlohmann::json::parse(js);
   const CalibrationData cal = ReadCalibrationFile(dir / "sphere.toml");
   size_t checked = 0;
-  // (The calibration file keeps 12 significant digits: equal to 1e-9.)
   for (const auto& p : j["parameters"]) {
     const std::string key = p["key"];
     const double best = p["best"], sigma = p["sigma"];
@@ -101,11 +111,7 @@ TEST(SphereCalibration, ReducedSampleRecoversTheDropAndThePsf) {
           << key << " = " << best << " +- " << sigma;
       ++checked;
     }
-    if (key == "camera.psf_sigma_um") EXPECT_NEAR(cal.psf_sigma_um, best, 1e-9);
-    if (key == "light_field_edge.half_angle_deg") EXPECT_NEAR(cal.edge_half_angle_deg, best, 1e-9);
-    if (key == "light_field_edge.width_deg") EXPECT_NEAR(cal.edge_width_deg, best, 1e-9);
-    if (key == "light_field_edge.tilt_deg[0]") EXPECT_NEAR(cal.edge_tilt_deg[0], best, 1e-9);
-    if (key == "light_field_edge.tilt_deg[1]") EXPECT_NEAR(cal.edge_tilt_deg[1], best, 1e-9);
+    ExpectWrittenIntoTheCalibration(cal, key, best);
   }
   EXPECT_EQ(checked, want.size() + 2);
   EXPECT_EQ(j["parameters"].size(), 9u);  // five of the drop, edge half-angle, PSF, tilt x and y
@@ -194,10 +200,7 @@ TEST(SphereCalibration, WaveModelFitsAWaveImagedDropAndWritesItsCalibration) {
           << key << " = " << best << " +- " << sigma;
       ++checked;
     }
-    if (key == "camera.psf_sigma_um") EXPECT_NEAR(cal.psf_sigma_um, best, 1e-9);
-    if (key == "light_field_edge.half_angle_deg") EXPECT_NEAR(cal.edge_half_angle_deg, best, 1e-9);
-    if (key == "light_field_edge.tilt_deg[0]") EXPECT_NEAR(cal.edge_tilt_deg[0], best, 1e-9);
-    if (key == "light_field_edge.tilt_deg[1]") EXPECT_NEAR(cal.edge_tilt_deg[1], best, 1e-9);
+    ExpectWrittenIntoTheCalibration(cal, key, best);
   }
   EXPECT_EQ(checked, 2u);
   EXPECT_EQ(j["parameters"].size(), want.size());

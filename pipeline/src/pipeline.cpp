@@ -55,16 +55,16 @@ PipelineFile ReadPipelineFile(const std::string& path) {
   c.zones = int(cal.Integer("zones", 9, 1, 64));
   c.smoothness = cal.Number("smoothness", 0);
   if (cal.Has("sphere")) c.sphere = rel(cal, "sphere");
-  if (cal.Has("sphere_planes_um")) {
-    if (!cal.Has("sphere"))
-      cal.Fail("sphere_planes_um", "needs 'sphere' (the drop's focus-scan folder)");
+  // The sphere calibration's settings, each refused without the drop it would calibrate with.
+  auto sphere_setting = [&](const std::string& key) {
+    if (!cal.Has(key)) return false;
+    if (!cal.Has("sphere")) cal.Fail(key, "needs 'sphere' (the drop's focus-scan folder)");
+    return true;
+  };
+  if (sphere_setting("sphere_planes_um"))
     c.sphere_planes_um = cal.Numbers("sphere_planes_um", 1, 64);
-  }
-  if (cal.Has("sphere_optics")) {
-    if (!cal.Has("sphere"))
-      cal.Fail("sphere_optics", "needs 'sphere' (the drop's focus-scan folder)");
+  if (sphere_setting("sphere_optics"))
     c.sphere_optics = cal.Choice("sphere_optics", {"rays", "mie"});
-  }
   cal.Finish();
   TomlReader ex = r.Table("experiment");
   c.experiment = rel(ex, "scan");

@@ -136,8 +136,6 @@ void WriteSceneAndFitFile(const fs::path& work, const SphereCalibrationOptions& 
                                      {"lower", Sig10(f.lower)},
                                      {"upper", Sig10(f.upper)},
                                      {"step", Sig10(f.step)}});
-  toml::array fractions;
-  for (double f : o.fractions) fractions.push_back(Sig10(f));
   toml::table fit{{"scene", "scene.toml"},
                   {"method", "lm"},
                   {"error", "poisson"},
@@ -145,11 +143,14 @@ void WriteSceneAndFitFile(const fs::path& work, const SphereCalibrationOptions& 
                   {"image", std::move(images)},
                   {"parameter", std::move(parameters)},
                   {"uncertainty", toml::table{{"repeat_seeds", 0}, {"slice_points", 0}}}};
-  if (o.optics == "rays")
+  if (o.optics == "rays") {
+    toml::array fractions;
+    for (double f : o.fractions) fractions.push_back(Sig10(f));
     fit.insert("rays", toml::table{{"ray_factor", Sig10(o.ray_factor)},
                                    {"fractions", std::move(fractions)}});
-  else
+  } else {
     fit.insert("optics", o.optics);  // an exact image: no ray levels
+  }
   WriteToml(work / "fit.toml",
             "# Written by `raymatch calibrate sphere` (docs/calibration.md): the drop's five "
             "parameters and\n# the light field's edge beyond the NA and the PSF, from " +

@@ -9,6 +9,7 @@
 #include <random>
 #include <sstream>
 
+#include "raymatch/core/html.h"  // ReadFileBytes
 #include "raymatch/core/image.h"
 #include "raymatch/core/image_io.h"
 #include "shell.h"
@@ -200,13 +201,6 @@ TEST(BadInputCli, FitRefusesImagesWithoutUsableLight) {
   EXPECT_TRUE(fs::exists(dir / "ok/fit.json")) << ok.err;
 }
 
-std::string ReadText(const std::string& path) {
-  std::ifstream in(path);
-  std::stringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
-
 /// A copy of the sample's input folders (not the large ones) with `edit` applied, and its pipeline.
 std::string SamplePipeline(const testing::TempDir& dir, const std::string& fits) {
   const fs::path src = fs::path(RAYMATCH_SOURCE_DIR) / "datasets-sample";
@@ -225,7 +219,7 @@ std::string SamplePipeline(const testing::TempDir& dir, const std::string& fits)
 TEST(BadInputCli, RunChecksTheSphereCalibrationsOptics) {
   testing::TempDir dir;
   const std::string pipeline = SamplePipeline(dir, "");
-  const std::string text = ReadText(pipeline), sphere = "sphere = \"drop46\"\n";
+  const std::string text = ReadFileBytes(pipeline), sphere = "sphere = \"drop46\"\n";
   ASSERT_NE(text.find(sphere), std::string::npos) << text;
   std::string waves = text, alone = text;
   waves.insert(waves.find(sphere) + sphere.size(), "sphere_optics = \"waves\"\n");
@@ -249,7 +243,7 @@ TEST(BadInputCli, RunChecksEveryInputBeforeMakingItsFolder) {
   const std::string pipeline = SamplePipeline(dir, "[fit]\nfiles = [\"fit/sphere.toml\"]\n");
   // The sample's sphere fit frees the light field's edge with the sphere calibration as its
   // prior: a pipeline without that calibration is refused naming the fit file and the key.
-  std::string no_sphere = ReadText(pipeline);
+  std::string no_sphere = ReadFileBytes(pipeline);
   no_sphere.replace(no_sphere.find("sphere = \"drop46\"\n"), 18, "");
   const std::string pipeline2 = dir.Write("pipeline_no_sphere.toml", no_sphere);
   CliRun r = Raymatch("run " + pipeline2 + " -q -o " + (dir / "out/run"), dir);

@@ -11,9 +11,9 @@
 #include <fstream>
 #include <map>
 #include <nlohmann/json.hpp>
-#include <sstream>
 
 #include "raymatch/core/calibration_file.h"
+#include "raymatch/core/html.h"  // ReadFileBytes
 #include "raymatch/core/toml_reader.h"
 #include "temp_dir.h"
 
@@ -26,20 +26,13 @@ int Raymatch(const std::string& args, const std::string& log) {
   return std::system((std::string(RAYMATCH_BIN) + " " + args + " >>" + log + " 2>&1").c_str());
 }
 
-std::string Slurp(const std::string& path) {
-  std::ifstream in(path);
-  std::stringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
-
 // `calibrate lightfield` on the sample's pinhole and cone images, into `out`.
 void CalibrateSampleLightField(const std::string& out, const std::string& log) {
   ASSERT_EQ(Raymatch("calibrate lightfield " + std::string(RAYMATCH_SOURCE_DIR) +
                          "/datasets-sample/lightfield -o " + out,
                      log),
             0)
-      << Slurp(log);
+      << ReadFileBytes(log);
 }
 
 // A fitted nuisance's value as the calibration file carries it (12 significant digits: equal to
@@ -67,12 +60,12 @@ TEST(SphereCalibration, ReducedSampleRecoversTheDropAndThePsf) {
                          " -o " + (dir / "cal.toml"),
                      log),
             0)
-      << Slurp(log);
+      << ReadFileBytes(log);
   ASSERT_EQ(Raymatch("calibrate sphere " + data + "/drop46 --base " + (dir / "cal.toml") + " -o " +
                          (dir / "sphere.toml"),
                      log),
             0)
-      << Slurp(log);
+      << ReadFileBytes(log);
   const toml::table truth = ParseTomlFile(data + "/truth.toml");
   double want_tilt[2] = {0, 0};
   auto t = [&](const char* table, const char* key) {
@@ -92,7 +85,7 @@ TEST(SphereCalibration, ReducedSampleRecoversTheDropAndThePsf) {
   want_tilt[0] = std::asin(std::sin(tilt) * std::cos(az)) / kDeg;
   want_tilt[1] = std::asin(std::sin(tilt) * std::sin(az)) / kDeg;
   std::ifstream js(dir / "sphere_sphere/fit.json");
-  ASSERT_TRUE(js.good()) << Slurp(log);
+  ASSERT_TRUE(js.good()) << ReadFileBytes(log);
   const auto j = nlohmann::json::parse(js);
   const CalibrationData cal = ReadCalibrationFile(dir / "sphere.toml");
   size_t checked = 0;
@@ -132,8 +125,7 @@ TEST(SphereCalibration, ReducedSampleRecoversTheDropAndThePsf) {
 // radius-index valley on about half the noise seeds (docs/calibration.md, the table there).
 TEST(SphereCalibration, WaveModelFitsAWaveImagedDropAndWritesItsCalibration) {
   testing::TempDir dir;
-  const std::string data = std::string(RAYMATCH_SOURCE_DIR) + "/datasets-sample",
-                    log = dir / "log.txt";
+  const std::string log = dir / "log.txt";
   ASSERT_NO_FATAL_FAILURE(CalibrateSampleLightField(dir / "lf.toml", log));
   const CalibrationData lf = ReadCalibrationFile(dir / "lf.toml");
   const double kDeg = 3.14159265358979323846 / 180, na_deg = std::asin(lf.na_limit) / kDeg;
@@ -162,7 +154,7 @@ TEST(SphereCalibration, WaveModelFitsAWaveImagedDropAndWritesItsCalibration) {
        << "[scan]\ndefocus_um = [-4, 4]\n";
   }
   ASSERT_EQ(Raymatch("simulate " + (drop / "truth.toml").string() + " -o " + drop.string(), log), 0)
-      << Slurp(log);
+      << ReadFileBytes(log);
   {
     std::ofstream csv(drop / "scan.csv");
     csv << "defocus_um,file\n-4,wave_z-004.00um.tif\n4,wave_z+004.00um.tif\n";
@@ -177,12 +169,13 @@ TEST(SphereCalibration, WaveModelFitsAWaveImagedDropAndWritesItsCalibration) {
                          (dir / "lf.toml") + " -o " + (dir / "sphere.toml"),
                      log),
             0)
-      << Slurp(log);
+      << ReadFileBytes(log);
   std::ifstream js(dir / "sphere_sphere/fit.json");
-  ASSERT_TRUE(js.good()) << Slurp(log);
+  ASSERT_TRUE(js.good()) << ReadFileBytes(log);
   const auto j = nlohmann::json::parse(js);
   EXPECT_EQ(j["optics"], "mie");
-  EXPECT_NE(Slurp(dir / "sphere_sphere/fit.toml").find("optics = 'mie'"), std::string::npos);
+  EXPECT_NE(ReadFileBytes(dir / "sphere_sphere/fit.toml").find("optics = 'mie'"),
+            std::string::npos);
   const auto& g = j["goodness_of_fit"];
   EXPECT_FALSE(g["model_mismatch"].get<bool>()) << g.dump();
   EXPECT_LT(std::abs(g["deviance"].get<double>() - g["expected_deviance"].get<double>()),

@@ -593,14 +593,19 @@ FitResult RunFitFromStart(const FitSpec& spec, const FitOptions& options) {
     best_sim = run.Images(best, final_level, spec.seed, Stage::kBest, &e);
     res.best_images = best_sim.photons;
   }
+  // The images shown, in the residuals and to the goodness of fit: the mean of the derivative
+  // sets' images at the estimate where there is one (S times less template noise than the main
+  // streams' image alone), else the main streams'.
+  const bool mean = !od.mean_sim.photons.empty();
+  if (mean) res.best_images = od.mean_sim.photons;
+  const double template_variance = 1 / (spec.RaysPerPhoton() * (mean ? double(od.mean_sets) : 1));
   for (size_t k = 0; k < res.best_images.size(); ++k) {
     const Image& mu = res.best_images[k];
     const Image& ex = spec.images[k].photons;
     const double read2 = spec.images[k].read_noise_e * spec.images[k].read_noise_e;
     Image r(mu.width, mu.height);
     for (size_t q = 0; q < mu.size(); ++q) {
-      const double var =
-          std::max(1.0, double(mu.pixels[q])) * (1 + 1 / spec.RaysPerPhoton()) + read2;
+      const double var = std::max(1.0, double(mu.pixels[q])) * (1 + template_variance) + read2;
       r.pixels[q] = static_cast<float>((double(mu.pixels[q]) - ex.pixels[q]) / std::sqrt(var));
     }
     res.residuals.push_back(std::move(r));
@@ -612,7 +617,8 @@ FitResult RunFitFromStart(const FitSpec& spec, const FitOptions& options) {
     // them by the square root of the reduced deviance (or of the residuals' reduced block
     // chi-square, when the misfit is spatially coherent), as a least-squares fit scales by
     // sqrt(chi^2 / dof) (PDG, Review of Particle Physics, "Statistics", scale factor).
-    res.goodness = model.Goodness(best_sim, model.BinAt(final_level), P);
+    res.goodness = model.Goodness(mean ? od.mean_sim : best_sim, model.BinAt(final_level), P);
+    res.goodness.template_sets = mean ? od.mean_sets : 1;
     if (res.goodness.mismatch) {
       for (ParameterResult& p : res.parameters) p.sigma *= res.goodness.sigma_inflation;
       res.message += "; " + res.goodness.verdict;

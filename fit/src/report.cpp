@@ -60,7 +60,11 @@ static std::string GoodnessHtml(const GoodnessOfFit& g) {
     << "</td><td>0</td><td>" << Num(g.neighbour_z, 3)
     << "</td></tr></table>\n<p>Sigma inflation factor " << Num(g.sigma_inflation, 3)
     << " (applied to the reported sigma when the model does not describe "
-       "the image; see docs/fit.md, \"Goodness of fit\").</p>\n";
+       "the image; see docs/fit.md, \"Goodness of fit\"). The model image tested: "
+    << (g.template_sets > 1 ? "the mean of " + std::to_string(g.template_sets) +
+                                  " independent ray-stream sets' images at the estimate"
+                            : std::string("the main ray streams' image at the estimate"))
+    << ".</p>\n";
   return h.str();
 }
 
@@ -81,6 +85,7 @@ nlohmann::json GoodnessJson(const GoodnessOfFit& g) {
           {"neighbour_z", J(g.neighbour_z)},
           {"model_mismatch", g.mismatch},
           {"sigma_inflation", J(g.sigma_inflation)},
+          {"template_sets", g.template_sets},
           {"verdict", g.verdict}};
 }
 

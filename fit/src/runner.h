@@ -250,6 +250,10 @@ struct OptimumDerivatives {
   Differences half_a,
       half_b;           // averages of the even and the odd sets (the first is the main streams)
   Simulated final_sim;  // the main streams' images at the final steps' root (empty: none)
+  // The mean of the derivative sets' images at the estimate, photons per ray divided by their
+  // number (empty: exact images, or no sets): the goodness of fit's template.
+  Simulated mean_sim;
+  size_t mean_sets = 0;
   // The equation's derivative images (J~_a + J~_b, the columns chosen): the
   // profile-likelihood paths' score (FitModel::PoissonScore).
   std::vector<std::vector<Image>> score_dmu;

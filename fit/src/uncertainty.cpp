@@ -423,6 +423,27 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     double e = 0;
     od.final_sim = run.Images(best, final_level, spec.seed, Stage::kFinal, &e);
   }
+  // The goodness of fit's template: the mean of the sets' images at the estimate (the main
+  // streams' among them; the steps' last images where they ended there). One set's image carries
+  // Poisson noise of w photons per ray, a share of the residuals' variance that the tests allow
+  // for but that varies with the streams: the tests' value then depends on the seed more than
+  // their null distribution says. The mean of S independent ones carries w / S.
+  if (!spec.exact_images && res.status != FitStatus::kFlat && spec.uncertainties && run.Budget()) {
+    Simulated first;
+    std::vector<Images> at;
+    for (size_t s = 0; s < s_all && run.Budget(); ++s) {
+      Simulated sim = run.Images(best, final_level, spec.seed + kDerivativeSetSeedStride * s,
+                                 Stage::kFinal, nullptr);
+      at.push_back(sim.photons);
+      if (s == 0) first = std::move(sim);
+    }
+    if (at.size() == s_all) {
+      od.mean_sim = std::move(first);
+      od.mean_sim.photons = MeanImages(at, 0, 1);
+      for (double& w : od.mean_sim.photons_per_ray) w /= double(s_all);
+      od.mean_sets = s_all;
+    }
+  }
   return od;
 }
 
@@ -523,6 +544,11 @@ Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vec
         "; the curvature does not determine every parameter (information matrix not "
         "positive definite): their uncertainties are not reported";
   }
+  if (spec.cramer_rao && crb.empty() && !cov.empty())
+    res.message +=
+        "; no Cramer-Rao bound: the information from the two independent halves of the "
+        "derivative sets is not positive definite (their ray noise along a weakly determined "
+        "direction; more jacobian_seeds or rays give one)";
   // Repeated fits with independent ray streams, from the optimum, at the final fraction.
   if (spec.repeat_seeds >= 2) {
     std::vector<std::vector<double>> reps;

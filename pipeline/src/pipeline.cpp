@@ -419,8 +419,9 @@ std::string CalibrationInputs(const RunInputs& in) {
   return s;
 }
 
-/// Bumped when what a fit step keeps for reuse (run_step.json) changes.
-constexpr int kFitStepModel = 1;
+/// Bumped when what a fit step keeps for reuse (run_step.json) changes, or what a fit makes of
+/// the same inputs (its estimate, images or verdict), so that no earlier raymatch's fit is reused.
+constexpr int kFitStepModel = 2;
 
 /// What a fit of the main job depends on: this raymatch, the fit file, its scene and every
 /// file the scene reads (this run's calibration among them), the images and dark frames.

@@ -328,6 +328,7 @@ void BindFit(py::module_& m) {
           gd["neighbour_z"] = g.neighbour_z;
           gd["model_mismatch"] = g.mismatch;
           gd["sigma_inflation"] = g.sigma_inflation;
+          gd["template_sets"] = g.template_sets;
           gd["verdict"] = g.verdict;
           d["goodness_of_fit"] = gd;
         }

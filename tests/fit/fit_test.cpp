@@ -876,6 +876,52 @@ TEST_F(FitFile, PilotRoundTakesTheDerivativeSetsOnceAtItsRoot) {
   }
 }
 
+// The goodness of fit, the best image and the residuals take the mean of the derivative sets'
+// images at the estimate: S times less template noise than the main streams' image alone
+// (whose noise, at a quarter of the photon-matched rays, is 4x the experiment's: the tests'
+// values then follow the seed more than their null distribution allows for). Recomputed here
+// from the model's images at the fit's estimate, set by set.
+TEST_F(FitFile, GoodnessOfFitTestsTheMeanOfTheDerivativeSetsImages) {
+  const FitSpec spec = FinalStepsSpec();
+  const FitResult r = RunFit(spec);
+  ASSERT_EQ(r.goodness.template_sets, 4u) << r.message;
+  std::vector<double> best;
+  for (const ParameterResult& p : r.parameters) best.push_back(p.best);
+  FitModel model(spec, 0, nullptr);
+  const size_t level = spec.rays.fractions.size() - 1;
+  Simulated mean, main;
+  for (uint64_t s = 0; s < 4; ++s) {
+    const Simulated one =
+        model.Expected(best, spec.rays.fractions[level],
+                       spec.seed + internal::kDerivativeSetSeedStride * s, nullptr);
+    if (s == 0) {
+      mean = main = one;
+      continue;
+    }
+    for (size_t i = 0; i < one.photons.size(); ++i)
+      for (size_t q = 0; q < one.photons[i].size(); ++q)
+        mean.photons[i].pixels[q] += one.photons[i].pixels[q];
+  }
+  for (Image& im : mean.photons)
+    for (float& v : im.pixels) v /= 4;
+  for (double& w : mean.photons_per_ray) w /= 4;
+  ASSERT_EQ(r.best_images.size(), mean.photons.size());
+  double off_main = 0;
+  for (size_t i = 0; i < mean.photons.size(); ++i)
+    for (size_t q = 0; q < mean.photons[i].size(); ++q) {
+      const double m = mean.photons[i].pixels[q];
+      ASSERT_NEAR(r.best_images[i].pixels[q], m, 1e-4 * std::max(1.0, m)) << "pixel " << q;
+      off_main = std::max(off_main, std::abs(double(main.photons[i].pixels[q]) - m));
+    }
+  EXPECT_GT(off_main, 5) << "the main streams' image alone must differ from the mean to tell";
+  const GoodnessOfFit g = model.Goodness(mean, model.BinAt(level), spec.parameters.size());
+  EXPECT_NEAR(r.goodness.deviance, g.deviance, 1e-6 * g.deviance);
+  EXPECT_NEAR(r.goodness.expected, g.expected, 1e-6 * g.expected);
+  EXPECT_NEAR(r.goodness.block_chi2, g.block_chi2, 1e-6 * g.block_chi2);
+  EXPECT_LT(r.goodness.expected, model.Goodness(main, model.BinAt(level), 2).expected)
+      << "S sets' mean carries less template noise than one set's image";
+}
+
 // The final steps' derivative sets (fit/src/uncertainty.cpp, FinalSteps; fit.cpp,
 // Differentiate): one-sided over half a step, forward in sets 0 and 3 and backward in sets 1
 // and 2, so that each half's mean (sets 0 + 2, 1 + 3) is a central difference and its

@@ -283,6 +283,9 @@ struct GoodnessOfFit {
   /// block chi-square when `mismatch`, else 1.
   double sigma_inflation = 1;
   std::string verdict;  ///< "consistent with the noise" or "model mismatch: ..."
+  /// Independent ray-stream sets whose mean image at the estimate is the template tested (the
+  /// derivative sets, `jacobian_seeds`; 1: the main streams' image alone).
+  size_t template_sets = 1;
 };
 
 struct FitResult {

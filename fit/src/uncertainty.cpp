@@ -418,7 +418,8 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     sets.clear();
     ++round;
   }
-  // The main streams' images at the root, for the report, the residuals and the goodness of fit.
+  // The main streams' images at the root: the uncertainties' template, and the report's, the
+  // residuals' and the goodness of fit's where the sets' mean below is not made.
   if (steps_ran && run.Budget()) {
     double e = 0;
     od.final_sim = run.Images(best, final_level, spec.seed, Stage::kFinal, &e);

@@ -273,6 +273,17 @@ void TabulatedImpl(const Table2D& t, size_t n, Rays* r) {
   }
 }
 
+void GaussianOffsetsImpl(double sigma, size_t n, Rays* r) {
+  const DF df;
+  const size_t N = hn::Lanes(df);
+  for (size_t i = 0; i < n; i += N) {  // kBatch is a multiple of N: whole vectors stay inside
+    hn::Vec<DF> du, dv;
+    st::GaussianPair<L>(hn::LoadU(df, r->psf_du + i), hn::LoadU(df, r->psf_dv + i), sigma, du, dv);
+    hn::StoreU(du, df, r->psf_du + i);
+    hn::StoreU(dv, df, r->psf_dv + i);
+  }
+}
+
 // Stores the lanes' outcomes and adds the lanes below n to the batch's summary (Rays).
 HWY_INLINE void Summarise(const Optics& o, hn::Vec<DF> out, size_t i, size_t n, Rays* r) {
   const DF df;
@@ -529,6 +540,7 @@ HWY_EXPORT(SampleSourceImpl);
 HWY_EXPORT(OpticsImpl);
 HWY_EXPORT(SphereImpl);
 HWY_EXPORT(TabulatedImpl);
+HWY_EXPORT(GaussianOffsetsImpl);
 
 void PhiloxWords(uint64_t seed, uint32_t stream, const uint64_t* rays, size_t n, Rays* r) {
   HWY_DYNAMIC_DISPATCH(PhiloxWordsImpl)(seed, stream, rays, n, r);
@@ -546,6 +558,9 @@ void OpticsAfterObjects(const Optics& o, size_t n, Rays* r) {
 void Sphere(const SphereParams& s, size_t n, Rays* r) { HWY_DYNAMIC_DISPATCH(SphereImpl)(s, n, r); }
 void Tabulated(const Table2D& t, size_t n, Rays* r) {
   HWY_DYNAMIC_DISPATCH(TabulatedImpl)(t, n, r);
+}
+void GaussianOffsets(double sigma, size_t n, Rays* r) {
+  HWY_DYNAMIC_DISPATCH(GaussianOffsetsImpl)(sigma, n, r);
 }
 const char* TargetName() {
   // The target HWY_DYNAMIC_DISPATCH uses: the best one both compiled and supported.

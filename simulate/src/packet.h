@@ -116,6 +116,9 @@ void NearTestAndOptics(const NearParams& near, const Optics& o, size_t n, Rays* 
 void Sphere(const SphereParams& s, size_t n, Rays* r);
 /// The optics for rays that left the objects at p along d (no source plane, no near tests).
 void OpticsAfterObjects(const Optics& o, size_t n, Rays* r);
+/// The uniforms (u1, u2) in psf_du, psf_dv of the first n rays, replaced by two independent
+/// normal offsets of standard deviation sigma (stages-inl.h, GaussianPair).
+void GaussianOffsets(double sigma, size_t n, Rays* r);
 /// The instruction set chosen at run time, e.g. "AVX3" (Highway's target name).
 const char* TargetName();
 

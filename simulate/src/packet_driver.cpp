@@ -1,6 +1,8 @@
 #include "packet_driver.h"
 
+#include <algorithm>
 #include <cmath>
+#include <iterator>
 
 namespace raymatch::simulate {
 
@@ -104,15 +106,17 @@ void CorrectorDraws(packet::Rays& r, size_t n, int skip) {
 }
 
 /// The camera PSF's offsets (Rays::psf_du, psf_dv) for the lanes still open: two words from
-/// `skip` past the cursor, through TraceRay's Box-Muller expression (the same operations in the
-/// same order, so that both paths put a ray on the same pixel).
+/// `skip` past the cursor, through the stage both paths run (stages-inl.h, GaussianPair), so
+/// that both put a ray on the same pixel. The words are gathered lane by lane, the offsets made
+/// a vector at a time.
 void PsfDraws(packet::Rays& r, size_t n, int skip, double sigma) {
+  std::fill(std::begin(r.psf_du), std::end(r.psf_du), 0.0);  // whole vectors read past n
+  std::fill(std::begin(r.psf_dv), std::end(r.psf_dv), 0.0);
   DrawForOpenLanes(r, n, skip, 2, [&](size_t i, int64_t k) {
-    const double rad = sigma * std::sqrt(-2 * std::log(1 - r.words[k][i] * 0x1p-32));
-    const double phi = 2 * M_PI * (r.words[k + 1][i] * 0x1p-32);
-    r.psf_du[i] = rad * std::cos(phi);
-    r.psf_dv[i] = rad * std::sin(phi);
+    r.psf_du[i] = r.words[k][i] * 0x1p-32;
+    r.psf_dv[i] = r.words[k + 1][i] * 0x1p-32;
   });
+  packet::GaussianOffsets(sigma, n, &r);
 }
 
 /// A batch's outcomes after NearTestAndOptics or OpticsAfterObjects into the image and the fate

@@ -331,6 +331,67 @@ HWY_INLINE void SensorPoint(const Optics& o, const Beam<L>& b, typename L::V& u,
   v = L::Sub(L::Mul(L::Set(o.sign), b.y), L::Set(o.off_y));
 }
 
+/// Two independent normal offsets of standard deviation sigma from two uniforms u1, u2 in
+/// [0, 1) (multiples of 2^-32), by the Box-Muller transform (Box & Muller 1958):
+/// r = sigma sqrt(-2 ln(1 - u1)), phi = 2 pi u2, (du, dv) = r (cos phi, sin phi). ln, cos and sin
+/// are evaluated here from exact scalings and series, so that one lane and a vector give the
+/// same bits (a library's vector and scalar functions do not agree to the last bit):
+///  - ln x for x = 1 - u1 in [2^-32, 1]: x = 2^e y by exact power-of-two scalings with y in
+///    [1/sqrt 2, sqrt 2), ln y = 2 atanh(s) with s = (y - 1) / (y + 1), |s| <= 0.1716, summed to
+///    s^23 (the next term is below 2^-53 of the sum);
+///  - cos and sin of 2 pi u2 by quadrants: q = floor(4 u2 + 1/2) and t = 4 u2 - q (both exact),
+///    theta = t pi / 2 in [-pi/4, pi/4], Taylor series to theta^17 and theta^18 (the next terms are
+///    below 2^-53), then the quadrant's exact swap and signs.
+/// Accurate to a few units in the last place, as the library functions are.
+template <class L>
+HWY_INLINE void GaussianPair(typename L::V u1, typename L::V u2, double sigma, typename L::V& du,
+                             typename L::V& dv) {
+  using V = typename L::V;
+  const V one = L::Set(1.0), zero = L::Set(0.0);
+  // ln(1 - u1)
+  V y = L::Sub(one, u1);  // exact: u1 is a multiple of 2^-32 below 1
+  V e = zero;
+  constexpr double kSteps[5][3] = {// k, 2^-k, 2^k
+                                   {16, 0x1p-16, 0x1p16},
+                                   {8, 0x1p-8, 0x1p8},
+                                   {4, 0x1p-4, 0x1p4},
+                                   {2, 0x1p-2, 0x1p2},
+                                   {1, 0x1p-1, 0x1p1}};
+  for (const auto& k : kSteps) {  // before step k, y >= 2^-2k; after it, y >= 2^-k
+    const auto small = L::Lt(y, L::Set(k[1]));
+    y = L::Select(small, L::Mul(y, L::Set(k[2])), y);
+    e = L::Select(small, L::Sub(e, L::Set(k[0])), e);
+  }
+  const auto low = L::Lt(y, L::Set(0.70710678118654752440));  // y in [1/2, 1] -> [1/sqrt 2, sqrt 2)
+  y = L::Select(low, L::Add(y, y), y);
+  e = L::Select(low, L::Sub(e, one), e);
+  const V s = L::Div(L::Sub(y, one), L::Add(y, one));
+  const V s2 = L::Mul(s, s);
+  V series = L::Set(1.0 / 23);
+  for (int k = 21; k >= 1; k -= 2) series = L::Add(L::Set(1.0 / k), L::Mul(s2, series));
+  const V ln_x = L::Add(L::Mul(e, L::Set(0.69314718055994530942)), L::Mul(L::Add(s, s), series));
+  const V r = L::Mul(L::Set(sigma), L::Sqrt(L::Mul(L::Set(-2.0), ln_x)));
+  // cos and sin of 2 pi u2
+  const V four_u = L::Mul(u2, L::Set(4.0));
+  const V q = L::Floor(L::Add(four_u, L::Set(0.5)));
+  const V theta = L::Mul(L::Sub(four_u, q), L::Set(1.57079632679489661923));
+  const V t2 = L::Mul(theta, theta);
+  V c = L::Set(1.0), sn = L::Set(1.0);  // Horner from the highest term: 1 - t2/(n(n-1)) (...)
+  for (int n = 18; n >= 2; n -= 2)
+    c = L::Sub(one, L::Mul(L::Mul(t2, L::Set(1.0 / (n * (n - 1)))), c));
+  for (int n = 17; n >= 3; n -= 2)
+    sn = L::Sub(one, L::Mul(L::Mul(t2, L::Set(1.0 / (n * (n - 1)))), sn));
+  sn = L::Mul(theta, sn);
+  // Quadrant q mod 4: (cos, sin) of q pi/2 + theta
+  const auto q1 = L::Eq(q, one), q2 = L::Eq(q, L::Set(2.0)), q3 = L::Eq(q, L::Set(3.0));
+  const auto swap = L::Or(q1, q3);
+  const V cx = L::Select(swap, sn, c), sx = L::Select(swap, c, sn);
+  const V cos_phi = L::Select(L::Or(q1, q2), L::Sub(zero, cx), cx);
+  const V sin_phi = L::Select(L::Or(q2, q3), L::Sub(zero, sx), sx);
+  du = L::Mul(r, cos_phi);
+  dv = L::Mul(r, sin_phi);
+}
+
 /// The pixel the sensor point (u, v) falls in, row nx + col with col = floor(u / pitch + nx / 2),
 /// row = floor(ny / 2 - v / pitch); beside the sensor: missed_sensor.
 template <class L>

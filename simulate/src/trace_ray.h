@@ -124,11 +124,13 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Op
   if (!out.settled) {
     double u, v;
     st::SensorPoint<L1>(op, beam, u, v);
-    if (op.psf_sigma_sensor > 0) {  // Box-Muller: two independent normal offsets
-      const double r = op.psf_sigma_sensor * std::sqrt(-2 * std::log(1 - rng.Uniform()));
-      const double phi = 2 * M_PI * rng.Uniform();
-      u += r * std::cos(phi);
-      v += r * std::sin(phi);
+    if (op.psf_sigma_sensor > 0) {  // two independent normal offsets (stages-inl.h)
+      const double u1 = rng.Uniform();
+      const double u2 = rng.Uniform();
+      double du, dv;
+      st::GaussianPair<L1>(u1, u2, op.psf_sigma_sensor, du, dv);
+      u += du;
+      v += dv;
     }
     const double pixel = st::SensorPixel<L1>(op, u, v, out);
     if (!out.settled) ++acc.image[static_cast<size_t>(pixel)];

@@ -197,6 +197,69 @@ TEST(Packet, LightFieldSourceWithCorrectorMatchesScalar) {
   ExpectPacketsMatchScalar(s, 4, 400000);
 }
 
+// The PSF's Box-Muller offsets (stages-inl.h, GaussianPair: its own logarithm, cosine and sine,
+// so that every target and the one-lane path give the same bits) against the formula in long
+// double: r = sigma sqrt(-2 ln(1 - u1)), (du, dv) = r (cos 2 pi u2, sin 2 pi u2) within 8 units
+// in the last place of r (libm's own functions are within 1-4), at the edges of the reductions
+// (u1 = 0 and 1 - 2^-32, every power-of-two boundary, the quadrant boundaries of u2) and over
+// 2^17 words of a ray stream; and the same bits on every instruction set.
+TEST(Packet, GaussianOffsetsAreBoxMullerToTheLastBitsOnEveryTarget) {
+  std::vector<double> u1s, u2s;
+  for (int k = 0; k <= 32; ++k)
+    for (double d : {-0x1p-32, 0.0, 0x1p-32}) {
+      const double u = 1 - std::ldexp(1.0, -k) + d;  // 1 - u near every power of two
+      if (u >= 0 && u < 1) u1s.push_back(u);
+    }
+  for (int q = 0; q <= 16; ++q)  // quadrant and octant boundaries of 2 pi u2
+    for (double d : {-0x1p-32, 0.0, 0x1p-32}) {
+      const double u = q / 16.0 + d;
+      if (u >= 0 && u < 1) u2s.push_back(u);
+    }
+  std::vector<double> a, b;
+  for (double u1 : u1s)
+    for (double u2 : u2s) a.push_back(u1), b.push_back(u2);
+  RayRng rng(99, 3, 12345);
+  for (int i = 0; i < (1 << 17); ++i) {
+    a.push_back(rng.Uniform());
+    b.push_back(rng.Uniform());
+  }
+  const double sigma = 0.7;
+  std::vector<double> first_du, first_dv;  // the first target's bits
+  ForEachTarget([&] {
+    auto r = std::make_unique<packet::Rays>();
+    std::vector<double> du(a.size()), dv(a.size());
+    for (size_t at = 0; at < a.size(); at += 37) {  // batches of 37: a partial vector at the end
+      const size_t n = std::min<size_t>(37, a.size() - at);
+      std::fill(std::begin(r->psf_du), std::end(r->psf_du), 0.0);
+      std::fill(std::begin(r->psf_dv), std::end(r->psf_dv), 0.0);
+      std::copy_n(a.begin() + at, n, r->psf_du);
+      std::copy_n(b.begin() + at, n, r->psf_dv);
+      packet::GaussianOffsets(sigma, n, r.get());
+      std::copy_n(r->psf_du, n, du.begin() + at);
+      std::copy_n(r->psf_dv, n, dv.begin() + at);
+    }
+    int bad = 0;
+    for (size_t i = 0; i < a.size(); ++i) {
+      const long double rr = sigma * std::sqrt(-2.0L * std::log1p(-(long double)a[i]));
+      const long double phi = 2 * 3.141592653589793238462643383279503L * b[i];
+      const long double tol = 8 * 0x1p-52L * std::max(rr, (long double)0x1p-1074);
+      if (std::fabs(du[i] - rr * std::cos(phi)) > tol ||
+          std::fabs(dv[i] - rr * std::sin(phi)) > tol) {
+        if (++bad <= 5)
+          ADD_FAILURE() << "u1 " << a[i] << " u2 " << b[i] << ": (" << du[i] << ", " << dv[i]
+                        << "), expected (" << double(rr * std::cos(phi)) << ", "
+                        << double(rr * std::sin(phi)) << ")";
+      }
+    }
+    EXPECT_EQ(bad, 0);
+    if (first_du.empty()) {
+      first_du = du, first_dv = dv;
+    } else {
+      EXPECT_TRUE(du == first_du && dv == first_dv) << "the targets' offsets differ";
+    }
+  });
+}
+
 // The camera PSF (two words after the corrector's: PsfDraws) on both the straight rays and the
 // sphere stage's, with and without a corrector, and a light field continued beyond its NA cut.
 TEST(Packet, CameraPsfAndLightFieldEdgeMatchScalar) {

@@ -178,6 +178,8 @@ void ProfileIntervals(Runner& run, const FitSpec& spec, const std::vector<double
     // noise to C's): theta(t) = best + t r sigma_C u, r = sigma / sigma_C, so the model's
     // curvature is probed over the interval that is reported. The profile deviance from C's
     // score, Delta_C, is scaled to that sigma: Delta = Delta_C / r^2 (t^2 for a quadratic).
+    // (A response that is not positive definite along i has no such path: no interval.)
+    if (!(C(Eigen::Index(i), Eigen::Index(i)) > 0)) continue;
     const double sigma_c = std::sqrt(C(Eigen::Index(i), Eigen::Index(i)));
     const double r = pr.sigma / sigma_c;
     const Eigen::VectorXd u = C.col(Eigen::Index(i)) / sigma_c;

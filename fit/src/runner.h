@@ -105,6 +105,10 @@ class Runner {
     // the uncertainties start from where the polish ended), so recent images are kept. An
     // exact image model's images do not depend on the seed: the uncertainties' derivative set
     // is then the polish's last stencil.
+    for (size_t i = 0; i < th.size(); ++i)  // never a NaN into the tracer: an error, not a crash
+      if (!std::isfinite(th[i]))
+        throw Error("fit: internal error: " + spec_.parameters[i].key +
+                    " is not a finite number at a point the fit asked for (please report)");
     for (const Cached& c : cache_)
       if (c.level == level && (c.seed == seed || spec_.exact_images) && c.theta == th) {
         if (error) *error = c.error;

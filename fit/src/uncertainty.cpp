@@ -540,6 +540,15 @@ Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vec
     res.message +=
         "; the deviance's curvature is not positive definite (noise along a weakly "
         "determined direction): sigmas from the expected (Fisher) information";
+  } else if (cov.empty() && a_inv.size() > 0) {
+    // Neither information from the two halves is positive definite, but the final steps'
+    // estimating equation has an invertible response: its sandwich is the covariance the
+    // sigmas come from whenever it exists (SetSigmas), and it needs neither.
+    SetSigmas(Matrix(P, std::vector<double>(P, 0.0)));
+    res.message +=
+        "; the information from the two independent halves of the derivative sets is not "
+        "positive definite (their ray noise along a weakly determined direction): sigmas from "
+        "the final steps' estimating equation alone, no curvature or Cramer-Rao bound";
   } else if (cov.empty()) {
     res.message +=
         "; the curvature does not determine every parameter (information matrix not "

@@ -122,11 +122,14 @@ void WriteSceneAndFitFile(const fs::path& work, const SphereCalibrationOptions& 
                 "IAPWS R9-97 at " + std::to_string(ex.temperature_K) + " K.",
             scene);
   toml::array images, parameters;
+  // The read noise of the images as fitted: subtracting the dark frame (one read-out, as the
+  // corrector's calibration takes it too) adds its read noise, so the variance doubles.
+  const double read_noise_e = ex.read_noise_e * (ex.dark.empty() ? 1 : std::sqrt(2.0));
   for (size_t i : planes) {
     toml::table im{{"file", fs::absolute(scan.files[i]).string()},
                    {"defocus_um", Sig10(scan.defocus_um[i])},
                    {"gain_e_per_dn", Sig10(ex.gain)},
-                   {"read_noise_e", Sig10(ex.read_noise_e)},
+                   {"read_noise_e", Sig10(read_noise_e)},
                    {"saturation_dn", std::ldexp(1.0, ex.bit_depth) - 1}};
     if (!ex.dark.empty()) im.insert("dark", fs::absolute(ex.dark).string());
     images.push_back(std::move(im));

@@ -1,7 +1,6 @@
 #include "packet_driver.h"
 
 #include <algorithm>
-#include <cmath>
 #include <iterator>
 
 namespace raymatch::simulate {

@@ -1,7 +1,11 @@
 // Generates datasets-sample/: a synthetic but experiment-like calibration and measurement set
 // with recorded ground truth (datasets-sample/README.md). Usage:
-//   build/release/tools/generate_sample OUTDIR [--quick] [--seed N]
+//   build/release/tools/generate_sample OUTDIR [--quick] [--seed N] [--drop-radius-um R]
+//                                              [--psf-sigma-um S]
 // --quick: 1/16 of the photons (for the golden pipeline test); same geometry and truth.
+// --drop-radius-um, --psf-sigma-um: another truth for the drop's radius and the camera's PSF,
+// with the metadata unchanged (nominal diameter 46 um), so that the pipeline starts away from
+// the truth as it does with a real drop.
 //
 // What makes it realistic, beyond the simulator's physics: a light field that is not an ideal
 // cone (soft edge beyond the objective NA, radial and azimuthal non-uniformity, tilted axis),
@@ -174,9 +178,19 @@ int main(int argc, char** argv) {
   app.add_option("outdir", out, "Output directory")->required();
   app.add_flag("--quick", quick, "1/16 of the photons (golden tests)");
   app.add_option("--seed", seed, "Random seed");
+  Truth truth;
+  app.add_option("--drop-radius-um", truth.radius_um,
+                 "The drop's true radius in um (the metadata's nominal diameter stays 46 um)")
+      ->check(CLI::Range(15.0, 30.0))
+      ->capture_default_str();
+  app.add_option("--psf-sigma-um", truth.psf_sigma_um,
+                 "The camera PSF's true Gaussian sigma at the object in um")
+      ->check(CLI::Range(0.0, 2.0))
+      ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   try {
     Writer w(out, seed);
+    w.truth = truth;
     const Truth& t = w.truth;
     const double scale = quick ? 1.0 / 16 : 1.0;
     const double photons = t.signal * t.well_e;

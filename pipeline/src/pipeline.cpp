@@ -258,10 +258,11 @@ std::string ReportField(const fs::path& file, const std::string& field,
   const std::string name = field + (member.empty() ? "" : "." + member);
   const nlohmann::json* v = j.is_object() && j.contains(field) ? &j[field] : nullptr;
   if (v && !member.empty()) v = v->is_object() && v->contains(member) ? &(*v)[member] : nullptr;
-  if (!v || !(v->is_string() || v->is_boolean()))
+  if (!v || !(v->is_string() || v->is_boolean() || v->is_number()))
     throw Error(FileLocation{file.string()}, "field '" + name +
                                                  "' is missing or not a string; delete the "
                                                  "file or run with --force to recompute the step");
+  if (v->is_number()) return v->dump();  // the shortest text that reads back as the same double
   return v->is_boolean() ? (v->get<bool>() ? "true" : "false") : v->get<std::string>();
 }
 
@@ -394,18 +395,31 @@ PipelineCheck FitCheck(const std::string& stem, const fit::FitResult& r) {
 }
 
 /// The calibration step's results (made or read back).
+/// The drop as the sphere calibration found it.
+struct CalibratedDrop {
+  double center_um[3] = {0, 0, 0}, radius_um = 0, index = 0;
+};
+
 struct Calibration {
   CalibrationData data;
   std::string lf_report, co_report, sp_report;
   /// The sphere calibration fit's status name, goodness-of-fit verdict and mismatch flag.
   std::string sp_status, sp_goodness;
   bool sp_mismatch = false;
+  std::optional<CalibratedDrop> drop;  ///< with a sphere calibration
 };
+
+/// The fields of calibration_report.json's "sphere_drop" (CalibratedDrop).
+constexpr const char* kDropFields[5] = {"x_um", "y_um", "z_um", "radius_um", "index"};
+double& DropField(CalibratedDrop& d, int i) {
+  return i < 3 ? d.center_um[i] : i == 3 ? d.radius_um : d.index;
+}
 
 /// Bumped when the calibration's model or file changes so that a calibration made by an older
 /// raymatch is not reused (2: the edge model from 3 map pixels inside the NA cut and the
-/// [uncertainty] table; 3: the sphere fit's verdict as fields of calibration_report.json).
-constexpr int kCalibrationModel = 3;
+/// [uncertainty] table; 3: the sphere fit's verdict as fields of calibration_report.json; 4: the
+/// calibrated drop in it, which the focus scan's simulation takes).
+constexpr int kCalibrationModel = 4;
 
 std::string CalibrationInputs(const RunInputs& in) {
   const PipelineFile& cfg = in.cfg;
@@ -507,15 +521,27 @@ void Calibrate(const RunInputs& in, const fs::path& out, const fs::path& cal_fil
     const SphereCalibrationResult sr = CalibrateSphere(so);
     c->sp_report = sr.Brief();
     c->sp_status = sr.status, c->sp_goodness = sr.goodness, c->sp_mismatch = sr.mismatch;
+    CalibratedDrop drop;
+    for (const SphereCalibrationValue& v : sr.values)
+      for (int i = 0; i < 5; ++i)
+        if (v.key == (i < 3 ? "object.drop.center_um[" + std::to_string(i) + "]"
+                            : std::string("object.drop.") + (i == 3 ? "radius_um" : "index")))
+          DropField(drop, i) = v.value;
+    c->drop = drop;
     if (sr.mismatch)
       std::cerr << "raymatch run: warning: the sphere calibration reports a model mismatch\n";
     c->data = ReadCalibrationFile(cal_file.string());
+    // The light field's report ends with what lies beyond the NA: now the fitted edge.
+    const std::string& measured = co.data.light_field_note;
+    if (const size_t at = c->lf_report.find(measured); !measured.empty() && at != std::string::npos)
+      c->lf_report.replace(at, measured.size(), c->data.light_field_note);
   }
   nlohmann::json rep{{"light_field", c->lf_report}, {"corrector", c->co_report}};
   if (!c->sp_report.empty()) {
     rep["sphere"] = c->sp_report;
     rep["sphere_fit"] = {
         {"status", c->sp_status}, {"goodness", c->sp_goodness}, {"mismatch", c->sp_mismatch}};
+    for (int i = 0; i < 5; ++i) rep["sphere_drop"][kDropFields[i]] = DropField(*c->drop, i);
   }
   WriteTextFileAtomic(cal_report, rep.dump(2) + "\n");
 }
@@ -523,20 +549,30 @@ void Calibrate(const RunInputs& in, const fs::path& out, const fs::path& cal_fil
 using internal::Sig10;
 using internal::WriteToml;
 
-/// The scene of the experiment's focus scan: the nominal drop, the experiment's image size and
-/// planes, the exposure recovered from the middle plane's background times the ray fraction.
-toml::table ExperimentScene(const RunInputs& in, double photons_per_pixel) {
+/// The scene of the experiment's focus scan: the drop as the sphere calibration found it (its
+/// position, radius and index), else the nominal drop on the axis; the experiment's image size
+/// and planes, the exposure recovered from the middle plane's background times the ray fraction.
+toml::table ExperimentScene(const RunInputs& in, const std::optional<CalibratedDrop>& calibrated,
+                            double photons_per_pixel) {
   toml::array planes;
   for (double d : in.exp.defocus_um) planes.push_back(d);  // every digit: distinct file names
+  toml::table drop{{"name", "drop"}, {"type", "sphere"}};
+  if (calibrated) {
+    const CalibratedDrop& c = *calibrated;
+    drop.insert("center_um",
+                toml::array{Sig10(c.center_um[0]), Sig10(c.center_um[1]), Sig10(c.center_um[2])});
+    drop.insert("radius_um", Sig10(c.radius_um));
+    drop.insert("index", Sig10(c.index));
+  } else {
+    drop.insert("radius_um", Sig10(in.ex.diameter_um / 2));
+    drop.insert("material", "water");
+    drop.insert("temperature_K", Sig10(in.ex.temperature_K));
+  }
   return toml::table{
       {"name", "sim"},
       {"calibration", "calibration.toml"},
       {"seed", int64_t(in.cfg.seed)},
-      {"object", toml::array{toml::table{{"name", "drop"},
-                                         {"type", "sphere"},
-                                         {"radius_um", Sig10(in.ex.diameter_um / 2)},
-                                         {"material", "water"},
-                                         {"temperature_K", Sig10(in.ex.temperature_K)}}}},
+      {"object", toml::array{std::move(drop)}},
       {"camera",
        toml::table{{"pixels", toml::array{in.exp.images[0].width, in.exp.images[0].height}}}},
       {"trace", toml::table{{"photons_per_pixel", Sig10(photons_per_pixel)},
@@ -628,6 +664,11 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
                  cal.sp_status = ReportField(cal_report, "sphere_fit", "status");
                  cal.sp_goodness = ReportField(cal_report, "sphere_fit", "goodness");
                  cal.sp_mismatch = ReportField(cal_report, "sphere_fit", "mismatch") == "true";
+                 CalibratedDrop drop;
+                 for (int i = 0; i < 5; ++i)
+                   DropField(drop, i) =
+                       std::stod(ReportField(cal_report, "sphere_drop", kDropFields[i]));
+                 cal.drop = drop;
                }
              }});
   sum.cone_half_angle_deg = cal.data.cone_half_angle_deg;
@@ -641,8 +682,11 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   WriteToml(scene_file,
             "# Written by raymatch run: the experiment's focus scan, simulated with the "
             "calibration.\n# photons_per_pixel: the background's photons x ray fraction " +
-                std::to_string(frac) + ".",
-            ExperimentScene(in, sum.photons_per_pixel * frac));
+                std::to_string(frac) + ".\n# The drop: " +
+                (cal.drop ? "as the sphere calibration found it (position, radius, index)."
+                          : "the nominal diameter on the axis, water at the metadata's "
+                            "temperature."),
+            ExperimentScene(in, cal.drop, sum.photons_per_pixel * frac));
 
   // 3. Simulation (reused when scene and calibration are unchanged).
   const fs::path sim_dir = out / "simulation", sim_index = sim_dir / "sim_scan.json";

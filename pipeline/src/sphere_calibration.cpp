@@ -177,14 +177,17 @@ void WriteCalibratedFile(const SphereCalibrationOptions& o, const CalibrationDat
   edge << "; beyond the NA: a soft edge fitted by calibrate sphere (half radiance at "
        << res.edge_half_angle_deg << " deg, width " << res.edge_width_deg << " deg)";
   out.light_field_note += edge.str();
-  // The nuisances' sigmas, for fits that free them with the calibration as a prior. Where the
-  // fit determined none (an information matrix that is not positive definite: a dim or short
-  // calibration), the value is known only to lie within the fit's bounds: the sigma of a
-  // uniform value over them, (upper - lower) / sqrt(12), so such a prior barely constrains.
+  // The nuisances' sigmas, for fits that free them with the calibration as a prior. The value
+  // lies within the fit's bounds, and a log-concave density (a Gaussian likelihood cut at the
+  // bounds) there has a sigma of at most the uniform's, (upper - lower) / sqrt(12): the sigma
+  // written is the fit's, or that where the fit's is wider or was not determined (an
+  // information matrix that is not positive definite: a dim or short calibration).
   out.key_sigma.clear();
   for (const fit::ParameterResult& p : fr.parameters)
-    if (p.key.starts_with("light_field_edge.") || p.key == "camera.psf_sigma_um")
-      out.key_sigma[p.key] = p.sigma > 0 ? p.sigma : (p.upper - p.lower) / std::sqrt(12.0);
+    if (p.key.starts_with("light_field_edge.") || p.key == "camera.psf_sigma_um") {
+      const double uniform = (p.upper - p.lower) / std::sqrt(12.0);
+      out.key_sigma[p.key] = p.sigma > 0 ? std::min(p.sigma, uniform) : uniform;
+    }
   out.provenance = ProvenanceJson();
   for (auto& [k, v] : base.provenance.items())
     if (!out.provenance.contains(k)) out.provenance[k] = v;

@@ -200,13 +200,37 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
     EXPECT_NE(sphere.find("(Cramer-Rao not computed)"), std::string::npos) << sphere;
     EXPECT_EQ(sphere.find("+- not computed"), std::string::npos) << sphere;
     std::ifstream cj(dir / "out/sphere_calibration/fit.json");
-    EXPECT_NE(nlohmann::json::parse(cj)["message"].get<std::string>().find(
+    const auto calibration_fit = nlohmann::json::parse(cj);
+    EXPECT_NE(calibration_fit["message"].get<std::string>().find(
                   "sigmas from the final steps' estimating equation alone"),
               std::string::npos);
-    // The prior the sample's fit takes: that sigma, not the flat stand-in over the edge's 10 deg
-    // box (10 / sqrt 12) written when there is none.
-    EXPECT_GT(cal.key_sigma.at("light_field_edge.half_angle_deg"), 0);
-    EXPECT_LT(cal.key_sigma.at("light_field_edge.half_angle_deg"), 0.9 * 10 / std::sqrt(12.0));
+    // The priors the sample's fit takes: each nuisance's sigma as the calibration determined it
+    // (it did: not 0), at most that of a uniform value over its bounds, (upper - lower) / sqrt 12
+    // (at 1/16 of the photons the edge tilt's estimating-equation sigma, 3 deg, is wider).
+    size_t priors = 0;
+    for (const auto& p : calibration_fit["parameters"]) {
+      const std::string key = p["key"];
+      if (!key.starts_with("light_field_edge.") && key != "camera.psf_sigma_um") continue;
+      ++priors;
+      const double sigma = p["sigma"],
+                   uniform =
+                       (p["upper"].get<double>() - p["lower"].get<double>()) / std::sqrt(12.0);
+      EXPECT_GT(sigma, 0) << key;
+      EXPECT_NEAR(cal.key_sigma.at(key), std::min(sigma, uniform), 1e-9) << key;  // 12 digits
+    }
+    EXPECT_EQ(priors, 4u);  // the edge's half-angle and tilt x and y, the PSF
+    // The focus scan's simulation has the drop as the calibration found it, not the nominal one.
+    const toml::table scene = ParseTomlFile(dir / "out/scene.toml");
+    const toml::table& drop = *scene["object"][0].as_table();
+    for (const auto& p : calibration_fit["parameters"]) {
+      const std::string key = p["key"];
+      const double best = p["best"];
+      if (key == "object.drop.radius_um") EXPECT_NEAR(drop["radius_um"].value_or(0.0), best, 1e-8);
+      if (key == "object.drop.index") EXPECT_NEAR(drop["index"].value_or(0.0), best, 1e-8);
+      if (key == "object.drop.center_um[2]")
+        EXPECT_NEAR(drop["center_um"][2].value_or(0.0), best, 1e-8);
+    }
+    EXPECT_FALSE(drop.contains("material"));
     EXPECT_EQ(sphere.find("+- 0 "), std::string::npos) << sphere;
   }
   {
@@ -216,6 +240,9 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
     if (!kUnderAddressSanitizer) {
       EXPECT_NE(hs.str().find("Sphere calibration"), std::string::npos);
       EXPECT_NE(hs.str().find("Beyond the NA the simulation does not use zero"), std::string::npos);
+      EXPECT_EQ(hs.str().find("zero beyond it"), std::string::npos);  // the light field's own note
+      EXPECT_NE(hs.str().find("beyond the NA: a soft edge fitted by calibrate sphere"),
+                std::string::npos);
     }
     EXPECT_NE(hs.str().find("Goodness of fit"), std::string::npos);  // the sphere fit's
     // The verdict at the top names every check; it never reads "pass" while one needs attention.

@@ -105,11 +105,15 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
     ReplaceInFile(data + "/fit/merging_grid.toml", "fractions = [0.015625]",
                   "fractions = [0.00390625]");
     // and the sphere calibration (9 parameters, 2 planes) is left out, with the sphere fit's
-    // edge, which takes that calibration as its prior.
+    // edge and PSF, which take that calibration as their priors.
     ReplaceInFile(data + "/pipeline.toml", "\nsphere = \"drop46\"", "\n# sphere = \"drop46\"");
     ReplaceInFile(data + "/fit/sphere.toml",
                   "[[parameter]]\nkey = \"light_field_edge.half_angle_deg\"\nlower = 24\n"
                   "upper = 28\nstep = 0.2\nprior = \"calibration\"\n",
+                  "");
+    ReplaceInFile(data + "/fit/sphere.toml",
+                  "[[parameter]]\nkey = \"camera.psf_sigma_um\"\nlower = 0\nupper = 0.6\n"
+                  "step = 0.05\nprior = \"calibration\"\n",
                   "");
   }
   const std::string cmd = std::string(RAYMATCH_BIN) + " run " + data + "/pipeline.toml -o " +

@@ -175,6 +175,107 @@ std::vector<DesignChoice> RankDesigns(const std::vector<Matrix>& per_image,
   return all;
 }
 
+/// The fit specification whose model and derivative machinery the sensitivity runs on: the
+/// scene's images (empty: the expected images are what counts) at the focus positions, one
+/// parameter per key spanning its difference step, the exposure known. Fills `r`'s keys and
+/// `theta` with the keys' values.
+FitSpec SensitivityFitSpec(const SensitivitySpec& spec, const simulate::Scene& scene,
+                           const FileLocation& where, SensitivityResult* r,
+                           std::vector<double>* theta) {
+  FitSpec fs;
+  fs.file = spec.scene_file;
+  fs.scene_file = spec.scene_file;
+  fs.scene = spec.scene;
+  fs.seed = spec.seed;
+  fs.threads = spec.threads;
+  fs.rays.ray_factor = spec.ray_factor;
+  fs.rays.fractions = {1.0};
+  fs.rays.photons_per_pixel = r->photons_per_pixel;
+  fs.rays.fit_exposure = false;  // the exposure's information enters as a parameter below
+  // An exact image model (optics = "mie"): every set is the same images, so one is computed and
+  // copied, with a tenth of the step (no noise to outrun; the fringes' linear range).
+  fs.exact_images = scene.trace.optics == simulate::ImageOptics::kMie;
+  for (double d : r->defocus_um) {
+    FitImage fi;
+    fi.defocus_um = d;
+    fi.photons = Image(scene.camera.nx, scene.camera.ny);
+    fi.read_noise_e = spec.read_noise_e;
+    fi.where = where;
+    fs.images.push_back(std::move(fi));
+  }
+  for (size_t i = 0; i < spec.keys.size(); ++i) {
+    Parameter q;
+    q.key = spec.keys[i];
+    for (const Parameter& other : fs.parameters)
+      if (other.key == q.key) throw Error(where, "key '" + q.key + "' is given twice");
+    try {
+      q.start = KeyValue(spec, q.key, r->defocus_um);
+    } catch (const Error& e) {
+      throw Error(where, e.message());
+    }
+    q.step = i < spec.steps.size() && spec.steps[i] > 0 ? spec.steps[i]
+                                                        : DefaultSensitivityStep(q.key, q.start);
+    q.lower = q.start - q.step, q.upper = q.start + q.step;  // the differences' span, inside
+    q.unit = UnitOf(q.key);
+    fs.parameters.push_back(q);
+    theta->push_back(q.start);
+    SensitivityKey k;
+    k.key = q.key, k.unit = q.unit, k.value = q.start, k.step = q.step;
+    r->keys.push_back(k);
+  }
+  return fs;
+}
+
+/// The mean image and derivative maps over all sets.
+void MeanOverSets(const std::vector<SetImages>& sets, size_t K, size_t P, SensitivityResult* r) {
+  r->mu.assign(K, Image());
+  r->dmu.assign(K, std::vector<Image>(P));
+  for (size_t k = 0; k < K; ++k) {
+    r->mu[k] = Image(sets[0].mu[k].width, sets[0].mu[k].height);
+    for (size_t i = 0; i < P; ++i) r->dmu[k][i] = Image(r->mu[k].width, r->mu[k].height);
+    for (const SetImages& set : sets) {
+      for (size_t q = 0; q < r->mu[k].size(); ++q) {
+        r->mu[k].pixels[q] += set.mu[k].pixels[q] / float(sets.size());
+        for (size_t i = 0; i < P; ++i)
+          r->dmu[k][i].pixels[q] += set.d[k][i].pixels[q] / float(sets.size());
+      }
+    }
+  }
+}
+
+/// The best sets of 1 .. design_planes focus positions for the design keys.
+void RankDesignPlanes(const SensitivitySpec& spec,
+                      const std::vector<Eigen::MatrixXd>& per_image_information, size_t K, size_t P,
+                      const FileLocation& where, SensitivityResult* r) {
+  if (size_t(spec.design_planes) > K)
+    throw Error(where, "design: " + std::to_string(spec.design_planes) +
+                           " planes asked for, but only " + std::to_string(K) +
+                           " candidate focus positions given");
+  std::vector<size_t> dk;
+  for (const std::string& key : spec.design_keys) {
+    const auto it = std::find(spec.keys.begin(), spec.keys.end(), key);
+    if (it == spec.keys.end()) throw Error(where, "design key '" + key + "' is not among the keys");
+    dk.push_back(size_t(it - spec.keys.begin()));
+  }
+  if (dk.empty()) {
+    dk.resize(P);
+    std::iota(dk.begin(), dk.end(), 0);
+  }
+  for (size_t i : dk) r->design_keys.push_back(spec.keys[i]);
+  std::vector<Matrix> per_image;
+  for (const Eigen::MatrixXd& f : per_image_information) per_image.push_back(FromEigen(f));
+  for (int n = 1; n <= spec.design_planes; ++n) {
+    size_t compared = 0;
+    std::vector<DesignChoice> ranked = RankDesigns(per_image, r->defocus_um, n, dk, &compared);
+    if (!ranked.empty()) r->design_best.push_back(ranked.front());
+    if (n == spec.design_planes) {
+      r->design_choices = compared;
+      ranked.resize(std::min<size_t>(ranked.size(), 10));
+      r->design_top = std::move(ranked);
+    }
+  }
+}
+
 SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
   const auto t0 = std::chrono::steady_clock::now();
   const FileLocation where{spec.scene_file};
@@ -190,49 +291,9 @@ SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
                 "no photon count: give --photons-per-pixel (or [trace] photons_per_pixel in the "
                 "scene)");
 
-  FitSpec fs;
-  fs.file = spec.scene_file;
-  fs.scene_file = spec.scene_file;
-  fs.scene = spec.scene;
-  fs.seed = spec.seed;
-  fs.threads = spec.threads;
-  fs.rays.ray_factor = spec.ray_factor;
-  fs.rays.fractions = {1.0};
-  fs.rays.photons_per_pixel = r.photons_per_pixel;
-  fs.rays.fit_exposure = false;  // the exposure's information enters as a parameter below
-  // An exact image model (optics = "mie"): every set is the same images, so one is computed and
-  // copied, with a tenth of the step (no noise to outrun; the fringes' linear range).
-  fs.exact_images = scene.trace.optics == simulate::ImageOptics::kMie;
-  const double step_scale = fs.exact_images ? 0.1 : 1.0;
-  for (double d : r.defocus_um) {
-    FitImage fi;
-    fi.defocus_um = d;
-    fi.photons = Image(scene.camera.nx, scene.camera.ny);
-    fi.read_noise_e = spec.read_noise_e;
-    fi.where = where;
-    fs.images.push_back(std::move(fi));
-  }
   std::vector<double> theta;
-  for (size_t i = 0; i < spec.keys.size(); ++i) {
-    Parameter q;
-    q.key = spec.keys[i];
-    for (const Parameter& other : fs.parameters)
-      if (other.key == q.key) throw Error(where, "key '" + q.key + "' is given twice");
-    try {
-      q.start = KeyValue(spec, q.key, r.defocus_um);
-    } catch (const Error& e) {
-      throw Error(where, e.message());
-    }
-    q.step = i < spec.steps.size() && spec.steps[i] > 0 ? spec.steps[i]
-                                                        : DefaultSensitivityStep(q.key, q.start);
-    q.lower = q.start - q.step, q.upper = q.start + q.step;  // the differences' span, inside
-    q.unit = UnitOf(q.key);
-    fs.parameters.push_back(q);
-    theta.push_back(q.start);
-    SensitivityKey k;
-    k.key = q.key, k.unit = q.unit, k.value = q.start, k.step = q.step;
-    r.keys.push_back(k);
-  }
+  FitSpec fs = SensitivityFitSpec(spec, scene, where, &r, &theta);
+  const double step_scale = fs.exact_images ? 0.1 : 1.0;
   const size_t P = theta.size(), K = fs.images.size();
   auto say = [&](const std::string& m) {
     if (progress) std::fprintf(stderr, "raymatch sensitivity: %s\n", m.c_str());
@@ -274,20 +335,7 @@ SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
       say("ray-stream set " + std::to_string(s + 1) + " of " + std::to_string(sets.size()) +
           " done");
   }
-  // The mean image and derivative maps over all sets.
-  r.mu.assign(K, Image());
-  r.dmu.assign(K, std::vector<Image>(P));
-  for (size_t k = 0; k < K; ++k) {
-    r.mu[k] = Image(sets[0].mu[k].width, sets[0].mu[k].height);
-    for (size_t i = 0; i < P; ++i) r.dmu[k][i] = Image(r.mu[k].width, r.mu[k].height);
-    for (const SetImages& set : sets) {
-      for (size_t q = 0; q < r.mu[k].size(); ++q) {
-        r.mu[k].pixels[q] += set.mu[k].pixels[q] / float(sets.size());
-        for (size_t i = 0; i < P; ++i)
-          r.dmu[k][i].pixels[q] += set.d[k][i].pixels[q] / float(sets.size());
-      }
-    }
-  }
+  MeanOverSets(sets, K, P, &r);
   const double rv = spec.read_noise_e * spec.read_noise_e;
   std::vector<size_t> all(sets.size());
   std::iota(all.begin(), all.end(), 0);
@@ -330,36 +378,7 @@ SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
     for (const std::vector<double>& one : per_image_bounds)
       k.crb_per_image.push_back(one.empty() ? INFINITY : one[i]);
   }
-  if (spec.design_planes > 0) {
-    if (size_t(spec.design_planes) > K)
-      throw Error(where, "design: " + std::to_string(spec.design_planes) +
-                             " planes asked for, but only " + std::to_string(K) +
-                             " candidate focus positions given");
-    std::vector<size_t> dk;
-    for (const std::string& key : spec.design_keys) {
-      const auto it = std::find(spec.keys.begin(), spec.keys.end(), key);
-      if (it == spec.keys.end())
-        throw Error(where, "design key '" + key + "' is not among the keys");
-      dk.push_back(size_t(it - spec.keys.begin()));
-    }
-    if (dk.empty()) {
-      dk.resize(P);
-      std::iota(dk.begin(), dk.end(), 0);
-    }
-    for (size_t i : dk) r.design_keys.push_back(spec.keys[i]);
-    std::vector<Matrix> per_image;
-    for (const Eigen::MatrixXd& f : b.per_image) per_image.push_back(FromEigen(f));
-    for (int n = 1; n <= spec.design_planes; ++n) {
-      size_t compared = 0;
-      std::vector<DesignChoice> ranked = RankDesigns(per_image, r.defocus_um, n, dk, &compared);
-      if (!ranked.empty()) r.design_best.push_back(ranked.front());
-      if (n == spec.design_planes) {
-        r.design_choices = compared;
-        ranked.resize(std::min<size_t>(ranked.size(), 10));
-        r.design_top = std::move(ranked);
-      }
-    }
-  }
+  if (spec.design_planes > 0) RankDesignPlanes(spec, b.per_image, K, P, where, &r);
   r.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   return r;
 }

@@ -621,6 +621,86 @@ std::string MeshObject(const RunInputs& in, const fs::path& out, const PipelineO
   return hh.str();
 }
 
+/// A reused calibration step's results, read back from its files.
+Calibration ReadCalibration(const fs::path& cal_file, const fs::path& cal_report, bool sphere) {
+  Calibration cal;
+  cal.data = ReadCalibrationFile(cal_file.string());
+  cal.lf_report = ReportField(cal_report, "light_field");
+  cal.co_report = ReportField(cal_report, "corrector");
+  if (sphere) {
+    cal.sp_report = ReportField(cal_report, "sphere");
+    cal.sp_status = ReportField(cal_report, "sphere_fit", "status");
+    cal.sp_goodness = ReportField(cal_report, "sphere_fit", "goodness");
+    cal.sp_mismatch = ReportField(cal_report, "sphere_fit", "mismatch") == "true";
+    CalibratedDrop drop;
+    for (int i = 0; i < 5; ++i)
+      DropField(drop, i) = std::stod(ReportField(cal_report, "sphere_drop", kDropFields[i]));
+    cal.drop = drop;
+  }
+  return cal;
+}
+
+/// The fit files of `[fit] files`, each run (or reused) with the calibration; their report
+/// sections go into `report`, their statuses into `sum`, and their checks are returned.
+std::vector<PipelineCheck> RunFits(const PipelineFile& cfg, const fs::path& out,
+                                   const fs::path& cal_file, const PipelineOptions& opt,
+                                   StepRunner& steps, PipelineSummary* sum_out,
+                                   internal::RunReport* report_out) {
+  PipelineSummary& sum = *sum_out;
+  internal::RunReport& report = *report_out;
+  std::vector<PipelineCheck> fit_checks;
+  for (const std::string& file : cfg.fits) {
+    const std::string stem = fs::path(file).stem().string();
+    const fit::FitSpec spec = fit::LoadFitSpec(file, "", fs::absolute(cal_file).string());
+    const fs::path fit_dir = out / "fit" / stem, kept = fit_dir / "run_step.json";
+    FitStep done;
+    steps.Run({"fit " + stem,
+               ".fit_" + stem + ".stamp",
+               FitInputs(spec),
+               {fit_dir / "fit.json", kept},
+               "fit " + stem + " unchanged: reusing " + (fit_dir / "fit.json").string(),
+               [&] {
+                 steps.Say("fitting " + file);
+                 fit::FitOptions fo;
+                 fo.threads = opt.threads;
+                 fo.progress = opt.progress;
+                 const fit::FitResult r = fit::RunFit(spec, fo);
+                 fit::WriteFitOutputs(spec, r, fit_dir.string());
+                 done = {fit::StatusName(r.status), FitCheck(stem, r),
+                         internal::FitSectionHtml(stem, spec, r)};
+                 WriteFitStep(kept, done);
+               },
+               [&] { done = ReadFitStep(kept); }});
+    report.fit_html += done.html;
+    sum.fits.push_back({stem, done.status});
+    fit_checks.push_back(done.check);
+  }
+  if (!report.fit_html.empty())
+    report.fit_html = "<h2>Fits: 3D properties from the images</h2>" + report.fit_html;
+  return fit_checks;
+}
+
+/// The focus-scan test as one of the run's checks.
+PipelineCheck FocusScanCheck(const compare::FocusScanResult& fr) {
+  PipelineCheck c;
+  c.name = "focus-scan test";
+  c.ok = fr.verdict == compare::Verdict::kPass;
+  std::string passing, failing;
+  for (const auto& m : fr.measures) {
+    std::string& list = m.passes ? passing : failing;
+    list += (list.empty() ? "" : ", ") + std::string(compare::MeasureName(m.measure));
+  }
+  c.result = std::string(fr.verdict == compare::Verdict::kPass      ? "pass"
+                         : fr.verdict == compare::Verdict::kWarning ? "warning"
+                                                                    : "fail") +
+             (passing.empty() ? "" : ": " + passing + " match each plane to its defocus") +
+             (failing.empty() ? "" : "; not " + failing);
+  c.meaning =
+      "says the simulated focus positions agree with the experiment's, not that the model "
+      "fits every pixel (residual maps: compare/report.html)";
+  return c;
+}
+
 }  // namespace
 
 PipelineSummary RunPipeline(const PipelineOptions& opt) {
@@ -655,22 +735,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
              {cal_file, cal_report},
              "calibration inputs unchanged: reusing " + cal_file.string(),
              [&] { Calibrate(in, out, cal_file, cal_report, opt, steps, &cal); },
-             [&] {
-               cal.data = ReadCalibrationFile(cal_file.string());
-               cal.lf_report = ReportField(cal_report, "light_field");
-               cal.co_report = ReportField(cal_report, "corrector");
-               if (!cfg.sphere.empty()) {
-                 cal.sp_report = ReportField(cal_report, "sphere");
-                 cal.sp_status = ReportField(cal_report, "sphere_fit", "status");
-                 cal.sp_goodness = ReportField(cal_report, "sphere_fit", "goodness");
-                 cal.sp_mismatch = ReportField(cal_report, "sphere_fit", "mismatch") == "true";
-                 CalibratedDrop drop;
-                 for (int i = 0; i < 5; ++i)
-                   DropField(drop, i) =
-                       std::stod(ReportField(cal_report, "sphere_drop", kDropFields[i]));
-                 cal.drop = drop;
-               }
-             }});
+             [&] { cal = ReadCalibration(cal_file, cal_report, !cfg.sphere.empty()); }});
   sum.cone_half_angle_deg = cal.data.cone_half_angle_deg;
   sum.transmissions = cal.data.transmissions;
   sum.transmission_sigma = cal.data.transmission_sigma;
@@ -738,58 +803,12 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
     });
 
   // 4c. Fits (docs/fit.md) with this calibration: 3D properties from single images.
-  std::vector<PipelineCheck> fit_checks;
-  for (const std::string& file : cfg.fits) {
-    const std::string stem = fs::path(file).stem().string();
-    const fit::FitSpec spec = fit::LoadFitSpec(file, "", fs::absolute(cal_file).string());
-    const fs::path fit_dir = out / "fit" / stem, kept = fit_dir / "run_step.json";
-    FitStep done;
-    steps.Run({"fit " + stem,
-               ".fit_" + stem + ".stamp",
-               FitInputs(spec),
-               {fit_dir / "fit.json", kept},
-               "fit " + stem + " unchanged: reusing " + (fit_dir / "fit.json").string(),
-               [&] {
-                 steps.Say("fitting " + file);
-                 fit::FitOptions fo;
-                 fo.threads = opt.threads;
-                 fo.progress = opt.progress;
-                 const fit::FitResult r = fit::RunFit(spec, fo);
-                 fit::WriteFitOutputs(spec, r, fit_dir.string());
-                 done = {fit::StatusName(r.status), FitCheck(stem, r),
-                         internal::FitSectionHtml(stem, spec, r)};
-                 WriteFitStep(kept, done);
-               },
-               [&] { done = ReadFitStep(kept); }});
-    report.fit_html += done.html;
-    sum.fits.push_back({stem, done.status});
-    fit_checks.push_back(done.check);
-  }
-  if (!report.fit_html.empty())
-    report.fit_html = "<h2>Fits: 3D properties from the images</h2>" + report.fit_html;
+  std::vector<PipelineCheck> fit_checks = RunFits(cfg, out, cal_file, opt, steps, &sum, &report);
 
   // The checks, and the run's one verdict: never "pass" while a check needs attention.
   if (!cfg.sphere.empty())
     sum.checks.push_back(SphereCheck(cal.sp_status, cal.sp_goodness, cal.sp_mismatch));
-  {
-    PipelineCheck c;
-    c.name = "focus-scan test";
-    c.ok = fr.verdict == compare::Verdict::kPass;
-    std::string passing, failing;
-    for (const auto& m : fr.measures) {
-      std::string& list = m.passes ? passing : failing;
-      list += (list.empty() ? "" : ", ") + std::string(compare::MeasureName(m.measure));
-    }
-    c.result = std::string(fr.verdict == compare::Verdict::kPass      ? "pass"
-                           : fr.verdict == compare::Verdict::kWarning ? "warning"
-                                                                      : "fail") +
-               (passing.empty() ? "" : ": " + passing + " match each plane to its defocus") +
-               (failing.empty() ? "" : "; not " + failing);
-    c.meaning =
-        "says the simulated focus positions agree with the experiment's, not that the model "
-        "fits every pixel (residual maps: compare/report.html)";
-    sum.checks.push_back(c);
-  }
+  sum.checks.push_back(FocusScanCheck(fr));
   for (PipelineCheck& c : fit_checks) sum.checks.push_back(std::move(c));
   sum.status = sum.verdict;
   for (const PipelineCheck& c : sum.checks)

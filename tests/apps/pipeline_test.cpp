@@ -349,7 +349,9 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
   EXPECT_EQ(log3.find("fit sphere unchanged"), std::string::npos) << log3;
   EXPECT_NE(log3.find("fit merging_grid unchanged: reusing"), std::string::npos) << log3;
   EXPECT_EQ(WEXITSTATUS(third), 1) << log3;
-  EXPECT_NE(log3.find("verdict: attention: 1 of 4 checks need attention (fit sphere)"),
+  // (Under AddressSanitizer the run has no sphere calibration: three checks.)
+  EXPECT_NE(log3.find(std::string("verdict: attention: 1 of ") +
+                      (kUnderAddressSanitizer ? "3" : "4") + " checks need attention (fit sphere)"),
             std::string::npos)
       << log3;
   EXPECT_NE(log3.find("CHECK fit sphere: max_evaluations"), std::string::npos) << log3;

@@ -53,18 +53,20 @@ grep -q '^fractions = \[0.0625\]' "$out/sample/fit/sphere.toml"
 grep -q '^fractions = \[0.00390625\]' "$out/sample/fit/merging_grid.toml"
 # The sphere calibration (9 parameters on two full-photon planes, 8 minutes optimised) is left
 # out here; test_pipeline and test_sphere_calibration run it. Without it the sphere fit cannot
-# take the calibration's edge as a prior (run refuses such a fit file), so that parameter goes.
+# take the calibration's edge and PSF as priors (run refuses such a fit file), so they go.
 sed -i 's/^sphere = "drop46"/# sphere = "drop46"/' "$out/sample/pipeline.toml"
 grep -q '^# sphere = "drop46"' "$out/sample/pipeline.toml"
 python3 - "$out/sample/fit/sphere.toml" <<'EOF'
 import re, sys
 p = sys.argv[1]
 s = open(p).read()
-edge = re.compile(r'\[\[parameter\]\]\nkey = "light_field_edge\.half_angle_deg"\n(?:(?!\[).*\n)*')
-assert edge.search(s), "the sample's sphere fit no longer frees the edge: update this script"
-open(p, "w").write(edge.sub("", s))
+for key in ("light_field_edge\\.half_angle_deg", "camera\\.psf_sigma_um"):
+    block = re.compile(r'\[\[parameter\]\]\nkey = "' + key + r'"\n(?:(?!\[).*\n)*')
+    assert block.search(s), f"the sample's sphere fit no longer frees {key}: update this script"
+    s = block.sub("", s)
+open(p, "w").write(s)
 EOF
-! grep -q light_field_edge "$out/sample/fit/sphere.toml"
+! grep -q 'light_field_edge\|psf_sigma_um' "$out/sample/fit/sphere.toml"
 "$bin" run "$out/sample/pipeline.toml" -o "$out/run" --ray-fraction 0.02 --threads 2 --force || rc=$?
 [ "$rc" -le 2 ] || { echo "run failed with $rc" >&2; exit 1; }  # 0-2: the verdict; 3: an error
 rc=0

@@ -175,6 +175,8 @@ std::vector<DesignChoice> RankDesigns(const std::vector<Matrix>& per_image,
   return all;
 }
 
+namespace {
+
 /// The fit specification whose model and derivative machinery the sensitivity runs on: the
 /// scene's images (empty: the expected images are what counts) at the focus positions, one
 /// parameter per key spanning its difference step, the exposure known. Fills `r`'s keys and
@@ -275,6 +277,8 @@ void RankDesignPlanes(const SensitivitySpec& spec,
     }
   }
 }
+
+}  // namespace
 
 SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
   const auto t0 = std::chrono::steady_clock::now();
@@ -403,13 +407,51 @@ nlohmann::json DesignJson(const DesignChoice& c, const SensitivityResult& r) {
   return {{"defocus_um", c.defocus_um}, {"crb", crb}, {"objective", J(c.objective)}};
 }
 
+/// The derivative maps: a float TIFF (photons per pixel per unit) and a labelled PNG per key and
+/// image, in `dir`; returns their HTML figures.
+std::string WriteDerivativeMaps(const SensitivityResult& r, const fs::path& dir) {
+  const double px = r.object_pixel_um;
+  std::ostringstream maps;
+  for (size_t k = 0; k < r.mu.size(); ++k) {
+    char plane[32];
+    std::snprintf(plane, sizeof plane, "z%+07.2fum", r.defocus_um[k]);
+    for (size_t i = 0; i < r.keys.size(); ++i) {
+      const SensitivityKey& key = r.keys[i];
+      const std::string stem = "dmu_" + Slug(key.key) + "_" + plane;
+      const std::string unit = key.unit.empty() ? "unit" : key.unit;
+      nlohmann::json meta = {{"quantity", "d mu / d " + key.key},
+                             {"unit", "photons per pixel per " + unit},
+                             {"defocus_um", r.defocus_um[k]},
+                             {"provenance", ProvenanceJson()}};
+      WriteFloatImage((dir / (stem + ".tif")).string(), r.dmu[k][i], meta.dump());
+      compare::MapPlot p;
+      p.image = r.dmu[k][i];
+      double m = 0;
+      for (float v : p.image.pixels) m = std::max(m, double(std::abs(v)));
+      p.lo = -m, p.hi = m > 0 ? m : 1;
+      if (!(m > 0)) p.lo = -1;
+      p.map = compare::ColourMap::kDiverging;
+      p.x_left = -0.5 * px * p.image.width, p.x_right = 0.5 * px * p.image.width;
+      p.y_top = 0.5 * px * p.image.height, p.y_bottom = -0.5 * px * p.image.height;
+      p.title = "d mu / d " + key.key + " at focus " + Num(r.defocus_um[k]) + " µm";
+      p.xlabel = "x at the object (µm)", p.ylabel = "y at the object (µm)";
+      p.colour_label = "photons per pixel per " + unit;
+      p.max_side_px = 360;
+      compare::WriteMap((dir / (stem + ".png")).string(), p);
+      maps << "<figure style=\"display:inline-block\">"
+           << EmbeddedPng((dir / (stem + ".png")).string(), stem) << "<figcaption>" << stem
+           << ".tif</figcaption></figure>\n";
+    }
+  }
+  return maps.str();
+}
+
 }  // namespace
 
 std::string WriteSensitivityOutputs(const SensitivitySpec& spec, const SensitivityResult& r,
                                     const std::string& dir_name) {
   const fs::path dir(dir_name);
   EnsureDirectory(dir);
-  const double px = r.object_pixel_um;
   nlohmann::json keys = nlohmann::json::array();
   for (const SensitivityKey& k : r.keys)
     keys.push_back({{"key", k.key},
@@ -459,39 +501,7 @@ std::string WriteSensitivityOutputs(const SensitivitySpec& spec, const Sensitivi
                    {"best_per_count", best},
                    {"top", top}};
   }
-  // Derivative maps: float TIFF (photons per pixel per unit) and a labelled PNG per key and image.
-  std::ostringstream maps;
-  for (size_t k = 0; k < r.mu.size(); ++k) {
-    char plane[32];
-    std::snprintf(plane, sizeof plane, "z%+07.2fum", r.defocus_um[k]);
-    for (size_t i = 0; i < r.keys.size(); ++i) {
-      const SensitivityKey& key = r.keys[i];
-      const std::string stem = "dmu_" + Slug(key.key) + "_" + plane;
-      const std::string unit = key.unit.empty() ? "unit" : key.unit;
-      nlohmann::json meta = {{"quantity", "d mu / d " + key.key},
-                             {"unit", "photons per pixel per " + unit},
-                             {"defocus_um", r.defocus_um[k]},
-                             {"provenance", ProvenanceJson()}};
-      WriteFloatImage((dir / (stem + ".tif")).string(), r.dmu[k][i], meta.dump());
-      compare::MapPlot p;
-      p.image = r.dmu[k][i];
-      double m = 0;
-      for (float v : p.image.pixels) m = std::max(m, double(std::abs(v)));
-      p.lo = -m, p.hi = m > 0 ? m : 1;
-      if (!(m > 0)) p.lo = -1;
-      p.map = compare::ColourMap::kDiverging;
-      p.x_left = -0.5 * px * p.image.width, p.x_right = 0.5 * px * p.image.width;
-      p.y_top = 0.5 * px * p.image.height, p.y_bottom = -0.5 * px * p.image.height;
-      p.title = "d mu / d " + key.key + " at focus " + Num(r.defocus_um[k]) + " µm";
-      p.xlabel = "x at the object (µm)", p.ylabel = "y at the object (µm)";
-      p.colour_label = "photons per pixel per " + unit;
-      p.max_side_px = 360;
-      compare::WriteMap((dir / (stem + ".png")).string(), p);
-      maps << "<figure style=\"display:inline-block\">"
-           << EmbeddedPng((dir / (stem + ".png")).string(), stem) << "<figcaption>" << stem
-           << ".tif</figcaption></figure>\n";
-    }
-  }
+  const std::string maps = WriteDerivativeMaps(r, dir);
   WriteTextFileAtomic(dir / "sensitivity.json", j.dump(2) + "\n");
 
   std::ostringstream h;
@@ -554,7 +564,7 @@ std::string WriteSensitivityOutputs(const SensitivitySpec& spec, const Sensitivi
   }
   h << "<h2>Which pixels carry the information</h2><p>d mu / d key per image (photons per pixel "
        "per unit of the key; red: the pixel brightens as the key grows).</p>\n"
-    << maps.str() << "<p>Everything: sensitivity.json.</p></body></html>\n";
+    << maps << "<p>Everything: sensitivity.json.</p></body></html>\n";
   const fs::path report = dir / "report.html";
   WriteTextFileAtomic(report, h.str());
   return report.string();

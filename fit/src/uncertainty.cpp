@@ -180,6 +180,179 @@ std::vector<double> SmoothingWeights(const Eigen::MatrixXd& response,
   return weight;
 }
 
+namespace {
+
+/// The derivatives' noise in U's variance B_e: per set, pooled over the halves from the sets'
+/// scatter about their half's mean and their side's truncation offset (ScatterProjections); the
+/// sum J~_a + J~_b holds it 1/na + 1/nb times. Zero without degrees of freedom (two sets).
+Eigen::MatrixXd DerivativeNoise(const FitModel& model, const std::vector<Differences>& sets,
+                                const std::vector<Columns>& cand_sets, const Images& vm, int bin,
+                                size_t na, size_t nb) {
+  const size_t S = sets.size(), P = sets.empty() ? 0 : sets[0].side.size();
+  const Eigen::Index C = Eigen::Index(2 * P);
+  Eigen::MatrixXd n_all = Eigen::MatrixXd::Zero(C, C);
+  std::vector<std::vector<int>> sides;
+  for (const Differences& d : sets) sides.push_back(d.side);
+  const std::vector<Eigen::MatrixXd> proj = ScatterProjections(sides);
+  // No degrees of freedom left (the pilot's two sets): N = 0 without summing the products.
+  bool scatter = false;
+  for (const Eigen::MatrixXd& m : proj) scatter = scatter || m.trace() > 0.5;
+  for (size_t s = 0; s < S && scatter; ++s) {
+    Columns dev = cand_sets[s];
+    for (size_t i = 0; i < dev.size(); ++i)
+      for (size_t c = 0; c < 2 * P; ++c) {
+        const Eigen::MatrixXd& m = proj[c % P];
+        for (size_t q = 0; q < dev[i][c].size(); ++q) {
+          double v = 0;
+          for (size_t t = 0; t < S; ++t)
+            v += m(Eigen::Index(s), Eigen::Index(t)) * cand_sets[t][i][c].pixels[q];
+          dev[i][c].pixels[q] = float(v);
+        }
+      }
+    n_all += ToEigen(model.CrossInformation(dev, dev, vm, bin));
+  }
+  for (Eigen::Index c = 0; c < n_all.rows(); ++c)
+    for (Eigen::Index c2 = 0; c2 < n_all.cols(); ++c2) {
+      const double dof = (proj[size_t(c) % P] * proj[size_t(c2) % P]).trace();
+      n_all(c, c2) *= dof > 0.5 ? (1 / double(na) + 1 / double(nb)) / dof : 0.0;
+    }
+  return n_all;
+}
+
+/// The goodness of fit's template: the mean of the S sets' images at the estimate (the main
+/// streams' among them; the steps' last images where they ended there). One set's image carries
+/// Poisson noise of w photons per ray, a share of the residuals' variance that the tests allow
+/// for but that varies with the streams: the tests' value then depends on the seed more than
+/// their null distribution says. The mean of S independent ones carries w / S.
+void MeanTemplate(Runner& run, const FitSpec& spec, const std::vector<double>& best,
+                  size_t final_level, size_t s_all, OptimumDerivatives* od) {
+  Simulated first;
+  std::vector<Images> at;
+  for (size_t s = 0; s < s_all && run.Budget(); ++s) {
+    Simulated sim = run.Images(best, final_level, spec.seed + kDerivativeSetSeedStride * s,
+                               Stage::kFinal, nullptr);
+    at.push_back(sim.photons);
+    if (s == 0) first = std::move(sim);
+  }
+  if (at.size() == s_all) {
+    od->mean_sim = std::move(first);
+    od->mean_sim.photons = MeanImages(at, 0, 1);
+    for (double& w : od->mean_sim.photons_per_ray) w /= double(s_all);
+    od->mean_sets = s_all;
+  }
+}
+
+/// The final steps' estimating equation at theta_c (the sets' point), with what its root's steps
+/// need again: the halves' candidate columns and mean images, the chosen combination of each
+/// parameter's traced and smoothed columns, and the equation's value there.
+struct CrossFittedEquation {
+  Columns cand_a, cand_b;
+  Images ca, cb;
+  Eigen::MatrixXd combination;
+  Eigen::VectorXd g_all;
+};
+
+/// Builds the equation from the S derivative sets and fills od's score fields (the response,
+/// the variances, the smoothing weights, the candidates' response and variance).
+CrossFittedEquation BuildEquation(FitModel& model, const FitSpec& spec,
+                                  const std::vector<Differences>& sets,
+                                  const std::vector<double>& best, const Eigen::VectorXd& prior,
+                                  const std::vector<double>& read_variance, double k, int bin,
+                                  OptimumDerivatives* od_out) {
+  OptimumDerivatives& od = *od_out;
+  const size_t P = spec.parameters.size(), S = sets.size();
+  // The estimating equation, cross-fitted over the two halves a (sets 0, 2, ...) and b
+  // (1, 3, ...), each with its mean image c at theta_c (the plain count) and mean derivative
+  // images J (as traced), J~ (per parameter as traced or smoothed) and weights W = 1/(c + r^2):
+  //   U(theta) = J~_b^T W_b (e - c_a - J_a (theta - theta_c))
+  //            + J~_a^T W_a (e - c_b - J_b (theta - theta_c)) = 0.
+  // Each term's J~ and W come from rays independent of its template's and of e, so
+  // E[e - c] = 0 makes U vanish on average at the truth in every pixel, dark ones included,
+  // whatever J~ (the search's score, e / (count + one ray) - 1, is biased by -exp(-k mu) per
+  // pixel: with smoothed derivatives reaching into a drop's dark ring it moved case A's index
+  // by +10 bounds). The template is the mean of all S sets' images, not one: its shot noise
+  // adds mu / (k S / 2) per term instead of mu / k. The smoothing ([1/4, 1/2, 1/4]) shrinks a
+  // ray's pixel-edge dipole in a central difference about 20-fold while the derivative, smooth
+  // over a pixel, passes. U is linear in theta: its root is theta_c + A^-1 g.
+  const size_t na = (S + 1) / 2, nb = S / 2;
+  std::vector<Images> centers;
+  std::vector<Columns> cand_sets;  // each set's candidate columns, smoothed once
+  for (const Differences& d : sets) {
+    centers.push_back(d.mu.photons);
+    cand_sets.push_back(Candidates(d.dmu));
+  }
+  const Images ca = MeanImages(centers, 0, 2), cb = MeanImages(centers, 1, 2);
+  const Images vm = MeanImages(centers, 0, 1);  // the weights' mean image for the variances
+  const Columns cand_a = MeanColumns(cand_sets, 0, 2), cand_b = MeanColumns(cand_sets, 1, 2);
+  Simulated sim_a, sim_b;
+  sim_a.photons = ca, sim_b.photons = cb;
+  // Over the 2P candidate columns: the response A (2P x P), g, and U's variance at the truth:
+  // the experiment's share B_e = (J~_a + J~_b)^T W (J~_a + J~_b), which with J~'s noise
+  // included is exactly the spread a noisy J~ gives the root, and the templates' share B_t.
+  Eigen::MatrixXd a_all = ToEigen(model.CrossInformation(cand_b, od.half_a.dmu, cb, bin)) +
+                          ToEigen(model.CrossInformation(cand_a, od.half_b.dmu, ca, bin));
+  Eigen::VectorXd g_all = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(2 * P));
+  {
+    const std::vector<double> ga = model.Score(sim_a, cand_b, cb, bin);
+    const std::vector<double> gb = model.Score(sim_b, cand_a, ca, bin);
+    for (size_t i = 0; i < 2 * P; ++i) g_all(Eigen::Index(i)) = ga[i] + gb[i];
+  }
+  const Columns cand_sum = Plus(cand_a, cand_b);
+  Eigen::MatrixXd be_all = ToEigen(model.CrossInformation(cand_sum, cand_sum, vm, bin));
+  // Gaussian priors (Parameter::prior_*): the term 2 Lambda (m - theta) in U, on the scale of
+  // the two halves' sum (each about the full score), so the response gains 2 Lambda and U's
+  // variance 4 Lambda (the prior's mean is a measurement with variance 1 / Lambda); the same
+  // for either column of a parameter.
+  for (size_t i = 0; i < P; ++i) {
+    const double l = prior(Eigen::Index(i));
+    if (!(l > 0)) continue;
+    for (size_t c : {i, P + i}) {
+      a_all(Eigen::Index(c), Eigen::Index(i)) += 2 * l;
+      g_all(Eigen::Index(c)) += 2 * l * (spec.parameters[i].prior_mean - best[i]);
+      for (size_t c2 : {i, P + i}) be_all(Eigen::Index(c), Eigen::Index(c2)) += 4 * l;
+    }
+  }
+  const Eigen::MatrixXd bt_all =
+      ToEigen(model.CrossInformation(cand_b, cand_b, vm, bin)) / (k * double(na)) +
+      ToEigen(model.CrossInformation(cand_a, cand_a, vm, bin)) / (k * double(nb));
+  // The derivatives' noise in B_e (DerivativeNoise).
+  const Eigen::MatrixXd n_all = DerivativeNoise(model, sets, cand_sets, vm, bin, na, nb);
+  // Per parameter a convex combination of its two columns, (1 - w) as traced + w smoothed,
+  // with the weights that give the smallest variance of the root, summed over the parameters
+  // in units of their Cramer-Rao bounds (the halves' cross product; SmoothingWeights). The
+  // weights use the derivative sets only, never the experiment, so the equation stays
+  // unbiased; each row combines its own parameter's two columns only and never extrapolates
+  // (a free combination of all 2P columns, T = A^T V^-1, fitted the noise of V for weak
+  // nuisances).
+  const Matrix crb = InverseSpd(
+      FisherInformation(od.half_a.mu.photons, od.half_a.dmu, od.half_b.dmu, read_variance));
+  const Eigen::MatrixXd v_all = be_all + bt_all;
+  Eigen::VectorXd scale = Eigen::VectorXd::Zero(Eigen::Index(P));
+  for (size_t i = 0; i < P && !crb.empty(); ++i) scale(Eigen::Index(i)) = crb[i][i];
+  const std::vector<double> weight =
+      crb.empty() ? std::vector<double>(P, 1.0) : SmoothingWeights(a_all, v_all, scale);
+  const Eigen::MatrixXd combination = SmoothingCombination(weight);
+  od.score_response = combination * a_all;
+  od.score_prior = 2 * prior;
+  od.score_variance_experiment = combination * be_all * combination.transpose();
+  od.score_variance_template = combination * bt_all * combination.transpose();
+  od.score_derivative_noise = combination * n_all * combination.transpose();
+  od.score_smoothing = weight;
+  od.candidate_response = a_all, od.candidate_variance = v_all;
+  od.score_scale = scale;
+  od.score_dmu.assign(cand_sum.size(), {});
+  for (size_t m = 0; m < cand_sum.size(); ++m)
+    for (size_t i = 0; i < P; ++i) {
+      Image im = cand_sum[m][i];
+      for (size_t q = 0; q < im.pixels.size(); ++q)
+        im.pixels[q] = (1 - weight[i]) * im.pixels[q] + weight[i] * cand_sum[m][P + i].pixels[q];
+      od.score_dmu[m].push_back(std::move(im));
+    }
+  return {cand_a, cand_b, ca, cb, combination, g_all};
+}
+
+}  // namespace
+
 OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<double>* best_io,
                               const FitResult& res) {
   FitModel& model = run.model();
@@ -232,122 +405,8 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       break;
     }
     steps_ran = true;
-    // The estimating equation, cross-fitted over the two halves a (sets 0, 2, ...) and b
-    // (1, 3, ...), each with its mean image c at theta_c (the plain count) and mean derivative
-    // images J (as traced), J~ (per parameter as traced or smoothed) and weights W = 1/(c + r^2):
-    //   U(theta) = J~_b^T W_b (e - c_a - J_a (theta - theta_c))
-    //            + J~_a^T W_a (e - c_b - J_b (theta - theta_c)) = 0.
-    // Each term's J~ and W come from rays independent of its template's and of e, so
-    // E[e - c] = 0 makes U vanish on average at the truth in every pixel, dark ones included,
-    // whatever J~ (the search's score, e / (count + one ray) - 1, is biased by -exp(-k mu) per
-    // pixel: with smoothed derivatives reaching into a drop's dark ring it moved case A's index
-    // by +10 bounds). The template is the mean of all S sets' images, not one: its shot noise
-    // adds mu / (k S / 2) per term instead of mu / k. The smoothing ([1/4, 1/2, 1/4]) shrinks a
-    // ray's pixel-edge dipole in a central difference about 20-fold while the derivative, smooth
-    // over a pixel, passes. U is linear in theta: its root is theta_c + A^-1 g.
-    const size_t na = (S + 1) / 2, nb = S / 2;
-    std::vector<Images> centers;
-    std::vector<Columns> cand_sets;  // each set's candidate columns, smoothed once
-    for (const Differences& d : sets) {
-      centers.push_back(d.mu.photons);
-      cand_sets.push_back(Candidates(d.dmu));
-    }
-    const Images ca = MeanImages(centers, 0, 2), cb = MeanImages(centers, 1, 2);
-    const Images vm = MeanImages(centers, 0, 1);  // the weights' mean image for the variances
-    const Columns cand_a = MeanColumns(cand_sets, 0, 2), cand_b = MeanColumns(cand_sets, 1, 2);
-    Simulated sim_a, sim_b;
-    sim_a.photons = ca, sim_b.photons = cb;
-    // Over the 2P candidate columns: the response A (2P x P), g, and U's variance at the truth:
-    // the experiment's share B_e = (J~_a + J~_b)^T W (J~_a + J~_b), which with J~'s noise
-    // included is exactly the spread a noisy J~ gives the root, and the templates' share B_t.
-    Eigen::MatrixXd a_all = ToEigen(model.CrossInformation(cand_b, od.half_a.dmu, cb, bin)) +
-                            ToEigen(model.CrossInformation(cand_a, od.half_b.dmu, ca, bin));
-    Eigen::VectorXd g_all = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(2 * P));
-    {
-      const std::vector<double> ga = model.Score(sim_a, cand_b, cb, bin);
-      const std::vector<double> gb = model.Score(sim_b, cand_a, ca, bin);
-      for (size_t i = 0; i < 2 * P; ++i) g_all(Eigen::Index(i)) = ga[i] + gb[i];
-    }
-    const Columns cand_sum = Plus(cand_a, cand_b);
-    Eigen::MatrixXd be_all = ToEigen(model.CrossInformation(cand_sum, cand_sum, vm, bin));
-    // Gaussian priors (Parameter::prior_*): the term 2 Lambda (m - theta) in U, on the scale of
-    // the two halves' sum (each about the full score), so the response gains 2 Lambda and U's
-    // variance 4 Lambda (the prior's mean is a measurement with variance 1 / Lambda); the same
-    // for either column of a parameter.
-    for (size_t i = 0; i < P; ++i) {
-      const double l = prior(Eigen::Index(i));
-      if (!(l > 0)) continue;
-      for (size_t c : {i, P + i}) {
-        a_all(Eigen::Index(c), Eigen::Index(i)) += 2 * l;
-        g_all(Eigen::Index(c)) += 2 * l * (spec.parameters[i].prior_mean - best[i]);
-        for (size_t c2 : {i, P + i}) be_all(Eigen::Index(c), Eigen::Index(c2)) += 4 * l;
-      }
-    }
-    const Eigen::MatrixXd bt_all =
-        ToEigen(model.CrossInformation(cand_b, cand_b, vm, bin)) / (k * double(na)) +
-        ToEigen(model.CrossInformation(cand_a, cand_a, vm, bin)) / (k * double(nb));
-    // The derivatives' noise in B_e: per set, pooled over the halves from the sets' scatter
-    // about their half's mean and their side's truncation offset (ScatterProjections); the sum
-    // J~_a + J~_b holds it 1/na + 1/nb times.
-    Eigen::MatrixXd n_all = Eigen::MatrixXd::Zero(be_all.rows(), be_all.cols());
-    {
-      std::vector<std::vector<int>> sides;
-      for (const Differences& d : sets) sides.push_back(d.side);
-      const std::vector<Eigen::MatrixXd> proj = ScatterProjections(sides);
-      // No degrees of freedom left (the pilot's two sets): N = 0 without summing the products.
-      bool scatter = false;
-      for (const Eigen::MatrixXd& m : proj) scatter = scatter || m.trace() > 0.5;
-      for (size_t s = 0; s < S && scatter; ++s) {
-        Columns dev = cand_sets[s];
-        for (size_t i = 0; i < dev.size(); ++i)
-          for (size_t c = 0; c < 2 * P; ++c) {
-            const Eigen::MatrixXd& m = proj[c % P];
-            for (size_t q = 0; q < dev[i][c].size(); ++q) {
-              double v = 0;
-              for (size_t t = 0; t < S; ++t)
-                v += m(Eigen::Index(s), Eigen::Index(t)) * cand_sets[t][i][c].pixels[q];
-              dev[i][c].pixels[q] = float(v);
-            }
-          }
-        n_all += ToEigen(model.CrossInformation(dev, dev, vm, bin));
-      }
-      for (Eigen::Index c = 0; c < n_all.rows(); ++c)
-        for (Eigen::Index c2 = 0; c2 < n_all.cols(); ++c2) {
-          const double dof = (proj[size_t(c) % P] * proj[size_t(c2) % P]).trace();
-          n_all(c, c2) *= dof > 0.5 ? (1 / double(na) + 1 / double(nb)) / dof : 0.0;
-        }
-    }
-    // Per parameter a convex combination of its two columns, (1 - w) as traced + w smoothed,
-    // with the weights that give the smallest variance of the root, summed over the parameters
-    // in units of their Cramer-Rao bounds (the halves' cross product; SmoothingWeights). The
-    // weights use the derivative sets only, never the experiment, so the equation stays
-    // unbiased; each row combines its own parameter's two columns only and never extrapolates
-    // (a free combination of all 2P columns, T = A^T V^-1, fitted the noise of V for weak
-    // nuisances).
-    const Matrix crb = InverseSpd(
-        FisherInformation(od.half_a.mu.photons, od.half_a.dmu, od.half_b.dmu, read_variance));
-    const Eigen::MatrixXd v_all = be_all + bt_all;
-    Eigen::VectorXd scale = Eigen::VectorXd::Zero(Eigen::Index(P));
-    for (size_t i = 0; i < P && !crb.empty(); ++i) scale(Eigen::Index(i)) = crb[i][i];
-    const std::vector<double> weight =
-        crb.empty() ? std::vector<double>(P, 1.0) : SmoothingWeights(a_all, v_all, scale);
-    const Eigen::MatrixXd combination = SmoothingCombination(weight);
-    od.score_response = combination * a_all;
-    od.score_prior = 2 * prior;
-    od.score_variance_experiment = combination * be_all * combination.transpose();
-    od.score_variance_template = combination * bt_all * combination.transpose();
-    od.score_derivative_noise = combination * n_all * combination.transpose();
-    od.score_smoothing = weight;
-    od.candidate_response = a_all, od.candidate_variance = v_all;
-    od.score_scale = scale;
-    od.score_dmu.assign(cand_sum.size(), {});
-    for (size_t m = 0; m < cand_sum.size(); ++m)
-      for (size_t i = 0; i < P; ++i) {
-        Image im = cand_sum[m][i];
-        for (size_t q = 0; q < im.pixels.size(); ++q)
-          im.pixels[q] = (1 - weight[i]) * im.pixels[q] + weight[i] * cand_sum[m][P + i].pixels[q];
-        od.score_dmu[m].push_back(std::move(im));
-      }
+    const CrossFittedEquation eq =
+        BuildEquation(model, spec, sets, best, prior, read_variance, k, bin, &od);
     const auto lu = od.score_response.fullPivLu();
     if (!lu.isInvertible()) {
       if (!pilot) break;
@@ -368,7 +427,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
                       const std::vector<double>& y) {
       Eigen::VectorXd g2 = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(2 * P));
       for (size_t c = 0; c < 2 * P; ++c) g2(Eigen::Index(c)) = ga[c] + gb[c];
-      Eigen::VectorXd v = combination * g2;
+      Eigen::VectorXd v = eq.combination * g2;
       for (size_t i = 0; i < P; ++i)
         v(Eigen::Index(i)) += 2 * prior(Eigen::Index(i)) * (spec.parameters[i].prior_mean - y[i]);
       return v;
@@ -381,9 +440,10 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
                             Stage::kFinal, nullptr)
                      .photons;
       at_a.photons = MeanImages(at, 0, 2), at_b.photons = MeanImages(at, 1, 2);
-      return Select(model.Score(at_a, cand_b, cb, bin), model.Score(at_b, cand_a, ca, bin), y);
+      return Select(model.Score(at_a, eq.cand_b, eq.cb, bin),
+                    model.Score(at_b, eq.cand_a, eq.ca, bin), y);
     };
-    Eigen::VectorXd g = combination * g_all;
+    Eigen::VectorXd g = eq.combination * eq.g_all;
     double q = Q(g);
     std::vector<double> x = best;
     bool stepped = false;
@@ -424,35 +484,86 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     double e = 0;
     od.final_sim = run.Images(best, final_level, spec.seed, Stage::kFinal, &e);
   }
-  // The goodness of fit's template: the mean of the sets' images at the estimate (the main
-  // streams' among them; the steps' last images where they ended there). One set's image carries
-  // Poisson noise of w photons per ray, a share of the residuals' variance that the tests allow
-  // for but that varies with the streams: the tests' value then depends on the seed more than
-  // their null distribution says. The mean of S independent ones carries w / S.
-  if (!spec.exact_images && res.status != FitStatus::kFlat && spec.uncertainties && run.Budget()) {
-    Simulated first;
-    std::vector<Images> at;
-    for (size_t s = 0; s < s_all && run.Budget(); ++s) {
-      Simulated sim = run.Images(best, final_level, spec.seed + kDerivativeSetSeedStride * s,
-                                 Stage::kFinal, nullptr);
-      at.push_back(sim.photons);
-      if (s == 0) first = std::move(sim);
-    }
-    if (at.size() == s_all) {
-      od.mean_sim = std::move(first);
-      od.mean_sim.photons = MeanImages(at, 0, 1);
-      for (double& w : od.mean_sim.photons_per_ray) w /= double(s_all);
-      od.mean_sets = s_all;
-    }
-  }
+  // The goodness of fit's template (MeanTemplate).
+  if (!spec.exact_images && res.status != FitStatus::kFlat && spec.uncertainties && run.Budget())
+    MeanTemplate(run, spec, best, final_level, s_all, &od);
   return od;
 }
+
+namespace {
+
+/// Repeated fits with independent ray streams, from the optimum, at the final fraction.
+void RepeatFits(Runner& run, const FitSpec& spec, const std::vector<double>& best,
+                FitResult* res_out) {
+  FitResult& res = *res_out;
+  const size_t P = spec.parameters.size();
+  const size_t final_level = spec.rays.fractions.size() - 1;
+  std::vector<std::vector<double>> reps;
+  for (int k = 1; k <= spec.repeat_seeds && run.Budget(); ++k) {
+    const uint64_t seed = spec.seed + kRepeatSeedStride * k;
+    if (spec.method == Method::kLevenbergMarquardt || spec.method == Method::kGrid) {
+      FitResult scratch;
+      reps.push_back(LevenbergMarquardt(run, spec, &scratch, best, seed, {final_level}, false));
+    } else {
+      // Pattern: a compass search at the final fraction with this seed, from the optimum.
+      std::vector<double> x = best;
+      std::vector<bool> moved(P, false);
+      double delta = 0.25;
+      Compass(
+          run, spec, final_level, [&] { return seed; }, Stage::kRepeat, &x, &delta, 1.0 / 64,
+          &moved);
+      reps.push_back(x);
+    }
+  }
+  if (reps.size() >= 2)
+    for (size_t i = 0; i < P; ++i) {
+      double m = 0, v = 0;
+      for (const auto& r : reps) m += r[i];
+      m /= double(reps.size());
+      for (const auto& r : reps) v += (r[i] - m) * (r[i] - m);
+      res.parameters[i].sigma_repeat = std::sqrt(v / double(reps.size() - 1));
+    }
+}
+
+/// Error-function slices through the optimum: +-3 sigma (curvature), at least +-step/2, each
+/// point the mean over two ray-stream sets. With fixed streams a slice is a staircase whose
+/// steps can exceed its rise over one sigma; the two sets' differences, less their mean (the
+/// level differs between sets, not the shape), measure that noise for the report.
+void Slices(Runner& run, const FitSpec& spec, const std::vector<double>& best, FitResult* res_out) {
+  FitResult& res = *res_out;
+  const size_t P = spec.parameters.size();
+  const size_t final_level = spec.rays.fractions.size() - 1;
+  const uint64_t second = spec.seed + kDerivativeSetSeedStride;
+  for (size_t i = 0; i < P; ++i) {
+    ParameterResult& pr = res.parameters[i];
+    const double half = std::max(3 * pr.sigma_curvature, 0.5 * spec.parameters[i].step);
+    std::vector<double> diff;
+    for (int k = 0; k < spec.slice_points && run.Budget(); ++k) {
+      std::vector<double> th = best;
+      th[i] = best[i] - half + 2 * half * k / (spec.slice_points - 1);
+      if (th[i] < pr.lower || th[i] > pr.upper) continue;
+      const double a = run.Eval(th, final_level, spec.seed, Stage::kSlice);
+      const double b = run.Eval(th, final_level, second, Stage::kSlice);
+      pr.slice_x.push_back(th[i]);
+      pr.slice_error.push_back(0.5 * (a + b));
+      diff.push_back(a - b);
+    }
+    const size_t n = diff.size();
+    if (n >= 3) {
+      double m = 0, v = 0;
+      for (double d : diff) m += d / double(n);
+      for (double d : diff) v += (d - m) * (d - m) / double(n - 1);
+      pr.slice_noise = 0.5 * std::sqrt(v);  // sd of (a + b) / 2 = sd(a - b) / 2
+    }
+  }
+}
+
+}  // namespace
 
 Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vector<double>& best,
                                 const OptimumDerivatives& od, FitResult* res_out) {
   FitResult& res = *res_out;
   const size_t P = spec.parameters.size();
-  const size_t final_level = spec.rays.fractions.size() - 1;
   const Differences& half_a = od.half_a;
   const Differences& half_b = od.half_b;
   const Simulated& final_sim = od.final_sim;
@@ -559,63 +670,8 @@ Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vec
         "; no Cramer-Rao bound: the information from the two independent halves of the "
         "derivative sets is not positive definite (their ray noise along a weakly determined "
         "direction; more jacobian_seeds or rays give one)";
-  // Repeated fits with independent ray streams, from the optimum, at the final fraction.
-  if (spec.repeat_seeds >= 2) {
-    std::vector<std::vector<double>> reps;
-    for (int k = 1; k <= spec.repeat_seeds && run.Budget(); ++k) {
-      const uint64_t seed = spec.seed + kRepeatSeedStride * k;
-      if (spec.method == Method::kLevenbergMarquardt || spec.method == Method::kGrid) {
-        FitResult scratch;
-        reps.push_back(LevenbergMarquardt(run, spec, &scratch, best, seed, {final_level}, false));
-      } else {
-        // Pattern: a compass search at the final fraction with this seed, from the optimum.
-        std::vector<double> x = best;
-        std::vector<bool> moved(P, false);
-        double delta = 0.25;
-        Compass(
-            run, spec, final_level, [&] { return seed; }, Stage::kRepeat, &x, &delta, 1.0 / 64,
-            &moved);
-        reps.push_back(x);
-      }
-    }
-    if (reps.size() >= 2)
-      for (size_t i = 0; i < P; ++i) {
-        double m = 0, v = 0;
-        for (const auto& r : reps) m += r[i];
-        m /= double(reps.size());
-        for (const auto& r : reps) v += (r[i] - m) * (r[i] - m);
-        res.parameters[i].sigma_repeat = std::sqrt(v / double(reps.size() - 1));
-      }
-  }
-  // Error-function slices through the optimum: +-3 sigma (curvature), at least +-step/2, each
-  // point the mean over two ray-stream sets. With fixed streams a slice is a staircase whose
-  // steps can exceed its rise over one sigma; the two sets' differences, less their mean (the
-  // level differs between sets, not the shape), measure that noise for the report.
-  if (spec.slice_points >= 3) {
-    const uint64_t second = spec.seed + kDerivativeSetSeedStride;
-    for (size_t i = 0; i < P; ++i) {
-      ParameterResult& pr = res.parameters[i];
-      const double half = std::max(3 * pr.sigma_curvature, 0.5 * spec.parameters[i].step);
-      std::vector<double> diff;
-      for (int k = 0; k < spec.slice_points && run.Budget(); ++k) {
-        std::vector<double> th = best;
-        th[i] = best[i] - half + 2 * half * k / (spec.slice_points - 1);
-        if (th[i] < pr.lower || th[i] > pr.upper) continue;
-        const double a = run.Eval(th, final_level, spec.seed, Stage::kSlice);
-        const double b = run.Eval(th, final_level, second, Stage::kSlice);
-        pr.slice_x.push_back(th[i]);
-        pr.slice_error.push_back(0.5 * (a + b));
-        diff.push_back(a - b);
-      }
-      const size_t n = diff.size();
-      if (n >= 3) {
-        double m = 0, v = 0;
-        for (double d : diff) m += d / double(n);
-        for (double d : diff) v += (d - m) * (d - m) / double(n - 1);
-        pr.slice_noise = 0.5 * std::sqrt(v);  // sd of (a + b) / 2 = sd(a - b) / 2
-      }
-    }
-  }
+  if (spec.repeat_seeds >= 2) RepeatFits(run, spec, best, &res);
+  if (spec.slice_points >= 3) Slices(run, spec, best, &res);
   // Profile-likelihood intervals where the curvature interval may not be trustworthy.
   ProfileIntervals(run, spec, best, od, &res);
   return best_sim;

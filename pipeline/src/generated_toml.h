@@ -4,6 +4,7 @@
 #include <toml++/toml.h>
 
 #include <cctype>
+#include <charconv>
 #include <filesystem>
 #include <locale>
 #include <sstream>
@@ -53,17 +54,16 @@ inline std::string ShortestFloats(const std::string& in) {
       continue;
     }
     const double v = std::stod(token);
+    // The shortest digits that read back as v, in fixed notation where that takes at most 12
+    // characters (a defocus of -20 reads "-20.0", not "-2e+01"), else the shortest of the two.
+    char fixed[400], general[64];
+    const auto f = std::to_chars(fixed, fixed + sizeof fixed, v, std::chars_format::fixed);
+    const auto g = std::to_chars(general, general + sizeof general, v);
     std::string best = token;
-    for (int digits = 1; digits <= 17; ++digits) {
-      std::ostringstream s;
-      s.imbue(std::locale::classic());
-      s.precision(digits);
-      s << v;
-      if (std::stod(s.str()) == v) {
-        best = s.str();
-        break;
-      }
-    }
+    if (f.ec == std::errc() && f.ptr - fixed <= 12)
+      best.assign(fixed, f.ptr);
+    else if (g.ec == std::errc())
+      best.assign(general, g.ptr);
     if (best.find_first_of(".eEn") == std::string::npos) best += ".0";  // stays a float
     out += best, i = j - 1;
   }

@@ -260,7 +260,7 @@ std::string ReportField(const fs::path& file, const std::string& field,
   if (v && !member.empty()) v = v->is_object() && v->contains(member) ? &(*v)[member] : nullptr;
   if (!v || !(v->is_string() || v->is_boolean() || v->is_number()))
     throw Error(FileLocation{file.string()}, "field '" + name +
-                                                 "' is missing or not a string; delete the "
+                                                 "' is missing or of the wrong type; delete the "
                                                  "file or run with --force to recompute the step");
   if (v->is_number()) return v->dump();  // the shortest text that reads back as the same double
   return v->is_boolean() ? (v->get<bool>() ? "true" : "false") : v->get<std::string>();
@@ -394,12 +394,12 @@ PipelineCheck FitCheck(const std::string& stem, const fit::FitResult& r) {
   return c;
 }
 
-/// The calibration step's results (made or read back).
 /// The drop as the sphere calibration found it.
 struct CalibratedDrop {
   double center_um[3] = {0, 0, 0}, radius_um = 0, index = 0;
 };
 
+/// The calibration step's results (made or read back).
 struct Calibration {
   CalibrationData data;
   std::string lf_report, co_report, sp_report;

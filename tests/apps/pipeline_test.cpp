@@ -61,6 +61,7 @@ TEST(GeneratedToml, FloatsInTheirShortestFormReadBackExactly) {
                       {"photons_per_pixel", ppp},
                       {"small", small},
                       {"negative", -0.1},
+                      {"defocus_um", toml::array{-20.0, 5.0, 1e5}},
                       {"pixels", toml::array{160, 120}},
                       {"file", "/data/x1.50000000000000001/run 2.5.tif"}};
   const std::string path = dir / "g.toml";
@@ -73,6 +74,7 @@ TEST(GeneratedToml, FloatsInTheirShortestFormReadBackExactly) {
   EXPECT_NE(text.find("radius_um = 23.0\n"), std::string::npos) << text;
   EXPECT_NE(text.find("photons_per_pixel = 2519.780273\n"), std::string::npos) << text;
   EXPECT_NE(text.find("[ 160, 120 ]"), std::string::npos) << text;
+  EXPECT_NE(text.find("defocus_um = [ -20.0, 5.0, 100000.0 ]"), std::string::npos) << text;
   EXPECT_NE(text.find("x1.50000000000000001/run 2.5.tif"), std::string::npos) << text;
   EXPECT_NE(text.find("# 293.14999999999998 in a comment stays"), std::string::npos) << text;
   const toml::table back = toml::parse_file(path);

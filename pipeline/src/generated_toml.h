@@ -6,7 +6,6 @@
 #include <cctype>
 #include <charconv>
 #include <filesystem>
-#include <locale>
 #include <sstream>
 #include <string>
 

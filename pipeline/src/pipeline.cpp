@@ -3,6 +3,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <exception>
@@ -394,10 +395,18 @@ PipelineCheck FitCheck(const std::string& stem, const fit::FitResult& r) {
   return c;
 }
 
-/// The drop as the sphere calibration found it.
-struct CalibratedDrop {
-  double center_um[3] = {0, 0, 0}, radius_um = 0, index = 0;
-};
+/// The drop's keys in the sphere calibration's fit, and their fields in calibration_report.json's
+/// "sphere_drop".
+constexpr std::array<std::pair<const char*, const char*>, 5> kDropKeys{{
+    {"object.drop.center_um[0]", "x_um"},
+    {"object.drop.center_um[1]", "y_um"},
+    {"object.drop.center_um[2]", "z_um"},
+    {"object.drop.radius_um", "radius_um"},
+    {"object.drop.index", "index"},
+}};
+
+/// The drop as the sphere calibration found it: x, y, z (um), radius (um), index (kDropKeys).
+using CalibratedDrop = std::array<double, 5>;
 
 /// The calibration step's results (made or read back).
 struct Calibration {
@@ -408,12 +417,6 @@ struct Calibration {
   bool sp_mismatch = false;
   std::optional<CalibratedDrop> drop;  ///< with a sphere calibration
 };
-
-/// The fields of calibration_report.json's "sphere_drop" (CalibratedDrop).
-constexpr const char* kDropFields[5] = {"x_um", "y_um", "z_um", "radius_um", "index"};
-double& DropField(CalibratedDrop& d, int i) {
-  return i < 3 ? d.center_um[i] : i == 3 ? d.radius_um : d.index;
-}
 
 /// Bumped when the calibration's model or file changes so that a calibration made by an older
 /// raymatch is not reused (2: the edge model from 3 map pixels inside the NA cut and the
@@ -521,27 +524,26 @@ void Calibrate(const RunInputs& in, const fs::path& out, const fs::path& cal_fil
     const SphereCalibrationResult sr = CalibrateSphere(so);
     c->sp_report = sr.Brief();
     c->sp_status = sr.status, c->sp_goodness = sr.goodness, c->sp_mismatch = sr.mismatch;
-    CalibratedDrop drop;
+    CalibratedDrop drop{};
     for (const SphereCalibrationValue& v : sr.values)
-      for (int i = 0; i < 5; ++i)
-        if (v.key == (i < 3 ? "object.drop.center_um[" + std::to_string(i) + "]"
-                            : std::string("object.drop.") + (i == 3 ? "radius_um" : "index")))
-          DropField(drop, i) = v.value;
+      for (size_t i = 0; i < drop.size(); ++i)
+        if (v.key == kDropKeys[i].first) drop[i] = v.value;
     c->drop = drop;
     if (sr.mismatch)
       std::cerr << "raymatch run: warning: the sphere calibration reports a model mismatch\n";
     c->data = ReadCalibrationFile(cal_file.string());
     // The light field's report ends with what lies beyond the NA: now the fitted edge.
-    const std::string& measured = co.data.light_field_note;
-    if (const size_t at = c->lf_report.find(measured); !measured.empty() && at != std::string::npos)
-      c->lf_report.replace(at, measured.size(), c->data.light_field_note);
+    calibrate::LightFieldSummary calibrated = lf;
+    calibrated.data.light_field_note = c->data.light_field_note;
+    c->lf_report = calibrated.BriefReport();
   }
   nlohmann::json rep{{"light_field", c->lf_report}, {"corrector", c->co_report}};
   if (!c->sp_report.empty()) {
     rep["sphere"] = c->sp_report;
     rep["sphere_fit"] = {
         {"status", c->sp_status}, {"goodness", c->sp_goodness}, {"mismatch", c->sp_mismatch}};
-    for (int i = 0; i < 5; ++i) rep["sphere_drop"][kDropFields[i]] = DropField(*c->drop, i);
+    for (size_t i = 0; i < kDropKeys.size(); ++i)
+      rep["sphere_drop"][kDropKeys[i].second] = (*c->drop)[i];
   }
   WriteTextFileAtomic(cal_report, rep.dump(2) + "\n");
 }
@@ -559,10 +561,9 @@ toml::table ExperimentScene(const RunInputs& in, const std::optional<CalibratedD
   toml::table drop{{"name", "drop"}, {"type", "sphere"}};
   if (calibrated) {
     const CalibratedDrop& c = *calibrated;
-    drop.insert("center_um",
-                toml::array{Sig10(c.center_um[0]), Sig10(c.center_um[1]), Sig10(c.center_um[2])});
-    drop.insert("radius_um", Sig10(c.radius_um));
-    drop.insert("index", Sig10(c.index));
+    drop.insert("center_um", toml::array{Sig10(c[0]), Sig10(c[1]), Sig10(c[2])});
+    drop.insert("radius_um", Sig10(c[3]));
+    drop.insert("index", Sig10(c[4]));
   } else {
     drop.insert("radius_um", Sig10(in.ex.diameter_um / 2));
     drop.insert("material", "water");
@@ -632,9 +633,9 @@ Calibration ReadCalibration(const fs::path& cal_file, const fs::path& cal_report
     cal.sp_status = ReportField(cal_report, "sphere_fit", "status");
     cal.sp_goodness = ReportField(cal_report, "sphere_fit", "goodness");
     cal.sp_mismatch = ReportField(cal_report, "sphere_fit", "mismatch") == "true";
-    CalibratedDrop drop;
-    for (int i = 0; i < 5; ++i)
-      DropField(drop, i) = std::stod(ReportField(cal_report, "sphere_drop", kDropFields[i]));
+    CalibratedDrop drop{};
+    for (size_t i = 0; i < drop.size(); ++i)
+      drop[i] = std::stod(ReportField(cal_report, "sphere_drop", kDropKeys[i].second));
     cal.drop = drop;
   }
   return cal;

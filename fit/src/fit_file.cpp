@@ -308,14 +308,13 @@ double FitSpec::RaysPerPhoton() const {
 
 namespace {
 
-/// `ray_start_fit`: the ray model's fit of a [search] start = "rays" (the scene's and the fit
-/// file's optics replaced by rays, search only, no [search] stages of its own).
-FitSpec LoadFitFile(const std::string& path, const std::string& scene_override,
-                    const std::string& calibration_override, bool ray_start_fit) {
-  const toml::table t = ParseTomlFile(path);
-  TomlReader r(t, path, "");
-  FitSpec f;
-  f.file = path;
+/// The fit file's scene (with its calibration and optics written in), checked: the scene as
+/// loaded, f's scene, scene_file, calibration_file and what an exact image model sets.
+simulate::Scene ReadSceneAndOptics(TomlReader& r, const std::string& path,
+                                   const std::string& scene_override,
+                                   const std::string& calibration_override, bool ray_start_fit,
+                                   FitSpec* f_out) {
+  FitSpec& f = *f_out;
   if (!scene_override.empty()) {
     f.scene_file = scene_override;
     r.String("scene", "");
@@ -363,6 +362,287 @@ FitSpec LoadFitFile(const std::string& path, const std::string& scene_override,
       })) {
     const simulate::Geometry check(scene.objects);
   }
+  return scene;
+}
+
+/// One [[image]]: its files read and prepared (photons, the pixels left out), checked against
+/// the scene's camera.
+FitImage ReadFitImage(TomlReader& im, const std::string& path, const simulate::Scene& scene) {
+  FitImage fi;
+  fi.where = im.Where();
+  fi.file = ResolvePath(path, im.String("file"));
+  fi.defocus_um = im.Number("defocus_um");
+  if (!(std::abs(fi.defocus_um) <= kMaxDefocusUm))
+    im.Fail("defocus_um", "expected a focus position within +-1e5 um (10 cm)");
+  if (im.Has("dark")) fi.dark_file = ResolvePath(path, im.String("dark"));
+  fi.gain_e_per_dn = im.Positive("gain_e_per_dn", 1.0);
+  fi.read_noise_e = im.InRange("read_noise_e", 0, 1e4, 0);
+  fi.saturation_dn = im.InRange("saturation_dn", 0, 1e9, 0);
+  im.Finish();
+  Image raw, dark;
+  try {
+    raw = ReadImage(fi.file);
+    if (!fi.dark_file.empty()) dark = ReadImage(fi.dark_file);
+  } catch (const Error& err) {
+    throw Error(fi.where, err.what());
+  }
+  compare::PrepareOptions prep;
+  prep.dark_file = fi.dark_file;
+  prep.gain_e_per_dn = fi.gain_e_per_dn;
+  try {
+    fi.photons = compare::PrepareExperiment(raw, prep, dark.empty() ? nullptr : &dark, nullptr);
+  } catch (const Error& err) {  // e.g. a dark frame of another size: name both files
+    throw Error(fi.where, "image " + fi.file +
+                              (fi.dark_file.empty() ? "" : " with dark frame " + fi.dark_file) +
+                              ": " + err.message());
+  }
+  // Saturated pixels (at or above saturation_dn) and, with a dark frame (an offset above 0),
+  // pixels clipped at 0 carry no count the Poisson model can describe: left out.
+  if (fi.saturation_dn > 0 || !dark.empty()) {
+    fi.usable = Image(raw.width, raw.height, 1.0f);
+    for (size_t p = 0; p < raw.size(); ++p)
+      if ((fi.saturation_dn > 0 && raw.pixels[p] >= fi.saturation_dn) ||
+          (!dark.empty() && raw.pixels[p] <= 0)) {
+        fi.usable.pixels[p] = 0;
+        ++fi.excluded_pixels;
+      }
+    if (fi.excluded_pixels == 0) fi.usable = Image();
+  }
+  if (fi.photons.width != scene.camera.nx || fi.photons.height != scene.camera.ny)
+    throw Error(fi.where, "image " + fi.file + " is " + std::to_string(fi.photons.width) + " x " +
+                              std::to_string(fi.photons.height) +
+                              " pixels; the scene's camera has " + std::to_string(scene.camera.nx) +
+                              " x " + std::to_string(scene.camera.ny));
+  return fi;
+}
+
+/// A [[parameter]]'s prior: "calibration" (the calibration file's value and sigma, the file read
+/// once into cal) or [mean, sigma].
+void ReadPrior(TomlReader& p, const toml::table& t, const FitSpec& f, double current,
+               std::optional<CalibrationData>& cal, Parameter* q_out) {
+  Parameter& q = *q_out;
+  if (p.Has("prior") && f.error != ErrorFunction::kPoisson)
+    p.Fail("prior", "a prior adds to the Poisson deviance: it needs error = \"poisson\"");
+  if (p.Has("prior")) {
+    if (const auto s = t["parameter"][f.parameters.size()]["prior"].value<std::string>()) {
+      if (*s != "calibration")
+        p.Fail("prior", "expected \"calibration\" or [mean, sigma] (a Gaussian prior)");
+      if (f.calibration_file.empty())
+        p.Fail("prior", "prior = \"calibration\" needs a calibration file (key calibration)");
+      if (!cal) cal = ReadCalibrationFile(f.calibration_file);
+      const auto it = cal->key_sigma.find(q.key);
+      if (it == cal->key_sigma.end())
+        p.Fail("prior", "the calibration " + f.calibration_file + " gives no uncertainty for '" +
+                            q.key + "' (its [uncertainty] table, written by `raymatch " +
+                            "calibrate sphere`, holds the keys that calibration fitted; files "
+                            "from older versions lack it: run it again)");
+      q.prior_mean = current, q.prior_sigma = it->second, q.prior_from = "calibration";
+      p.String("prior");
+    } else {
+      const std::vector<double> m = p.Numbers("prior", 2, 2);
+      if (!(m[1] > 0) || !std::isfinite(m[0]) || !std::isfinite(m[1]))
+        p.Fail("prior", "expected [mean, sigma] with sigma > 0 (a Gaussian prior)");
+      q.prior_mean = m[0], q.prior_sigma = m[1], q.prior_from = "fit file";
+    }
+  }
+}
+
+/// One [[parameter]]: its key bound against the scene (an edge or PSF that the calibration
+/// gives is written into f's scene so it can be set), its range, step, grid points and prior.
+Parameter ReadParameter(TomlReader& p, const toml::table& t, const simulate::Scene& scene,
+                        std::set<std::string>* keys_io, std::optional<CalibrationData>* cal,
+                        FitSpec* f_out) {
+  FitSpec& f = *f_out;
+  std::set<std::string>& keys = *keys_io;
+  Parameter q;
+  q.where = p.Where();
+  q.key = p.String("key");
+  if (!keys.insert(q.key).second) p.Fail("key", "parameter '" + q.key + "' is given twice");
+  // What the key sets, resolved against the scene once (binding.h; the model binds it
+  // against its own copy the same way).
+  internal::Binding bound;
+  try {
+    bound = internal::Bind(q.key, scene, f.images.size());
+  } catch (const Error& err) {
+    p.Fail("key", err.what());
+  }
+  using Kind = internal::Binding::Kind;
+  // The calibration's edge and PSF as keys of a scene that takes them from the calibration:
+  // written into the scene's tables with the calibration's values, so they can be set.
+  if (bound.kind == Kind::kEdge && !f.scene.contains("light_field_edge") &&
+      !(scene.source.edge_half_angle_deg > 0))
+    p.Fail("key", "'" + q.key +
+                      "' needs the light field's edge beyond the NA: a [light_field_edge] "
+                      "table in the scene, or a calibration with one (`raymatch calibrate "
+                      "sphere`; in a pipeline, [calibration] sphere)");
+  if (bound.kind == Kind::kEdge && !f.scene.contains("light_field_edge")) {
+    toml::array tilt{scene.source.edge_tilt_deg[0], scene.source.edge_tilt_deg[1]};
+    f.scene.insert_or_assign("light_field_edge",
+                             toml::table{{"half_angle_deg", scene.source.edge_half_angle_deg},
+                                         {"width_deg", scene.source.edge_width_deg},
+                                         {"tilt_deg", std::move(tilt)}});
+  }
+  if (bound.kind == Kind::kPsf && f.scene["camera"].as_table() &&
+      !f.scene["camera"].as_table()->contains("psf_sigma_um"))
+    f.scene["camera"].as_table()->insert_or_assign("psf_sigma_um", scene.camera.psf_sigma_um);
+  double current = 0;
+  if (!bound.InScene()) {
+    // image[i].defocus_um: the defocus of one of this file's images; image[i].background_*:
+    // an additive background of its expected image (photons per pixel; slopes per pixel).
+    if (bound.kind == Kind::kDefocus) {
+      current = f.images[bound.image].defocus_um;
+      if (!(std::abs(p.Number("lower")) <= kMaxDefocusUm &&
+            std::abs(p.Number("upper")) <= kMaxDefocusUm))
+        p.Fail("lower", "focus positions lie within +-1e5 um (10 cm)");
+    }
+  } else {
+    try {
+      current = SceneValue(f.scene, q.key, f.scene_file);
+    } catch (const Error& err) {
+      p.Fail("key", err.what());
+    }
+  }
+  q.lower = p.Number("lower");
+  q.upper = p.Number("upper");
+  if (!(q.upper > q.lower)) p.Fail("upper", "must be greater than lower");
+  q.start = p.Number("start", current);
+  if (q.start < q.lower || q.start > q.upper) {
+    std::ostringstream m;
+    m << "start value " << q.start << (p.Has("start") ? "" : " (the scene's value)")
+      << " lies outside [lower, upper] = [" << q.lower << ", " << q.upper << "]";
+    p.Fail(p.Has("start") ? "start" : "key", m.str());
+  }
+  if (!std::isfinite(q.upper - q.lower)) p.Fail("upper", "upper - lower must be a finite number");
+  q.step = p.Positive("step", (q.upper - q.lower) / 10);
+  q.points = static_cast<int>(p.Integer("points", 0, 2, kMaxGridPoints));
+  if (q.points == 0) {  // grid samples from the step (used by method grid and bench fit-grid)
+    // In double first: a tiny step over a wide range must not overflow the int.
+    const double n = std::floor((q.upper - q.lower) / q.step + 1e-9) + 1;
+    if (!(n <= kMaxGridPoints))
+      p.Fail("step", "gives " + std::to_string(n) + " grid points from lower to upper; at most " +
+                         std::to_string(kMaxGridPoints) + " (give a larger step or points)");
+    q.points = static_cast<int>(n);
+  }
+  q.unit = UnitOf(q.key);
+  ReadPrior(p, t, f, current, *cal, &q);
+  p.Finish();
+  return q;
+}
+
+/// [rays]: the ray budget, fractions, binning and the estimator's switches.
+void ReadRays(TomlReader ry, FitSpec* f_out) {
+  FitSpec& f = *f_out;
+  f.rays.ray_factor = ry.InRange("ray_factor", 1.0 / 1024, 1024, 1);
+  if (ry.Has("fractions")) {
+    f.rays.fractions = ry.Numbers("fractions", 1, 32);
+    for (double v : f.rays.fractions)
+      if (!(v > 0 && v <= 1)) ry.Fail("fractions", "ray fractions must lie in (0, 1]");
+    if (!std::is_sorted(f.rays.fractions.begin(), f.rays.fractions.end()))
+      ry.Fail("fractions", "give the fractions coarse to fine (ascending)");
+  }
+  f.rays.common_random_numbers = ry.Bool("common_random_numbers", true);
+  f.rays.photons_per_pixel = ry.Positive("photons_per_pixel", 0.0);
+  f.rays.reuse_background = ry.Bool("reuse_background", true);
+  f.rays.fit_exposure = ry.Bool("fit_exposure", true);
+  f.rays.finite_ray_correction = ry.Bool("finite_ray_correction", true);
+  f.rays.smooth_polish = ry.Bool("smooth_polish", true);
+  f.rays.polish = ry.Bool("polish", false);
+  f.rays.jacobian_seeds = int(ry.Integer("jacobian_seeds", f.rays.jacobian_seeds, 2, 64));
+  if (ry.Has("binning")) {
+    for (double b : ry.Numbers("binning", f.rays.fractions.size(), f.rays.fractions.size())) {
+      if (!(b >= 1 && b <= 64 && b == std::floor(b)))
+        ry.Fail("binning", "expected whole numbers in [1, 64], one per ray fraction");
+      f.rays.binning.push_back(int(b));
+    }
+  }
+  ry.Finish();
+}
+
+/// [uncertainty]: repeats, Cramer-Rao bound, slices and profile-likelihood intervals.
+void ReadUncertainty(TomlReader u, FitSpec* f_out) {
+  FitSpec& f = *f_out;
+  f.repeat_seeds = static_cast<int>(u.Integer("repeat_seeds", f.repeat_seeds, 0, 1000));
+  if (f.repeat_seeds == 1) u.Fail("repeat_seeds", "0 (none) or at least 2 repeated fits");
+  f.cramer_rao = u.Bool("cramer_rao", true);
+  f.slice_points = static_cast<int>(u.Integer("slice_points", 7, 0, 1001));
+  if (u.Has("profile")) {
+    const std::string profile = u.Choice("profile", {"auto", "always", "never"});
+    f.profile = profile == "always"  ? ProfileMode::kAlways
+                : profile == "never" ? ProfileMode::kNever
+                                     : ProfileMode::kAuto;
+  }
+  f.profile_correlation = u.InRange("profile_correlation", 0, 1, 0.9);
+  u.Finish();
+}
+
+/// [search]: a ray-model start fit, scanned parameters and a hop (for lm and pattern).
+void ReadSearch(TomlReader sr, const std::string& path, const std::string& scene_override,
+                const std::string& calibration_override, bool ray_start_fit, FitSpec* f_out) {
+  FitSpec& f = *f_out;
+  const std::string start = sr.Choice("start", {"parameters", "rays"}, "parameters");
+  std::vector<std::string> scan;
+  if (sr.Has("scan")) scan = sr.Strings("scan");
+  const std::string hop_key = sr.String("hop", "");
+  const double hop_step = sr.Number("hop_step", 0.0);
+  if (!ray_start_fit) {
+    if (f.method == Method::kGrid && (start == "rays" || !scan.empty() || !hop_key.empty()))
+      sr.Fail(start == "rays" ? "start"
+              : !scan.empty() ? "scan"
+                              : "hop",
+              "method = \"grid\" evaluates every point already: [search] is for lm and pattern");
+    if (start == "rays") {
+      if (!f.exact_images)
+        sr.Fail("start",
+                "start = \"rays\" fits the ray model first, before an exact model (optics = "
+                "\"mie\"); this fit's model is the rays already");
+      f.start_fit = std::make_shared<const FitSpec>(
+          LoadFitFile(path, scene_override, calibration_override, true));
+    }
+    // The index of a [search] entry's parameter, or an error listing the fit's parameters.
+    auto parameter = [&](const std::string& field, const std::string& key) {
+      size_t i = 0;
+      while (i < f.parameters.size() && f.parameters[i].key != key) ++i;
+      if (i == f.parameters.size()) {
+        std::string names;
+        for (const Parameter& q : f.parameters) names += (names.empty() ? "" : ", ") + q.key;
+        sr.Fail(field,
+                "'" + key + "' is not a [[parameter]] of this fit (they are: " + names + ")");
+      }
+      return i;
+    };
+    for (const std::string& key : scan) {
+      const size_t i = parameter("scan", key);
+      if (std::find(f.scan.begin(), f.scan.end(), i) != f.scan.end())
+        sr.Fail("scan", "'" + key + "' is listed twice");
+      f.scan.push_back(i);
+    }
+    if (!hop_key.empty()) {
+      const Parameter& p = f.parameters[parameter("hop", hop_key)];
+      if (!(hop_step > 0))
+        sr.Fail("hop_step", "hop = \"" + hop_key + "\" needs hop_step > 0 (in its units)");
+      if (hop_step >= p.upper - p.lower)
+        sr.Fail("hop_step", "a hop of " + std::to_string(hop_step) +
+                                " leaves the parameter's bounds [" + std::to_string(p.lower) +
+                                ", " + std::to_string(p.upper) + "]");
+      f.hop = int(&p - f.parameters.data());
+      f.hop_step = hop_step;
+    } else if (hop_step != 0) {
+      sr.Fail("hop_step", "hop_step needs hop = \"<key>\" (the parameter to hop along)");
+    }
+  }
+  sr.Finish();
+}
+
+/// `ray_start_fit`: the ray model's fit of a [search] start = "rays" (the scene's and the fit
+/// file's optics replaced by rays, search only, no [search] stages of its own).
+FitSpec LoadFitFile(const std::string& path, const std::string& scene_override,
+                    const std::string& calibration_override, bool ray_start_fit) {
+  const toml::table t = ParseTomlFile(path);
+  TomlReader r(t, path, "");
+  FitSpec f;
+  f.file = path;
+  const simulate::Scene scene =
+      ReadSceneAndOptics(r, path, scene_override, calibration_override, ray_start_fit, &f);
   f.seed = static_cast<uint64_t>(r.Integer("seed", 1, 0, INT64_MAX));
   const std::string m = r.Choice("method", {"grid", "pattern", "lm"}, "lm");
   f.method = m == "grid"      ? Method::kGrid
@@ -378,157 +658,14 @@ FitSpec LoadFitFile(const std::string& path, const std::string& scene_override,
   f.max_evaluations = static_cast<int>(r.Integer("max_evaluations", 2000, 1, 10000000));
   f.threads = static_cast<int>(r.Integer("threads", 0, 0, 4096));
 
-  for (TomlReader im : r.Tables("image")) {
-    FitImage fi;
-    fi.where = im.Where();
-    fi.file = ResolvePath(path, im.String("file"));
-    fi.defocus_um = im.Number("defocus_um");
-    if (!(std::abs(fi.defocus_um) <= kMaxDefocusUm))
-      im.Fail("defocus_um", "expected a focus position within +-1e5 um (10 cm)");
-    if (im.Has("dark")) fi.dark_file = ResolvePath(path, im.String("dark"));
-    fi.gain_e_per_dn = im.Positive("gain_e_per_dn", 1.0);
-    fi.read_noise_e = im.InRange("read_noise_e", 0, 1e4, 0);
-    fi.saturation_dn = im.InRange("saturation_dn", 0, 1e9, 0);
-    im.Finish();
-    Image raw, dark;
-    try {
-      raw = ReadImage(fi.file);
-      if (!fi.dark_file.empty()) dark = ReadImage(fi.dark_file);
-    } catch (const Error& err) {
-      throw Error(fi.where, err.what());
-    }
-    compare::PrepareOptions prep;
-    prep.dark_file = fi.dark_file;
-    prep.gain_e_per_dn = fi.gain_e_per_dn;
-    try {
-      fi.photons = compare::PrepareExperiment(raw, prep, dark.empty() ? nullptr : &dark, nullptr);
-    } catch (const Error& err) {  // e.g. a dark frame of another size: name both files
-      throw Error(fi.where, "image " + fi.file +
-                                (fi.dark_file.empty() ? "" : " with dark frame " + fi.dark_file) +
-                                ": " + err.message());
-    }
-    // Saturated pixels (at or above saturation_dn) and, with a dark frame (an offset above 0),
-    // pixels clipped at 0 carry no count the Poisson model can describe: left out.
-    if (fi.saturation_dn > 0 || !dark.empty()) {
-      fi.usable = Image(raw.width, raw.height, 1.0f);
-      for (size_t p = 0; p < raw.size(); ++p)
-        if ((fi.saturation_dn > 0 && raw.pixels[p] >= fi.saturation_dn) ||
-            (!dark.empty() && raw.pixels[p] <= 0)) {
-          fi.usable.pixels[p] = 0;
-          ++fi.excluded_pixels;
-        }
-      if (fi.excluded_pixels == 0) fi.usable = Image();
-    }
-    if (fi.photons.width != scene.camera.nx || fi.photons.height != scene.camera.ny)
-      throw Error(fi.where,
-                  "image " + fi.file + " is " + std::to_string(fi.photons.width) + " x " +
-                      std::to_string(fi.photons.height) + " pixels; the scene's camera has " +
-                      std::to_string(scene.camera.nx) + " x " + std::to_string(scene.camera.ny));
-    f.images.push_back(std::move(fi));
-  }
+  for (TomlReader im : r.Tables("image")) f.images.push_back(ReadFitImage(im, path, scene));
   if (f.images.empty())
     r.Fail("image", "missing: give at least one [[image]] with file and defocus_um");
 
   std::set<std::string> keys;
   std::optional<CalibrationData> cal;  // read when a prior names it
-  for (TomlReader p : r.Tables("parameter")) {
-    Parameter q;
-    q.where = p.Where();
-    q.key = p.String("key");
-    if (!keys.insert(q.key).second) p.Fail("key", "parameter '" + q.key + "' is given twice");
-    // What the key sets, resolved against the scene once (binding.h; the model binds it
-    // against its own copy the same way).
-    internal::Binding bound;
-    try {
-      bound = internal::Bind(q.key, scene, f.images.size());
-    } catch (const Error& err) {
-      p.Fail("key", err.what());
-    }
-    using Kind = internal::Binding::Kind;
-    // The calibration's edge and PSF as keys of a scene that takes them from the calibration:
-    // written into the scene's tables with the calibration's values, so they can be set.
-    if (bound.kind == Kind::kEdge && !f.scene.contains("light_field_edge") &&
-        !(scene.source.edge_half_angle_deg > 0))
-      p.Fail("key", "'" + q.key +
-                        "' needs the light field's edge beyond the NA: a [light_field_edge] "
-                        "table in the scene, or a calibration with one (`raymatch calibrate "
-                        "sphere`; in a pipeline, [calibration] sphere)");
-    if (bound.kind == Kind::kEdge && !f.scene.contains("light_field_edge")) {
-      toml::array tilt{scene.source.edge_tilt_deg[0], scene.source.edge_tilt_deg[1]};
-      f.scene.insert_or_assign("light_field_edge",
-                               toml::table{{"half_angle_deg", scene.source.edge_half_angle_deg},
-                                           {"width_deg", scene.source.edge_width_deg},
-                                           {"tilt_deg", std::move(tilt)}});
-    }
-    if (bound.kind == Kind::kPsf && f.scene["camera"].as_table() &&
-        !f.scene["camera"].as_table()->contains("psf_sigma_um"))
-      f.scene["camera"].as_table()->insert_or_assign("psf_sigma_um", scene.camera.psf_sigma_um);
-    double current = 0;
-    if (!bound.InScene()) {
-      // image[i].defocus_um: the defocus of one of this file's images; image[i].background_*:
-      // an additive background of its expected image (photons per pixel; slopes per pixel).
-      if (bound.kind == Kind::kDefocus) {
-        current = f.images[bound.image].defocus_um;
-        if (!(std::abs(p.Number("lower")) <= kMaxDefocusUm &&
-              std::abs(p.Number("upper")) <= kMaxDefocusUm))
-          p.Fail("lower", "focus positions lie within +-1e5 um (10 cm)");
-      }
-    } else {
-      try {
-        current = SceneValue(f.scene, q.key, f.scene_file);
-      } catch (const Error& err) {
-        p.Fail("key", err.what());
-      }
-    }
-    q.lower = p.Number("lower");
-    q.upper = p.Number("upper");
-    if (!(q.upper > q.lower)) p.Fail("upper", "must be greater than lower");
-    q.start = p.Number("start", current);
-    if (q.start < q.lower || q.start > q.upper) {
-      std::ostringstream m;
-      m << "start value " << q.start << (p.Has("start") ? "" : " (the scene's value)")
-        << " lies outside [lower, upper] = [" << q.lower << ", " << q.upper << "]";
-      p.Fail(p.Has("start") ? "start" : "key", m.str());
-    }
-    if (!std::isfinite(q.upper - q.lower)) p.Fail("upper", "upper - lower must be a finite number");
-    q.step = p.Positive("step", (q.upper - q.lower) / 10);
-    q.points = static_cast<int>(p.Integer("points", 0, 2, kMaxGridPoints));
-    if (q.points == 0) {  // grid samples from the step (used by method grid and bench fit-grid)
-      // In double first: a tiny step over a wide range must not overflow the int.
-      const double n = std::floor((q.upper - q.lower) / q.step + 1e-9) + 1;
-      if (!(n <= kMaxGridPoints))
-        p.Fail("step", "gives " + std::to_string(n) + " grid points from lower to upper; at most " +
-                           std::to_string(kMaxGridPoints) + " (give a larger step or points)");
-      q.points = static_cast<int>(n);
-    }
-    q.unit = UnitOf(q.key);
-    if (p.Has("prior") && f.error != ErrorFunction::kPoisson)
-      p.Fail("prior", "a prior adds to the Poisson deviance: it needs error = \"poisson\"");
-    if (p.Has("prior")) {
-      if (const auto s = t["parameter"][f.parameters.size()]["prior"].value<std::string>()) {
-        if (*s != "calibration")
-          p.Fail("prior", "expected \"calibration\" or [mean, sigma] (a Gaussian prior)");
-        if (f.calibration_file.empty())
-          p.Fail("prior", "prior = \"calibration\" needs a calibration file (key calibration)");
-        if (!cal) cal = ReadCalibrationFile(f.calibration_file);
-        const auto it = cal->key_sigma.find(q.key);
-        if (it == cal->key_sigma.end())
-          p.Fail("prior", "the calibration " + f.calibration_file + " gives no uncertainty for '" +
-                              q.key + "' (its [uncertainty] table, written by `raymatch " +
-                              "calibrate sphere`, holds the keys that calibration fitted; files "
-                              "from older versions lack it: run it again)");
-        q.prior_mean = current, q.prior_sigma = it->second, q.prior_from = "calibration";
-        p.String("prior");
-      } else {
-        const std::vector<double> m = p.Numbers("prior", 2, 2);
-        if (!(m[1] > 0) || !std::isfinite(m[0]) || !std::isfinite(m[1]))
-          p.Fail("prior", "expected [mean, sigma] with sigma > 0 (a Gaussian prior)");
-        q.prior_mean = m[0], q.prior_sigma = m[1], q.prior_from = "fit file";
-      }
-    }
-    p.Finish();
-    f.parameters.push_back(q);
-  }
+  for (TomlReader p : r.Tables("parameter"))
+    f.parameters.push_back(ReadParameter(p, t, scene, &keys, &cal, &f));
   if (f.parameters.empty())
     r.Fail("parameter", "missing: give at least one [[parameter]] with key, lower and upper");
   double grid_points = 1;
@@ -540,103 +677,10 @@ FitSpec LoadFitFile(const std::string& path, const std::string& scene_override,
                            std::to_string(f.max_evaluations) + ")");
   }
 
-  if (r.Has("rays")) {
-    TomlReader ry = r.Table("rays");
-    f.rays.ray_factor = ry.InRange("ray_factor", 1.0 / 1024, 1024, 1);
-    if (ry.Has("fractions")) {
-      f.rays.fractions = ry.Numbers("fractions", 1, 32);
-      for (double v : f.rays.fractions)
-        if (!(v > 0 && v <= 1)) ry.Fail("fractions", "ray fractions must lie in (0, 1]");
-      if (!std::is_sorted(f.rays.fractions.begin(), f.rays.fractions.end()))
-        ry.Fail("fractions", "give the fractions coarse to fine (ascending)");
-    }
-    f.rays.common_random_numbers = ry.Bool("common_random_numbers", true);
-    f.rays.photons_per_pixel = ry.Positive("photons_per_pixel", 0.0);
-    f.rays.reuse_background = ry.Bool("reuse_background", true);
-    f.rays.fit_exposure = ry.Bool("fit_exposure", true);
-    f.rays.finite_ray_correction = ry.Bool("finite_ray_correction", true);
-    f.rays.smooth_polish = ry.Bool("smooth_polish", true);
-    f.rays.polish = ry.Bool("polish", false);
-    f.rays.jacobian_seeds = int(ry.Integer("jacobian_seeds", f.rays.jacobian_seeds, 2, 64));
-    if (ry.Has("binning")) {
-      for (double b : ry.Numbers("binning", f.rays.fractions.size(), f.rays.fractions.size())) {
-        if (!(b >= 1 && b <= 64 && b == std::floor(b)))
-          ry.Fail("binning", "expected whole numbers in [1, 64], one per ray fraction");
-        f.rays.binning.push_back(int(b));
-      }
-    }
-    ry.Finish();
-  }
-  if (r.Has("uncertainty")) {
-    TomlReader u = r.Table("uncertainty");
-    f.repeat_seeds = static_cast<int>(u.Integer("repeat_seeds", f.repeat_seeds, 0, 1000));
-    if (f.repeat_seeds == 1) u.Fail("repeat_seeds", "0 (none) or at least 2 repeated fits");
-    f.cramer_rao = u.Bool("cramer_rao", true);
-    f.slice_points = static_cast<int>(u.Integer("slice_points", 7, 0, 1001));
-    if (u.Has("profile")) {
-      const std::string profile = u.Choice("profile", {"auto", "always", "never"});
-      f.profile = profile == "always"  ? ProfileMode::kAlways
-                  : profile == "never" ? ProfileMode::kNever
-                                       : ProfileMode::kAuto;
-    }
-    f.profile_correlation = u.InRange("profile_correlation", 0, 1, 0.9);
-    u.Finish();
-  }
-  if (r.Has("search")) {
-    TomlReader sr = r.Table("search");
-    const std::string start = sr.Choice("start", {"parameters", "rays"}, "parameters");
-    std::vector<std::string> scan;
-    if (sr.Has("scan")) scan = sr.Strings("scan");
-    const std::string hop_key = sr.String("hop", "");
-    const double hop_step = sr.Number("hop_step", 0.0);
-    if (!ray_start_fit) {
-      if (f.method == Method::kGrid && (start == "rays" || !scan.empty() || !hop_key.empty()))
-        sr.Fail(start == "rays" ? "start"
-                : !scan.empty() ? "scan"
-                                : "hop",
-                "method = \"grid\" evaluates every point already: [search] is for lm and pattern");
-      if (start == "rays") {
-        if (!f.exact_images)
-          sr.Fail("start",
-                  "start = \"rays\" fits the ray model first, before an exact model (optics = "
-                  "\"mie\"); this fit's model is the rays already");
-        f.start_fit = std::make_shared<const FitSpec>(
-            LoadFitFile(path, scene_override, calibration_override, true));
-      }
-      // The index of a [search] entry's parameter, or an error listing the fit's parameters.
-      auto parameter = [&](const std::string& field, const std::string& key) {
-        size_t i = 0;
-        while (i < f.parameters.size() && f.parameters[i].key != key) ++i;
-        if (i == f.parameters.size()) {
-          std::string names;
-          for (const Parameter& q : f.parameters) names += (names.empty() ? "" : ", ") + q.key;
-          sr.Fail(field,
-                  "'" + key + "' is not a [[parameter]] of this fit (they are: " + names + ")");
-        }
-        return i;
-      };
-      for (const std::string& key : scan) {
-        const size_t i = parameter("scan", key);
-        if (std::find(f.scan.begin(), f.scan.end(), i) != f.scan.end())
-          sr.Fail("scan", "'" + key + "' is listed twice");
-        f.scan.push_back(i);
-      }
-      if (!hop_key.empty()) {
-        const Parameter& p = f.parameters[parameter("hop", hop_key)];
-        if (!(hop_step > 0))
-          sr.Fail("hop_step", "hop = \"" + hop_key + "\" needs hop_step > 0 (in its units)");
-        if (hop_step >= p.upper - p.lower)
-          sr.Fail("hop_step", "a hop of " + std::to_string(hop_step) +
-                                  " leaves the parameter's bounds [" + std::to_string(p.lower) +
-                                  ", " + std::to_string(p.upper) + "]");
-        f.hop = int(&p - f.parameters.data());
-        f.hop_step = hop_step;
-      } else if (hop_step != 0) {
-        sr.Fail("hop_step", "hop_step needs hop = \"<key>\" (the parameter to hop along)");
-      }
-    }
-    sr.Finish();
-  }
+  if (r.Has("rays")) ReadRays(r.Table("rays"), &f);
+  if (r.Has("uncertainty")) ReadUncertainty(r.Table("uncertainty"), &f);
+  if (r.Has("search"))
+    ReadSearch(r.Table("search"), path, scene_override, calibration_override, ray_start_fit, &f);
   if (ray_start_fit) {  // its optimum is the main fit's start: the estimator without extras
     f.repeat_seeds = 0;
     f.slice_points = 0;

@@ -720,6 +720,64 @@ static void PlausibilityWarnings(Scene* s) {
   }
 }
 
+/// [trace.mie]: the wave image's sampling.
+static void ReadMieSettings(TomlReader mr, MieSettings* m_out) {
+  MieSettings& m = *m_out;
+  m.nodes_per_panel = static_cast<int>(mr.Integer("nodes_per_panel", m.nodes_per_panel, 1, 64));
+  m.panel_width = mr.InRange("panel_width", 1e-4, 1.0, m.panel_width);
+  m.harmonics = static_cast<int>(mr.Integer("harmonics", m.harmonics, 0, 256));
+  m.oversample = mr.InRange("oversample", 1.0, 8.0, m.oversample);
+  m.margin_um = mr.InRange("margin_um", 0.0, 1000.0, m.margin_um);
+  m.window_um = mr.InRange("window_um", 0.0, 100000.0, m.window_um);
+  m.spectrum_nodes = static_cast<int>(mr.Integer("spectrum_nodes", m.spectrum_nodes, 1, 256));
+  m.spectrum_interleave =
+      static_cast<int>(mr.Integer("spectrum_interleave", m.spectrum_interleave, 1, 1024));
+  m.motion_nodes = static_cast<int>(mr.Integer("motion_nodes", m.motion_nodes, 1, 256));
+  m.pixel_subsamples = static_cast<int>(mr.Integer("pixel_subsamples", m.pixel_subsamples, 0, 64));
+  mr.Finish();
+}
+
+/// [trace]: the ray or photon count, partial reflection, limits, gradient-index integration
+/// and the image model.
+static void ReadTrace(TomlReader tr, Scene* s_out) {
+  Scene& s = *s_out;
+  s.trace.rays = static_cast<uint64_t>(tr.Integer("rays", 0, 0, int64_t(1) << 50));
+  s.trace.photons_per_pixel = tr.Positive("photons_per_pixel", 0.0);
+  if (tr.Has("rays") && tr.Has("photons_per_pixel"))
+    tr.Fail("photons_per_pixel", "give either 'rays' or 'photons_per_pixel', not both");
+  if (tr.Has("signal") || tr.Has("well_capacity")) {
+    if (tr.Has("rays") || tr.Has("photons_per_pixel"))
+      tr.Fail("signal", "give 'signal' and 'well_capacity' instead of rays/photons_per_pixel");
+    const double signal = tr.InRange("signal", 0, 1, 0, true, false);
+    const double well = tr.Positive("well_capacity");
+    s.trace.photons_per_pixel = signal * well;
+  } else {
+    tr.Number("signal", 0), tr.Number("well_capacity", 0);
+  }
+  const std::string pr =
+      tr.Choice("partial_reflection", {"off", "unpolarized", "polarized"}, "unpolarized");
+  s.trace.partial_reflection = pr == "off"           ? PartialReflection::kOff
+                               : pr == "unpolarized" ? PartialReflection::kUnpolarized
+                                                     : PartialReflection::kPolarized;
+  s.trace.max_interactions = static_cast<int>(tr.Integer("max_interactions", 100, 1, 100000));
+  s.trace.threads = static_cast<int>(tr.Integer("threads", 0, 0, 4096));
+  s.trace.grin.tolerance_um = tr.Positive("grin_tolerance_um", s.trace.grin.tolerance_um);
+  s.trace.grin.max_step_um = tr.Positive("grin_max_step_um", 0.0);
+  s.trace.grin.max_steps =
+      static_cast<int>(tr.Integer("grin_max_steps", s.trace.grin.max_steps, 1, 1000000000));
+  s.trace.grin.uniform_tolerance =
+      tr.InRange("grin_uniform_tolerance", -1.0, 1e-3, s.trace.grin.uniform_tolerance);
+  s.trace.grin.cell_steps = tr.Bool("grin_cell_steps", s.trace.grin.cell_steps);
+  s.trace.optics = tr.Choice("optics", {"rays", "mie"}, "rays") == "mie" ? ImageOptics::kMie
+                                                                         : ImageOptics::kRays;
+  if (tr.Has("mie")) {
+    ReadMieSettings(tr.Table("mie"), &s.trace.mie);
+    if (s.trace.optics != ImageOptics::kMie)
+      tr.Fail("mie", "[trace.mie] sets the wave image's sampling: it needs optics = \"mie\"");
+  }
+  tr.Finish();
+}
+
 Scene LoadScene(const toml::table& t, const std::string& path) {
   Scene s;
   s.file = path;
@@ -808,58 +866,7 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
 
   ReadCamera(r.Table("camera"), cal ? &*cal : nullptr, &s.camera);
 
-  if (r.Has("trace")) {
-    TomlReader tr = r.Table("trace");
-    s.trace.rays = static_cast<uint64_t>(tr.Integer("rays", 0, 0, int64_t(1) << 50));
-    s.trace.photons_per_pixel = tr.Positive("photons_per_pixel", 0.0);
-    if (tr.Has("rays") && tr.Has("photons_per_pixel"))
-      tr.Fail("photons_per_pixel", "give either 'rays' or 'photons_per_pixel', not both");
-    if (tr.Has("signal") || tr.Has("well_capacity")) {
-      if (tr.Has("rays") || tr.Has("photons_per_pixel"))
-        tr.Fail("signal", "give 'signal' and 'well_capacity' instead of rays/photons_per_pixel");
-      const double signal = tr.InRange("signal", 0, 1, 0, true, false);
-      const double well = tr.Positive("well_capacity");
-      s.trace.photons_per_pixel = signal * well;
-    } else {
-      tr.Number("signal", 0), tr.Number("well_capacity", 0);
-    }
-    const std::string pr =
-        tr.Choice("partial_reflection", {"off", "unpolarized", "polarized"}, "unpolarized");
-    s.trace.partial_reflection = pr == "off"           ? PartialReflection::kOff
-                                 : pr == "unpolarized" ? PartialReflection::kUnpolarized
-                                                       : PartialReflection::kPolarized;
-    s.trace.max_interactions = static_cast<int>(tr.Integer("max_interactions", 100, 1, 100000));
-    s.trace.threads = static_cast<int>(tr.Integer("threads", 0, 0, 4096));
-    s.trace.grin.tolerance_um = tr.Positive("grin_tolerance_um", s.trace.grin.tolerance_um);
-    s.trace.grin.max_step_um = tr.Positive("grin_max_step_um", 0.0);
-    s.trace.grin.max_steps =
-        static_cast<int>(tr.Integer("grin_max_steps", s.trace.grin.max_steps, 1, 1000000000));
-    s.trace.grin.uniform_tolerance =
-        tr.InRange("grin_uniform_tolerance", -1.0, 1e-3, s.trace.grin.uniform_tolerance);
-    s.trace.grin.cell_steps = tr.Bool("grin_cell_steps", s.trace.grin.cell_steps);
-    s.trace.optics = tr.Choice("optics", {"rays", "mie"}, "rays") == "mie" ? ImageOptics::kMie
-                                                                           : ImageOptics::kRays;
-    if (tr.Has("mie")) {
-      TomlReader mr = tr.Table("mie");
-      MieSettings& m = s.trace.mie;
-      m.nodes_per_panel = static_cast<int>(mr.Integer("nodes_per_panel", m.nodes_per_panel, 1, 64));
-      m.panel_width = mr.InRange("panel_width", 1e-4, 1.0, m.panel_width);
-      m.harmonics = static_cast<int>(mr.Integer("harmonics", m.harmonics, 0, 256));
-      m.oversample = mr.InRange("oversample", 1.0, 8.0, m.oversample);
-      m.margin_um = mr.InRange("margin_um", 0.0, 1000.0, m.margin_um);
-      m.window_um = mr.InRange("window_um", 0.0, 100000.0, m.window_um);
-      m.spectrum_nodes = static_cast<int>(mr.Integer("spectrum_nodes", m.spectrum_nodes, 1, 256));
-      m.spectrum_interleave =
-          static_cast<int>(mr.Integer("spectrum_interleave", m.spectrum_interleave, 1, 1024));
-      m.motion_nodes = static_cast<int>(mr.Integer("motion_nodes", m.motion_nodes, 1, 256));
-      m.pixel_subsamples =
-          static_cast<int>(mr.Integer("pixel_subsamples", m.pixel_subsamples, 0, 64));
-      mr.Finish();
-      if (s.trace.optics != ImageOptics::kMie)
-        tr.Fail("mie", "[trace.mie] sets the wave image's sampling: it needs optics = \"mie\"");
-    }
-    tr.Finish();
-  }
+  if (r.Has("trace")) ReadTrace(r.Table("trace"), &s);
   for (const ObjectSpec& o : s.objects)
     if (o.absorption_index > 0 && s.trace.optics != ImageOptics::kMie)
       throw Error(o.where, "object '" + o.name +

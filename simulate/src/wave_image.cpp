@@ -496,6 +496,62 @@ std::vector<std::string> MieImager::Effects() const {
   return e;
 }
 
+namespace {
+/// The azimuthal harmonics d_m(rho) about the sphere (grid point 0) of the intensity change
+/// dev[x * n + y] (0 <= y, even in y) on an n x n grid of spacing h, at n_rho radii drho apart,
+/// m = 0 .. mh. The pattern is even in psi (the incidence plane is a mirror plane), so
+/// d_m = (2 - delta_m0) / N sum_l D(psi_l) cos(m psi_l) over N points of the circle, from the
+/// half circle with trapezoid end weights; N follows the intensity's highest spatial frequency,
+/// band.
+void AzimuthalHarmonics(const std::vector<double>& dev, int n, double h, double drho, int n_rho,
+                        int mh, double band, std::vector<std::vector<double>>* d) {
+  d->assign(mh + 1, std::vector<double>(n_rho, 0.0));
+  auto sample = [&](double x, double y) {
+    const double gx = x / h, gy = y / h;
+    const double fx = std::floor(gx), fy = std::floor(gy);
+    double wx[4], wy[4];
+    KeysWeights(gx - fx, wx);
+    KeysWeights(gy - fy, wy);
+    // |x| <= need: one wrap at most; y >= 0 (the half circle), taps below 0 mirrored.
+    auto wrap = [n](int i) { return i < 0 ? i + n : (i >= n ? i - n : i); };
+    const int ix = int(fx) - 1, iy = int(fy) - 1;
+    const int yb[4] = {std::abs(iy), std::abs(iy + 1), iy + 2, iy + 3};
+    double sum = 0;
+    for (int a = 0; a < 4; ++a) {
+      const double* xp = &dev[size_t(wrap(ix + a)) * n];
+      sum +=
+          wx[a] * (wy[0] * xp[yb[0]] + wy[1] * xp[yb[1]] + wy[2] * xp[yb[2]] + wy[3] * xp[yb[3]]);
+    }
+    return sum;
+  };
+  for (int q = 0; q < n_rho; ++q) {
+    const double rho = q * drho;
+    const int nf = 2 * int(std::ceil((band * rho + mh + 16) / 2));
+    const int half = nf / 2;
+    std::vector<double> acc(mh + 1, 0.0);
+    // cos and sin of psi_l by rotation (rounding grows as l eps), cos(m psi) by Chebyshev's
+    // recurrence cos(m psi) = 2 cos(psi) cos((m - 1) psi) - cos((m - 2) psi).
+    const double c1 = std::cos(2 * M_PI / nf), s1 = std::sin(2 * M_PI / nf);
+    double cl = 1, sl = 0;
+    for (int l = 0; l <= half; ++l) {
+      const double w = (l == 0 || l == half) ? 1.0 : 2.0;
+      const double v = w * sample(rho * cl, rho * sl);
+      acc[0] += v;
+      double cm2 = 1, cm1 = cl;
+      for (int m = 1; m <= mh; ++m) {
+        acc[m] += v * cm1;
+        const double next = 2 * cl * cm1 - cm2;
+        cm2 = cm1, cm1 = next;
+      }
+      const double cn = cl * c1 - sl * s1;
+      sl = sl * c1 + cl * s1, cl = cn;
+    }
+    for (int m = 0; m <= mh; ++m) (*d)[m][q] = acc[m] * (m == 0 ? 1.0 : 2.0) / nf;
+  }
+}
+
+}  // namespace
+
 void MieImager::Impl::NodeHarmonics(const Node& nd, double dz, int n, double h, double drho,
                                     int n_rho, std::vector<std::vector<double>>* d) const {
   const double L = n * h, dk = 2 * M_PI / L;
@@ -611,54 +667,7 @@ void MieImager::Impl::NodeHarmonics(const Node& nd, double dz, int n, double h, 
       dev[size_t(c) * n + r] = 0.5 * (one(g1) + one(g2));
     }
   }
-  // Azimuthal harmonics about the sphere (grid point 0): the pattern is even in psi (the
-  // incidence plane is a mirror plane), so d_m = (2 - delta_m0) / N sum_l D(psi_l) cos(m psi_l)
-  // over N points of the circle, from the half circle with trapezoid end weights.
-  const int mh = harmonics;
-  d->assign(mh + 1, std::vector<double>(n_rho, 0.0));
-  const double band = 2 * kna;  // the intensity's highest spatial frequency
-  auto sample = [&](double x, double y) {
-    const double gx = x / h, gy = y / h;
-    const double fx = std::floor(gx), fy = std::floor(gy);
-    double wx[4], wy[4];
-    KeysWeights(gx - fx, wx);
-    KeysWeights(gy - fy, wy);
-    // |x| <= need: one wrap at most; y >= 0 (the half circle), taps below 0 mirrored.
-    auto wrap = [n](int i) { return i < 0 ? i + n : (i >= n ? i - n : i); };
-    const int ix = int(fx) - 1, iy = int(fy) - 1;
-    const int yb[4] = {std::abs(iy), std::abs(iy + 1), iy + 2, iy + 3};
-    double sum = 0;
-    for (int a = 0; a < 4; ++a) {
-      const double* xp = &dev[size_t(wrap(ix + a)) * n];
-      sum +=
-          wx[a] * (wy[0] * xp[yb[0]] + wy[1] * xp[yb[1]] + wy[2] * xp[yb[2]] + wy[3] * xp[yb[3]]);
-    }
-    return sum;
-  };
-  for (int q = 0; q < n_rho; ++q) {
-    const double rho = q * drho;
-    const int nf = 2 * int(std::ceil((band * rho + mh + 16) / 2));
-    const int half = nf / 2;
-    std::vector<double> acc(mh + 1, 0.0);
-    // cos and sin of psi_l by rotation (rounding grows as l eps), cos(m psi) by Chebyshev's
-    // recurrence cos(m psi) = 2 cos(psi) cos((m - 1) psi) - cos((m - 2) psi).
-    const double c1 = std::cos(2 * M_PI / nf), s1 = std::sin(2 * M_PI / nf);
-    double cl = 1, sl = 0;
-    for (int l = 0; l <= half; ++l) {
-      const double w = (l == 0 || l == half) ? 1.0 : 2.0;
-      const double v = w * sample(rho * cl, rho * sl);
-      acc[0] += v;
-      double cm2 = 1, cm1 = cl;
-      for (int m = 1; m <= mh; ++m) {
-        acc[m] += v * cm1;
-        const double next = 2 * cl * cm1 - cm2;
-        cm2 = cm1, cm1 = next;
-      }
-      const double cn = cl * c1 - sl * s1;
-      sl = sl * c1 + cl * s1, cl = cn;
-    }
-    for (int m = 0; m <= mh; ++m) (*d)[m][q] = acc[m] * (m == 0 ? 1.0 : 2.0) / nf;
-  }
+  AzimuthalHarmonics(dev, n, h, drho, n_rho, harmonics, 2 * kna, d);
 }
 
 namespace {

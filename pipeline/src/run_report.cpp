@@ -168,6 +168,7 @@ void WriteRunReport(const RunReport& r) {
        "body{font-family:sans-serif;margin:2em;max-width:1100px}td,th{border:1px solid #ccc;"
        "padding:2px 6px;font-size:12px}table{border-collapse:collapse;display:block;"
        "overflow-x:auto;max-width:100%}img{max-width:100%}"
+       "pre{white-space:pre-wrap;overflow-wrap:anywhere}"
        ".pass{color:#070}.fail{color:#b00}</style></head><body><h1>raymatch: calibrate, simulate, "
        "compare</h1>"
     << "<p>" << ProvenanceJson()["date_utc"].get<std::string>() << " &mdash; <code>"
@@ -179,7 +180,7 @@ void WriteRunReport(const RunReport& r) {
       << HtmlEscape(c.result) << "</td><td>" << HtmlEscape(c.meaning) << "</td></tr>";
   h << "</table><p>Exit status of <code>raymatch run</code>: " << sum.status
     << " (0 every check passes, 1 a check needs attention, 2 the focus-scan test fails).</p>"
-    << "<h2>Measured light field</h2><pre>" << lf_report << "</pre>"
+    << "<h2>Measured light field</h2><pre>" << HtmlEscape(lf_report) << "</pre>"
     << (cal.edge_half_angle_deg > 0
             ? "<p>Beyond the NA the simulation does not use zero: the sphere calibration's soft "
               "edge, half radiance at " +
@@ -191,7 +192,9 @@ void WriteRunReport(const RunReport& r) {
     << "<p>Angular map over direction cosines (u right, v up), +-" << cal.angular_extent
     << "; radial profile: azimuthal means in rings of one map pixel, error bars one standard error "
        "of each ring's mean.</p>"
-    << spatial_html << "<h2>Corrector</h2><pre>" << co_report << "</pre>"
+    << spatial_html << "<h2>Corrector</h2><pre>" << HtmlEscape(co_report) << "</pre>"
+    << Img((fig / "transmissions.png").string(), "corrector transmissions")
+    << "<p>Error bars: one standard deviation from the fit's covariance.</p>"
     << (sp_report.empty()
             ? std::string()
             : "<h2>Sphere calibration</h2><p>The light field beyond the NA and the PSF from the "
@@ -199,8 +202,6 @@ void WriteRunReport(const RunReport& r) {
                   HtmlEscape(r.sphere_folder) +
                   " (<a href='sphere_calibration/report.html'>fit report</a>)</p><pre>" +
                   HtmlEscape(sp_report) + "</pre>")
-    << Img((fig / "transmissions.png").string(), "corrector transmissions")
-    << "<p>Error bars: one standard deviation from the fit's covariance.</p>"
     << "<h2>Experiment (top) and simulation (bottom)</h2><p>Exposure recovered from the "
        "background: "
     << sum.photons_per_pixel << " photons per pixel; simulated with ray fraction " << frac << ". "

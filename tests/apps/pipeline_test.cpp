@@ -251,6 +251,15 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
                 std::string::npos);
     }
     EXPECT_NE(hs.str().find("Goodness of fit"), std::string::npos);  // the sphere fit's
+    // Each calibration's figure in its own section (the corrector's transmissions sat under the
+    // sphere calibration), and the text blocks wrap at the page's width instead of running past
+    // it (their lines are up to 200 characters).
+    const size_t transmissions = hs.str().find("<img alt='corrector transmissions'");
+    ASSERT_NE(transmissions, std::string::npos);
+    EXPECT_LT(hs.str().find("<h2>Corrector</h2>"), transmissions);
+    EXPECT_GT(hs.str().find("<h2>Experiment"), transmissions);
+    if (!kUnderAddressSanitizer) EXPECT_LT(transmissions, hs.str().find("<h2>Sphere calibration"));
+    EXPECT_NE(hs.str().find("pre{white-space:pre-wrap"), std::string::npos);
     // The verdict at the top names every check; it never reads "pass" while one needs attention.
     const size_t verdict = hs.str().find("<h2>Verdict: ");
     ASSERT_NE(verdict, std::string::npos);

@@ -5,6 +5,9 @@
 #include "raymatch/core/calibration_file.h"
 #include "raymatch/fit/fit.h"
 #include "raymatch/fit/sensitivity.h"
+#ifdef RAYMATCH_HAVE_PIPELINE
+#include "raymatch/pipeline/sphere_calibration.h"
+#endif
 
 namespace raymatch::python {
 
@@ -71,6 +74,16 @@ void BindCalibrate(py::module_& m) {
       .def_readonly("tube_focal_mm", &CD::tube_focal_mm)
       .def_readonly("pixel_pitch_um", &CD::pixel_pitch_um)
       .def_readonly("wavelength_um", &CD::wavelength_um)
+      .def_readonly("edge_half_angle_deg", &CD::edge_half_angle_deg,
+                    "The light field's soft edge beyond the NA (deg; 0: none)")
+      .def_readonly("edge_width_deg", &CD::edge_width_deg)
+      .def_property_readonly(
+          "edge_tilt_deg",
+          [](const CD& d) { return py::make_tuple(d.edge_tilt_deg[0], d.edge_tilt_deg[1]); })
+      .def_readonly("psf_sigma_um", &CD::psf_sigma_um,
+                    "The camera PSF's Gaussian sigma at the object plane (um; 0: none)")
+      .def_readonly("uncertainty", &CD::key_sigma,
+                    "The sigmas of the scene keys a sphere calibration fitted ([uncertainty])")
       .def_property_readonly("provenance", [](const CD& d) { return ToPython(d.provenance); });
 
   m.def(
@@ -146,6 +159,70 @@ void BindCalibrate(py::module_& m) {
       "weight (dimensionless); distance_mm: corrector plane from the focal plane in mm (0 = the "
       "working distance); base: a calibration (path or Calibration) whose light field and optics "
       "are kept. Returns a dict: 'calibration', 'transmissions', 'sigma', 'gain', 'weights', ...");
+
+#ifdef RAYMATCH_HAVE_PIPELINE
+  m.def(
+      "calibrate_sphere",
+      [](const py::object& folder, const py::object& base, const py::object& output,
+         const std::vector<double>& planes_um, const std::vector<double>& fractions,
+         double ray_factor, bool fit_width, bool fit_psf, bool fit_tilt, const std::string& optics,
+         uint64_t seed, int threads, const py::object& work_dir, bool progress) {
+        pipeline::SphereCalibrationOptions o;
+        o.scan_folder = PathArg(folder);
+        o.base = PathArg(base);
+        o.output = PathArg(output);
+        if (!work_dir.is_none()) o.work_dir = PathArg(work_dir);
+        o.planes_um = planes_um, o.fractions = fractions, o.ray_factor = ray_factor;
+        o.fit_width = fit_width, o.fit_psf = fit_psf, o.fit_tilt = fit_tilt;
+        o.optics = optics, o.seed = seed, o.threads = threads, o.progress = progress;
+        pipeline::SphereCalibrationResult r;
+        {
+          py::gil_scoped_release nogil;
+          if (progress)  // the messages print with the GIL held
+            o.say = [](const std::string& line) {
+              py::gil_scoped_acquire gil;
+              py::print(line);
+            };
+          r = pipeline::CalibrateSphere(o);
+        }
+        py::list values;
+        for (const auto& v : r.values) {
+          py::dict d;
+          d["key"] = v.key, d["value"] = v.value, d["sigma"] = v.sigma;
+          d["cramer_rao"] = v.cramer_rao, d["at_bound"] = v.at_bound;
+          values.append(d);
+        }
+        py::dict d;
+        d["calibration"] = ReadCalibrationFile(o.output);
+        d["values"] = values;
+        d["edge_half_angle_deg"] = r.edge_half_angle_deg;
+        d["edge_width_deg"] = r.edge_width_deg;
+        d["edge_tilt_deg"] = py::make_tuple(r.edge_tilt_deg[0], r.edge_tilt_deg[1]);
+        d["psf_sigma_um"] = r.psf_sigma_um;
+        d["status"] = r.status;
+        d["goodness"] = r.goodness;
+        d["model_mismatch"] = r.mismatch;
+        d["report"] = r.report;
+        d["brief"] = r.Brief();
+        d["seconds"] = r.seconds;
+        return d;
+      },
+      py::arg("folder"), py::arg("base"), py::arg("output"),
+      py::arg("planes_um") = std::vector<double>{},
+      py::arg("fractions") = std::vector<double>{0.0625, 0.25}, py::arg("ray_factor") = 1.0,
+      py::arg("fit_width") = false, py::arg("fit_psf") = true, py::arg("fit_tilt") = true,
+      py::arg("optics") = "rays", py::arg("seed") = 5, py::arg("threads") = 0,
+      py::arg("work_dir") = py::none(), py::arg("progress") = false,
+      "`raymatch calibrate sphere FOLDER --base BASE -o OUTPUT`: the focus scan of a drop of known "
+      "shape fitted for its position, radius and index and for the light field's edge beyond the "
+      "NA (half-angle, width, tilt; deg) and the camera PSF (um), written into a copy of BASE "
+      "(docs/calibration.md, 'Sphere calibration'). planes_um: defocus values (um) to fit "
+      "(default the two nearest -R/2 and +R/2); fractions: ray fractions of the fit's levels; "
+      "ray_factor: rays per photon at fraction 1; optics: 'rays' or 'mie'; work_dir: the fit's "
+      "files and report (default <output stem>_sphere/). Returns a dict: 'calibration' (the "
+      "written file, read back), 'values' (key, value, sigma, cramer_rao, at_bound), the edge and "
+      "PSF, 'status', 'goodness', 'model_mismatch', 'report', 'brief'.");
+#endif
 }
 
 namespace {

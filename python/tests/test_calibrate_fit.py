@@ -1,4 +1,5 @@
-"""calibrate_lightfield, calibrate_corrector and fit: the same results as the CLI's files."""
+"""calibrate_lightfield, calibrate_corrector, calibrate_sphere and fit: the same results as the
+CLI's files."""
 import numpy as np
 import pytest
 import tifffile
@@ -47,6 +48,39 @@ def test_corrector_equals_cli(exe, lightfield, tmp_path):
     assert py["transmissions"] == same["transmissions"]
     assert py["calibration"].has_light_field and py["calibration"].has_corrector
     assert py["weights"].shape[1] == 5
+
+
+@pytest.mark.skipif(not hasattr(raymatch, "calibrate_sphere"), reason="built without pipeline")
+def test_sphere_calibration_equals_cli(exe, tmp_path):
+    """The sample drop's sphere calibration with few rays (1/256 of the photon-matched ones, so
+    its values are rough): Python's and the CLI's calibration files and values are the same, on
+    1 and 2 threads."""
+    base = tmp_path / "base.toml"
+    lf = raymatch.calibrate_lightfield(SAMPLE / "lightfield", map_size=16)["calibration"]
+    lf.write(base)
+    frac = 0.00390625
+    run_cli(exe, "calibrate", "sphere", SAMPLE / "drop46", "--base", base, "-o",
+            tmp_path / "cli.toml", "--fractions", frac, "--threads", 2)
+    r = raymatch.calibrate_sphere(SAMPLE / "drop46", base, tmp_path / "py.toml",
+                                  fractions=[frac], threads=1)
+    cli = raymatch.Calibration.read(tmp_path / "cli.toml")
+    py = r["calibration"]
+    assert py.edge_half_angle_deg == cli.edge_half_angle_deg > 0
+    assert py.psf_sigma_um == cli.psf_sigma_um
+    # The file's 12 significant digits against the fit's doubles.
+    assert r["edge_half_angle_deg"] == pytest.approx(py.edge_half_angle_deg, rel=1e-10)
+    assert r["psf_sigma_um"] == pytest.approx(py.psf_sigma_um, rel=1e-10)
+    keys = [v["key"] for v in r["values"]]
+    assert keys[:5] == ["object.drop.center_um[0]", "object.drop.center_um[1]",
+                        "object.drop.center_um[2]", "object.drop.radius_um", "object.drop.index"]
+    assert "camera.psf_sigma_um" in keys and "light_field_edge.half_angle_deg" in keys
+    cli_fit = read_json(tmp_path / "cli_sphere" / "fit.json")
+    assert [v["value"] for v in r["values"]] == [p["best"] for p in cli_fit["parameters"]]
+    assert r["status"] == "converged" and r["report"].endswith("report.html")
+    assert (tmp_path / "py_sphere" / "fit.json").is_file()
+    with pytest.raises(raymatch.Error, match="no plane at defocus 3.3"):
+        raymatch.calibrate_sphere(SAMPLE / "drop46", base, tmp_path / "bad.toml", planes_um=[3.3])
+    assert not (tmp_path / "bad.toml").exists()
 
 
 def test_calibration_errors_carry_the_cli_message(exe, tmp_path):

@@ -365,11 +365,13 @@ std::string ParametersHtml(const FitSpec& spec, const FitResult& res) {
       << "</td><td>[" << Num(p.lower) << ", " << Num(p.upper) << "]</td></tr>\n";
   h << "</table>\n";
   if (!res.correlation.empty()) {
-    h << "<h2>Correlations (curvature covariance)</h2><table><tr><th></th>";
-    for (const Parameter& p : spec.parameters) h << "<th>" << Esc(p.key) << "</th>";
+    // The columns numbered as the rows (the keys are too long to head 7-10 columns).
+    h << "<h2>Correlations (of the reported sigmas' covariance)</h2><table><tr><th></th>";
+    for (size_t i = 0; i < spec.parameters.size(); ++i)
+      h << "<th title='" << Esc(spec.parameters[i].key) << "'>" << i + 1 << "</th>";
     h << "</tr>";
     for (size_t i = 0; i < res.correlation.size(); ++i) {
-      h << "<tr><th>" << Esc(spec.parameters[i].key) << "</th>";
+      h << "<tr><th>" << i + 1 << " " << Esc(spec.parameters[i].key) << "</th>";
       for (size_t k = 0; k < res.correlation[i].size(); ++k)
         h << "<td>" << Num(res.correlation[i][k], 3) << "</td>";
       h << "</tr>";
@@ -391,7 +393,7 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
 
   std::ostringstream h;
   h << "<!doctype html><html><head><meta charset=\"utf-8\"><title>raymatch fit</title><style>"
-       "body{font-family:sans-serif;max-width:1100px;margin:2em "
+       "body{font-family:sans-serif;max-width:1360px;margin:2em "
        "auto}table{border-collapse:collapse;display:block;overflow-x:auto;max-width:100%}"
        "td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}img{image-rendering:pixelated;"
        "max-width:100%}</style></head><body>\n<h1>raymatch fit</h1>\n<p>"

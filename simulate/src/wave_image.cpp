@@ -512,7 +512,8 @@ void AzimuthalHarmonics(const std::vector<double>& dev, int n, double h, double 
     double wx[4], wy[4];
     KeysWeights(gx - fx, wx);
     KeysWeights(gy - fy, wy);
-    // |x| <= need: one wrap at most; y >= 0 (the half circle), taps below 0 mirrored.
+    // The taps lie within the grid points NodeHarmonics transformed (|x| <= need < n / 2): one
+    // wrap at most; y >= 0 (the half circle), taps below 0 mirrored.
     auto wrap = [n](int i) { return i < 0 ? i + n : (i >= n ? i - n : i); };
     const int ix = int(fx) - 1, iy = int(fy) - 1;
     const int yb[4] = {std::abs(iy), std::abs(iy + 1), iy + 2, iy + 3};

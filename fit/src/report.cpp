@@ -32,13 +32,6 @@ nlohmann::json Matrix(const std::vector<std::vector<double>>& m) {
   return a;
 }
 
-std::string Esc(const std::string& s) {
-  std::string o;
-  for (char c : s)
-    o += c == '<' ? "&lt;" : c == '>' ? "&gt;" : c == '&' ? "&amp;" : std::string(1, c);
-  return o;
-}
-
 }  // namespace
 
 /// The goodness-of-fit paragraph: a red box for a model mismatch.
@@ -46,7 +39,8 @@ static std::string GoodnessHtml(const GoodnessOfFit& g) {
   if (g.pixels == 0) return "";
   std::ostringstream h;
   h << "<h2>Goodness of fit</h2>\n<p style=\"padding:6px;border:2px solid "
-    << (g.mismatch ? "#c00;background:#fee" : "#6a6;background:#efe") << "\"><b>" << Esc(g.verdict)
+    << (g.mismatch ? "#c00;background:#fee" : "#6a6;background:#efe") << "\"><b>"
+    << HtmlEscape(g.verdict)
     << "</b></p>\n<table><tr><th>measure</th><th>value</th><th>expected for a correct model</th>"
        "<th>standard deviations</th></tr>\n<tr><td style=\"text-align:left\">Poisson deviance ("
     << g.pixels << " pixels)</td><td>" << Num(g.deviance, 6) << "</td><td>" << Num(g.expected, 6)
@@ -222,7 +216,8 @@ std::string WriteImages(const FitSpec& spec, const FitResult& res, const fs::pat
     double chi2 = 0;
     for (float v : res.residuals[k].pixels) chi2 += double(v) * v;
     chi2 /= double(std::max<size_t>(1, res.residuals[k].size()));
-    imgs += "<h3>" + Esc(spec.images[k].file) + " (defocus " + Num(spec.images[k].defocus_um) +
+    imgs += "<h3>" + HtmlEscape(spec.images[k].file) + " (defocus " +
+            Num(spec.images[k].defocus_um) +
             " um)</h3><table><tr><td>experiment</td><td>simulation at the optimum</td><td>residual "
             "(blue -4 ... red +4 sigma); mean square " +
             Num(chi2, 4) + "</td></tr><tr><td>" +
@@ -346,10 +341,11 @@ std::string ParametersHtml(const FitSpec& spec, const FitResult& res) {
        "<th>Cramer-Rao bound</th><th>CRB incl. simulation noise</th><th>profile-likelihood 68 % "
        "interval</th><th>bounds</th></tr>\n";
   for (const ParameterResult& p : res.parameters)
-    h << "<tr><td style=\"text-align:left\">" << Esc(p.key)
-      << (p.prior_sigma > 0 ? "<br><small>prior " + Num(p.prior_mean, 8) + " &plusmn; " +
-                                  Num(p.prior_sigma, 3) + " (" + Esc(p.prior_from) + ")</small>"
-                            : std::string())
+    h << "<tr><td style=\"text-align:left\">" << HtmlEscape(p.key)
+      << (p.prior_sigma > 0
+              ? "<br><small>prior " + Num(p.prior_mean, 8) + " &plusmn; " + Num(p.prior_sigma, 3) +
+                    " (" + HtmlEscape(p.prior_from) + ")</small>"
+              : std::string())
       << "</td><td>" << p.unit << "</td><td>" << Num(p.start) << "</td><td>"
       << FormatValue(p.best, p.sigma, 8) << (p.at_bound ? " (at bound)" : "") << "</td><td>"
       << FormatUncertainty(p.sigma) << "</td><td>" << FormatUncertainty(p.sigma_curvature)
@@ -357,7 +353,7 @@ std::string ParametersHtml(const FitSpec& spec, const FitResult& res) {
       << FormatUncertainty(p.sigma_cramer_rao) << "</td><td>" << FormatUncertainty(p.sigma_expected)
       << "</td><td"
       << (p.profile_t.empty() ? ">not needed"
-                              : " title=\"" + Esc(p.profile_reason) + "\">[" +
+                              : " title=\"" + HtmlEscape(p.profile_reason) + "\">[" +
                                     (p.profile_lower_open ? "&le; " : "") +
                                     FormatValue(p.profile_lower, p.sigma, 8) + ", " +
                                     (p.profile_upper_open ? "&ge; " : "") +
@@ -368,10 +364,10 @@ std::string ParametersHtml(const FitSpec& spec, const FitResult& res) {
     // The columns numbered as the rows (the keys are too long to head 7-10 columns).
     h << "<h2>Correlations (of the reported sigmas' covariance)</h2><table><tr><th></th>";
     for (size_t i = 0; i < spec.parameters.size(); ++i)
-      h << "<th title='" << Esc(spec.parameters[i].key) << "'>" << i + 1 << "</th>";
+      h << "<th title='" << HtmlEscape(spec.parameters[i].key) << "'>" << i + 1 << "</th>";
     h << "</tr>";
     for (size_t i = 0; i < res.correlation.size(); ++i) {
-      h << "<tr><th>" << i + 1 << " " << Esc(spec.parameters[i].key) << "</th>";
+      h << "<tr><th>" << i + 1 << " " << HtmlEscape(spec.parameters[i].key) << "</th>";
       for (size_t k = 0; k < res.correlation[i].size(); ++k)
         h << "<td>" << Num(res.correlation[i][k], 3) << "</td>";
       h << "</tr>";
@@ -397,16 +393,16 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
        "auto}table{border-collapse:collapse;display:block;overflow-x:auto;max-width:100%}"
        "td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}img{image-rendering:pixelated;"
        "max-width:100%}</style></head><body>\n<h1>raymatch fit</h1>\n<p>"
-    << Esc(spec.file) << ": " << MethodName(spec.method) << " on " << ErrorFunctionName(spec.error)
-    << ", status <b>" << Esc(StatusName(res.status)) << "</b>: " << Esc(res.message) << ". "
-    << res.evaluations.size() << " evaluations in " << Num(res.total_seconds, 3)
-    << " s; best error " << Num(res.best_error) << ".</p>\n"
+    << HtmlEscape(spec.file) << ": " << MethodName(spec.method) << " on "
+    << ErrorFunctionName(spec.error) << ", status <b>" << HtmlEscape(StatusName(res.status))
+    << "</b>: " << HtmlEscape(res.message) << ". " << res.evaluations.size() << " evaluations in "
+    << Num(res.total_seconds, 3) << " s; best error " << Num(res.best_error) << ".</p>\n"
     << GoodnessHtml(res.goodness) << ParametersHtml(spec, res);
   h << "<h2>Images</h2>\n"
     << imgs << "<h2>Error function</h2>\n"
     << plots << "<h2>Time</h2><table>";
   for (const auto& [k, v] : res.seconds)
-    h << "<tr><td style=\"text-align:left\">" << Esc(k) << "</td><td>" << Num(v, 3)
+    h << "<tr><td style=\"text-align:left\">" << HtmlEscape(k) << "</td><td>" << Num(v, 3)
       << " s</td></tr>";
   h << "</table>\n<p>";
   if (spec.exact_images)

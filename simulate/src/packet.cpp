@@ -369,11 +369,6 @@ HWY_INLINE hn::Vec<DF> UniformAtCursor(const Rays& r, size_t i, hn::Vec<DI> curs
   return u;
 }
 
-HWY_INLINE hn::Vec<DF> Dot3(hn::Vec<DF> ax, hn::Vec<DF> ay, hn::Vec<DF> az, hn::Vec<DF> bx,
-                            hn::Vec<DF> by, hn::Vec<DF> bz) {
-  return hn::Add(hn::Add(hn::Mul(ax, bx), hn::Mul(ay, by)), hn::Mul(az, bz));
-}
-
 // IntersectSphere(o, d, c, r2) per lane, from f = o - c: the distance *t along d to the
 // sphere's first crossing ahead of o; false where the ray misses it or it lies behind.
 HWY_INLINE hn::Mask<DF> SphereAhead(hn::Vec<DF> fx, hn::Vec<DF> fy, hn::Vec<DF> fz, hn::Vec<DF> dx,
@@ -381,11 +376,11 @@ HWY_INLINE hn::Mask<DF> SphereAhead(hn::Vec<DF> fx, hn::Vec<DF> fy, hn::Vec<DF> 
                                     hn::Vec<DF>* t) {
   const DF df;
   const auto zero = hn::Zero(df);
-  const auto b = hn::Neg(Dot3(fx, fy, fz, dx, dy, dz));
+  const auto b = hn::Neg(st::Dot<L>({fx, fy, fz}, {dx, dy, dz}));
   const auto qx = hn::Add(fx, hn::Mul(dx, b)), qy = hn::Add(fy, hn::Mul(dy, b)),
              qz = hn::Add(fz, hn::Mul(dz, b));
-  const auto disc = hn::Sub(r2, Dot3(qx, qy, qz, qx, qy, qz));
-  const auto c0 = hn::Sub(Dot3(fx, fy, fz, fx, fy, fz), r2);
+  const auto disc = hn::Sub(r2, st::Dot<L>({qx, qy, qz}, {qx, qy, qz}));
+  const auto c0 = hn::Sub(st::Dot<L>({fx, fy, fz}, {fx, fy, fz}), r2);
   const auto away = hn::Or(hn::Lt(disc, zero), hn::And(hn::Gt(c0, zero), hn::Lt(b, zero)));
   const auto root = hn::Sqrt(hn::IfThenElseZero(hn::Not(away), disc));
   const auto q = hn::Add(b, hn::CopySign(root, b));
@@ -440,7 +435,7 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
       const auto hx = hn::Add(ox, hn::Mul(dx, t)), hy = hn::Add(oy, hn::Mul(dy, t)),
                  hz = hn::Add(oz, hn::Mul(dz, t));
       const auto vx = hn::Sub(hx, cx), vy = hn::Sub(hy, cy), vz = hn::Sub(hz, cz);
-      const auto len = hn::Sqrt(Dot3(vx, vy, vz, vx, vy, vz));
+      const auto len = hn::Sqrt(st::Dot<L>({vx, vy, vz}, {vx, vy, vz}));
       const auto nx = hn::Div(vx, len), ny = hn::Div(vy, len), nz = hn::Div(vz, len);
       // if (++events > max_interactions) the ray ends
       count(events, active);
@@ -448,7 +443,7 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
              FateCode(Fate::kInteractionCap));
       if (hn::AllFalse(df, active)) break;
       count(interface, active);
-      const auto entering = hn::Lt(Dot3(dx, dy, dz, nx, ny, nz), zero);
+      const auto entering = hn::Lt(st::Dot<L>({dx, dy, dz}, {nx, ny, nz}), zero);
       const auto inside = hn::RebindMask(df, hn::Gt(depth, hn::Zero(di)));
       const auto n_obj = hn::Set(df, sp.index), n_med = hn::Set(df, sp.medium);
       const auto n1 = hn::IfThenElse(entering, hn::IfThenElse(inside, n_obj, n_med), n_obj);
@@ -456,7 +451,7 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
       const auto fx2 = hn::IfThenElse(entering, nx, hn::Neg(nx)),
                  fy2 = hn::IfThenElse(entering, ny, hn::Neg(ny)),
                  fz2 = hn::IfThenElse(entering, nz, hn::Neg(nz));  // nf: faces the incoming ray
-      const auto cos_i = hn::Neg(Dot3(dx, dy, dz, fx2, fy2, fz2));
+      const auto cos_i = hn::Neg(st::Dot<L>({dx, dy, dz}, {fx2, fy2, fz2}));
       // Refract(d, nf, n1 / n2)
       st::V3<L> tr;
       hn::Vec<DF> ct;
@@ -479,12 +474,12 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
       }
       // Reflected: d = Normalize(Reflect(d, nf)), o = hp + nf eps; transmitted: d = Normalize(t),
       // o = hp - nf eps.
-      const auto two_dn = hn::Mul(hn::Set(df, 2.0), Dot3(dx, dy, dz, fx2, fy2, fz2));
+      const auto two_dn = hn::Mul(hn::Set(df, 2.0), st::Dot<L>({dx, dy, dz}, {fx2, fy2, fz2}));
       const auto rx = hn::Sub(dx, hn::Mul(fx2, two_dn)), ry = hn::Sub(dy, hn::Mul(fy2, two_dn)),
                  rz = hn::Sub(dz, hn::Mul(fz2, two_dn));
       const auto ex = hn::IfThenElse(reflect, rx, tx), ey = hn::IfThenElse(reflect, ry, ty),
                  ez = hn::IfThenElse(reflect, rz, tz);
-      const auto elen = hn::Sqrt(Dot3(ex, ey, ez, ex, ey, ez));
+      const auto elen = hn::Sqrt(st::Dot<L>({ex, ey, ez}, {ex, ey, ez}));
       const auto eps = hn::Set(df, sp.epsilon);
       const auto ax = hn::Mul(fx2, eps), ay = hn::Mul(fy2, eps), az = hn::Mul(fz2, eps);
       const auto new_ox = hn::IfThenElse(reflect, hn::Add(hx, ax), hn::Sub(hx, ax));

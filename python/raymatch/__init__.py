@@ -33,16 +33,17 @@ from ._raymatch import (  # noqa: F401  (re-exported)
 )
 from . import _raymatch
 
-if hasattr(_raymatch, "calibrate_sphere"):
-    calibrate_sphere = _raymatch.calibrate_sphere
-
 __all__ = [
     "Calibration", "CompareError", "Error", "FocusScanResult", "RaymatchWarning", "Scene",
     "SimulationResult", "Stack", "__version__", "calibrate_corrector", "calibrate_lightfield",
-    "calibrate_sphere",
     "compare", "cw_ssim", "fit", "focus_scan", "load_scene", "ms_ssim", "mse", "poisson", "psnr",
     "read_stack", "sensitivity", "simulate", "ssim",
 ]
+
+# calibrate_sphere needs the pipeline library, which a build may leave out.
+if hasattr(_raymatch, "calibrate_sphere"):
+    calibrate_sphere = _raymatch.calibrate_sphere
+    __all__.append("calibrate_sphere")
 
 
 class RaymatchWarning(UserWarning):

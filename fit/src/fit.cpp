@@ -617,8 +617,7 @@ FitResult RunFitFromStart(const FitSpec& spec, const FitOptions& options) {
     // them by the square root of the reduced deviance (or of the residuals' reduced block
     // chi-square, when the misfit is spatially coherent), as a least-squares fit scales by
     // sqrt(chi^2 / dof) (PDG, Review of Particle Physics, "Statistics", scale factor).
-    res.goodness = model.Goodness(mean ? od.mean_sim : best_sim, model.BinAt(final_level), P);
-    res.goodness.template_sets = mean ? od.mean_sets : 1;
+    res.goodness = TestedGoodness(run, spec, best, best_sim, od, res);
     if (res.goodness.mismatch) {
       for (ParameterResult& p : res.parameters) p.sigma *= res.goodness.sigma_inflation;
       res.message += "; " + res.goodness.verdict;

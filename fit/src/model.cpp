@@ -1,7 +1,9 @@
 #include "model.h"
 
+#include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <sstream>
 #include <tuple>
 
@@ -526,20 +528,20 @@ std::vector<std::vector<double>> FitModel::CrossInformation(
   return m;
 }
 
-std::pair<double, double> FitModel::ExpectedDeviance(const Simulated& sim, int bin,
+std::pair<double, double> FitModel::ExpectedDeviance(const std::vector<std::vector<double>>& ts,
+                                                     const Simulated& sim, int bin,
                                                      size_t parameters) const {
   const std::vector<Image>& use = Usable(bin);  // pixels left out: saturated, clipped
   // A pixel's deviance for a correct model: the Poisson part of the experiment (exact for low
   // counts) times 1 + w for the template's own Poisson noise (w photons per ray: variance
   // mu (1 + 1/k) about the mean); each fitted parameter removes about one such unit.
   double mean = 0, var = 0, units = 0, pixels = 0;
-  for (size_t i = 0; i < sim.photons.size(); ++i) {
+  for (size_t i = 0; i < ts.size(); ++i) {
     const double w = sim.photons_per_ray[i];
     const double shift = ReadShift(i, bin);
-    const std::vector<double> ts = TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin);
-    for (size_t p = 0; p < ts.size(); ++p) {
+    for (size_t p = 0; p < ts[i].size(); ++p) {
       if (!Uses(use[i], p)) continue;
-      const double t = ts[p];
+      const double t = ts[i][p];
       // The template's own noise is that of its photons, not of the read-noise shift.
       const double u = 1 + w * std::max(0.0, t - shift) / std::max(t, 1e-12);
       const double g = ExpectedPixelDeviance(t) * u;
@@ -552,19 +554,154 @@ std::pair<double, double> FitModel::ExpectedDeviance(const Simulated& sim, int b
   return {mean, std::sqrt(var)};
 }
 
-GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameters) const {
+std::vector<double> FitModel::TemplateStep(const Simulated& sim, int bin,
+                                           const std::vector<std::vector<Image>>& dmu_a,
+                                           const std::vector<std::vector<Image>>& dmu_b) const {
+  std::vector<std::vector<double>> ts;
+  for (size_t i = 0; i < sim.photons.size(); ++i)
+    ts.push_back(TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin));
+  return GaussNewtonStep(sim, bin, dmu_a, dmu_b, ts);
+}
+
+double FitModel::TemplatesDeviance(const std::vector<std::vector<double>>& ts, int bin) const {
+  const std::vector<Image>& use = Usable(bin);
+  const std::vector<Image>& exp = Experiment(bin);
+  double d = 0;
+  for (size_t i = 0; i < ts.size(); ++i)
+    for (size_t p = 0; p < ts[i].size(); ++p)
+      if (Uses(use[i], p)) {
+        const double r = DevianceResidual(exp[i].pixels[p], ts[i][p]);
+        d += r * r;
+      }
+  return d;
+}
+
+std::vector<double> FitModel::GaussNewtonStep(const Simulated& sim, int bin,
+                                              const std::vector<std::vector<Image>>& dmu_a,
+                                              const std::vector<std::vector<Image>>& dmu_b,
+                                              const std::vector<std::vector<double>>& ts_in,
+                                              std::vector<std::vector<Image>>* mean_dmu) const {
+  const std::vector<std::vector<double>>* ts = &ts_in;
+  const size_t P = dmu_a.empty() ? 0 : dmu_a[0].size();
+  if (P == 0 || dmu_a.size() != ts->size() || dmu_b.size() != ts->size()) return {};
+  const std::vector<Image>& use = Usable(bin);
+  const std::vector<Image>& exp = Experiment(bin);
+  // The weighted least-squares normal equations of the Pearson residuals (the weights of the
+  // tests below) in the parameters' derivative images. Noisy derivative images would add
+  // their noise's variance to the normal matrix and shorten the step (errors in the
+  // regressors); the cross products of two independent halves are free of it.
+  Eigen::MatrixXd n = Eigen::MatrixXd::Zero(Eigen::Index(P), Eigen::Index(P));
+  Eigen::VectorXd b = Eigen::VectorXd::Zero(Eigen::Index(P));
+  std::vector<std::vector<Image>> ga(ts->size()), gb(ts->size()), g(ts->size());
+  for (size_t i = 0; i < ts->size(); ++i) {
+    if (dmu_a[i].size() != P || dmu_b[i].size() != P) return {};
+    for (size_t j = 0; j < P; ++j) {
+      ga[i].push_back(BinImage(dmu_a[i][j], bin));
+      gb[i].push_back(BinImage(dmu_b[i][j], bin));
+      g[i].push_back(ga[i][j]);
+      for (size_t q = 0; q < g[i][j].size(); ++q)
+        g[i][j].pixels[q] = 0.5f * (ga[i][j].pixels[q] + gb[i][j].pixels[q]);
+    }
+    const double w = sim.photons_per_ray[i], shift = ReadShift(i, bin);
+    const Image& e = exp[i];
+    for (size_t p = 0; p < e.size(); ++p) {
+      if (!Uses(use[i], p)) continue;
+      const double t = (*ts)[i][p];
+      const double v = t + w * std::max(0.0, t - shift);
+      const double r = std::max(0.0, double(e.pixels[p])) - t;
+      for (size_t j = 0; j < P; ++j) {
+        b(Eigen::Index(j)) += g[i][j].pixels[p] * r / v;
+        for (size_t k = 0; k < P; ++k)
+          n(Eigen::Index(j), Eigen::Index(k)) += 0.5 *
+                                                 (double(ga[i][j].pixels[p]) * gb[i][k].pixels[p] +
+                                                  double(gb[i][j].pixels[p]) * ga[i][k].pixels[p]) /
+                                                 v;
+      }
+    }
+  }
+  // Solved on the unit-free (correlation) scale; directions the images do not determine (a
+  // parameter that leaves them unchanged, eigenvalues below 1e-10 of the largest; the cross
+  // products' noise can make one negative) are left out.
+  Eigen::VectorXd s = n.diagonal().cwiseSqrt();
+  for (Eigen::Index j = 0; j < s.size(); ++j)
+    if (!(s(j) > 0)) s(j) = std::numeric_limits<double>::infinity();
+  const Eigen::MatrixXd c = s.cwiseInverse().asDiagonal() * n * s.cwiseInverse().asDiagonal();
+  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> es(c);
+  if (es.info() != Eigen::Success) return {};
+  const Eigen::VectorXd lambda = es.eigenvalues();
+  const double top = lambda.maxCoeff();
+  if (!(top > 0)) return {};
+  Eigen::VectorXd inv = Eigen::VectorXd::Zero(lambda.size());
+  for (Eigen::Index j = 0; j < lambda.size(); ++j)
+    if (lambda(j) > 1e-10 * top) inv(j) = 1 / lambda(j);
+  const Eigen::VectorXd bs = s.cwiseInverse().asDiagonal() * b;
+  Eigen::VectorXd step = s.cwiseInverse().asDiagonal() * (es.eigenvectors() * inv.asDiagonal() *
+                                                          es.eigenvectors().transpose() * bs);
+  if (mean_dmu) *mean_dmu = std::move(g);
+  return std::vector<double>(step.data(), step.data() + step.size());
+}
+
+std::vector<double> FitModel::StepToTheTemplatesBest(const Simulated& sim, int bin,
+                                                     const std::vector<std::vector<Image>>& dmu_a,
+                                                     const std::vector<std::vector<Image>>& dmu_b,
+                                                     std::vector<std::vector<double>>* ts) const {
+  std::vector<std::vector<Image>> g;
+  const std::vector<double> full = GaussNewtonStep(sim, bin, dmu_a, dmu_b, *ts, &g);
+  const size_t P = full.size();
+  if (P == 0) return {};
+  // The step is linear: taken whole, or halved while that lowers the deviance more (a step
+  // that does not lower it is not taken), and no pixel's photons fall below half of the
+  // estimate's.
+  auto moved = [&](double f) {
+    std::vector<std::vector<double>> m = *ts;
+    for (size_t i = 0; i < m.size(); ++i) {
+      const double shift = ReadShift(i, bin);
+      for (size_t p = 0; p < m[i].size(); ++p) {
+        double t = m[i][p];
+        for (size_t j = 0; j < P; ++j) t += f * g[i][j].pixels[p] * full[j];
+        m[i][p] = std::max(t, shift + 0.5 * (m[i][p] - shift));
+      }
+    }
+    return m;
+  };
+  double best = TemplatesDeviance(*ts, bin), taken = 0;
+  std::vector<std::vector<double>> best_ts;
+  for (double f = 1; f > 0.1; f *= 0.5) {
+    std::vector<std::vector<double>> m = moved(f);
+    const double d = TemplatesDeviance(m, bin);
+    if (!(d < best)) {
+      if (taken > 0) break;
+      continue;
+    }
+    best = d, taken = f, best_ts = std::move(m);
+  }
+  std::vector<double> step(P, 0.0);
+  if (taken == 0) return step;
+  *ts = std::move(best_ts);
+  for (size_t j = 0; j < P; ++j) step[j] = taken * full[j];
+  return step;
+}
+
+GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameters,
+                                 const std::vector<std::vector<Image>>& dmu_a,
+                                 const std::vector<std::vector<Image>>& dmu_b) const {
   const std::vector<Image>& use = Usable(bin);  // pixels left out: saturated, clipped
+  const std::vector<Image>& exp = Experiment(bin);
   GoodnessOfFit g;
-  g.deviance = Error(sim, bin);
-  std::tie(g.expected, g.sd) = ExpectedDeviance(sim, bin, parameters);
+  std::vector<std::vector<double>> ts;
+  for (size_t i = 0; i < sim.photons.size(); ++i)
+    ts.push_back(TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin));
+  g.estimate_deviance = TemplatesDeviance(ts, bin);
+  g.step = StepToTheTemplatesBest(sim, bin, dmu_a, dmu_b.empty() ? dmu_a : dmu_b, &ts);
+  g.deviance = g.step.empty() ? g.estimate_deviance : TemplatesDeviance(ts, bin);
+  std::tie(g.expected, g.sd) = ExpectedDeviance(ts, sim, bin, parameters);
   g.z = g.sd > 0 ? (g.deviance - g.expected) / g.sd : 0;
   g.reduced = g.expected > 0 ? g.deviance / g.expected : 1;
-  const std::vector<Image>& exp = Experiment(bin);
   double cross = 0, norm = 0;
   size_t pairs = 0;
   for (size_t i = 0; i < sim.photons.size(); ++i) {
     const Image& e = exp[i];
-    const std::vector<double> t = TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin);
+    const std::vector<double>& t = ts[i];
     const double w = sim.photons_per_ray[i], shift = ReadShift(i, bin);
     // Pearson residuals with the variance of e - template: mu + read noise + w mu (0 where a
     // pixel is left out).

@@ -78,12 +78,54 @@ class FitModel {
   /// photon, so a pixel no reference ray reached does not get an unbounded weight.
   static constexpr double kReferenceFloor = 1.0;
 
-  std::pair<double, double> ExpectedDeviance(const Simulated& sim, int bin,
+  /// The deviance's mean and standard deviation for a correct model with templates `ts`
+  /// (TemplateOf per image of `sim`, binned) and `parameters` fitted.
+  std::pair<double, double> ExpectedDeviance(const std::vector<std::vector<double>>& ts,
+                                             const Simulated& sim, int bin,
                                              size_t parameters) const;
 
   /// Goodness of fit at the optimum: deviance against its expectation, block chi-square of the
   /// Pearson residuals, neighbour correlation, the verdict and the sigma inflation.
-  GoodnessOfFit Goodness(const Simulated& sim, int bin, size_t parameters) const;
+  ///
+  /// With derivative images `dmu_a` and `dmu_b` ([image][parameter], photons per unit, at the
+  /// estimate; two independent halves of the derivative sets, or one set twice) the tests are
+  /// taken at the template's own best point: one weighted least-squares step from the estimate
+  /// along them (StepToTheTemplatesBest). An estimate with simulation noise lies off the point
+  /// where the experiment and that template agree best, by its own ray-stream error (the final
+  /// steps' root, whose sigma can be mostly the simulation's); the tests' null distribution
+  /// (each fitted parameter removes one unit) holds at that point, not at the estimate. A
+  /// misfit no parameter can absorb is left whole.
+  GoodnessOfFit Goodness(const Simulated& sim, int bin, size_t parameters,
+                         const std::vector<std::vector<Image>>& dmu_a = {},
+                         const std::vector<std::vector<Image>>& dmu_b = {}) const;
+
+  /// The Gauss-Newton step from the templates `ts` (binned, TemplateOf) that minimises the
+  /// Pearson-weighted squared residuals along the derivative images: the normal matrix from
+  /// the two halves' cross products, the right-hand side from their mean (returned binned in
+  /// `*mean_dmu` when asked). Empty: no derivative images.
+  std::vector<double> GaussNewtonStep(const Simulated& sim, int bin,
+                                      const std::vector<std::vector<Image>>& dmu_a,
+                                      const std::vector<std::vector<Image>>& dmu_b,
+                                      const std::vector<std::vector<double>>& ts,
+                                      std::vector<std::vector<Image>>* mean_dmu = nullptr) const;
+
+  /// GaussNewtonStep from the templates of `sim`.
+  std::vector<double> TemplateStep(const Simulated& sim, int bin,
+                                   const std::vector<std::vector<Image>>& dmu_a,
+                                   const std::vector<std::vector<Image>>& dmu_b) const;
+
+  /// The Poisson deviance of the experiment against the templates `ts` (binned, TemplateOf).
+  double TemplatesDeviance(const std::vector<std::vector<double>>& ts, int bin) const;
+
+  /// GaussNewtonStep moving the templates `ts` linearly along the mean derivative images, whole
+  /// or halved while that lowers the deviance more (for exact images, whose derivatives carry
+  /// no noise; a noisy derivative image adds its noise times the step); applies it to `ts` and
+  /// returns it (per parameter: zeros where no step
+  /// lowers the deviance; empty: no derivative images).
+  std::vector<double> StepToTheTemplatesBest(const Simulated& sim, int bin,
+                                             const std::vector<std::vector<Image>>& dmu_a,
+                                             const std::vector<std::vector<Image>>& dmu_b,
+                                             std::vector<std::vector<double>>* ts) const;
   size_t num_residuals(int bin = 1) const;
 
   /// The binning a ray fraction gets: the fit file's, or the smallest b with

@@ -58,6 +58,11 @@ static std::string GoodnessHtml(const GoodnessOfFit& g) {
     << (g.template_sets > 1 ? "the mean of " + std::to_string(g.template_sets) +
                                   " independent ray-stream sets' images at the estimate"
                             : std::string("the main ray streams' image at the estimate"))
+    << (g.step.empty()
+            ? std::string()
+            : "; the tests are taken one weighted least-squares step from it along the fit's "
+              "derivative images, where that template and the experiment agree best (deviance " +
+                  Num(g.estimate_deviance, 6) + " at the estimate itself)")
     << ".</p>\n";
   return h.str();
 }
@@ -65,7 +70,11 @@ static std::string GoodnessHtml(const GoodnessOfFit& g) {
 namespace {
 
 nlohmann::json GoodnessJson(const GoodnessOfFit& g) {
+  nlohmann::json step = nlohmann::json::array();
+  for (double v : g.step) step.push_back(J(v));
   return {{"deviance", J(g.deviance)},
+          {"estimate_deviance", J(g.estimate_deviance)},
+          {"step_to_tested_point", step},
           {"expected_deviance", J(g.expected)},
           {"expected_deviance_sd", J(g.sd)},
           {"deviance_z", J(g.z)},

@@ -313,6 +313,17 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
 
 /// Sigmas, correlations, Cramer-Rao bounds, repeated fits and slices at the optimum into
 /// res->parameters; returns the expected images there (uncertainty.cpp).
+/// The goodness of fit of the fit's result (uncertainty.cpp): the Poisson tests at the point
+/// where the template and the experiment agree best, one weighted least-squares step along the
+/// derivative images from the estimate `best` (FitModel::Goodness). Exact images step their
+/// image linearly; the ray model's mean template of the derivative sets (od.mean_sim) is traced
+/// again at the step's point (at most 3 reported sigmas from the estimate in any parameter),
+/// and the point the experiment agrees with better is tested. `best_sim` is the template where
+/// there is no mean template.
+GoodnessOfFit TestedGoodness(Runner& run, const FitSpec& spec, const std::vector<double>& best,
+                             const Simulated& best_sim, const OptimumDerivatives& od,
+                             const FitResult& res);
+
 Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vector<double>& best,
                                 const OptimumDerivatives& od, FitResult* res);
 

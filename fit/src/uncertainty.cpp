@@ -560,6 +560,48 @@ void Slices(Runner& run, const FitSpec& spec, const std::vector<double>& best, F
 
 }  // namespace
 
+GoodnessOfFit TestedGoodness(Runner& run, const FitSpec& spec, const std::vector<double>& best,
+                             const Simulated& best_sim, const OptimumDerivatives& od,
+                             const FitResult& res) {
+  FitModel& model = run.model();
+  const size_t P = spec.parameters.size();
+  const size_t final_level = spec.rays.fractions.size() - 1;
+  const int bin = model.BinAt(final_level);
+  const bool mean = !od.mean_sim.photons.empty();
+  const Simulated& at = mean ? od.mean_sim : best_sim;
+  // Exact derivative images carry no noise: the image is stepped along them. The ray model's
+  // without derivative sets (no final steps): no step.
+  if (spec.exact_images) return model.Goodness(at, bin, P, od.half_a.dmu, od.half_b.dmu);
+  GoodnessOfFit plain = model.Goodness(at, bin, P);
+  plain.template_sets = mean ? od.mean_sets : 1;
+  if (!mean) return plain;
+  std::vector<double> step = model.TemplateStep(at, bin, od.half_a.dmu, od.half_b.dmu);
+  if (step.size() != P || res.parameters.size() != P) return plain;
+  // A step the derivatives' noise made long (a weakly determined direction) is shortened to 3
+  // reported sigmas: the estimate's own error from the ray streams is within that.
+  double worst = 0;
+  for (size_t j = 0; j < P; ++j)
+    if (res.parameters[j].sigma > 0)
+      worst = std::max(worst, std::abs(step[j]) / res.parameters[j].sigma);
+  if (!std::isfinite(worst)) return plain;
+  if (worst > 3)
+    for (double& v : step) v *= 3 / worst;
+  std::vector<double> there = best;
+  for (size_t j = 0; j < P; ++j) there[j] += step[j];
+  there = Clip(there, spec);
+  if (there == best) return plain;
+  OptimumDerivatives moved;
+  MeanTemplate(run, spec, there, final_level, od.mean_sets, &moved);
+  if (moved.mean_sim.photons.empty()) return plain;
+  GoodnessOfFit g = model.Goodness(moved.mean_sim, bin, P);
+  if (!(g.deviance < plain.deviance)) return plain;
+  g.template_sets = od.mean_sets;
+  g.estimate_deviance = plain.deviance;
+  g.step.resize(P);
+  for (size_t j = 0; j < P; ++j) g.step[j] = there[j] - best[j];
+  return g;
+}
+
 Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vector<double>& best,
                                 const OptimumDerivatives& od, FitResult* res_out) {
   FitResult& res = *res_out;

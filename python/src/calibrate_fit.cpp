@@ -393,6 +393,8 @@ void BindFit(py::module_& m) {
           const fit::GoodnessOfFit& g = r.goodness;
           py::dict gd;
           gd["deviance"] = g.deviance;
+          gd["estimate_deviance"] = g.estimate_deviance;
+          gd["step_to_tested_point"] = g.step;
           gd["expected_deviance"] = g.expected;
           gd["expected_deviance_sd"] = g.sd;
           gd["deviance_z"] = g.z;

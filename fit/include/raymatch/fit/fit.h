@@ -262,12 +262,17 @@ inline double TemplateMean(double photons, double photons_per_ray,
 }
 
 struct GoodnessOfFit {
-  double deviance = 0;  ///< Poisson deviance at the optimum (the fit's error)
-  double expected = 0;  ///< its expectation for a correct model (experiment's and
-                        ///< simulation's Poisson noise, fitted parameters removed)
-  double sd = 0;        ///< its standard deviation
-  double z = 0;         ///< (deviance - expected) / sd
-  double reduced = 1;   ///< deviance / expected
+  /// Poisson deviance at the point tested: the template's best point, one weighted
+  /// least-squares step from the estimate along the fit's derivative images (`step`), or the
+  /// estimate itself where there is no step.
+  double deviance = 0;
+  double estimate_deviance = 0;  ///< the deviance at the estimate itself
+  std::vector<double> step;      ///< that step per parameter (empty: none taken)
+  double expected = 0;           ///< its expectation for a correct model (experiment's and
+                                 ///< simulation's Poisson noise, fitted parameters removed)
+  double sd = 0;                 ///< its standard deviation
+  double z = 0;                  ///< (deviance - expected) / sd
+  double reduced = 1;            ///< deviance / expected
   size_t pixels = 0;
   /// Residual structure: Pearson residuals summed over blocks of block_px x block_px pixels,
   /// each block normalised to unit variance; their chi-square against the block count.

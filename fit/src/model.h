@@ -128,6 +128,14 @@ class FitModel {
                                              std::vector<std::vector<double>>* ts) const;
   size_t num_residuals(int bin = 1) const;
 
+  /// Forgets the binned experiment: after the images of the FitSpec this model reads (by
+  /// reference) were changed in place.
+  void ExperimentChanged() {
+    std::lock_guard<std::mutex> lk(binned_mutex_);
+    binned_experiment_.clear();
+    binned_usable_.clear();
+  }
+
   /// The binning a ray fraction gets: the fit file's, or the smallest b with
   /// b^2 x ray_factor x fraction >= 1 (the simulation's counts per binned pixel at least the
   /// experiment's photons per pixel, so its shot noise does not dominate the error).

@@ -18,8 +18,8 @@ void RegisterRun(CLI::App& app, int* exit_code) {
       "corrector, simulate the experiment's focus scan with that calibration, run the focus-scan\n"
       "test, run the fits and write index.html. Unchanged steps are reused.\n"
       "Exit: 0 every check passes; 1 a check needs attention (a focus-scan warning, a model\n"
-      "mismatch in the sphere calibration or a fit, a fit not converged or without sigmas);\n"
-      "2 the focus-scan test fails; 3 and above: an error.");
+      "mismatch in the corrector or sphere calibration or a fit, a fit not converged or\n"
+      "without sigmas); 2 the focus-scan test fails; 3 and above: an error.");
   sub->add_option("pipeline", o->pipeline_file, "Pipeline file (.toml)")
       ->required()
       ->check(CLI::ExistingFile);

@@ -114,6 +114,7 @@ TransmissionFit FitTransmissions(const std::vector<std::vector<double>>& W,
   }
   const int dof = int(K) - int(J - fixed.size()) - 1;
   f.reduced_chi2 = dof > 0 ? chi2 / dof : 0;
+  f.dof = dof;
   // Covariance of the free parameters (T_j not fixed, and g) from the analytic Jacobian of
   // the weighted residuals, (J^T J)^-1, scaled by the reduced chi^2 when it exceeds 1.
   f.sigma.assign(J, 0.0);
@@ -146,6 +147,7 @@ TransmissionFit FitTransmissions(const std::vector<std::vector<double>>& W,
     // of the flat-field signals overstates their scatter and the uncertainties are scaled down
     // by it (the Birge ratio, both ways: uncertainties that match the scatter).
     const bool mismatch = dof > 0 && f.reduced_chi2 > 1 + 3 * std::sqrt(2.0 / dof);
+    f.mismatch = mismatch;
     const double a = dof > 0 ? 2.0 / (9.0 * dof) : 0;
     f.chi2_z = dof > 0 ? (std::cbrt(f.reduced_chi2) - (1 - a)) / std::sqrt(a) : 0;
     const bool overstated = dof > 0 && f.chi2_z < -3;

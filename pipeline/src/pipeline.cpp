@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <iomanip>
 #include <iostream>
 #include <nlohmann/json.hpp>
 #include <optional>
@@ -370,6 +371,43 @@ PipelineCheck SphereCheck(const std::string& status, const std::string& goodness
   return c;
 }
 
+/// The corrector calibration's check: its reduced chi-square against the flat fields' stated
+/// noise (calibrate::FitTransmissions).
+PipelineCheck CorrectorCheck(const calibrate::TransmissionFit& f) {
+  PipelineCheck c;
+  c.name = "corrector calibration";
+  c.ok = f.dof > 0 && !f.mismatch && f.undetermined.empty();
+  std::ostringstream r;
+  r.precision(3);
+  if (f.dof > 0)
+    r << "reduced chi^2 " << f.reduced_chi2 << " for " << f.dof << " degrees of freedom ("
+      << std::fixed << std::setprecision(1) << f.chi2_z << " sd)";
+  else
+    r << "as many unknowns as flat fields";
+  if (!f.undetermined.empty()) r << "; " << f.undetermined.size() << " zones receive no light";
+  c.result = r.str();
+  c.meaning =
+      f.dof <= 0   ? "no test of the zone model: add iris settings or smoothness"
+      : f.mismatch ? "the zone model does not describe the flat fields within their noise: the "
+                     "transmissions may be biased beyond their (inflated) sigmas"
+      : !f.undetermined.empty()
+          ? "zones no flat field illuminates hold their neighbour's transmission"
+      : f.chi2_z < -3 ? "the flat fields scatter less than their stated noise: the transmissions' "
+                        "sigmas are scaled down to the scatter"
+                      : "the zone transmissions describe the flat fields within their noise";
+  return c;
+}
+
+/// A check as the reports of reused steps keep it (field `field` of a JSON report) and back.
+PipelineCheck ReadCheck(const fs::path& file, const std::string& field) {
+  return {ReportField(file, field, "name"), ReportField(file, field, "ok") == "true",
+          ReportField(file, field, "result"), ReportField(file, field, "meaning")};
+}
+
+nlohmann::json CheckJson(const PipelineCheck& c) {
+  return {{"name", c.name}, {"ok", c.ok}, {"result", c.result}, {"meaning", c.meaning}};
+}
+
 /// A fit's check: converged, every sigma determined, and the goodness of fit.
 PipelineCheck FitCheck(const std::string& stem, const fit::FitResult& r) {
   PipelineCheck c;
@@ -416,13 +454,15 @@ struct Calibration {
   std::string sp_status, sp_goodness;
   bool sp_mismatch = false;
   std::optional<CalibratedDrop> drop;  ///< with a sphere calibration
+  PipelineCheck corrector;             ///< the corrector fit's check
 };
 
 /// Bumped when the calibration's model or file changes so that a calibration made by an older
 /// raymatch is not reused (2: the edge model from 3 map pixels inside the NA cut and the
 /// [uncertainty] table; 3: the sphere fit's verdict as fields of calibration_report.json; 4: the
-/// calibrated drop in it, which the focus scan's simulation takes).
-constexpr int kCalibrationModel = 4;
+/// calibrated drop in it, which the focus scan's simulation takes; 5: the corrector's check in
+/// it, and the sphere fit's goodness of fit taken at the template's best point).
+constexpr int kCalibrationModel = 5;
 
 std::string CalibrationInputs(const RunInputs& in) {
   const PipelineFile& cfg = in.cfg;
@@ -438,7 +478,7 @@ std::string CalibrationInputs(const RunInputs& in) {
 
 /// Bumped when what a fit step keeps for reuse (run_step.json) changes, or what a fit makes of
 /// the same inputs (its estimate, images or verdict), so that no earlier raymatch's fit is reused.
-constexpr int kFitStepModel = 2;
+constexpr int kFitStepModel = 3;  // 3: the goodness of fit at the template's best point
 
 /// What a fit of the main job depends on: this raymatch, the fit file, its scene and every
 /// file the scene reads (this run's calibration among them), the images and dark frames.
@@ -464,21 +504,14 @@ struct FitStep {
 };
 
 void WriteFitStep(const fs::path& file, const FitStep& f) {
-  const nlohmann::json j{{"status", f.status},
-                         {"check",
-                          {{"name", f.check.name},
-                           {"ok", f.check.ok},
-                           {"result", f.check.result},
-                           {"meaning", f.check.meaning}}},
-                         {"html", f.html}};
+  const nlohmann::json j{{"status", f.status}, {"check", CheckJson(f.check)}, {"html", f.html}};
   WriteTextFileAtomic(file, j.dump(1) + "\n");
 }
 
 FitStep ReadFitStep(const fs::path& file) {
   FitStep f;
   f.status = ReportField(file, "status");
-  f.check = {ReportField(file, "check", "name"), ReportField(file, "check", "ok") == "true",
-             ReportField(file, "check", "result"), ReportField(file, "check", "meaning")};
+  f.check = ReadCheck(file, "check");
   f.html = ReportField(file, "html");
   return f;
 }
@@ -502,6 +535,7 @@ void Calibrate(const RunInputs& in, const fs::path& out, const fs::path& cal_fil
   for (const auto& w : co.warnings) std::cerr << "raymatch run: warning: " << w << "\n";
   c->lf_report = lf.BriefReport();
   c->co_report = co.BriefReport();
+  c->corrector = CorrectorCheck(co.fit);
   c->data = co.data;
   if (cfg.sphere.empty()) {
     WriteCalibrationFile(cal_file.string(), co.data);
@@ -537,7 +571,9 @@ void Calibrate(const RunInputs& in, const fs::path& out, const fs::path& cal_fil
     calibrated.data.light_field_note = c->data.light_field_note;
     c->lf_report = calibrated.BriefReport();
   }
-  nlohmann::json rep{{"light_field", c->lf_report}, {"corrector", c->co_report}};
+  nlohmann::json rep{{"light_field", c->lf_report},
+                     {"corrector", c->co_report},
+                     {"corrector_check", CheckJson(c->corrector)}};
   if (!c->sp_report.empty()) {
     rep["sphere"] = c->sp_report;
     rep["sphere_fit"] = {
@@ -628,6 +664,7 @@ Calibration ReadCalibration(const fs::path& cal_file, const fs::path& cal_report
   cal.data = ReadCalibrationFile(cal_file.string());
   cal.lf_report = ReportField(cal_report, "light_field");
   cal.co_report = ReportField(cal_report, "corrector");
+  cal.corrector = ReadCheck(cal_report, "corrector_check");
   if (sphere) {
     cal.sp_report = ReportField(cal_report, "sphere");
     cal.sp_status = ReportField(cal_report, "sphere_fit", "status");
@@ -807,6 +844,7 @@ PipelineSummary RunPipeline(const PipelineOptions& opt) {
   std::vector<PipelineCheck> fit_checks = RunFits(cfg, out, cal_file, opt, steps, &sum, &report);
 
   // The checks, and the run's one verdict: never "pass" while a check needs attention.
+  sum.checks.push_back(cal.corrector);
   if (!cfg.sphere.empty())
     sum.checks.push_back(SphereCheck(cal.sp_status, cal.sp_goodness, cal.sp_mismatch));
   sum.checks.push_back(FocusScanCheck(fr));

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <nlohmann/json.hpp>
 #include <set>
 #include <sstream>
@@ -268,6 +269,54 @@ TEST(SimulateCli, SampleSceneIsValid) {
   EXPECT_EQ(r.code, 0) << r.err;
 }
 
+// `fit` says a model mismatch on stdout and by its exit code (4), so a script can catch it: an
+// experiment blurred by a 1 um camera PSF fitted with a model that has none. The same fit with
+// the PSF in the model is consistent (exit 0).
+TEST(FitCli, ModelMismatchExitsFourAndAConsistentFitZero) {
+  testing::TempDir dir;
+  auto scene = [](double x, int seed, double psf) {
+    std::ostringstream s;
+    s << "name = \"drop\"\nseed = " << seed
+      << "\n[source]\ntype = \"cone\"\nhalf_angle_deg = 27\n[[object]]\nname = \"drop\"\n"
+         "type = \"sphere\"\ncenter_um = ["
+      << x
+      << ", 0, 0]\nradius_um = 23\nindex = 1.335\n"
+         "[objective]\nfocal_length_mm = 10\nna = 0.42\n[tube_lens]\nfocal_length_mm = 200\n"
+         "[camera]\npixels = [64, 56]\npixel_pitch_um = 20\n"
+      << (psf > 0 ? "psf_sigma_um = " + std::to_string(psf) + "\n" : "")
+      << "[trace]\nphotons_per_pixel = 400\n";
+    return s.str();
+  };
+  dir.Write("truth.toml", scene(0.3, 9, 1.0));
+  const CliRun sim = Raymatch("simulate truth.toml -q -o exp --defocus-um -10", dir);
+  ASSERT_EQ(sim.code, 0) << sim.err;
+  std::string tif;
+  for (const auto& e : fs::directory_iterator(dir / "exp"))
+    if (e.path().extension() == ".tif") tif = e.path().string();
+  ASSERT_FALSE(tif.empty());
+  for (const double psf : {0.0, 1.0}) {
+    const std::string name = psf > 0 ? "with" : "without";
+    dir.Write(name + ".toml", scene(0, 1, psf));
+    const std::string fit = dir.Write(
+        name + "_fit.toml",
+        "scene = \"" + name + ".toml\"\nseed = 3\n[[image]]\nfile = \"" + tif +
+            "\"\ndefocus_um = -10\n[[parameter]]\nkey = \"object.drop.center_um[0]\"\n"
+            "lower = -2\nupper = 2\nstep = 0.2\n[[parameter]]\nkey = \"object.drop.radius_um\"\n"
+            "lower = 21\nupper = 25\nstep = 0.2\n[uncertainty]\nrepeat_seeds = 0\n"
+            "slice_points = 0\n");
+    const CliRun r = Raymatch("fit " + fit + " -o " + name, dir);
+    std::ifstream so(dir / "stdout.txt");
+    const std::string out{std::istreambuf_iterator<char>(so), {}};
+    std::ifstream in(dir / (name + "/fit.json"));
+    ASSERT_TRUE(in) << r.err;
+    const nlohmann::json j = nlohmann::json::parse(in);
+    const bool mismatch = j["goodness_of_fit"]["model_mismatch"].get<bool>();
+    EXPECT_EQ(mismatch, psf == 0) << out;
+    EXPECT_EQ(r.code, psf == 0 ? 4 : 0) << out << r.err;
+    EXPECT_EQ(out.find("WARNING: model mismatch") != std::string::npos, psf == 0) << out;
+  }
+}
+
 }  // namespace
 }  // namespace raymatch
 
@@ -357,6 +406,5 @@ TEST(CompareCli, MultiscaleSettingsAreUsedAndRecorded) {
   EXPECT_EQ(too_many.code, 2);
   EXPECT_NE(too_many.err.find("at most 8"), std::string::npos) << too_many.err;
 }
-
 }  // namespace
 }  // namespace raymatch

@@ -117,6 +117,35 @@ TEST(CorrectorFit, OverstatedNoiseIsDetectedAndTheUncertaintiesFollowTheScatter)
   }
 }
 
+// Flat fields that scatter 3x more than their stated noise: chi^2 / dof near 9, far above
+// 1 + 3 sqrt(2 / dof): a mismatch (the main job's corrector check needs attention), with the
+// uncertainties inflated. At the stated noise the same fits are no mismatch.
+TEST(CorrectorFit, UnderstatedNoiseIsAMismatch) {
+  const int J = 9;
+  const std::vector<double> truth = {1, 0.998, 0.995, 0.99, 0.982, 0.97, 0.95, 0.92, 0.88};
+  std::vector<std::vector<double>> W;
+  for (double iris = 3; iris <= 27; iris += 1) W.push_back(UniformConeWeights(iris, J));
+  int mismatched = 0, honest = 0;
+  for (int seed = 0; seed < 10; ++seed) {
+    std::mt19937_64 rng(300 + seed);
+    std::vector<double> S, sg;
+    for (const auto& w : W) {
+      double m = 0;
+      for (int j = 0; j < J; ++j) m += truth[j] * w[j];
+      const double sigma = 1e-3 * m;
+      S.push_back(m + std::normal_distribution<double>(0, 3 * sigma)(rng));
+      sg.push_back(sigma);
+    }
+    const TransmissionFit f = FitTransmissions(W, S, sg, 0);
+    EXPECT_EQ(f.dof, int(W.size()) - 9);  // 8 free zones and the gain
+    mismatched += f.mismatch && f.sigma_scale > 1;
+    for (double& v : sg) v *= 3;
+    honest += !FitTransmissions(W, S, sg, 0).mismatch;
+  }
+  EXPECT_GE(mismatched, 9);
+  EXPECT_GE(honest, 9);
+}
+
 TEST(CorrectorFit, ZoneWithoutLightIsReportedUndetermined) {
   std::vector<std::vector<double>> W;
   for (double iris : {3.0, 6.0, 9.0, 12.0}) W.push_back(UniformConeWeights(iris, 9));

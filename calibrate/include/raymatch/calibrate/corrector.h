@@ -22,7 +22,9 @@ struct TransmissionFit {
   double gain = 0, gain_sigma = 0;
   std::vector<double> model, residual;  ///< per flat field (photons per pixel)
   double reduced_chi2 = 0;
+  int dof = 0;                    ///< flat fields less the free transmissions and the gain
   double chi2_z = 0;              ///< chi^2 as a normal deviate (Wilson-Hilferty), 0 without dof
+  bool mismatch = false;          ///< chi^2 above 1 + 3 sqrt(2 / dof) per degree of freedom
   double sigma_scale = 1;         ///< factor applied to the uncertainties: sqrt(reduced chi^2) when
                                   ///< chi^2 is 3 sd above or below its expectation, else 1
   std::string verdict;            ///< why sigma_scale is not 1 (empty when it is)

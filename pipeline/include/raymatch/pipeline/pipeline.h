@@ -29,7 +29,8 @@ struct PipelineCheck {
 struct PipelineSummary {
   std::string report;  ///< index.html
   int verdict = 2;     ///< compare-scan verdict: 0 pass, 1 warning, 2 fail
-  /// Every check of the run: the sphere calibration (when run), the focus-scan test, each fit.
+  /// Every check of the run: the corrector calibration, the sphere calibration (when run), the
+  /// focus-scan test, each fit.
   std::vector<PipelineCheck> checks;
   /// The run's exit status: 0 every check passes; 1 a check needs attention (a focus-scan
   /// warning, a model mismatch, a fit that did not converge); 2 the focus-scan test fails.

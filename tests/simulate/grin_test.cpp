@@ -1,4 +1,5 @@
-// Gradient-index media against exact answers (REFERENCE.md section 5).
+// Gradient-index media against exact answers (Sharma, Kumar and Ghatak, Appl. Opt. 21, 984 (1982);
+// Luneburg lens, Maxwell fish-eye, parabolic media).
 #include <gtest/gtest.h>
 
 #include <cmath>

@@ -284,7 +284,7 @@ TEST(HardCases, ObjectsFromATenthOfAMicronToTenMillimetres) {
     const uint64_t N = 400000;
     const PlaneResult r = Simulator(s).TracePlane(0, 0, N);
     ExpectSane(r);
-    const double p0 = 0.0917757;  // REFERENCE.md section 3, n = 1.5 (unpolarised P0 is exact)
+    const double p0 = 0.0917757;  // Debye series, n = 1.5 (unpolarised P0 is exact)
     EXPECT_LT(
         std::abs(testing::BinomialZ(r.counters.path_class[0], r.counters.rays_hitting_objects, p0)),
         4.5)

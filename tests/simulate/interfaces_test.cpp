@@ -1,4 +1,4 @@
-// Interface physics against closed forms (REFERENCE.md section 2; Born & Wolf ch. 1.5).
+// Interface physics against closed forms (Born & Wolf ch. 1.5).
 #include "raymatch/simulate/interfaces.h"
 
 #include <gtest/gtest.h>

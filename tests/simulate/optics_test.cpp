@@ -1,4 +1,5 @@
-// Sources, ideal-lens imaging and shapes against closed forms (REFERENCE.md section 6).
+// Sources, ideal-lens imaging and shapes against closed forms (the ideal lens's tan t' = tan t -
+// h/f; Zemax OpticStudio's binary source file).
 #include <gtest/gtest.h>
 
 #include <cmath>

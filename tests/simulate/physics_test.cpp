@@ -1,4 +1,6 @@
-// Monte Carlo physics against known answers (REFERENCE.md sections 2, 3, 6). Fixed seeds make
+// Monte Carlo physics against known answers (Fresnel and Snell, Born and Wolf
+// ch. 1.5; the ball lens's focal length; the Debye series of a sphere, van de Hulst, Light
+// Scattering by Small Particles, ch. 12; ideal-lens imaging). Fixed seeds make
 // every test repeatable; tolerances are stated in shot-noise sigmas (binomial/Poisson).
 #include <gtest/gtest.h>
 
@@ -23,7 +25,7 @@ ObjectSpec Sphere(double r, double n) { return testing::SphereObject(r, n); }
 
 uint64_t Fates(const PlaneResult& r, Fate f) { return r.counters.fates[int(f)]; }
 
-// ---- Ball lens: EFL = n D / (4 (n - 1)) from the centre (REFERENCE.md section 3).
+// ---- Ball lens: EFL = n D / (4 (n - 1)) from the centre (Hecht, Optics, thick lens).
 // A collimated pencil of radius h = 0.15 R is scanned through focus. The RMS spot radius of
 // straight rays is exactly quadratic in z, so a parabola fit of RMS^2(z) gives the best-RMS
 // focus, which lies between the marginal-ray focus and the paraxial EFL. The marginal focus is
@@ -135,7 +137,7 @@ TEST(BallLens, WaterFocusShiftsWithTheWavelengthAsItsIndex) {
   EXPECT_LE(shift, std::max(efl[1] - efl[0], marginal[1] - marginal[0]) + 0.15) << shift;
 }
 
-// ---- Debye-series fractions for a sphere in collimated light (REFERENCE.md section 3).
+// ---- Debye-series fractions for a sphere in collimated light (van de Hulst, ch. 12).
 struct Debye {
   double p0, p1, p2;
 };

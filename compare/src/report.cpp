@@ -127,9 +127,8 @@ void Montage(const FocusScanResult& r, const std::string& path) {
 
 /// Per experimental plane: the residual map (sim - exp) / sqrt(sim + exp) and the radial
 /// profiles (azimuthal means about the image centre) with one pixel's shot-noise band.
-/// Returns the mean square residual.
-double PlaneFigures(const FocusScanResult& r, int i, const std::string& residual_png,
-                    const std::string& profile_png) {
+void PlaneFigures(const FocusScanResult& r, int i, const std::string& residual_png,
+                  const std::string& profile_png) {
   const Image& e = r.exp_images[i];
   const Image& s = r.sim_images[NearestSim(r, i)];
   const int w = e.width, h = e.height;
@@ -192,7 +191,6 @@ double PlaneFigures(const FocusScanResult& r, int i, const std::string& residual
   panel.xlabel = "radius from the image centre (" + unit + ")";
   panel.ylabel = "photons per pixel";
   WritePlot(profile_png, {panel}, 560, 380);
-  return ms;
 }
 
 std::string Fmt(double v) {
@@ -203,6 +201,28 @@ std::string Fmt(double v) {
 }
 
 }  // namespace
+
+std::vector<PlaneGoodness> PerPlaneGoodness(const FocusScanResult& r) {
+  std::vector<PlaneGoodness> out;
+  for (int i = 0; i < int(r.exp_images.size()) && !r.sim_images.empty(); ++i) {
+    const Image& e = r.exp_images[i];
+    const int j = NearestSim(r, i);
+    const Image& s = r.sim_images[j];
+    PlaneGoodness g;
+    g.exp_defocus_um = r.exp_defocus_um[i], g.sim_defocus_um = r.sim_defocus_um[j];
+    for (size_t q = 0; q < e.size(); ++q) {
+      const double a = s.pixels[q], b = e.pixels[q], d = r.sim_scale * a + b;
+      if (d > 0) g.mean_square += (a - b) * (a - b) / d;
+    }
+    const double n = double(std::max<size_t>(1, e.size()));
+    g.mean_square /= n;
+    g.expected_sd = std::sqrt(2 / n);
+    g.z = (g.mean_square - 1) / g.expected_sd;
+    g.misfit = g.z > 3;
+    out.push_back(g);
+  }
+  return out;
+}
 
 std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& dir,
                                  const std::string& title) {
@@ -298,17 +318,18 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
       "a standard deviation of &radic;(2/N) over N pixels; 3 standard deviations above is a "
       "misfit.</p><table><tr><th>experiment z (um)</th><th>simulation z (um)</th><th>mean "
       "square residual</th><th>expected</th><th>standard deviations</th><th>verdict</th></tr>";
+  const std::vector<PlaneGoodness> goodness = PerPlaneGoodness(r);
   for (int i = 0; i < int(r.exp_images.size()); ++i) {
     const std::string res = (d / ("plane_" + std::to_string(i) + "_residual.png")).string();
     const std::string prof = (d / ("plane_" + std::to_string(i) + "_profile.png")).string();
-    const double ms = PlaneFigures(r, i, res, prof);
-    const double n = double(std::max(1, r.exp_images[i].width * r.exp_images[i].height));
-    const double sd = std::sqrt(2 / n), z = (ms - 1) / sd;
+    PlaneFigures(r, i, res, prof);
+    const PlaneGoodness& g = goodness[size_t(i)];
     std::ostringstream row;
     row.precision(3);
-    row << "<tr><td>" << r.exp_defocus_um[i] << "</td><td>" << r.sim_defocus_um[NearestSim(r, i)]
-        << "</td><td>" << ms << "</td><td>1 &plusmn; " << sd << "</td><td>" << z << "</td><td>"
-        << (z > 3 ? "misfit beyond the shot noise" : "within the shot noise") << "</td></tr>";
+    row << "<tr><td>" << g.exp_defocus_um << "</td><td>" << g.sim_defocus_um << "</td><td>"
+        << g.mean_square << "</td><td>1 &plusmn; " << g.expected_sd << "</td><td>" << g.z
+        << "</td><td>" << (g.misfit ? "misfit beyond the shot noise" : "within the shot noise")
+        << "</td></tr>";
     fit_table += row.str();
     figures += "<tr><td>" + EmbeddedPng(res, "residual at " + Fmt(r.exp_defocus_um[i]) + " um") +
                "</td><td>" +

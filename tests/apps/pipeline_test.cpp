@@ -136,6 +136,8 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
   // below needs attention.)
   EXPECT_EQ(WEXITSTATUS(status), kUnderAddressSanitizer ? WEXITSTATUS(status) : 0) << log1;
   EXPECT_NE(log1.find("ok    focus-scan test: pass"), std::string::npos) << log1;
+  // Beside it each plane's residuals against the shot noise.
+  EXPECT_NE(log1.find("residuals within the shot noise in "), std::string::npos) << log1;
   if (!kUnderAddressSanitizer) {
     EXPECT_NE(log1.find("verdict: pass: "), std::string::npos) << log1;
     EXPECT_NE(log1.find("ok    fit sphere: converged; consistent with the noise"),
@@ -178,13 +180,26 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
   EXPECT_TRUE(std::filesystem::exists(dir / "out/index.html"));
   // The sample's pipeline calibrates with its drop too ([calibration] sphere): the light field's
   // edge beyond the NA (24.83 deg) and the PSF are in the calibration the fits use, and the
-  // report shows the step. (Their values at 1/16 of the photons are not meaningful: the
-  // full-sample test SphereCalibration.* checks them against the truth.)
+  // report shows the step. At 1/16 of the photons they are known to about 1 deg and 0.2 um
+  // (the full-sample test SphereCalibration.*, label slow, checks them closely): here within 3
+  // of their sigmas of the truth, the sigmas written to [uncertainty], the edge's width held at
+  // its 1 deg.
   if (!kUnderAddressSanitizer) {
-    EXPECT_GT(cal.edge_half_angle_deg, 24.83);
-    EXPECT_LT(cal.edge_half_angle_deg, 34.83);
-    EXPECT_GT(cal.edge_width_deg, 0);
-    EXPECT_GT(cal.psf_sigma_um, 0);
+    const toml::table truth_file = toml::parse_file(data + "/truth.toml");
+    const double edge_truth = truth_file["light_field"]["edge_half_angle_deg"].value_or(0.0);
+    const double psf_truth = truth_file["camera"]["psf_sigma_um"].value_or(0.0);
+    ASSERT_TRUE(cal.key_sigma.count("light_field_edge.half_angle_deg"));
+    ASSERT_TRUE(cal.key_sigma.count("camera.psf_sigma_um"));
+    const double edge_sigma = cal.key_sigma.at("light_field_edge.half_angle_deg");
+    const double psf_sigma = cal.key_sigma.at("camera.psf_sigma_um");
+    EXPECT_GT(cal.edge_half_angle_deg, 24.83);  // beyond the NA's cut
+    EXPECT_LT(std::abs(cal.edge_half_angle_deg - edge_truth), 3 * edge_sigma)
+        << cal.edge_half_angle_deg << " +- " << edge_sigma;
+    EXPECT_LT(std::abs(cal.psf_sigma_um - psf_truth), 3 * psf_sigma)
+        << cal.psf_sigma_um << " +- " << psf_sigma;
+    EXPECT_GT(edge_sigma, 0);
+    EXPECT_GT(psf_sigma, 0);
+    EXPECT_EQ(cal.edge_width_deg, 1.0);
     EXPECT_TRUE(std::filesystem::exists(dir / "out/sphere_calibration/fit.json"));
     // The fit's read noise is the dark-subtracted images': the camera's 6 e times sqrt 2 (the
     // sample subtracts one dark read-out).
@@ -298,7 +313,8 @@ TEST(Pipeline, ReducedSampleRecoversTheGroundTruth) {
     EXPECT_EQ(checked, want.size());
   }
   // Ring transmissions within 3 sigma of the truth (at 1/16 of the photons the sigmas are
-  // ~0.15: the cone images' read noise dominates; the full sample is checked below).
+  // ~0.15: the cone images' read noise dominates, and transmissions all 1 would pass here; the
+  // full sample, Pipeline.CorrectorRecoversTheTruthOnTheSample, holds them to sigmas below 0.03).
   const std::vector<double> truth = TruthTransmissions(data + "/truth.toml");
   ASSERT_EQ(cal.transmissions.size(), truth.size());
   for (size_t j = 1; j < truth.size(); ++j)

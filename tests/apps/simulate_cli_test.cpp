@@ -287,8 +287,9 @@ TEST(FitCli, ModelMismatchExitsFourAndAConsistentFitZero) {
       << "[trace]\nphotons_per_pixel = 400\n";
     return s.str();
   };
-  dir.Write("truth.toml", scene(0.3, 9, 1.0));
-  const CliRun sim = Raymatch("simulate truth.toml -q -o exp --defocus-um -10", dir);
+  const std::string truth = dir.Write("truth.toml", scene(0.3, 9, 1.0));
+  const CliRun sim =
+      Raymatch("simulate " + truth + " -q -o " + (dir / "exp") + " --defocus-um -10", dir);
   ASSERT_EQ(sim.code, 0) << sim.err;
   std::string tif;
   for (const auto& e : fs::directory_iterator(dir / "exp"))
@@ -304,7 +305,7 @@ TEST(FitCli, ModelMismatchExitsFourAndAConsistentFitZero) {
             "lower = -2\nupper = 2\nstep = 0.2\n[[parameter]]\nkey = \"object.drop.radius_um\"\n"
             "lower = 21\nupper = 25\nstep = 0.2\n[uncertainty]\nrepeat_seeds = 0\n"
             "slice_points = 0\n");
-    const CliRun r = Raymatch("fit " + fit + " -o " + name, dir);
+    const CliRun r = Raymatch("fit " + fit + " -o " + (dir / name), dir);
     std::ifstream so(dir / "stdout.txt");
     const std::string out{std::istreambuf_iterator<char>(so), {}};
     std::ifstream in(dir / (name + "/fit.json"));

@@ -176,6 +176,18 @@ TEST(FocusScan, PerPlaneGoodnessOfFitFlagsAMisfit) {
   std::stringstream ss;
   ss << in.rdbuf();
   EXPECT_NE(ss.str().find("misfit beyond the shot noise"), std::string::npos);
+  // PerPlaneGoodness says the same per plane (what `run`'s focus-scan check reports): each
+  // simulated plane 4 um off its experimental plane is a misfit; the same planes simulated
+  // with their own noise are within it.
+  const std::vector<PlaneGoodness> off_planes = PerPlaneGoodness(r);
+  ASSERT_EQ(off_planes.size(), 3u);
+  for (const PlaneGoodness& g : off_planes) EXPECT_TRUE(g.misfit) << g.exp_defocus_um << " " << g.z;
+  const FocusScanResult same =
+      RunFocusScan(MakeStack(zs, 1, 0, 1, true), MakeStack(zs, 1, 0, 2, true), {});
+  for (const PlaneGoodness& g : PerPlaneGoodness(same)) {
+    EXPECT_FALSE(g.misfit) << g.exp_defocus_um << " " << g.z;
+    EXPECT_NEAR(g.mean_square, 1, 5 * g.expected_sd) << g.exp_defocus_um;
+  }
 }
 
 FailureKind KindOf(const std::function<void()>& f) {

@@ -106,6 +106,17 @@ struct FocusScanResult {
 FocusScanResult RunFocusScan(const Stack& experiment, const Stack& simulation,
                              const FocusScanOptions& options);
 
+/// Goodness of fit of one experimental plane against the simulated plane nearest in defocus:
+/// the mean square of (sim - exp) / sqrt(s sim + exp) over its pixels (s = sim_scale), 1 +-
+/// sqrt(2 / N) for two Poisson images of one mean; a misfit 3 standard deviations above.
+struct PlaneGoodness {
+  double exp_defocus_um = 0, sim_defocus_um = 0;
+  double mean_square = 0, expected_sd = 0, z = 0;
+  bool misfit = false;
+};
+/// Per experimental plane (needs the result's exp_images and sim_images).
+std::vector<PlaneGoodness> PerPlaneGoodness(const FocusScanResult& r);
+
 /// Writes compare_scan.json, <measure>_matrix.csv, best_match.csv, heatmap_<measure>.png,
 /// montage.png and a self-contained report.html into `dir`. Returns the report path.
 std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& dir,

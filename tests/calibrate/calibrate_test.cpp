@@ -80,6 +80,21 @@ TEST(CorrectorFit, RecoversTransmissionsWithHonestUncertainties) {
   }
 }
 
+/// Flat-field signals S_k = sum_j T_j W_kj with Gaussian noise of `scatter` x 0.1 % of the
+/// signal, and their stated noise `stated` x 0.1 %.
+void FlatFieldSignals(const std::vector<std::vector<double>>& W, const std::vector<double>& truth,
+                      double scatter, double stated, uint64_t seed, std::vector<double>* S,
+                      std::vector<double>* sg) {
+  std::mt19937_64 rng(seed);
+  for (const auto& w : W) {
+    double m = 0;
+    for (size_t j = 0; j < truth.size(); ++j) m += truth[j] * w[j];
+    const double sigma = 1e-3 * m;
+    S->push_back(m + std::normal_distribution<double>(0, scatter * sigma)(rng));
+    sg->push_back(stated * sigma);
+  }
+}
+
 // Flat fields whose stated noise is 3x their real scatter (a sub-Poisson source, or a noise
 // model that counts something twice): chi^2 / dof comes out near 1/9, 3 sd below 1 with 25 flat
 // fields, and the reported uncertainties must follow the real scatter, not the stated noise.
@@ -93,15 +108,8 @@ TEST(CorrectorFit, OverstatedNoiseIsDetectedAndTheUncertaintiesFollowTheScatter)
   std::vector<double> reported(J, 0.0);
   int flagged = 0;
   for (int seed = 0; seed < kSeeds; ++seed) {
-    std::mt19937_64 rng(100 + seed);
     std::vector<double> S, sg;
-    for (const auto& w : W) {
-      double m = 0;
-      for (int j = 0; j < J; ++j) m += truth[j] * w[j];
-      const double sigma = 1e-3 * m;
-      S.push_back(m + std::normal_distribution<double>(0, sigma)(rng));
-      sg.push_back(3 * sigma);
-    }
+    FlatFieldSignals(W, truth, 1, 3, 100 + seed, &S, &sg);
     const TransmissionFit f = FitTransmissions(W, S, sg, 0);
     fits.push_back(f.transmissions);
     flagged += f.sigma_scale < 1;
@@ -127,15 +135,8 @@ TEST(CorrectorFit, UnderstatedNoiseIsAMismatch) {
   for (double iris = 3; iris <= 27; iris += 1) W.push_back(UniformConeWeights(iris, J));
   int mismatched = 0, honest = 0;
   for (int seed = 0; seed < 10; ++seed) {
-    std::mt19937_64 rng(300 + seed);
     std::vector<double> S, sg;
-    for (const auto& w : W) {
-      double m = 0;
-      for (int j = 0; j < J; ++j) m += truth[j] * w[j];
-      const double sigma = 1e-3 * m;
-      S.push_back(m + std::normal_distribution<double>(0, 3 * sigma)(rng));
-      sg.push_back(sigma);
-    }
+    FlatFieldSignals(W, truth, 3, 1, 300 + seed, &S, &sg);
     const TransmissionFit f = FitTransmissions(W, S, sg, 0);
     EXPECT_EQ(f.dof, int(W.size()) - 9);  // 8 free zones and the gain
     mismatched += f.mismatch && f.sigma_scale > 1;

@@ -130,10 +130,10 @@ class FitFile : public ::testing::Test {
   }
   /// The camera-noise tests' drop (x 0.4 um, 400 photons per pixel at -10 um): the clean
   /// experiment's image, which the test then spoils, and the model scene at x = 0.
-  Image NoiseTestExperiment() {
+  Image NoiseTestExperiment(double photons_per_pixel = 400 * kPhotonScale) {
     const std::string tif =
-        MakeExperiment(dir_, "clean", SceneText(0.4, 0, 0, 23, 1.335, 400 * kPhotonScale, 9), -10);
-    dir_.Write("model.toml", SceneText(0, 0, 0, 23, 1.335, 400 * kPhotonScale, 1));
+        MakeExperiment(dir_, "clean", SceneText(0.4, 0, 0, 23, 1.335, photons_per_pixel, 9), -10);
+    dir_.Write("model.toml", SceneText(0, 0, 0, 23, 1.335, photons_per_pixel, 1));
     return ReadImage(tif);
   }
   /// Its fit of x and radius (ray factor 2) with the [[image]] keys given, and the truth.
@@ -143,8 +143,8 @@ class FitFile : public ::testing::Test {
                                       image_keys + kNoiseTestDrop + more_params);
   }
   /// The noise test's fit at ray factor 1 (quicker), with its experiment: for the final steps.
-  FitSpec FinalStepsSpec() {
-    WriteFloatImage(dir_ / "exp.tif", NoiseTestExperiment(), "drop at x = 0.4 um");
+  FitSpec FinalStepsSpec(double photons_per_pixel = 400 * kPhotonScale) {
+    WriteFloatImage(dir_ / "exp.tif", NoiseTestExperiment(photons_per_pixel), "drop at x = 0.4 um");
     std::ifstream in(NoiseTestFit(""));
     std::string text{std::istreambuf_iterator<char>(in), {}};
     text.replace(text.find("ray_factor = 2"), 14, "ray_factor = 1");
@@ -949,7 +949,7 @@ TEST_F(FitFile, GoodnessOfFitTestsTheMeanOfTheDerivativeSetsImages) {
 // where the template fits best: the data are consistent, and the step leads back to the
 // truth. The model is right here: the experiment is the truth traced with its own seed.
 TEST_F(FitFile, GoodnessOfFitIsTakenAtTheTemplatesBestPoint) {
-  const FitSpec spec = FinalStepsSpec();
+  const FitSpec spec = FinalStepsSpec(400);  // in every build: the offsets are sized for it
   FitResult res;
   internal::Runner run(spec, FitOptions{}, &res);
   const size_t level = spec.rays.fractions.size() - 1;
@@ -1009,7 +1009,7 @@ TEST_F(FitFile, GoodnessOfFitIsTakenAtTheTemplatesBestPoint) {
 // 10,000 (27 expected at 0.27 %, Poisson P(X >= 40) = 1 %; at twice that rate P(X < 40) = 2.5 %).
 // The same draws with the experiment about mu blurred by a 1.5 pixel PSF are all flagged.
 TEST_F(FitFile, GoodnessOfFitFalseAlarmsAtTheNominalRate) {
-  FitSpec spec = FinalStepsSpec();
+  FitSpec spec = FinalStepsSpec(400);  // in every build (under the sanitizers too)
   FitModel model(spec, 0, nullptr);
   const double fraction = spec.rays.fractions.back();
   const std::vector<double> truth{kNoiseTestTruth[0], kNoiseTestTruth[1]};

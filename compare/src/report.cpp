@@ -126,25 +126,22 @@ void Montage(const FocusScanResult& r, const std::string& path) {
 }
 
 /// Per experimental plane: the residual map (sim - exp) / sqrt(sim + exp) and the radial
-/// profiles (azimuthal means about the image centre) with one pixel's shot-noise band.
-void PlaneFigures(const FocusScanResult& r, int i, const std::string& residual_png,
+/// profiles (azimuthal means about the image centre) with one pixel's shot-noise band; the
+/// residual's mean square (PerPlaneGoodness) goes into the map's title.
+void PlaneFigures(const FocusScanResult& r, int i, double ms, const std::string& residual_png,
                   const std::string& profile_png) {
   const Image& e = r.exp_images[i];
   const Image& s = r.sim_images[NearestSim(r, i)];
   const int w = e.width, h = e.height;
   MapPlot p;
   p.image = Image(w, h);
-  double ms = 0;
   for (int y = 0; y < h; ++y)
     for (int x = 0; x < w; ++x) {
       // Shot-noise variance: exp for the experiment, sim_scale x sim for the simulation scaled
       // by sim_scale (sim + exp when photon-matched, sim_scale = 1).
       const double a = s.at(x, y), b = e.at(x, y), d = r.sim_scale * a + b;
-      const double v = d > 0 ? (a - b) / std::sqrt(d) : 0.0;
-      p.image.at(x, y) = float(v);
-      ms += v * v;
+      p.image.at(x, y) = float(d > 0 ? (a - b) / std::sqrt(d) : 0.0);
     }
-  ms /= std::max(1, w * h);
   // Axes at the object (um) when the pixel's size there is known, else in pixels.
   const double px = r.object_pixel_um > 0 ? r.object_pixel_um : 1.0;
   const std::string unit = r.object_pixel_um > 0 ? "um at the object" : "px";
@@ -322,8 +319,8 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
   for (int i = 0; i < int(r.exp_images.size()); ++i) {
     const std::string res = (d / ("plane_" + std::to_string(i) + "_residual.png")).string();
     const std::string prof = (d / ("plane_" + std::to_string(i) + "_profile.png")).string();
-    PlaneFigures(r, i, res, prof);
     const PlaneGoodness& g = goodness[size_t(i)];
+    PlaneFigures(r, i, g.mean_square, res, prof);
     std::ostringstream row;
     row.precision(3);
     row << "<tr><td>" << g.exp_defocus_um << "</td><td>" << g.sim_defocus_um << "</td><td>"

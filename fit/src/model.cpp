@@ -27,6 +27,18 @@ inline double DevianceResidual(double e, double mu) {
   return mu >= e ? r : -r;
 }
 
+/// The Poisson deviance of one (binned) experimental image against its template t over the
+/// pixels `use` lets in.
+double ImageDeviance(const Image& e, const std::vector<double>& t, const Image& use) {
+  double d = 0;
+  for (size_t p = 0; p < e.size(); ++p) {
+    if (!Uses(use, p)) continue;
+    const double r = DevianceResidual(e.pixels[p], t[p]);
+    d += r * r;
+  }
+  return d;
+}
+
 /// Expected Poisson deviance 2[mu - e + e ln(e/mu)] of one pixel with known mean mu: summed
 /// over the Poisson distribution below 30, 1 + 1/(6 mu) + 1/(6 mu^2) above (the asymptotic
 /// series; McCullagh and Nelder, Generalized Linear Models, 2nd ed., section 6.2).
@@ -402,15 +414,9 @@ double FitModel::Error(const Simulated& sim, int bin) const {
   for (size_t i = 0; i < mu.size(); ++i) {
     const Image& e = exp[i];
     switch (spec_.error) {
-      case ErrorFunction::kPoisson: {
-        const std::vector<double> t = TemplateOf(mu[i], sim, i, bin);
-        for (size_t p = 0; p < e.size(); ++p) {
-          if (!Uses(use[i], p)) continue;
-          const double r = DevianceResidual(e.pixels[p], t[p]);
-          s += r * r;
-        }
+      case ErrorFunction::kPoisson:
+        s += ImageDeviance(e, TemplateOf(mu[i], sim, i, bin), use[i]);
         break;
-      }
       case ErrorFunction::kMse:
         for (size_t p = 0; p < e.size(); ++p)
           s += (double(mu[i].pixels[p]) - e.pixels[p]) * (double(mu[i].pixels[p]) - e.pixels[p]);
@@ -554,36 +560,34 @@ std::pair<double, double> FitModel::ExpectedDeviance(const std::vector<std::vect
   return {mean, std::sqrt(var)};
 }
 
-std::vector<double> FitModel::TemplateStep(const Simulated& sim, int bin,
-                                           const std::vector<std::vector<Image>>& dmu_a,
-                                           const std::vector<std::vector<Image>>& dmu_b) const {
+std::vector<std::vector<double>> FitModel::Templates(const Simulated& sim, int bin) const {
   std::vector<std::vector<double>> ts;
   for (size_t i = 0; i < sim.photons.size(); ++i)
     ts.push_back(TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin));
-  return GaussNewtonStep(sim, bin, dmu_a, dmu_b, ts);
+  return ts;
+}
+
+std::vector<double> FitModel::TemplateStep(const Simulated& sim, int bin,
+                                           const std::vector<std::vector<Image>>& dmu_a,
+                                           const std::vector<std::vector<Image>>& dmu_b) const {
+  return GaussNewtonStep(sim, bin, dmu_a, dmu_b, Templates(sim, bin));
 }
 
 double FitModel::TemplatesDeviance(const std::vector<std::vector<double>>& ts, int bin) const {
   const std::vector<Image>& use = Usable(bin);
   const std::vector<Image>& exp = Experiment(bin);
   double d = 0;
-  for (size_t i = 0; i < ts.size(); ++i)
-    for (size_t p = 0; p < ts[i].size(); ++p)
-      if (Uses(use[i], p)) {
-        const double r = DevianceResidual(exp[i].pixels[p], ts[i][p]);
-        d += r * r;
-      }
+  for (size_t i = 0; i < ts.size(); ++i) d += ImageDeviance(exp[i], ts[i], use[i]);
   return d;
 }
 
 std::vector<double> FitModel::GaussNewtonStep(const Simulated& sim, int bin,
                                               const std::vector<std::vector<Image>>& dmu_a,
                                               const std::vector<std::vector<Image>>& dmu_b,
-                                              const std::vector<std::vector<double>>& ts_in,
+                                              const std::vector<std::vector<double>>& ts,
                                               std::vector<std::vector<Image>>* mean_dmu) const {
-  const std::vector<std::vector<double>>* ts = &ts_in;
   const size_t P = dmu_a.empty() ? 0 : dmu_a[0].size();
-  if (P == 0 || dmu_a.size() != ts->size() || dmu_b.size() != ts->size()) return {};
+  if (P == 0 || dmu_a.size() != ts.size() || dmu_b.size() != ts.size()) return {};
   const std::vector<Image>& use = Usable(bin);
   const std::vector<Image>& exp = Experiment(bin);
   // The weighted least-squares normal equations of the Pearson residuals (the weights of the
@@ -592,8 +596,8 @@ std::vector<double> FitModel::GaussNewtonStep(const Simulated& sim, int bin,
   // regressors); the cross products of two independent halves are free of it.
   Eigen::MatrixXd n = Eigen::MatrixXd::Zero(Eigen::Index(P), Eigen::Index(P));
   Eigen::VectorXd b = Eigen::VectorXd::Zero(Eigen::Index(P));
-  std::vector<std::vector<Image>> ga(ts->size()), gb(ts->size()), g(ts->size());
-  for (size_t i = 0; i < ts->size(); ++i) {
+  std::vector<std::vector<Image>> ga(ts.size()), gb(ts.size()), g(ts.size());
+  for (size_t i = 0; i < ts.size(); ++i) {
     if (dmu_a[i].size() != P || dmu_b[i].size() != P) return {};
     for (size_t j = 0; j < P; ++j) {
       ga[i].push_back(BinImage(dmu_a[i][j], bin));
@@ -607,7 +611,7 @@ std::vector<double> FitModel::GaussNewtonStep(const Simulated& sim, int bin,
     const Image& e = exp[i];
     for (size_t p = 0; p < e.size(); ++p) {
       if (!Uses(use[i], p)) continue;
-      const double t = (*ts)[i][p];
+      const double t = ts[i][p];
       const double v = t + w * std::max(0.0, t - shift);
       const double r = std::max(0.0, double(e.pixels[p])) - (t - ray);
       for (size_t j = 0; j < P; ++j) {
@@ -689,9 +693,7 @@ GoodnessOfFit FitModel::Goodness(const Simulated& sim, int bin, size_t parameter
   const std::vector<Image>& use = Usable(bin);  // pixels left out: saturated, clipped
   const std::vector<Image>& exp = Experiment(bin);
   GoodnessOfFit g;
-  std::vector<std::vector<double>> ts;
-  for (size_t i = 0; i < sim.photons.size(); ++i)
-    ts.push_back(TemplateOf(BinImage(sim.photons[i], bin), sim, i, bin));
+  std::vector<std::vector<double>> ts = Templates(sim, bin);
   g.estimate_deviance = TemplatesDeviance(ts, bin);
   g.step = StepToTheTemplatesBest(sim, bin, dmu_a, dmu_b.empty() ? dmu_a : dmu_b, &ts);
   g.deviance = g.step.empty() ? g.estimate_deviance : TemplatesDeviance(ts, bin);

@@ -109,6 +109,9 @@ class FitModel {
                                       const std::vector<std::vector<double>>& ts,
                                       std::vector<std::vector<Image>>* mean_dmu = nullptr) const;
 
+  /// The templates (TemplateOf) of `sim`'s images, binned.
+  std::vector<std::vector<double>> Templates(const Simulated& sim, int bin) const;
+
   /// GaussNewtonStep from the templates of `sim`.
   std::vector<double> TemplateStep(const Simulated& sim, int bin,
                                    const std::vector<std::vector<Image>>& dmu_a,
@@ -120,8 +123,8 @@ class FitModel {
   /// GaussNewtonStep moving the templates `ts` linearly along the mean derivative images, whole
   /// or halved while that lowers the deviance more (for exact images, whose derivatives carry
   /// no noise; a noisy derivative image adds its noise times the step); applies it to `ts` and
-  /// returns it (per parameter: zeros where no step
-  /// lowers the deviance; empty: no derivative images).
+  /// returns it (per parameter: zeros where no step lowers the deviance; empty: no derivative
+  /// images).
   std::vector<double> StepToTheTemplatesBest(const Simulated& sim, int bin,
                                              const std::vector<std::vector<Image>>& dmu_a,
                                              const std::vector<std::vector<Image>>& dmu_b,

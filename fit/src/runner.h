@@ -311,8 +311,6 @@ std::vector<Eigen::MatrixXd> ScatterProjections(const std::vector<std::vector<in
 OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<double>* best,
                               const FitResult& res);
 
-/// Sigmas, correlations, Cramer-Rao bounds, repeated fits and slices at the optimum into
-/// res->parameters; returns the expected images there (uncertainty.cpp).
 /// The goodness of fit of the fit's result (uncertainty.cpp): the Poisson tests at the point
 /// where the template and the experiment agree best, one weighted least-squares step along the
 /// derivative images from the estimate `best` (FitModel::Goodness). Exact images step their
@@ -324,6 +322,8 @@ GoodnessOfFit TestedGoodness(Runner& run, const FitSpec& spec, const std::vector
                              const Simulated& best_sim, const OptimumDerivatives& od,
                              const FitResult& res);
 
+/// Sigmas, correlations, Cramer-Rao bounds, repeated fits and slices at the optimum into
+/// res->parameters; returns the expected images there (uncertainty.cpp).
 Simulated EstimateUncertainties(Runner& run, const FitSpec& spec, const std::vector<double>& best,
                                 const OptimumDerivatives& od, FitResult* res);
 

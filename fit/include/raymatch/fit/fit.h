@@ -274,8 +274,9 @@ struct GoodnessOfFit {
   double z = 0;                  ///< (deviance - expected) / sd
   double reduced = 1;            ///< deviance / expected
   size_t pixels = 0;
-  /// Residual structure: Pearson residuals summed over blocks of block_px x block_px pixels,
-  /// each block normalised to unit variance; their chi-square against the block count.
+  /// Residual structure: residuals (experiment less the template's plain count) summed over
+  /// blocks of block_px x block_px pixels, each block normalised to unit variance; their
+  /// chi-square against the block count, block_z its Wilson-Hilferty normal deviate.
   int block_px = 8;
   size_t blocks = 0;
   double block_chi2 = 0, block_z = 0, block_reduced = 1;

@@ -572,6 +572,12 @@ FitResult RunFitFromStart(const FitSpec& spec, const FitOptions& options) {
   const auto t_unc = Clock::now();
   // 1b. Derivative sets at the optimum and the final steps' estimating equation (uncertainty.cpp).
   const OptimumDerivatives od = FinalSteps(run, spec, &best, res);
+  res.final_steps_q = od.root_q;
+  if (od.root_q > 1)
+    res.message +=
+        "; the final steps ended " + Fmt(std::sqrt(od.root_q), 2) +
+        " statistical sigmas from their estimating equation's root (Q = " + Fmt(od.root_q, 3) +
+        "); its sigma does not include that offset: more jacobian_seeds or rays";
 
   for (size_t i = 0; i < P; ++i) {
     const Parameter& p = spec.parameters[i];

@@ -254,6 +254,7 @@ struct OptimumDerivatives {
   Differences half_a,
       half_b;           // averages of the even and the odd sets (the first is the main streams)
   Simulated final_sim;  // the main streams' images at the final steps' root (empty: none)
+  double root_q = -1;   // the equation's Q at the estimate (FitResult::final_steps_q)
   // The mean of the derivative sets' images at the estimate, photons per ray divided by their
   // number (empty: exact images, or no sets): the goodness of fit's template.
   Simulated mean_sim;

@@ -418,8 +418,9 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     // the equation is nearly singular (weak nuisances) its linear root can be far off: so each
     // step is tried with the halves' images traced at its end (S images, not S (P + 1)) and
     // kept only when the equation's value there, in units of the root's statistical spread,
-    // Q = U^T (B_e + B_t)^-1 U, falls (else halved, at most twice); the steps end when the
-    // next one is below a fifth of a sigma (Q < kPolishTolerance) or after four.
+    // Q = U^T (B_e + B_t)^-1 U, falls (else halved, at most four times: where noise leaves the
+    // response weak along a direction, the linear root can lie 5-10x too far along it); the steps
+    // end when the next one is below a fifth of a sigma (Q < kPolishTolerance) or after four.
     const Eigen::MatrixXd b_total = od.score_variance_experiment + od.score_variance_template;
     const auto b_solver = b_total.completeOrthogonalDecomposition();
     auto Q = [&](const Eigen::VectorXd& v) { return v.dot(b_solver.solve(v)); };
@@ -451,12 +452,13 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       const Eigen::VectorXd step = lu.solve(g);
       if (!step.allFinite()) break;
       bool accepted = false;
-      for (double f = 1; f >= 0.25 && run.Budget(); f *= 0.5) {
+      for (double f = 1; f >= 1.0 / 16 && run.Budget(); f *= 0.5) {
         std::vector<double> y = x;
         for (size_t i = 0; i < P; ++i) y[i] += f * step(Eigen::Index(i));
         y = Clip(y, spec);
         const Eigen::VectorXd gy = GAt(y);
         const double qy = Q(gy);
+
         if (qy < q) {
           x = y, g = gy, q = qy, accepted = stepped = true;
           break;
@@ -464,6 +466,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       }
       if (!accepted) break;
     }
+    if (!pilot) od.root_q = q;
     bool far = false;
     for (size_t i = 0; i < P && stepped; ++i)
       far = far || std::abs(x[i] - best[i]) > 0.5 * spec.parameters[i].step;

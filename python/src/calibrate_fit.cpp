@@ -389,6 +389,7 @@ void BindFit(py::module_& m) {
         d["correlation"] = ToMatrix(r.correlation);
         d["crb_correlation"] = ToMatrix(r.crb_correlation);
         d["best_error"] = r.best_error;
+        if (r.final_steps_q >= 0) d["final_steps_q"] = r.final_steps_q;
         if (r.goodness.pixels > 0) {
           const fit::GoodnessOfFit& g = r.goodness;
           py::dict gd;

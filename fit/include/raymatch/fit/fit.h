@@ -302,6 +302,10 @@ struct FitResult {
   std::vector<std::vector<double>> correlation;      ///< from the curvature covariance
   std::vector<std::vector<double>> crb_correlation;  ///< from the inverse Fisher information
   double best_error = 0;
+  /// The final steps' estimating equation at the estimate, Q = U^T (B_e + B_t)^-1 U: 0 at its
+  /// root, below 0.05 where the steps converged; Q > 1 puts the estimate more than one
+  /// statistical sigma from the root along some direction. Negative: no final steps ran.
+  double final_steps_q = -1;
   GoodnessOfFit goodness;  ///< Poisson error only (empty otherwise)
   std::vector<Evaluation> evaluations;
   std::vector<Image> best_images;    ///< expected photons per image at the optimum

@@ -1,4 +1,6 @@
 // Fit outputs: fit.json, evaluations.csv, best/residual images, plots and report.html.
+#include "report.h"
+
 #include <algorithm>
 #include <cmath>
 #include <filesystem>
@@ -16,6 +18,42 @@
 namespace raymatch::fit {
 
 namespace fs = std::filesystem;
+
+namespace internal {
+
+compare::MapPlot GridLandscapeMap(const FitSpec& spec, const FitResult& res) {
+  const int nx = int(res.grid_axes[1].size()), ny = int(res.grid_axes[0].size());
+  Image m(nx, ny);
+  for (int r = 0; r < ny; ++r)
+    for (int c = 0; c < nx; ++c)
+      m.at(c, r) = static_cast<float>(res.grid_errors[size_t(r) * nx + c]);
+  // Each grid node is a cell centred on its value; the cells' edges are midway between nodes.
+  auto edges = [](const std::vector<double>& v) {
+    std::vector<double> e(v.size() + 1);
+    const double h = v.size() > 1 ? v[1] - v[0] : 1;
+    e.front() = v.front() - 0.5 * h;
+    for (size_t k = 1; k < v.size(); ++k) e[k] = 0.5 * (v[k - 1] + v[k]);
+    e.back() = v.back() + 0.5 * (v.size() > 1 ? v.back() - v[v.size() - 2] : 1);
+    return e;
+  };
+  auto label = [&](size_t k) {
+    const ParameterResult& p = res.parameters[k];
+    return spec.parameters[k].key + (p.unit.empty() ? "" : " (" + p.unit + ")");
+  };
+  compare::MapPlot mp;
+  mp.image = m;
+  mp.x_edges = edges(res.grid_axes[1]);
+  mp.y_edges = edges(res.grid_axes[0]);
+  mp.title = "grid scan: " + std::string(ErrorFunctionName(spec.error)) + " at each node";
+  mp.xlabel = label(1);
+  mp.ylabel = label(0);
+  mp.colour_label = ErrorFunctionName(spec.error);
+  mp.markers.push_back({res.parameters[1].best, res.parameters[0].best, true});
+  mp.marker_legend = "square: the estimate";
+  return mp;
+}
+
+}  // namespace internal
 
 namespace {
 
@@ -149,6 +187,7 @@ nlohmann::json FitJson(const FitSpec& spec, const FitResult& res) {
   j["converged"] = res.converged;
   j["message"] = res.message;
   j["best_error"] = J(res.best_error);
+  if (res.final_steps_q >= 0) j["final_steps_q"] = J(res.final_steps_q);
   if (res.goodness.pixels > 0) j["goodness_of_fit"] = GoodnessJson(res.goodness);
   j["optics"] = spec.exact_images ? "mie" : "rays";
   j["rays"] = {{"ray_factor", spec.rays.ray_factor},
@@ -308,34 +347,7 @@ std::string WritePlots(const FitSpec& spec, const FitResult& res, const fs::path
                        ErrorFunctionName(spec.error));
     plots += EmbeddedPng((dir / "landscape.png").string()) + "\n";
   } else if (res.grid_axes.size() == 2) {
-    const int nx = int(res.grid_axes[1].size()), ny = int(res.grid_axes[0].size());
-    Image m(nx, ny);
-    for (int r = 0; r < ny; ++r)
-      for (int c = 0; c < nx; ++c)
-        m.at(c, r) = static_cast<float>(res.grid_errors[size_t(r) * nx + c]);
-    // Each grid node is a cell centred on its value; the cells' edges are midway between nodes.
-    auto edges = [](const std::vector<double>& v) {
-      std::vector<double> e(v.size() + 1);
-      const double h = v.size() > 1 ? v[1] - v[0] : 1;
-      e.front() = v.front() - 0.5 * h;
-      for (size_t k = 1; k < v.size(); ++k) e[k] = 0.5 * (v[k - 1] + v[k]);
-      e.back() = v.back() + 0.5 * (v.size() > 1 ? v.back() - v[v.size() - 2] : 1);
-      return e;
-    };
-    auto label = [&](size_t k) {
-      const ParameterResult& p = res.parameters[k];
-      return spec.parameters[k].key + (p.unit.empty() ? "" : " (" + p.unit + ")");
-    };
-    compare::MapPlot mp;
-    mp.image = m;
-    mp.x_edges = edges(res.grid_axes[1]);
-    mp.y_edges = edges(res.grid_axes[0]);
-    mp.title = "grid scan: " + std::string(ErrorFunctionName(spec.error)) + " at each node";
-    mp.xlabel = label(1);
-    mp.ylabel = label(0);
-    mp.colour_label = ErrorFunctionName(spec.error);
-    mp.markers.push_back({res.parameters[1].best, res.parameters[0].best, true});
-    mp.marker_legend = "square: the estimate";
+    const compare::MapPlot mp = internal::GridLandscapeMap(spec, res);
     compare::WriteMap((dir / "landscape.png").string(), mp);
     plots += EmbeddedPng((dir / "landscape.png").string()) + "\n";
   }

@@ -43,6 +43,78 @@ void WriteMapPlot(const fs::path& png, const Image& image, bool relative, double
 
 }  // namespace
 
+compare::PlotPanel RadialProfilePanel(const CalibrationData& cal) {
+  // Azimuthal mean in rings of one map pixel, with the standard error of each ring's mean.
+  const Image& m = cal.angular_map;
+  const int n = m.width;
+  std::vector<double> sum_r(n / 2, 0), sum2(n / 2, 0), cnt(n / 2, 0);
+  for (int y = 0; y < n; ++y)
+    for (int x = 0; x < n; ++x) {
+      const double u = (2 * (x + 0.5) / n - 1), vv = (1 - 2 * (y + 0.5) / n);
+      const int k = int(std::hypot(u, vv) * n / 2);
+      if (k < n / 2)
+        sum_r[k] += m.at(x, y), sum2[k] += double(m.at(x, y)) * m.at(x, y), cnt[k] += 1;
+    }
+  Series s;
+  s.points = true;
+  s.label = "azimuthal mean ± 1 standard error";
+  double mx = 0;
+  for (int k = 0; k < n / 2; ++k)
+    if (cnt[k] > 0) mx = std::max(mx, sum_r[k] / cnt[k]);
+  for (int k = 0; k < n / 2; ++k)
+    if (cnt[k] > 0) {
+      const double mean = sum_r[k] / cnt[k];
+      const double var =
+          cnt[k] > 1 ? std::max(0.0, (sum2[k] - cnt[k] * mean * mean) / (cnt[k] - 1)) : 0.0;
+      s.x.push_back(std::asin(std::min(1.0, (k + 0.5) / (n / 2) * cal.angular_extent)) * 180 /
+                    M_PI);
+      s.y.push_back(mx > 0 ? mean / mx : mean);
+      s.yerr.push_back((mx > 0 ? 1 / mx : 1) * std::sqrt(var / cnt[k]));
+    }
+  compare::PlotPanel p;
+  p.series = {s};
+  if (cal.edge_half_angle_deg > 0 && cal.edge_width_deg > 0 && cal.na_limit > 0 && s.x.size() > 1) {
+    // The sphere calibration's edge beyond the NA: the map's reference ring inside the cut
+    // continued under the soft edge, relative to its value at that ring (the tilt, a fraction
+    // of a degree, left out of this azimuthal mean).
+    const double deg = 180 / M_PI;
+    const double ring = std::asin(std::max(0.0, cal.na_limit - simulate::kEdgeRingPixels * 2 *
+                                                                   cal.angular_extent / n)) *
+                        deg;
+    const double cut = std::asin(std::min(1.0, cal.na_limit)) * deg;
+    auto edge = [&](double t) {
+      return simulate::LightFieldSoftEdge(t, cal.edge_half_angle_deg, cal.edge_width_deg);
+    };
+    size_t j = 1;
+    while (j + 1 < s.x.size() && s.x[j] < ring) ++j;
+    const double f = std::clamp((ring - s.x[j - 1]) / (s.x[j] - s.x[j - 1]), 0.0, 1.0);
+    const double level = s.y[j - 1] + f * (s.y[j] - s.y[j - 1]);
+    Series e;
+    e.label = "edge beyond the NA (sphere calibration)";
+    const double end = cal.edge_half_angle_deg + 3 * cal.edge_width_deg;
+    for (int k = 0; k <= 60; ++k) {
+      const double t = ring + (end - ring) * k / 60.0;
+      e.x.push_back(t);
+      e.y.push_back(level * edge(t) / edge(ring));
+    }
+    Series na;
+    na.label = "objective's NA (the map's cut)";
+    na.x = {cut, cut};
+    na.y = {0, 1.05};
+    p.series.push_back(e);
+    p.series.push_back(na);
+  }
+  p.title = "light field: radial profile (cone edge " + FormatValue(cal.cone_half_angle_deg, 0, 4) +
+            "°" +
+            (cal.edge_half_angle_deg > 0
+                 ? "; edge beyond the NA " + FormatValue(cal.edge_half_angle_deg, 0, 4) + "°"
+                 : std::string()) +
+            ")";
+  p.xlabel = "angle to the optical axis (degrees)";
+  p.ylabel = "radiance (relative to the maximum)";
+  return p;
+}
+
 std::string WriteCalibrationFigures(const CalibrationData& cal, const fs::path& fig) {
   // Angular map over direction cosines (u right, v up), relative to its maximum.
   WriteMapPlot(fig / "angular_map.png", cal.angular_map, true, cal.angular_extent,
@@ -58,78 +130,7 @@ std::string WriteCalibrationFigures(const CalibrationData& cal, const fs::path& 
         "<p>Spatial map: relative irradiance at the object plane from the flat field.</p>" +
         Img((fig / "spatial_map.png").string(), "spatial map");
   }
-  {
-    // Azimuthal mean in rings of one map pixel, with the standard error of each ring's mean.
-    const Image& m = cal.angular_map;
-    const int n = m.width;
-    std::vector<double> sum_r(n / 2, 0), sum2(n / 2, 0), cnt(n / 2, 0);
-    for (int y = 0; y < n; ++y)
-      for (int x = 0; x < n; ++x) {
-        const double u = (2 * (x + 0.5) / n - 1), vv = (1 - 2 * (y + 0.5) / n);
-        const int k = int(std::hypot(u, vv) * n / 2);
-        if (k < n / 2)
-          sum_r[k] += m.at(x, y), sum2[k] += double(m.at(x, y)) * m.at(x, y), cnt[k] += 1;
-      }
-    Series s;
-    s.points = true;
-    s.label = "azimuthal mean ± 1 standard error";
-    double mx = 0;
-    for (int k = 0; k < n / 2; ++k)
-      if (cnt[k] > 0) mx = std::max(mx, sum_r[k] / cnt[k]);
-    for (int k = 0; k < n / 2; ++k)
-      if (cnt[k] > 0) {
-        const double mean = sum_r[k] / cnt[k];
-        const double var =
-            cnt[k] > 1 ? std::max(0.0, (sum2[k] - cnt[k] * mean * mean) / (cnt[k] - 1)) : 0.0;
-        s.x.push_back(std::asin(std::min(1.0, (k + 0.5) / (n / 2) * cal.angular_extent)) * 180 /
-                      M_PI);
-        s.y.push_back(mx > 0 ? mean / mx : mean);
-        s.yerr.push_back((mx > 0 ? 1 / mx : 1) * std::sqrt(var / cnt[k]));
-      }
-    compare::PlotPanel p;
-    p.series = {s};
-    if (cal.edge_half_angle_deg > 0 && cal.edge_width_deg > 0 && cal.na_limit > 0 &&
-        s.x.size() > 1) {
-      // The sphere calibration's edge beyond the NA: the map's reference ring inside the cut
-      // continued under the soft edge, relative to its value at that ring (the tilt, a fraction
-      // of a degree, left out of this azimuthal mean).
-      const double deg = 180 / M_PI;
-      const double ring = std::asin(std::max(0.0, cal.na_limit - simulate::kEdgeRingPixels * 2 *
-                                                                     cal.angular_extent / n)) *
-                          deg;
-      const double cut = std::asin(std::min(1.0, cal.na_limit)) * deg;
-      auto edge = [&](double t) {
-        return simulate::LightFieldSoftEdge(t, cal.edge_half_angle_deg, cal.edge_width_deg);
-      };
-      size_t j = 1;
-      while (j + 1 < s.x.size() && s.x[j] < ring) ++j;
-      const double f = std::clamp((ring - s.x[j - 1]) / (s.x[j] - s.x[j - 1]), 0.0, 1.0);
-      const double level = s.y[j - 1] + f * (s.y[j] - s.y[j - 1]);
-      Series e;
-      e.label = "edge beyond the NA (sphere calibration)";
-      const double end = cal.edge_half_angle_deg + 3 * cal.edge_width_deg;
-      for (int k = 0; k <= 60; ++k) {
-        const double t = ring + (end - ring) * k / 60.0;
-        e.x.push_back(t);
-        e.y.push_back(level * edge(t) / edge(ring));
-      }
-      Series na;
-      na.label = "objective's NA (the map's cut)";
-      na.x = {cut, cut};
-      na.y = {0, 1.05};
-      p.series.push_back(e);
-      p.series.push_back(na);
-    }
-    p.title = "light field: radial profile (cone edge " +
-              FormatValue(cal.cone_half_angle_deg, 0, 4) + "°" +
-              (cal.edge_half_angle_deg > 0
-                   ? "; edge beyond the NA " + FormatValue(cal.edge_half_angle_deg, 0, 4) + "°"
-                   : std::string()) +
-              ")";
-    p.xlabel = "angle to the optical axis (degrees)";
-    p.ylabel = "radiance (relative to the maximum)";
-    WritePlot((fig / "radial_profile.png").string(), {p}, 560, 380);
-  }
+  WritePlot((fig / "radial_profile.png").string(), {RadialProfilePanel(cal)}, 560, 380);
   {
     // Zone transmissions against the zone's radius on the corrector (mid-ring), +-1 sigma.
     Series s;

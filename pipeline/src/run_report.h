@@ -5,6 +5,7 @@
 #include <string>
 
 #include "raymatch/compare/focus_scan.h"
+#include "raymatch/compare/plot.h"
 #include "raymatch/core/calibration_file.h"
 #include "raymatch/fit/fit.h"
 #include "raymatch/pipeline/pipeline.h"
@@ -25,6 +26,12 @@ struct RunReport {
 
 /// A PNG embedded in the HTML (data URI), so the report is one self-contained file.
 std::string Img(const std::string& png, const std::string& alt = "");
+
+/// The light field's radial profile: the angular map's azimuthal mean in rings of one map pixel
+/// (relative to its largest ring, with each ring's standard error) against the angle to the
+/// axis, and, where the sphere calibration set an edge beyond the NA, that soft edge continued
+/// from the map's reference ring and the NA's angle (the map's cut).
+compare::PlotPanel RadialProfilePanel(const CalibrationData& cal);
 
 /// figures/: the light field's angular map and radial profile, its spatial map (when the
 /// calibration has one) and the corrector's zone transmissions. Returns the spatial map's HTML

@@ -23,6 +23,7 @@
 #include "raymatch/core/toml_reader.h"
 #include "raymatch/simulate/scene.h"
 #include "raymatch/simulate/tracer.h"
+#include "report.h"
 #include "runner.h"
 #include "temp_dir.h"
 
@@ -1482,8 +1483,23 @@ TEST(GridScan, MergingDropsDefocusAndTiltLandOnTheTruth) {
             fraction +
             "]\n"
             "[uncertainty]\nrepeat_seeds = 0\nslice_points = 0\ncramer_rao = false\n");
-    const FitResult r = RunFit(LoadFitSpec(fit));
+    const FitSpec spec = LoadFitSpec(fit);
+    const FitResult r = RunFit(spec);
     ASSERT_EQ(r.grid_errors.size(), 25u);
+    // The report's landscape: cells centred on the nodes, axes in the parameters' units, the
+    // colour bar named after the error function, the estimate marked.
+    const compare::MapPlot map = internal::GridLandscapeMap(spec, r);
+    EXPECT_EQ(map.xlabel, "object.merge.rotation_deg[1] (deg)");
+    EXPECT_EQ(map.ylabel, "image[0].defocus_um (um)");
+    EXPECT_EQ(map.colour_label, std::string(error) == "poisson" ? "poisson" : "1-ms-ssim");
+    ASSERT_EQ(map.image.width, 5);
+    ASSERT_EQ(map.image.height, 5);
+    EXPECT_EQ(map.x_edges, (std::vector<double>{68, 72, 76, 80, 84, 88}));
+    EXPECT_EQ(map.y_edges, (std::vector<double>{1, 3, 5, 7, 9, 11}));
+    EXPECT_EQ(map.image.at(2, 1), static_cast<float>(r.grid_errors[1 * 5 + 2]));
+    ASSERT_EQ(map.markers.size(), 1u);
+    EXPECT_EQ(map.markers[0].x, r.parameters[1].best);
+    EXPECT_EQ(map.markers[0].y, r.parameters[0].best);
     if (std::string(error) == "poisson") {  // the node nearest the truth
       EXPECT_EQ(r.parameters[0].best, 6) << error;
       EXPECT_EQ(r.parameters[1].best, 78) << error;

@@ -1,0 +1,14 @@
+#pragma once
+// Parts of the fit's report (fit/src/report.cpp) that tests check directly. Not installed.
+#include "raymatch/compare/plot.h"
+#include "raymatch/fit/fit.h"
+
+namespace raymatch::fit::internal {
+
+/// A two-parameter grid fit's landscape: the error at each node as a cell centred on the node's
+/// values (edges midway between nodes), the axes in the parameters' units (x the second
+/// parameter, y the first), the colour bar labelled with the error function, the estimate
+/// marked.
+compare::MapPlot GridLandscapeMap(const FitSpec& spec, const FitResult& res);
+
+}  // namespace raymatch::fit::internal

@@ -221,6 +221,25 @@ std::vector<PlaneGoodness> PerPlaneGoodness(const FocusScanResult& r) {
   return out;
 }
 
+std::string PlaneGoodnessSummary(const std::vector<PlaneGoodness>& planes, bool* misfits) {
+  std::string at;
+  size_t within = 0;
+  for (const PlaneGoodness& g : planes) {
+    if (!g.misfit) {
+      ++within;
+      continue;
+    }
+    std::ostringstream z;
+    z << std::showpos << g.exp_defocus_um;
+    at += (at.empty() ? "" : ", ") + z.str();
+  }
+  if (misfits) *misfits = !at.empty();
+  if (planes.empty()) return "";
+  return "residuals within the shot noise in " + std::to_string(within) + " of " +
+         std::to_string(planes.size()) + " planes" +
+         (at.empty() ? "" : " (misfit at " + at + " um)");
+}
+
 std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& dir,
                                  const std::string& title) {
   EnsureDirectory(dir);
@@ -252,6 +271,18 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
   html += "<p><b>Verdict: <span class='" +
           std::string(r.verdict == Verdict::kPass ? "pass" : "fail") + "'>" + verdict +
           "</span></b> &mdash; " + r.message + "</p>";
+  // What the verdict does not say: whether each matched simulation describes its plane.
+  bool misfits = false;
+  const std::string planes = PlaneGoodnessSummary(PerPlaneGoodness(r), &misfits);
+  if (!planes.empty())
+    html += "<p><b>Goodness of fit per plane:</b> <span class='" +
+            std::string(misfits ? "fail" : "pass") + "'>" + planes +
+            "</span> (table under \"Per plane\"). The verdict above says which simulated plane "
+            "each experimental plane matches best, not that the simulation describes it" +
+            (misfits ? ": where a plane's residuals exceed the shot noise, the model lacks "
+                       "something (its residual map shows where)."
+                     : ".") +
+            "</p>";
   html += "<p>Dynamic range L = " + Fmt(r.data_range) + "; MS-SSIM " +
           std::to_string(r.ms_ssim.num_scales) + " scales (" +
           MsSsimWeightsName(r.ms_ssim.weights) + " weights); CW-SSIM level " +

@@ -730,29 +730,16 @@ PipelineCheck FocusScanCheck(const compare::FocusScanResult& fr) {
   }
   // Beside it, each plane's residuals against the shot noise (compare/report.html): the
   // focus-scan test does not grade them, the reader should still see them.
-  std::string misfits;
-  size_t planes = 0, within = 0;
-  for (const compare::PlaneGoodness& g : compare::PerPlaneGoodness(fr)) {
-    ++planes;
-    if (!g.misfit) {
-      ++within;
-      continue;
-    }
-    std::ostringstream z;
-    z << std::showpos << g.exp_defocus_um;
-    misfits += (misfits.empty() ? "" : ", ") + z.str();
-  }
+  bool misfit = false;
+  const std::string planes = compare::PlaneGoodnessSummary(compare::PerPlaneGoodness(fr), &misfit);
   c.result = std::string(fr.verdict == compare::Verdict::kPass      ? "pass"
                          : fr.verdict == compare::Verdict::kWarning ? "warning"
                                                                     : "fail") +
              (passing.empty() ? "" : ": " + passing + " match each plane to its defocus") +
              (failing.empty() ? "" : "; not " + failing);
-  if (planes > 0)
-    c.result += "; residuals within the shot noise in " + std::to_string(within) + " of " +
-                std::to_string(planes) + " planes" +
-                (misfits.empty() ? "" : " (misfit at " + misfits + " um)");
+  if (!planes.empty()) c.result += "; " + planes;
   c.meaning =
-      misfits.empty()
+      !misfit
           ? "the simulated focus positions agree with the experiment's, and every plane's "
             "residuals are within the shot noise (compare/report.html)"
           : "the simulated focus positions agree with the experiment's, but the simulation does "

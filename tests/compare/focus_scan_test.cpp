@@ -162,6 +162,8 @@ TEST(FocusScan, ReportFilesAreWritten) {
     ++within;
   EXPECT_EQ(within, zs.size());
   EXPECT_EQ(ss.str().find("misfit beyond the shot noise"), std::string::npos);
+  EXPECT_NE(ss.str().find("<span class='pass'>residuals within the shot noise in 3 of 3 planes"),
+            std::string::npos);
 }
 
 // A simulation whose planes are each 4 um off in focus (labelled with the experiment's): the
@@ -176,6 +178,11 @@ TEST(FocusScan, PerPlaneGoodnessOfFitFlagsAMisfit) {
   std::stringstream ss;
   ss << in.rdbuf();
   EXPECT_NE(ss.str().find("misfit beyond the shot noise"), std::string::npos);
+  // ... and the report's top says so beside the verdict, which still passes (each plane is
+  // matched to its labelled defocus).
+  EXPECT_NE(ss.str().find("<b>Goodness of fit per plane:</b> <span class='fail'>residuals within "
+                          "the shot noise in 0 of 3 planes (misfit at -10, +0, +10 um)"),
+            std::string::npos);
   // PerPlaneGoodness says the same per plane (what `run`'s focus-scan check reports): each
   // simulated plane 4 um off its experimental plane is a misfit; the same planes simulated
   // with their own noise are within it.
@@ -188,6 +195,16 @@ TEST(FocusScan, PerPlaneGoodnessOfFitFlagsAMisfit) {
     EXPECT_FALSE(g.misfit) << g.exp_defocus_um << " " << g.z;
     EXPECT_NEAR(g.mean_square, 1, 5 * g.expected_sd) << g.exp_defocus_um;
   }
+  bool misfits = true;
+  EXPECT_EQ(PlaneGoodnessSummary(PerPlaneGoodness(same), &misfits),
+            "residuals within the shot noise in 3 of 3 planes");
+  EXPECT_FALSE(misfits);
+  std::vector<PlaneGoodness> mixed = PerPlaneGoodness(same);
+  mixed[2].misfit = true;
+  EXPECT_EQ(PlaneGoodnessSummary(mixed, &misfits),
+            "residuals within the shot noise in 2 of 3 planes (misfit at +10 um)");
+  EXPECT_TRUE(misfits);
+  EXPECT_EQ(PlaneGoodnessSummary({}), "");
 }
 
 FailureKind KindOf(const std::function<void()>& f) {

@@ -116,6 +116,9 @@ struct PlaneGoodness {
 };
 /// Per experimental plane (needs the result's exp_images and sim_images).
 std::vector<PlaneGoodness> PerPlaneGoodness(const FocusScanResult& r);
+/// One line for a summary: "residuals within the shot noise in 5 of 9 planes (misfit at +5,
+/// +10 um)"; empty without planes. `misfits` (may be null) gets whether any plane is one.
+std::string PlaneGoodnessSummary(const std::vector<PlaneGoodness>& planes, bool* misfits = nullptr);
 
 /// Writes compare_scan.json, <measure>_matrix.csv, best_match.csv, heatmap_<measure>.png,
 /// montage.png and a self-contained report.html into `dir`. Returns the report path.

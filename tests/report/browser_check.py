@@ -8,7 +8,8 @@ library and Debian's `chromium` is needed. A page fails when
     a resource that failed to load), or
   - an <img> did not load or decode (not complete, or naturalWidth 0), or the page has none
     where --min-images asks for some, or
-  - a link to a local file (e.g. index.html -> compare/report.html) points to no file.
+  - a link to a local file (e.g. index.html -> compare/report.html) points to no file, or
+  - the page is wider than the window (1280 px): a table, an image or a line that overflows.
 Each page gets a full-page screenshot (PNG) in --screenshots.
 
 Usage: browser_check.py [--screenshots DIR] [--min-images N] PAGE...
@@ -137,6 +138,8 @@ IMAGE_CHECK = """(async () => {
     sizes: imgs.map(i => [i.naturalWidth, i.naturalHeight]),
     links: Array.from(document.links).map(a => a.href).filter(h => h.startsWith('file:')),
     title: document.title,
+    scroll_width: document.documentElement.scrollWidth,
+    window_width: window.innerWidth,
   });
 })()"""
 
@@ -164,6 +167,11 @@ def check_page(browser, path, shot_path, min_images, width=1280):
         target_path = urllib.parse.unquote(urllib.parse.urlparse(link).path)
         if not os.path.exists(target_path):
             problems.append(f"link to a missing file: {link}")
+    # A table or figure wider than the window widens the whole page (tables scroll inside
+    # their own box instead).
+    if info["scroll_width"] > info["window_width"] + 1:
+        problems.append(f"page {info['scroll_width']} px wide in a {info['window_width']} px "
+                        "window: something overflows (a table, an image, a line of text)")
     if info["count"] < min_images:
         problems.append(f"{info['count']} images, expected at least {min_images}")
     # Full-page screenshot: size the viewport to the content.
@@ -235,12 +243,15 @@ def self_test(directory):
     if run([str(d / "good.html")], str(shots), 1) != 0:
         print("self-test: a good page was reported as broken")
         return 1
-    for bad in ("bad_script.html", "bad_image.html", "missing_image.html", "broken_link.html"):
+    (d / "too_wide.html").write_text(f"<!doctype html><title>bad</title><img src='data:image/png;base64,{png}'>"
+                                     "<table><tr>" + "<td>1.29945 +- 0.00190911</td>" * 120 + "</tr></table>")
+    for bad in ("bad_script.html", "bad_image.html", "missing_image.html", "broken_link.html",
+                "too_wide.html"):
         if run([str(d / bad)], str(shots), 1) != 1:
             print(f"self-test: {bad} was not caught")
             return 1
     print("self-test: the checker catches a script error, an undecodable and a missing image, "
-          "and a link to a missing file")
+          "a link to a missing file and a page wider than its window")
     return 0
 
 

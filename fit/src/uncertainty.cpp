@@ -376,7 +376,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
   const Eigen::VectorXd prior = PriorPrecision(spec);
   bool steps_ran = false;
   const bool steps = FinalStepsRun(spec);
-  const size_t s_all = size_t(std::max(2, spec.rays.jacobian_seeds));
+  size_t s_all = size_t(std::max(2, spec.rays.jacobian_seeds));
   // A pilot round first (with the final steps and more than two sets): two sets and their root.
   // Where that root lies more than half a step from the search's optimum (the quarter-ray
   // search leaves the index 2-3 bounds off in most fits), all sets are taken at the pilot's
@@ -385,6 +385,17 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
   // the pilot).
   bool pilot = steps && s_all > 2;
   std::vector<Differences> sets;  // the sets taken at `best`
+  // Where the steps end short of the root (Q above 1: the estimate more than a sigma from it),
+  // the sets' noise has left the equation's response weak along some direction, so that its
+  // Newton steps no longer lower Q: the sets are taken again at the estimate, twice as many (at
+  // most twice, to 4x jacobian_seeds and 64 sets).
+  int more_sets = 0;
+  auto MoreSets = [&] {
+    if (!(od.root_q > 1) || more_sets >= 2 || 2 * s_all > 64 || !run.Budget()) return false;
+    ++more_sets, s_all *= 2;
+    sets.clear();
+    return true;
+  };
   for (int round = 0; round < 3 && res.status != FitStatus::kFlat && spec.uncertainties &&
                       (round == 0 || run.Budget());) {
     for (size_t s = sets.size(); s < (pilot ? 2 : s_all); ++s)
@@ -418,9 +429,8 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     // the equation is nearly singular (weak nuisances) its linear root can be far off: so each
     // step is tried with the halves' images traced at its end (S images, not S (P + 1)) and
     // kept only when the equation's value there, in units of the root's statistical spread,
-    // Q = U^T (B_e + B_t)^-1 U, falls (else halved, at most four times: where noise leaves the
-    // response weak along a direction, the linear root can lie 5-10x too far along it); the steps
-    // end when the next one is below a fifth of a sigma (Q < kPolishTolerance) or after four.
+    // Q = U^T (B_e + B_t)^-1 U, falls (else halved, at most twice); the steps end when the next one
+    // is below a fifth of a sigma (Q < kPolishTolerance) or after four.
     const Eigen::MatrixXd b_total = od.score_variance_experiment + od.score_variance_template;
     const auto b_solver = b_total.completeOrthogonalDecomposition();
     auto Q = [&](const Eigen::VectorXd& v) { return v.dot(b_solver.solve(v)); };
@@ -452,7 +462,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       const Eigen::VectorXd step = lu.solve(g);
       if (!step.allFinite()) break;
       bool accepted = false;
-      for (double f = 1; f >= 1.0 / 16 && run.Budget(); f *= 0.5) {
+      for (double f = 1; f >= 0.25 && run.Budget(); f *= 0.5) {
         std::vector<double> y = x;
         for (size_t i = 0; i < P; ++i) y[i] += f * step(Eigen::Index(i));
         y = Clip(y, spec);
@@ -475,9 +485,15 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       if (far) best = x, sets.clear();
       continue;
     }
-    if (!stepped) break;
+    if (!stepped) {
+      if (MoreSets()) continue;
+      break;
+    }
     best = x;
-    if (!far) break;
+    if (!far) {
+      if (MoreSets()) continue;
+      break;
+    }
     sets.clear();
     ++round;
   }

@@ -543,6 +543,7 @@ FitResult RunFitFromStart(const FitSpec& spec, const FitOptions& options) {
   res.region_center_um = {model.region_center().x, model.region_center().y,
                           model.region_center().z};
   res.region_radius_um = model.region_radius();
+  res.object_pixel_um = model.object_pixel_um();
   const double setup_s = Since(t_start);
   const size_t P = spec.parameters.size();
   const size_t final_level = spec.rays.fractions.size() - 1;

@@ -47,10 +47,33 @@ compare::MapPlot GridLandscapeMap(const FitSpec& spec, const FitResult& res) {
   mp.title = "grid scan: " + std::string(ErrorFunctionName(spec.error)) + " at each node";
   mp.xlabel = label(1);
   mp.ylabel = label(0);
-  mp.colour_label = ErrorFunctionName(spec.error);
+  mp.colour_label =
+      std::string(spec.error == ErrorFunction::kPoisson ? "Poisson deviance"
+                                                        : ErrorFunctionName(spec.error)) +
+      " (lower = better)";
   mp.markers.push_back({res.parameters[1].best, res.parameters[0].best, true});
   mp.marker_legend = "square: the estimate";
   return mp;
+}
+
+compare::MapPlot ResidualMap(const FitResult& res, size_t k) {
+  compare::MapPlot p;
+  p.image = res.residuals.at(k);
+  const double px = res.object_pixel_um > 0 ? res.object_pixel_um : 1.0;
+  const std::string unit = res.object_pixel_um > 0 ? "um at the object" : "px";
+  p.x_left = -0.5 * p.image.width * px, p.x_right = 0.5 * p.image.width * px;
+  p.y_top = 0.5 * p.image.height * px, p.y_bottom = -0.5 * p.image.height * px;
+  p.lo = -4, p.hi = 4;
+  p.map = compare::ColourMap::kDiverging;
+  double chi2 = 0;
+  for (float v : p.image.pixels) chi2 += double(v) * v;
+  chi2 /= double(std::max<size_t>(1, p.image.size()));
+  p.title = "residual, mean square " + Num(chi2, 4);
+  p.xlabel = "x (" + unit + " from the image centre)";
+  p.ylabel = "y (" + unit + " from the image centre)";
+  p.colour_label = "(sim − exp) / σ";
+  p.max_side_px = 380;
+  return p;
 }
 
 }  // namespace internal
@@ -260,7 +283,7 @@ std::string WriteImages(const FitSpec& spec, const FitResult& res, const fs::pat
     for (float v : spec.images[k].photons.pixels) mx = std::max(mx, double(v));
     WritePngPreview((dir / (stem + "_experiment.png")).string(), spec.images[k].photons, 0, mx);
     WritePngPreview((dir / (stem + "_best.png")).string(), res.best_images[k], 0, mx);
-    compare::WriteDivergingMap((dir / (stem + "_residual.png")).string(), res.residuals[k], 4.0, 2);
+    compare::WriteMap((dir / (stem + "_residual.png")).string(), internal::ResidualMap(res, k));
     double chi2 = 0;
     for (float v : res.residuals[k].pixels) chi2 += double(v) * v;
     chi2 /= double(std::max<size_t>(1, res.residuals[k].size()));

@@ -11,4 +11,8 @@ namespace raymatch::fit::internal {
 /// marked.
 compare::MapPlot GridLandscapeMap(const FitSpec& spec, const FitResult& res);
 
+/// Image k's residual map, (sim - exp) / sigma on a diverging scale of +-4, its axes in um at
+/// the object from the image centre (pixels where the pixel's size there is unknown).
+compare::MapPlot ResidualMap(const FitResult& res, size_t k);
+
 }  // namespace raymatch::fit::internal

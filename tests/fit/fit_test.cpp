@@ -1448,6 +1448,27 @@ TEST(FiniteRays, FinalStepsScoreVanishesAtTheTruthInDarkPixels) {
   }
 }
 
+TEST(FitReport, ResidualMapIsInMicrometresAtTheObjectWhereThePixelIsKnown) {
+  FitResult r;
+  r.residuals.push_back(Image(10, 8));
+  r.residuals[0].at(3, 2) = 2.0f;
+  r.object_pixel_um = 0.5;
+  compare::MapPlot m = internal::ResidualMap(r, 0);
+  EXPECT_EQ(m.x_left, -2.5);
+  EXPECT_EQ(m.x_right, 2.5);
+  EXPECT_EQ(m.y_top, 2.0);
+  EXPECT_EQ(m.y_bottom, -2.0);
+  EXPECT_EQ(m.lo, -4);
+  EXPECT_EQ(m.hi, 4);
+  EXPECT_EQ(m.map, compare::ColourMap::kDiverging);
+  EXPECT_EQ(m.ylabel, "y (um at the object from the image centre)");
+  EXPECT_NE(m.title.find("mean square 0.05"), std::string::npos) << m.title;
+  r.object_pixel_um = 0;  // unknown: pixels
+  m = internal::ResidualMap(r, 0);
+  EXPECT_EQ(m.x_right, 5);
+  EXPECT_EQ(m.xlabel, "x (px from the image centre)");
+}
+
 // The paper's Fig. 9: a grid scan of defocus x tilt (out of the image plane) of the merging
 // drops' mesh at the sample's photon count. The grid minimum lands on the truth with the Poisson
 // deviance (1/16 of the rays, binned 4x4) and with MS-SSIM at 1/1024 of the rays.
@@ -1491,12 +1512,20 @@ TEST(GridScan, MergingDropsDefocusAndTiltLandOnTheTruth) {
     const compare::MapPlot map = internal::GridLandscapeMap(spec, r);
     EXPECT_EQ(map.xlabel, "object.merge.rotation_deg[1] (deg)");
     EXPECT_EQ(map.ylabel, "image[0].defocus_um (um)");
-    EXPECT_EQ(map.colour_label, std::string(error) == "poisson" ? "poisson" : "1-ms-ssim");
+    EXPECT_EQ(map.colour_label, std::string(error) == "poisson"
+                                    ? "Poisson deviance (lower = better)"
+                                    : "1-ms-ssim (lower = better)");
     ASSERT_EQ(map.image.width, 5);
     ASSERT_EQ(map.image.height, 5);
     EXPECT_EQ(map.x_edges, (std::vector<double>{68, 72, 76, 80, 84, 88}));
     EXPECT_EQ(map.y_edges, (std::vector<double>{1, 3, 5, 7, 9, 11}));
     EXPECT_EQ(map.image.at(2, 1), static_cast<float>(r.grid_errors[1 * 5 + 2]));
+    // The residual maps' axes at the object: 20 um pixels through a 20x objective.
+    EXPECT_NEAR(r.object_pixel_um, 1.0, 1e-9);
+    const compare::MapPlot residual = internal::ResidualMap(r, 0);
+    EXPECT_NEAR(residual.x_left, -40, 1e-9);
+    EXPECT_NEAR(residual.y_top, 28, 1e-9);
+    EXPECT_EQ(residual.xlabel, "x (um at the object from the image centre)");
     ASSERT_EQ(map.markers.size(), 1u);
     EXPECT_EQ(map.markers[0].x, r.parameters[1].best);
     EXPECT_EQ(map.markers[0].y, r.parameters[0].best);

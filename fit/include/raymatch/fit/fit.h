@@ -312,6 +312,7 @@ struct FitResult {
   std::vector<Image> residuals;      ///< (sim - exp)/sqrt(sim (1 + 1/ray_factor))
   uint64_t photon_matched_rays = 0;  ///< rays per image at ray fraction 1 before ray_factor
   double region_radius_um = 0;       ///< region the objects can occupy (rays outside reused)
+  double object_pixel_um = 0;        ///< the camera's pixel at the object plane (0: unknown)
   std::array<double, 3> region_center_um{};
   double near_ray_fraction = 0;  ///< share of rays re-traced per evaluation
   /// Grid landscape (method grid): axes values and errors in row-major order (last axis fastest).

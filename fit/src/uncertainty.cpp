@@ -385,10 +385,8 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
   // the pilot).
   bool pilot = steps && s_all > 2;
   std::vector<Differences> sets;  // the sets taken at `best`
-  // Where the steps end short of the root (Q above 1: the estimate more than a sigma from it),
-  // the sets' noise has left the equation's response weak along some direction, so that its
-  // Newton steps no longer lower Q: the sets are taken again at the estimate, twice as many (at
-  // most twice, to 4x jacobian_seeds and 64 sets).
+  // Where the steps stop with Q above 1 (no step lowers it), the sets' noise has left the
+  // response weak along some direction: twice the sets again at the estimate (at most twice).
   int more_sets = 0;
   auto MoreSets = [&] {
     if (!(od.root_q > 1) || more_sets >= 2 || 2 * s_all > 64 || !run.Budget()) return false;
@@ -485,15 +483,11 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       if (far) best = x, sets.clear();
       continue;
     }
-    if (!stepped) {
-      if (MoreSets()) continue;
-      break;
-    }
+    if (!stepped && !MoreSets()) break;
+    if (!stepped) continue;  // with more sets
     best = x;
-    if (!far) {
-      if (MoreSets()) continue;
-      break;
-    }
+    if (!far && !MoreSets()) break;
+    if (!far) continue;  // with more sets
     sets.clear();
     ++round;
   }

@@ -468,15 +468,19 @@ void WriteFalseColour(const std::string& path, const Image& img, double lo, doub
   WriteMap(path, m);
 }
 
-void WriteDivergingMap(const std::string& path, const Image& img, double limit, int zoom) {
-  MapPlot m;
-  m.image = img;
-  m.lo = -(limit > 0 ? limit : 1), m.hi = limit > 0 ? limit : 1;
-  m.map = ColourMap::kDiverging;
-  m.xlabel = "column", m.ylabel = "row";
-  m.colour_label = "standard deviations";
-  m.max_side_px = std::clamp(std::max(img.width, img.height) * zoom, 160, 640);
-  WriteMap(path, m);
+MapPlot ResidualMapPlot(const Image& residual, double object_pixel_um) {
+  MapPlot p;
+  p.image = residual;
+  const double px = object_pixel_um > 0 ? object_pixel_um : 1.0;
+  const std::string unit = object_pixel_um > 0 ? "um at the object" : "px";
+  p.x_left = -0.5 * residual.width * px, p.x_right = 0.5 * residual.width * px;
+  p.y_top = 0.5 * residual.height * px, p.y_bottom = -0.5 * residual.height * px;
+  p.lo = -4, p.hi = 4;
+  p.map = ColourMap::kDiverging;
+  p.xlabel = "x (" + unit + " from the image centre)";
+  p.ylabel = "y (" + unit + " from the image centre)";
+  p.max_side_px = 380;
+  return p;
 }
 
 }  // namespace raymatch::compare

@@ -133,33 +133,27 @@ void PlaneFigures(const FocusScanResult& r, int i, double ms, const std::string&
   const Image& e = r.exp_images[i];
   const Image& s = r.sim_images[NearestSim(r, i)];
   const int w = e.width, h = e.height;
-  MapPlot p;
-  p.image = Image(w, h);
+  Image residual(w, h);
   for (int y = 0; y < h; ++y)
     for (int x = 0; x < w; ++x) {
       // Shot-noise variance: exp for the experiment, sim_scale x sim for the simulation scaled
       // by sim_scale (sim + exp when photon-matched, sim_scale = 1).
       const double a = s.at(x, y), b = e.at(x, y), d = r.sim_scale * a + b;
-      p.image.at(x, y) = float(d > 0 ? (a - b) / std::sqrt(d) : 0.0);
+      residual.at(x, y) = float(d > 0 ? (a - b) / std::sqrt(d) : 0.0);
     }
-  // Axes at the object (um) when the pixel's size there is known, else in pixels.
-  const double px = r.object_pixel_um > 0 ? r.object_pixel_um : 1.0;
-  const std::string unit = r.object_pixel_um > 0 ? "um at the object" : "px";
-  p.x_left = -0.5 * w * px, p.x_right = 0.5 * w * px;
-  p.y_top = 0.5 * h * px, p.y_bottom = -0.5 * h * px;
-  p.lo = -4, p.hi = 4;
-  p.map = ColourMap::kDiverging;
+  MapPlot p = ResidualMapPlot(residual, r.object_pixel_um);
   std::ostringstream t;
   t.precision(3);
   t << "z = " << Um(r.exp_defocus_um[i]) << ": residual, mean square " << ms;
   if (!(r.sim_scale > 0.98 && r.sim_scale < 1.02)) t << "; s = " << r.sim_scale;
   p.title = t.str();
-  p.xlabel = "x (" + unit + " from the image centre)";
-  p.ylabel = "y (" + unit + " from the image centre)";
   p.colour_label = r.sim_scale > 0.98 && r.sim_scale < 1.02 ? "(sim − exp) / √(sim + exp)  (σ)"
                                                             : "(sim − exp) / √(s·sim + exp)  (σ)";
-  p.max_side_px = 380;
   WriteMap(residual_png, p);
+
+  // The profiles' radius at the object (um) when the pixel's size there is known, else in pixels.
+  const double px = r.object_pixel_um > 0 ? r.object_pixel_um : 1.0;
+  const std::string unit = r.object_pixel_um > 0 ? "um at the object" : "px";
 
   // Radial profiles in 1-px rings about the image centre (pixel centres at +0.5).
   const int nr = std::max(1, std::min(w, h) / 2);
@@ -272,8 +266,9 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
           std::string(r.verdict == Verdict::kPass ? "pass" : "fail") + "'>" + verdict +
           "</span></b> &mdash; " + r.message + "</p>";
   // What the verdict does not say: whether each matched simulation describes its plane.
+  const std::vector<PlaneGoodness> goodness = PerPlaneGoodness(r);
   bool misfits = false;
-  const std::string planes = PlaneGoodnessSummary(PerPlaneGoodness(r), &misfits);
+  const std::string planes = PlaneGoodnessSummary(goodness, &misfits);
   if (!planes.empty())
     html += "<p><b>Goodness of fit per plane:</b> <span class='" +
             std::string(misfits ? "fail" : "pass") + "'>" + planes +
@@ -346,7 +341,6 @@ std::string WriteFocusScanReport(const FocusScanResult& r, const std::string& di
       "a standard deviation of &radic;(2/N) over N pixels; 3 standard deviations above is a "
       "misfit.</p><table><tr><th>experiment z (um)</th><th>simulation z (um)</th><th>mean "
       "square residual</th><th>expected</th><th>standard deviations</th><th>verdict</th></tr>";
-  const std::vector<PlaneGoodness> goodness = PerPlaneGoodness(r);
   for (int i = 0; i < int(r.exp_images.size()); ++i) {
     const std::string res = (d / ("plane_" + std::to_string(i) + "_residual.png")).string();
     const std::string prof = (d / ("plane_" + std::to_string(i) + "_profile.png")).string();

@@ -56,23 +56,16 @@ compare::MapPlot GridLandscapeMap(const FitSpec& spec, const FitResult& res) {
   return mp;
 }
 
+double MeanSquare(const Image& image) {
+  double s = 0;
+  for (float v : image.pixels) s += double(v) * v;
+  return s / double(std::max<size_t>(1, image.size()));
+}
+
 compare::MapPlot ResidualMap(const FitResult& res, size_t k) {
-  compare::MapPlot p;
-  p.image = res.residuals.at(k);
-  const double px = res.object_pixel_um > 0 ? res.object_pixel_um : 1.0;
-  const std::string unit = res.object_pixel_um > 0 ? "um at the object" : "px";
-  p.x_left = -0.5 * p.image.width * px, p.x_right = 0.5 * p.image.width * px;
-  p.y_top = 0.5 * p.image.height * px, p.y_bottom = -0.5 * p.image.height * px;
-  p.lo = -4, p.hi = 4;
-  p.map = compare::ColourMap::kDiverging;
-  double chi2 = 0;
-  for (float v : p.image.pixels) chi2 += double(v) * v;
-  chi2 /= double(std::max<size_t>(1, p.image.size()));
-  p.title = "residual, mean square " + Num(chi2, 4);
-  p.xlabel = "x (" + unit + " from the image centre)";
-  p.ylabel = "y (" + unit + " from the image centre)";
+  compare::MapPlot p = compare::ResidualMapPlot(res.residuals.at(k), res.object_pixel_um);
+  p.title = "residual, mean square " + Num(MeanSquare(p.image), 4);
   p.colour_label = "(sim − exp) / σ";
-  p.max_side_px = 380;
   return p;
 }
 
@@ -284,9 +277,7 @@ std::string WriteImages(const FitSpec& spec, const FitResult& res, const fs::pat
     WritePngPreview((dir / (stem + "_experiment.png")).string(), spec.images[k].photons, 0, mx);
     WritePngPreview((dir / (stem + "_best.png")).string(), res.best_images[k], 0, mx);
     compare::WriteMap((dir / (stem + "_residual.png")).string(), internal::ResidualMap(res, k));
-    double chi2 = 0;
-    for (float v : res.residuals[k].pixels) chi2 += double(v) * v;
-    chi2 /= double(std::max<size_t>(1, res.residuals[k].size()));
+    const double chi2 = internal::MeanSquare(res.residuals[k]);
     imgs += "<h3>" + HtmlEscape(spec.images[k].file) + " (defocus " +
             Num(spec.images[k].defocus_um) +
             " um)</h3><table><tr><td>experiment</td><td>simulation at the optimum</td><td>residual "

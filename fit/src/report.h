@@ -11,6 +11,9 @@ namespace raymatch::fit::internal {
 /// marked.
 compare::MapPlot GridLandscapeMap(const FitSpec& spec, const FitResult& res);
 
+/// The mean of an image's squared pixels (a residual map's mean square; 0 for an empty image).
+double MeanSquare(const Image& image);
+
 /// Image k's residual map, (sim - exp) / sigma on a diverging scale of +-4, its axes in um at
 /// the object from the image centre (pixels where the pixel's size there is unknown).
 compare::MapPlot ResidualMap(const FitResult& res, size_t k);

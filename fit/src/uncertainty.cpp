@@ -466,7 +466,6 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
         y = Clip(y, spec);
         const Eigen::VectorXd gy = GAt(y);
         const double qy = Q(gy);
-
         if (qy < q) {
           x = y, g = gy, q = qy, accepted = stepped = true;
           break;

@@ -105,8 +105,9 @@ void WriteFalseColour(const std::string& path, const Image& img, int zoom);
 /// The same mapped linearly from [lo, hi] (values outside clamp to the ends).
 void WriteFalseColour(const std::string& path, const Image& img, double lo, double hi, int zoom);
 
-/// A diverging map for signed data (e.g. residuals in standard deviations): -limit blue,
-/// 0 white, +limit red, clamped; with a colour bar; `zoom` scales the map's size.
-void WriteDivergingMap(const std::string& path, const Image& img, double limit, int zoom);
+/// A residual map in standard deviations: -4 blue, 0 white, +4 red, clamped; its axes in um at
+/// the object from the image centre where `object_pixel_um` (the camera's pixel at the object)
+/// is above 0, else in pixels. The caller sets the title and the colour bar's label.
+MapPlot ResidualMapPlot(const Image& residual, double object_pixel_um);
 
 }  // namespace raymatch::compare

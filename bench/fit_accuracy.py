@@ -18,6 +18,9 @@ and the time per fit. The cases:
 Usage: bench/fit_accuracy.py OUT [--cases ABC] [--k 16] [--start nominal|truth]
                              [--offsets 0.4,0.4,1.8,0.6,0.005] [--seed-base 100]
                              [--fit-lines 'key = value' ...]
+       bench/fit_accuracy.py OUT --pool RUN1 RUN2 ... [--cases ABC]
+(--pool: no fits; the table over the fits already in RUN1/<case>/k*/fit/fit.json, RUN2/..., with
+each fit's own time from its fit.json, written to OUT/summary.json)
 (--offsets: |nominal start - truth| of x, y, z, radius, index; the far starts are
 0.4,0.4,2,1,0.01)
 Writes OUT/<case>/k<i>/fit/fit.json and OUT/summary.json; prints a Markdown table.
@@ -120,6 +123,25 @@ def run_case(name, case, K, out, fit_lines, from_truth=False, offsets=OFFSETS, s
     return rows
 
 
+def pooled_rows(runs, name):
+    """The fits of case `name` already made in each run folder, in order, as run_case's rows
+    (the wall time is the fit's own total from fit.json; the exit code is not kept there)."""
+    rows = []
+    for run in runs:
+        d = os.path.join(run, name)
+        ks = sorted((int(k[1:]) for k in os.listdir(d) if k.startswith("k")) if os.path.isdir(d) else [])
+        for k in ks:
+            f = os.path.join(d, f"k{k}", "fit", "fit.json")
+            if not os.path.exists(f):
+                print(f"--pool: {f} missing (a fit not finished): left out", file=sys.stderr)
+                continue
+            fj = json.load(open(f))
+            rows.append(dict(fit=fj, wall=fj["seconds"]["total"], rc=0 if fj["converged"] else 1))
+    if not rows:
+        sys.exit(f"--pool: no fits of case {name} in {', '.join(runs)}")
+    return rows
+
+
 def error_stats(rows, truth, names):
     """Per parameter over the fits (rows of dict(fit=fit.json, wall=s, rc=exit)): mean error
     and RMS error in mean Cramer-Rao bounds, RMS(error / sigma), mean CRB and sigma."""
@@ -164,14 +186,18 @@ def main():
     ap.add_argument("--seed-base", type=int, default=100,
                     help="the experiments' seeds are SEED_BASE + k (default 100)")
     ap.add_argument("--fit-lines", nargs="*", default=[], help="extra top-level fit-file lines")
+    ap.add_argument("--pool", nargs="+", metavar="RUN",
+                    help="no fits: pool those already made in these output folders")
     a = ap.parse_args()
     table, timing = [], []
+    os.makedirs(a.out, exist_ok=True)
     for c in a.cases:
         offsets = [float(v) for v in a.offsets.split(",")]
         if len(offsets) != 5:
             ap.error("--offsets needs five numbers: x, y, z, radius, index")
-        rows = run_case(c, CASES[c], a.k, a.out, a.fit_lines, a.start == "truth", offsets,
-                        a.seed_base)
+        rows = (pooled_rows(a.pool, c) if a.pool else
+                run_case(c, CASES[c], a.k, a.out, a.fit_lines, a.start == "truth", offsets,
+                         a.seed_base))
         t, s = summarise(c, CASES[c], rows)
         table += t
         timing.append(s)

@@ -1,4 +1,4 @@
-// raymatch bench accuracy | fit-grid: what accuracy costs in time (docs/performance.md).
+// raymatch bench accuracy | fit | fit-grid: what accuracy costs in time (docs/performance.md).
 #include <algorithm>
 #include <filesystem>
 #include <iostream>
@@ -9,6 +9,7 @@
 #include "raymatch/core/atomic_file.h"
 #include "raymatch/fit/fit.h"
 #include "raymatch/pipeline/accuracy.h"
+#include "raymatch/pipeline/fit_cost.h"
 
 namespace raymatch::apps {
 
@@ -51,6 +52,63 @@ void RegisterBench(CLI::App& app, int* exit_code) {
         std::cout << "\n";
       }
       std::cout << "wrote " << r.csv << " and " << r.plot << "\n";
+      return 0;
+    });
+  });
+
+  auto fc = std::make_shared<pipeline::FitCostOptions>();
+  CLI::App* f = bench->add_subcommand(
+      "fit",
+      "What accuracy costs in time for a fit: FIT_FILE over --realisations independent noise\n"
+      "realisations of --truth (each plane traced photon-matched with seed SEED_BASE + k, so\n"
+      "there is no model mismatch) at the fit file's settings and at each value of the lists\n"
+      "below, one knob at a time; per setting the mean and RMS error in Cramer-Rao bounds,\n"
+      "RMS(error / sigma) and the time per fit. The fit file's images give each plane's defocus\n"
+      "and size (their pixels are replaced; no camera read-out). Writes fit_cost.csv,\n"
+      "fits.csv, fit_cost.json and fit_cost.png (RMS error / bound against seconds per fit).");
+  f->add_option("fit_file", fc->fit_file, "Fit file (docs/fit.md), error = \"poisson\"")
+      ->required()
+      ->check(CLI::ExistingFile);
+  f->add_option("--truth", fc->truth_scene, "Scene that makes the experiments (the truth)")
+      ->required()
+      ->check(CLI::ExistingFile);
+  f->add_option("--calibration", fc->calibration, "Calibration for the fit's and the truth's scene")
+      ->check(CLI::ExistingFile);
+  f->add_option("-k,--realisations", fc->realisations, "Noise realisations (>= 2)")
+      ->capture_default_str();
+  f->add_option("--seed-base", fc->seed_base, "Experiment k's ray streams: seed SEED_BASE + k")
+      ->capture_default_str();
+  f->add_option("--ray-factors", fc->ray_factors, "Settings: simulated rays per photon")
+      ->delimiter(',');
+  f->add_option("--jacobian-seeds", fc->jacobian_seeds, "Settings: derivative sets (2-64)")
+      ->delimiter(',');
+  f->add_option("--repeat-seeds", fc->repeat_seeds, "Settings: repeated final fits (0 or >= 2)")
+      ->delimiter(',');
+  f->add_option("--last-fractions", fc->last_fractions,
+                "Settings: the final ray fraction (of the photon-matched rays)")
+      ->delimiter(',');
+  f->add_option("--threads", fc->threads, "Worker threads (0: all cores)");
+  f->add_option("-o,--output", fc->output_dir, "Output folder")->capture_default_str();
+  f->callback([fc, exit_code] {
+    *exit_code = RunGuarded([&] {
+      pipeline::FitCostOptions fo = *fc;
+      fo.output_dir = RankOutput(fo.output_dir);
+      const auto r = pipeline::RunFitCostStudy(fo);
+      std::cout << "setting  fits  s/fit";
+      for (const std::string& k : r.keys) std::cout << "  " << k << " (mean, RMS /CRB; RMS /sigma)";
+      std::cout << "\n";
+      for (const auto& s : r.settings) {
+        std::ostringstream v;
+        v << s.value;
+        std::cout << s.knob << (s.knob == "as written" ? "" : " " + v.str()) << "  " << s.fits
+                  << "  " << s.mean_seconds;
+        for (size_t i = 0; i < s.rms_error_over_crb.size(); ++i)
+          std::cout << "  " << s.mean_error_over_crb[i] << ", " << s.rms_error_over_crb[i] << "; "
+                    << s.rms_error_over_sigma[i];
+        std::cout << "\n";
+      }
+      std::cout << "wrote " << r.csv << ", " << r.fits_csv
+                << (r.plot.empty() ? "" : " and " + r.plot) << "\n";
       return 0;
     });
   });

@@ -1,5 +1,6 @@
 // raymatch bench accuracy | fit | fit-grid: what accuracy costs in time (docs/performance.md).
 #include <algorithm>
+#include <cmath>
 #include <filesystem>
 #include <iostream>
 #include <sstream>
@@ -102,9 +103,15 @@ void RegisterBench(CLI::App& app, int* exit_code) {
         v << s.value;
         std::cout << s.knob << (s.knob == "as written" ? "" : " " + v.str()) << "  " << s.fits
                   << "  " << s.mean_seconds;
+        const auto N = [](double x) {  // "-" where no bound or sigma gave a number
+          std::ostringstream t;
+          t.precision(3);
+          if (std::isfinite(x)) t << x;
+          return std::isfinite(x) ? t.str() : std::string("-");
+        };
         for (size_t i = 0; i < s.rms_error_over_crb.size(); ++i)
-          std::cout << "  " << s.mean_error_over_crb[i] << ", " << s.rms_error_over_crb[i] << "; "
-                    << s.rms_error_over_sigma[i];
+          std::cout << "  " << N(s.mean_error_over_crb[i]) << ", " << N(s.rms_error_over_crb[i])
+                    << "; " << N(s.rms_error_over_sigma[i]);
         std::cout << "\n";
       }
       std::cout << "wrote " << r.csv << ", " << r.fits_csv

@@ -2,7 +2,7 @@
 # AddressSanitizer + UndefinedBehaviorSanitizer check of everything:
 #   1. builds every target with the `sanitize` preset (-O1 -g, ASan + UBSan, UB is fatal)
 #      into build/sanitize/,
-#   2. runs the whole test suite (fast and slow tests) under the sanitizers,
+#   2. runs the default test set (the tests labelled slow are left out) under the sanitizers,
 #   3. runs the CLI on the sample at reduced rays: simulate, compare, compare-scan and the main
 #      job `run` (calibrate -> simulate -> compare -> report), into build/sanitize/cli/.
 # Exits non-zero on the first sanitizer report, test failure or CLI error.

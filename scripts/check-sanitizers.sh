@@ -10,7 +10,7 @@
 # Usage: scripts/check-sanitizers.sh            (RAYMATCH_JOBS=N: build jobs, default 1)
 #        scripts/check-sanitizers.sh --no-build (reuse build/sanitize)
 #        scripts/check-sanitizers.sh --cli-only (reuse build/sanitize; step 3 alone)
-# Takes about 15 min to build (alone on 2 cores) and 21 min for the tests (test_pipeline 17 min;
+# Takes about 15-25 min to build on 2 cores and 28 min for the tests (the longest case 9 min;
 # test_fit and test_pipeline use cheaper fit configurations when built with AddressSanitizer,
 # docs/reliability.md). Suppressions only for Debian libraries, each with its reason:
 # scripts/lsan-suppressions.txt (fontconfig, cairo and libltdl under PLplot's figure device;

@@ -31,6 +31,19 @@ std::string SmallDrop(double x, double y, double r, int seed, double ppp, double
   return s.str();
 }
 
+// The experiment: the truth traced photon-matched 6 um before focus (ray counting is photon
+// counting), written as exp.tif beside the truth's scene file.
+void WriteExperiment(const testing::TempDir& dir, const std::string& truth_scene) {
+  const simulate::Simulator sim(simulate::LoadScene(dir.Write("truth.toml", truth_scene)));
+  WriteFloatImage(dir / "exp.tif", sim.TracePlane(-6, 0, sim.RaysPerImage()).counts, "experiment");
+}
+
+// A fit file's head: the model scene, the fit's seed and the experiment.
+std::string FitHead(int seed) {
+  return "scene = \"model.toml\"\nseed = " + std::to_string(seed) +
+         "\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = -6\n";
+}
+
 // 16 realisations (experiment seeds and the fit's ray streams both independent), x, y and the
 // radius fitted from starts 0.3 um and 0.4 um off, 400 photons per pixel, 6 um before focus.
 // Pooled over the 48 values:
@@ -51,17 +64,11 @@ TEST(FitHonesty, SigmaDescribesTheScatterOverRealisations) {
   int flagged = 0;
   for (int k = 0; k < kRealisations; ++k) {
     testing::TempDir dir;
-    const std::string ts =
-        dir.Write("truth.toml", SmallDrop(truth[0], truth[1], truth[2], 200 + k, 400));
-    const simulate::Scene s = simulate::LoadScene(ts);
-    const simulate::Simulator sim(s);
-    WriteFloatImage(dir / "exp.tif", sim.TracePlane(-6, 0, sim.RaysPerImage()).counts,
-                    "experiment");
+    WriteExperiment(dir, SmallDrop(truth[0], truth[1], truth[2], 200 + k, 400));
     dir.Write("model.toml", SmallDrop(0, 0, 8.6, 1, 400));
     const std::string fit = dir.Write(
         "fit.toml",
-        "scene = \"model.toml\"\nseed = " + std::to_string(40 + k) +
-            "\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = -6\n"
+        FitHead(40 + k) +
             "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.1\n"
             "[[parameter]]\nkey = \"object.drop.center_um[1]\"\nlower = -2\nupper = 2\nstep = 0.1\n"
             "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 8\nupper = 10\nstep = 0.1\n"
@@ -126,16 +133,11 @@ TEST(FitHonesty, FinalStepsShortOfTheirRootTakeMoreSets) {
   int more = 0, short_of_root = 0;
   for (int k = 0; k < kRealisations; ++k) {
     testing::TempDir dir;
-    const simulate::Scene s = simulate::LoadScene(
-        dir.Write("truth.toml", SmallDrop(0.3, -0.2, truth[1], 200 + k, 400, truth[0], truth[2])));
-    const simulate::Simulator sim(s);
-    WriteFloatImage(dir / "exp.tif", sim.TracePlane(-6, 0, sim.RaysPerImage()).counts,
-                    "experiment");
+    WriteExperiment(dir, SmallDrop(0.3, -0.2, truth[1], 200 + k, 400, truth[0], truth[2]));
     dir.Write("model.toml", SmallDrop(0.3, -0.2, 8.8, 1, 400, 0.4, 1.365));
     const std::string fit = dir.Write(
         "fit.toml",
-        "scene = \"model.toml\"\nseed = " + std::to_string(40 + k) +
-            "\n[[image]]\nfile = \"exp.tif\"\ndefocus_um = -6\n"
+        FitHead(40 + k) +
             "[[parameter]]\nkey = \"object.drop.center_um[2]\"\nlower = -2\nupper = 2\nstep = 0.2\n"
             "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 8\nupper = 10\nstep = 0.1\n"
             "[[parameter]]\nkey = \"object.drop.index\"\nlower = 1.33\nupper = 1.4\nstep = 0.002\n"

@@ -386,12 +386,13 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
   bool pilot = steps && s_all > 2;
   std::vector<Differences> sets;  // the sets taken at `best`
   // Where the steps stop with Q above 1 (no step lowers it), the sets' noise has left the
-  // response weak along some direction: twice the sets again at the estimate (at most twice).
+  // response weak along some direction: twice the sets at the estimate (at most twice). Where
+  // the estimate did not move, the sets already taken there are kept and the new ones join them.
   int more_sets = 0;
-  auto MoreSets = [&] {
+  auto MoreSets = [&](bool moved) {
     if (!(od.root_q > 1) || more_sets >= 2 || 2 * s_all > 64 || !run.Budget()) return false;
     ++more_sets, s_all *= 2;
-    sets.clear();
+    if (moved) sets.clear();
     return true;
   };
   for (int round = 0; round < 3 && res.status != FitStatus::kFlat && spec.uncertainties &&
@@ -482,10 +483,10 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
       if (far) best = x, sets.clear();
       continue;
     }
-    if (!stepped && !MoreSets()) break;
+    if (!stepped && !MoreSets(false)) break;
     if (!stepped) continue;  // with more sets
     best = x;
-    if (!far && !MoreSets()) break;
+    if (!far && !MoreSets(true)) break;
     if (!far) continue;  // with more sets
     sets.clear();
     ++round;

@@ -47,19 +47,21 @@ std::vector<FitCostSetting> Settings(const FitCostOptions& o) {
   return s;
 }
 
-/// The fit file at one setting; throws Error for a value the fit could not take.
+/// The fit file at one setting; throws Error for a value the fit file could not take (the same
+/// ranges as its keys: fit/src/fit_file.cpp).
 fit::FitSpec AtSetting(fit::FitSpec spec, const FitCostSetting& s) {
   const auto bad = [&](const std::string& why) {
     throw Error("raymatch bench fit: " + s.knob + " " + Num(s.value) + ": " + why);
   };
   if (s.knob == "ray_factor") {
-    if (!(s.value > 0)) bad("expected a ray factor above 0");
+    if (!(s.value >= 1.0 / 1024 && s.value <= 1024)) bad("expected a ray factor in [1/1024, 1024]");
     spec.rays.ray_factor = s.value;
   } else if (s.knob == "jacobian_seeds") {
     if (s.value < 2 || s.value > 64) bad("expected 2 to 64 derivative sets");
     spec.rays.jacobian_seeds = int(s.value);
   } else if (s.knob == "repeat_seeds") {
-    if (s.value < 0 || s.value == 1) bad("expected 0 (none) or 2 and more repeated fits");
+    if (s.value < 0 || s.value == 1 || s.value > 1000)
+      bad("expected 0 (none) or 2 to 1000 repeated fits");
     spec.repeat_seeds = int(s.value);
   } else if (s.knob == "last_fraction") {
     if (!(s.value > 0 && s.value <= 1)) bad("expected a fraction in (0, 1]");

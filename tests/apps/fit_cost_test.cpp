@@ -116,6 +116,9 @@ TEST(FitCost, BadInputIsRefusedBeforeAnyFit) {
   o.jacobian_seeds = {1};
   Refused(o, "jacobian_seeds 1: expected 2 to 64");
   o = c.o;
+  o.ray_factors = {2000};  // beyond what the fit file's ray_factor takes
+  Refused(o, "expected a ray factor in [1/1024, 1024]");
+  o = c.o;
   o.last_fractions = {1.5};
   Refused(o, "expected a fraction in (0, 1]");
 }

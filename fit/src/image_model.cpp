@@ -16,19 +16,16 @@ namespace {
 /// Ray streams of the light field's part beyond the NA (a fit with the edge's keys): the plane
 /// index plus this, independent of every plane's own streams.
 constexpr uint32_t kBeyondStreams = 1u << 30;
-/// Streams of the PSF draws of a fit with the PSF as a key (RayImageModel::ApplyPsf).
+/// Streams of the PSF draws of a fit with the PSF as a key (DrawPsf).
 constexpr uint32_t kPsfStreams = 1u << 29;
 
-/// A standard normal deviate from one 32-bit word: the inverse normal CDF tabulated at the
-/// midpoints of 2^14 equal-probability bins and interpolated linearly (tails cut at 4.0 sd:
-/// the variance is 0.1 % short). Several times faster than Box-Muller, for the PSF draws of
-/// every ray of a fit evaluation.
-double NormalFromWord(uint32_t w) {
-  constexpr int kN = 1 << 14;
+/// The inverse normal CDF at the midpoints of kNormalBins equal-probability bins (NormalFromWord).
+constexpr int kNormalBins = 1 << 14;
+const std::vector<float>& NormalTable() {
   static const std::vector<float> table = [] {
-    std::vector<float> t(kN);
-    for (int k = 0; k < kN; ++k) {
-      const double p = (k + 0.5) / kN;
+    std::vector<float> t(kNormalBins);
+    for (int k = 0; k < kNormalBins; ++k) {
+      const double p = (k + 0.5) / kNormalBins;
       double lo = -10, hi = 10;
       for (int it = 0; it < 64; ++it) {
         const double mid = 0.5 * (lo + hi);
@@ -38,9 +35,16 @@ double NormalFromWord(uint32_t w) {
     }
     return t;
   }();
-  const double pos = w * (double(kN) * 0x1p-32) - 0.5;
-  if (pos <= 0) return table.front();
-  const int k = std::min(int(pos), kN - 2);
+  return table;
+}
+
+/// A standard normal deviate from one 32-bit word: NormalTable() interpolated linearly (tails
+/// cut at 4.0 sd: the variance is 0.1 % short). Several times faster than Box-Muller, for the
+/// PSF draws of every ray of a fit evaluation.
+inline double NormalFromWord(const float* table, uint32_t w) {
+  const double pos = w * (double(kNormalBins) * 0x1p-32) - 0.5;
+  if (pos <= 0) return table[0];
+  const int k = std::min(int(pos), kNormalBins - 2);
   const double f = std::min(pos - k, 1.0);
   return table[size_t(k)] + f * (table[size_t(k) + 1] - table[size_t(k)]);
 }
@@ -81,9 +85,10 @@ simulate::Scene TracedScene(simulate::Scene s, simulate::SourceSpec::EdgePart pa
   return s;
 }
 
-const Image* RayImageModel::BackgroundAt(const simulate::Simulator& sim, size_t i, uint64_t seed,
-                                         double dz, uint64_t n, const simulate::RunControl& rc,
-                                         uint64_t* rays_traced) {
+std::shared_ptr<const Image> RayImageModel::BackgroundAt(const simulate::Simulator& sim, size_t i,
+                                                         uint64_t seed, double dz, uint64_t n,
+                                                         const simulate::RunControl& rc,
+                                                         uint64_t* rays_traced) {
   const uint32_t plane = static_cast<uint32_t>(i);
   NearRays& near = near_[{i, seed}];
   auto it = background_.find({i, seed, dz});
@@ -91,13 +96,15 @@ const Image* RayImageModel::BackgroundAt(const simulate::Simulator& sim, size_t 
   const auto t0 = std::chrono::steady_clock::now();
   if (it == background_.end()) {
     if (background_.size() >= 64) background_.erase(background_.begin());  // bounded memory
-    it = background_.emplace(std::make_tuple(i, seed, dz), Background{0, Image(0, 0)}).first;
+    it = background_.emplace(std::make_tuple(i, seed, dz), Background{}).first;
   }
   Background& bg = it->second;
   const uint64_t start = bg.rays;
   auto add = [&](const simulate::PlaneResult& r) {
-    if (bg.image.size() == 0) bg.image = Image(r.counts.width, r.counts.height);
-    for (size_t p = 0; p < r.counts.size(); ++p) bg.image.pixels[p] += r.counts.pixels[p];
+    auto sum = bg.image ? std::make_shared<Image>(*bg.image)
+                        : std::make_shared<Image>(r.counts.width, r.counts.height);
+    for (size_t p = 0; p < r.counts.size(); ++p) sum->pixels[p] += r.counts.pixels[p];
+    bg.image = std::move(sum);
   };
   // Rays whose near/far split is known (another defocus found it): trace the far ones.
   if (bg.rays < std::min(n, near.rays)) {
@@ -119,23 +126,16 @@ const Image* RayImageModel::BackgroundAt(const simulate::Simulator& sim, size_t 
   }
   background_seconds_ +=
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  return &bg.image;
+  return bg.image;
 }
 
-Image RayImageModel::ApplyPsf(const Image& fine, double sigma_um, uint64_t seed,
-                              uint32_t plane) const {
-  const int os = setup_.psf_os, m = setup_.psf_margin;
-  const int nx = (fine.width - 2 * m) / os, ny = (fine.height - 2 * m) / os;
-  // Each ray of a fine pixel lands at a point uniform within it plus a Gaussian offset (sigma
-  // in fine pixels), drawn from its own stream (fine pixel, rank in the pixel): the template
-  // stays a Poisson sample whatever the PSF (a smoothing convolution would shrink its noise as
-  // sigma grows, and the deviance would favour wide PSFs), and the draws are common random
-  // numbers across evaluations, so the image changes smoothly with sigma.
-  const double sg = sigma_um / (setup_.object_pixel_um / os);
+Image DrawPsf(const Image& fine, int os, int margin, double sigma_fine, uint64_t seed,
+              uint32_t plane, const Image* skip, int threads) {
+  const int nx = (fine.width - 2 * margin) / os, ny = (fine.height - 2 * margin) / os;
   const int rows = fine.height;
-  const int workers = std::max(
-      1, std::min(setup_.threads > 0 ? setup_.threads : int(std::thread::hardware_concurrency()),
-                  rows));
+  const float* const table = NormalTable().data();
+  const int workers =
+      std::max(1, std::min(threads > 0 ? threads : int(std::thread::hardware_concurrency()), rows));
   std::vector<Image> part(size_t(workers), Image(nx, ny));
   auto run = [&](int w) {
     Image& out = part[size_t(w)];
@@ -143,11 +143,14 @@ Image RayImageModel::ApplyPsf(const Image& fine, double sigma_um, uint64_t seed,
       for (int x = 0; x < fine.width; ++x) {
         const size_t p = size_t(y) * fine.width + x;
         const uint64_t c = uint64_t(std::llround(fine.pixels[p]));
-        for (uint64_t j = 0; j < c; ++j) {
+        const uint64_t first = skip ? uint64_t(std::llround(skip->pixels[p])) : 0;
+        for (uint64_t j = first; j < c; ++j) {
           RayRng rng(seed, kPsfStreams + plane, (uint64_t(p) << 32) | j);  // one Philox block
           const double u0 = rng.Uniform(), u1 = rng.Uniform();
-          const double gx = NormalFromWord(rng.NextU32()), gy = NormalFromWord(rng.NextU32());
-          const double fx = x + u0 + sg * gx - m, fy = y + u1 + sg * gy - m;
+          const double gx = NormalFromWord(table, rng.NextU32()),
+                       gy = NormalFromWord(table, rng.NextU32());
+          const double fx = x + u0 + sigma_fine * gx - margin,
+                       fy = y + u1 + sigma_fine * gy - margin;
           if (fx < 0 || fy < 0) continue;
           const int cx = int(fx) / os, cy = int(fy) / os;
           if (cx < nx && cy < ny) out.at(cx, cy) += 1.0f;
@@ -161,6 +164,33 @@ Image RayImageModel::ApplyPsf(const Image& fine, double sigma_um, uint64_t seed,
   for (int w = 1; w < workers; ++w)
     for (size_t p = 0; p < part[0].size(); ++p) part[0].pixels[p] += part[size_t(w)].pixels[p];
   return std::move(part[0]);
+}
+
+Image RayImageModel::ApplyPsf(const Image& fine, double sigma_um, uint64_t seed, uint32_t plane,
+                              const Image* skip) const {
+  const int os = setup_.psf_os;
+  return DrawPsf(fine, os, setup_.psf_margin, sigma_um / (setup_.object_pixel_um / os), seed, plane,
+                 skip, setup_.threads);
+}
+
+Image RayImageModel::PsfOf(const Image& fine, const std::shared_ptr<const Image>& background,
+                           double sigma_um, uint64_t seed, uint32_t plane) {
+  if (!background) return ApplyPsf(fine, sigma_um, seed, plane);
+  const PsfBackground* kept = nullptr;
+  for (const PsfBackground& k : psf_background_)
+    if (k.background == background && k.sigma_um == sigma_um && k.seed == seed && k.plane == plane)
+      kept = &k;
+  if (!kept) {
+    // Two images' backgrounds at a few sigmas: a derivative set's PSF steps come in between.
+    constexpr size_t kKept = 8;
+    if (psf_background_.size() >= kKept) psf_background_.erase(psf_background_.begin());
+    psf_background_.push_back(
+        {background, sigma_um, seed, plane, ApplyPsf(*background, sigma_um, seed, plane)});
+    kept = &psf_background_.back();
+  }
+  Image out = ApplyPsf(fine, sigma_um, seed, plane, background.get());
+  for (size_t p = 0; p < out.size(); ++p) out.pixels[p] += kept->image.pixels[p];
+  return out;
 }
 
 const RayImageModel::Traced* RayImageModel::Recall(const std::vector<Traced>& kept,
@@ -200,7 +230,9 @@ RayImageModel::Traced RayImageModel::TraceInside(const simulate::Scene& full, co
   for (size_t i = 0; i < setup_.images; ++i) {
     const double dz = scene.defocus_um[i];
     const uint32_t plane = static_cast<uint32_t>(i);
-    const Image* bg = inside ? BackgroundAt(sim, i, want.seed, dz, n, rc, rays_traced) : nullptr;
+    std::shared_ptr<const Image> bg =
+        inside ? BackgroundAt(sim, i, want.seed, dz, n, rc, rays_traced) : nullptr;
+    t.background.push_back(bg);
     if (bg) {
       const std::vector<uint64_t>& near = near_.at({i, want.seed}).list;
       const auto end = std::lower_bound(near.begin(), near.end(), n);
@@ -271,9 +303,10 @@ ModelImages RayImageModel::Images(const simulate::Scene& full, const Draw& draw,
   ModelImages result;
   result.photons_per_count = draw.photons_per_ray;
   for (size_t i = 0; i < counts.size(); ++i)
-    result.counts.push_back(setup_.psf_os > 1 ? ApplyPsf(counts[i], full.camera.psf_sigma_um,
-                                                         draw.seed, static_cast<uint32_t>(i))
-                                              : std::move(counts[i]));
+    result.counts.push_back(setup_.psf_os > 1
+                                ? PsfOf(counts[i], in->background.at(i), full.camera.psf_sigma_um,
+                                        draw.seed, static_cast<uint32_t>(i))
+                                : std::move(counts[i]));
   return result;
 }
 

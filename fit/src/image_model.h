@@ -86,6 +86,18 @@ class MieImageModel : public ImageModel {
 simulate::Scene TracedScene(simulate::Scene s, simulate::SourceSpec::EdgePart part, int psf_os,
                             int psf_margin);
 
+/// A fine count image of TracedScene (`os` times finer than the camera, `margin` fine pixels
+/// beyond each side) summed to the camera's pixels with the PSF drawn ray by ray: the k-th ray
+/// of a fine pixel lands at a point uniform within it plus a Gaussian offset of `sigma_fine`
+/// fine pixels, drawn from its own stream (seed, plane, the pixel and k). The template stays a
+/// Poisson sample whatever the PSF (a smoothing convolution would shrink its noise as sigma
+/// grows, and the deviance would favour wide PSFs), and the draws are common random numbers
+/// across evaluations, so the image changes smoothly with sigma. With `skip`, the rays below
+/// skip's count of each pixel are left out: they took the pixel's first draws. threads: 0 =
+/// every core; the image is the same for any number.
+Image DrawPsf(const Image& fine, int os, int margin, double sigma_fine, uint64_t seed,
+              uint32_t plane, const Image* skip, int threads);
+
 /// The Monte Carlo ray tracer with common random numbers: every evaluation draws the same rays
 /// (streams from Draw::seed), and rays that cannot meet an object are traced once per image,
 /// seed and defocus and reused (the near/far split).
@@ -111,9 +123,14 @@ class RayImageModel : public ImageModel {
   double background_seconds() const override { return background_seconds_; }
 
  private:
-  /// With psf_os > 1: the fine image of TracedScene with the PSF sigma (um at the object plane)
-  /// applied ray by ray (streams from `seed` and `plane`), summed to the camera's pixels.
-  Image ApplyPsf(const Image& fine, double sigma_um, uint64_t seed, uint32_t plane) const;
+  /// DrawPsf with this setup's fine camera and the PSF sigma in um at the object plane.
+  Image ApplyPsf(const Image& fine, double sigma_um, uint64_t seed, uint32_t plane,
+                 const Image* skip = nullptr) const;
+  /// ApplyPsf of image i's counts: the background's rays, the first draws of their pixels,
+  /// taken from a cache per (background, sigma, seed, plane); the rest drawn here. The same
+  /// image as ApplyPsf of the whole (whole counts added in any order are exact).
+  Image PsfOf(const Image& fine, const std::shared_ptr<const Image>& background, double sigma_um,
+              uint64_t seed, uint32_t plane);
   // Rays that can meet an object, per (image, seed): the indices below `rays` (ascending).
   // Coarse-to-fine levels use the first n rays of the same streams, so a finer level extends
   // the list and the background instead of starting again.
@@ -121,18 +138,29 @@ class RayImageModel : public ImageModel {
     uint64_t rays = 0;
     std::vector<uint64_t> list;
   };
-  // The image of the other rays below `rays`, per (image, seed, defocus).
+  // The image of the other rays below `rays`, per (image, seed, defocus); replaced, not
+  // changed, when more rays extend it.
   struct Background {
     uint64_t rays = 0;
-    Image image;
+    std::shared_ptr<const Image> image;
   };
   // One part's traced counts per image (before the PSF drawn per ray), for Draw::inside_key or
-  // beyond_key, its seed and ray count; with the part's source weight and near share.
+  // beyond_key, its seed and ray count; with the part's source weight and near share, and per
+  // image the background its counts include (null: none).
   struct Traced {
     std::vector<double> key;
     uint64_t seed = 0, rays = 0;
     std::vector<Image> counts;
+    std::vector<std::shared_ptr<const Image>> background;
     double weight = 0, near_fraction = 0;
+  };
+  // A background's rays with the PSF drawn (ApplyPsf), for one sigma, seed and plane.
+  struct PsfBackground {
+    std::shared_ptr<const Image> background;
+    double sigma_um = 0;
+    uint64_t seed = 0;
+    uint32_t plane = 0;
+    Image image;
   };
   /// The kept part with this key, seed and rays, or null (an empty key is never kept).
   static const Traced* Recall(const std::vector<Traced>& kept, const Traced& want);
@@ -143,12 +171,14 @@ class RayImageModel : public ImageModel {
                      uint64_t* rays_traced) const;
   /// The background of image i at n rays; extends `near` as needed. Null when it cannot be
   /// extended (fewer rays than already traced for this defocus): then trace everything.
-  const Image* BackgroundAt(const simulate::Simulator& sim, size_t i, uint64_t seed, double dz,
-                            uint64_t n, const simulate::RunControl& rc, uint64_t* rays_traced);
+  std::shared_ptr<const Image> BackgroundAt(const simulate::Simulator& sim, size_t i, uint64_t seed,
+                                            double dz, uint64_t n, const simulate::RunControl& rc,
+                                            uint64_t* rays_traced);
   Setup setup_;
   std::map<std::tuple<size_t, uint64_t>, NearRays> near_;
   std::map<std::tuple<size_t, uint64_t, double>, Background> background_;
-  std::vector<Traced> inside_, beyond_;  // most recent last
+  std::vector<Traced> inside_, beyond_;        // most recent last
+  std::vector<PsfBackground> psf_background_;  // most recent last
   double near_fraction_ = 0;
   double background_seconds_ = 0;
 };

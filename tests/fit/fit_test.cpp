@@ -588,6 +588,54 @@ TEST(FitModelNuisances, StepsOfTheEdgeAndThePsfTraceOnlyWhatTheyChange) {
   EXPECT_EQ(traced["psf"], 0u);
 }
 
+// With the PSF drawn per ray (DrawPsf), the model keeps the background's rays with their PSF
+// drawn, per sigma, and draws only the pixels' other rays, which take the later draws of
+// their pixels: background part plus the rest must be the whole count's image to the bit,
+// for any thread count. A skip that left one more rank out per pixel, or started the rest at
+// rank 0, would change the sum.
+TEST(FitModelNuisances, PsfDrawnInTwoPartsIsTheWholeCountsToTheBit) {
+  Image background(40, 36), whole(40, 36);
+  for (size_t p = 0; p < whole.size(); ++p) {
+    background.pixels[p] = float((p * 7) % 13);
+    whole.pixels[p] = background.pixels[p] + float((p * 5) % 9);
+  }
+  const Image one = internal::DrawPsf(whole, 4, 2, 1.7, 11, 0, nullptr, 2);
+  const Image two = internal::DrawPsf(whole, 4, 2, 1.7, 11, 0, nullptr, 1);
+  Image parts = internal::DrawPsf(background, 4, 2, 1.7, 11, 0, nullptr, 2);
+  const Image rest = internal::DrawPsf(whole, 4, 2, 1.7, 11, 0, &background, 3);
+  for (size_t p = 0; p < parts.size(); ++p) parts.pixels[p] += rest.pixels[p];
+  ASSERT_EQ(one.width, 9);
+  ASSERT_EQ(one.height, 8);
+  EXPECT_EQ(one.pixels, two.pixels);
+  EXPECT_EQ(one.pixels, parts.pixels);
+  double total = 0;
+  for (float v : one.pixels) total += v;
+  EXPECT_GT(total, 0.8 * 36 * 32 * 10);  // most of the fine interior's rays land inside
+}
+
+// In a fit, a derivative step of the drop keeps the background and takes its PSF part from the
+// cache: the images must be a fresh model's (which draws it anew) to the bit.
+TEST(FitModelNuisances, PsfOfTheKeptBackgroundIsAFreshModelsToTheBit) {
+  testing::TempDir dir;
+  WriteEdgeAndPsfFit(dir, 500 * kPhotonScale, "", "");
+  const FitSpec spec = LoadFitSpec(dir.Write(
+      "fit2.toml",
+      "scene = \"model.toml\"\n[rays]\nfit_exposure = false\n[[image]]\nfile = \"exp.tif\"\n"
+      "defocus_um = -6\n[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = "
+      "2\nstep = 0.2\n[[parameter]]\nkey = \"camera.psf_sigma_um\"\nlower = 0\nupper = 1.5\n"));
+  FitModel model(spec, 0, nullptr);
+  model.Expected({1, 1.2}, 1.0, 11, nullptr);
+  for (const std::vector<double>& theta :
+       std::vector<std::vector<double>>{{1.2, 1.2}, {1.2, 1.25}, {0.8, 1.2}}) {
+    uint64_t rays = 0, fresh_rays = 0;
+    const Image a = model.Expected(theta, 1.0, 11, &rays).photons[0];
+    FitModel fresh(spec, 0, nullptr);
+    const Image b = fresh.Expected(theta, 1.0, 11, &fresh_rays).photons[0];
+    EXPECT_EQ(a.pixels, b.pixels) << theta[0] << ", " << theta[1];
+    EXPECT_LT(rays, fresh_rays / 2) << "the background is not kept";
+  }
+}
+
 // Keys are resolved once into typed bindings, and the model patches the scene it built once
 // instead of reading the scene file at every evaluation. The patched scene must trace exactly
 // the image the file would give with every key set in it: at values away from the file's, each

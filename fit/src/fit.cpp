@@ -571,6 +571,13 @@ FitResult RunFitFromStart(const FitSpec& spec, const FitOptions& options) {
   res.near_ray_fraction = model.near_fraction();
 
   const auto t_unc = Clock::now();
+  // From here on the evaluations stay near the optimum: the rays that pass near the objects
+  // only over the search's box are traced once with the background (the same images).
+  if (spec.uncertainties && model.FocusRegion(best, kFocusSteps)) {
+    res.focused_region_radius_um = model.region_radius();
+    res.focused_region_center_um = {model.region_center().x, model.region_center().y,
+                                    model.region_center().z};
+  }
   // 1b. Derivative sets at the optimum and the final steps' estimating equation (uncertainty.cpp).
   const OptimumDerivatives od = FinalSteps(run, spec, &best, res);
   res.final_steps_q = od.root_q;

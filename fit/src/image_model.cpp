@@ -85,6 +85,13 @@ simulate::Scene TracedScene(simulate::Scene s, simulate::SourceSpec::EdgePart pa
   return s;
 }
 
+void RayImageModel::SetRegion(const Vec3& center, double radius) {
+  setup_.region_center = center, setup_.region_radius = radius;
+  near_.clear();
+  background_.clear();
+  psf_background_.clear();
+}
+
 std::shared_ptr<const Image> RayImageModel::BackgroundAt(const simulate::Simulator& sim, size_t i,
                                                          uint64_t seed, double dz, uint64_t n,
                                                          const simulate::RunControl& rc,

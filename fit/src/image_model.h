@@ -59,6 +59,9 @@ class ImageModel {
   virtual double near_fraction() const { return 0; }
   /// Seconds spent tracing the rays that miss every object (cached per image and ray count).
   virtual double background_seconds() const { return 0; }
+  /// The sphere every object stays inside from now on (the near/far split); an evaluation whose
+  /// objects leave it traces every ray.
+  virtual void SetRegion(const Vec3& /*center*/, double /*radius*/) {}
 };
 
 /// The exact wave image of a homogeneous sphere (simulate::MieImager) in photons at a flat
@@ -121,6 +124,8 @@ class RayImageModel : public ImageModel {
                      uint64_t* rays_traced) override;
   double near_fraction() const override { return near_fraction_; }
   double background_seconds() const override { return background_seconds_; }
+  /// Drops the near lists and backgrounds of the old region (the kept parts' images stay).
+  void SetRegion(const Vec3& center, double radius) override;
 
  private:
   /// DrawPsf with this setup's fine camera and the PSF sigma in um at the object plane.

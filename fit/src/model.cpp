@@ -90,12 +90,11 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
   // objects can occupy and the largest automatic source field.
   // Keys that neither move objects nor widen the field (the light field's edge beyond the NA,
   // the camera PSF) stay at their start: 2^8 corners of a sphere calibration would be 2^5.
-  std::vector<std::vector<double>> probes;
-  std::vector<double> start;
-  std::vector<size_t> moving;
-  for (size_t i = 0; i < P; ++i) {
-    start.push_back(spec.parameters[i].start);
-    if (bindings_[i].SpansRegion()) moving.push_back(i);
+  std::vector<double> start, lower, upper;
+  for (const Parameter& p : spec.parameters) {
+    start.push_back(p.start);
+    lower.push_back(p.lower);
+    upper.push_back(p.upper);
   }
   // Typed keys skip the scene file's range checks per evaluation: read the scene at each key's
   // bounds once, so a box that leaves a valid range fails here as it would have at its first
@@ -107,7 +106,7 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
         th[i] = v;
         SceneByReading(th);
       }
-  probes.push_back(start);
+  std::vector<std::vector<double>> probes{start};
   object_pixel_um_ = simulate::Simulator(SceneAt(start)).object_pixel_um();
   if (split_allowed_ && psf_key) {
     // The PSF on a 4x finer grid: a ray's position within its fine pixel is taken as uniform,
@@ -115,24 +114,7 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
     psf_os_ = 4;
     psf_margin_ = int(std::ceil(5 * psf_max / (object_pixel_um_ / psf_os_))) + 2;
   }
-  const size_t M = moving.size();
-  if (M <= 10) {
-    for (uint32_t c = 0; c < (1u << M); ++c) {
-      std::vector<double> th = start;
-      for (size_t j = 0; j < M; ++j) {
-        const Parameter& q = spec.parameters[moving[j]];
-        th[moving[j]] = (c >> j) & 1 ? q.upper : q.lower;
-      }
-      probes.push_back(th);
-    }
-  } else {
-    for (size_t i : moving)
-      for (double v : {spec.parameters[i].lower, spec.parameters[i].upper}) {
-        std::vector<double> th = start;
-        th[i] = v;
-        probes.push_back(th);
-      }
-  }
+  for (auto& c : Corners(start, lower, upper)) probes.push_back(std::move(c));
   std::vector<std::pair<Vec3, double>> bounds;
   double max_field = 0, wave_window_um = 0;
   for (const auto& th : probes) {
@@ -150,19 +132,8 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
     field_radius_ = max_field;
     s0.source.field_radius_um = field_radius_;  // as SceneAt() applies it from now on
   }
-  if (bounds.empty()) {
-    split_allowed_ = false;
-  } else {
-    Vec3 lo(1e300, 1e300, 1e300), hi(-1e300, -1e300, -1e300);
-    for (const auto& [c, r] : bounds) {
-      lo = Vec3(std::min(lo.x, c.x - r), std::min(lo.y, c.y - r), std::min(lo.z, c.z - r));
-      hi = Vec3(std::max(hi.x, c.x + r), std::max(hi.y, c.y + r), std::max(hi.z, c.z + r));
-    }
-    region_center_ = (lo + hi) * 0.5;
-    for (const auto& [c, r] : bounds)
-      region_radius_ = std::max(region_radius_, Length(c - region_center_) + r);
-    region_radius_ = 1.02 * region_radius_ + 0.5;  // margin: a micrometre-scale safety shell
-  }
+  std::tie(region_center_, region_radius_) = RegionOf(bounds);
+  if (!(region_radius_ > 0)) split_allowed_ = false;
 
   // Photon-matched rays: the experiment's flat-background photons per pixel.
   double ppp = spec.rays.photons_per_pixel;
@@ -208,6 +179,67 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
   }
   for (const FitImage& f : spec.images)
     for (float v : f.photons.pixels) data_range_ = std::max(data_range_, double(v));
+}
+
+std::vector<std::vector<double>> FitModel::Corners(const std::vector<double>& at,
+                                                   const std::vector<double>& lo,
+                                                   const std::vector<double>& hi) const {
+  // Keys that neither move objects nor widen the field (the light field's edge beyond the NA,
+  // the camera PSF) stay at `at`: 2^8 corners of a sphere calibration would be 2^5.
+  std::vector<size_t> moving;
+  for (size_t i = 0; i < at.size(); ++i)
+    if (bindings_[i].SpansRegion()) moving.push_back(i);
+  std::vector<std::vector<double>> probes;
+  const size_t M = moving.size();
+  if (M <= 10) {
+    for (uint32_t c = 0; c < (1u << M); ++c) {
+      std::vector<double> th = at;
+      for (size_t j = 0; j < M; ++j) th[moving[j]] = (c >> j) & 1 ? hi[moving[j]] : lo[moving[j]];
+      probes.push_back(th);
+    }
+  } else {
+    for (size_t i : moving)
+      for (double v : {lo[i], hi[i]}) {
+        std::vector<double> th = at;
+        th[i] = v;
+        probes.push_back(th);
+      }
+  }
+  return probes;
+}
+
+std::pair<Vec3, double> FitModel::RegionOf(const std::vector<std::pair<Vec3, double>>& bounds) {
+  if (bounds.empty()) return {Vec3(), 0.0};
+  Vec3 lo(1e300, 1e300, 1e300), hi(-1e300, -1e300, -1e300);
+  for (const auto& [c, r] : bounds) {
+    lo = Vec3(std::min(lo.x, c.x - r), std::min(lo.y, c.y - r), std::min(lo.z, c.z - r));
+    hi = Vec3(std::max(hi.x, c.x + r), std::max(hi.y, c.y + r), std::max(hi.z, c.z + r));
+  }
+  const Vec3 center = (lo + hi) * 0.5;
+  double radius = 0;
+  for (const auto& [c, r] : bounds) radius = std::max(radius, Length(c - center) + r);
+  return {center, 1.02 * radius + 0.5};  // margin: a micrometre-scale safety shell
+}
+
+bool FitModel::FocusRegion(const std::vector<double>& theta, double steps) {
+  if (!split_allowed_ || images_->exact()) return false;
+  std::vector<double> lo = theta, hi = theta;
+  for (size_t i = 0; i < theta.size(); ++i) {
+    const Parameter& p = spec_.parameters[i];
+    lo[i] = std::max(p.lower, theta[i] - steps * p.step);
+    hi[i] = std::min(p.upper, theta[i] + steps * p.step);
+  }
+  std::vector<std::pair<Vec3, double>> bounds;
+  for (const auto& th : Corners(theta, lo, hi)) {
+    const simulate::Simulator sim(internal::TracedScene(
+        SceneAt(th), simulate::SourceSpec::EdgePart::kAll, psf_os_, psf_margin_));
+    for (const auto& b : sim.ObjectBounds()) bounds.push_back(b);
+  }
+  const auto [center, radius] = RegionOf(bounds);
+  if (!(radius > 0) || radius >= region_radius_) return false;
+  region_center_ = center, region_radius_ = radius;
+  images_->SetRegion(center, radius);
+  return true;
 }
 
 simulate::Scene FitModel::SceneByReading(const std::vector<double>& theta) const {

@@ -155,6 +155,12 @@ class FitModel {
   double ScaleAt(double fraction) const;
 
   uint64_t photon_matched_rays() const { return photon_matched_rays_; }
+  /// With the near/far split: the region the objects stay inside narrowed to the one they
+  /// occupy over the box of `steps` times each moving key's step about theta (within its
+  /// bounds), where that is smaller. Later evaluations re-trace only the rays that pass near
+  /// it, with the same images (the rays between the two regions miss every object either way);
+  /// an evaluation whose objects leave it traces every ray. Returns whether it narrowed.
+  bool FocusRegion(const std::vector<double>& theta, double steps);
   const Vec3& region_center() const { return region_center_; }
   double region_radius() const { return region_radius_; }
   double near_fraction() const { return images_->near_fraction(); }
@@ -181,6 +187,14 @@ class FitModel {
   /// appends it to `out`.
   /// `s` with the images' defocus at `theta` and the fixed source field, checked.
   simulate::Scene Finished(simulate::Scene s, const std::vector<double>& theta) const;
+  /// The corners of the box [lo, hi] in the keys that move objects (or, for many of them, its
+  /// axis end points), the other keys at `at`.
+  std::vector<std::vector<double>> Corners(const std::vector<double>& at,
+                                           const std::vector<double>& lo,
+                                           const std::vector<double>& hi) const;
+  /// The sphere (centre, radius) with a safety margin that holds these objects' bounds (radius
+  /// 0: none).
+  static std::pair<Vec3, double> RegionOf(const std::vector<std::pair<Vec3, double>>& bounds);
   void AddExposureAndBackground(const std::vector<double>& theta, size_t i, Image counts,
                                 double scale, Simulated* out) const;
   const FitSpec& spec_;

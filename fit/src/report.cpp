@@ -214,6 +214,9 @@ nlohmann::json FitJson(const FitSpec& spec, const FitResult& res) {
                {"fit_exposure", spec.rays.fit_exposure},
                {"region_center_um", res.region_center_um},
                {"region_radius_um", J(res.region_radius_um)},
+               {"focused_region_center_um", res.focused_region_center_um},
+               {"focused_region_radius_um",
+                res.focused_region_radius_um > 0 ? J(res.focused_region_radius_um) : nullptr},
                {"retraced_ray_fraction", J(res.near_ray_fraction)}};
   for (const FitImage& im : spec.images)
     j["images"].push_back(

@@ -26,6 +26,10 @@ using Clock = std::chrono::steady_clock;
 inline constexpr uint64_t kDerivativeSetSeedStride = 7777777;
 inline constexpr uint64_t kRepeatSeedStride = 1000003;
 inline constexpr uint64_t kFreshSeedStride = 7919;
+/// After the search the near/far split's region shrinks to the objects over this many steps of
+/// each key about the optimum (FitModel::FocusRegion): four times a derivative's half step,
+/// wider than the final steps, profiles and slices go (an evaluation outside traces every ray).
+inline constexpr double kFocusSteps = 2;
 
 /// Per image, the read noise variance in photons^2 (FisherInformation's read_variance).
 inline std::vector<double> ReadVariance(const FitSpec& spec) {

@@ -636,6 +636,52 @@ TEST(FitModelNuisances, PsfOfTheKeptBackgroundIsAFreshModelsToTheBit) {
   }
 }
 
+// After the search the model narrows the near/far split's region to the objects over two steps
+// of each key about the optimum (FitModel::FocusRegion): the rays between the two regions miss
+// the drop either way, so every image must be an unfocused model's to the bit, whether the
+// drop stays inside the narrow region (fewer rays re-traced) or leaves it (every ray traced).
+TEST(FitModelNuisances, FocusedRegionTracesFewerRaysForTheSameImages) {
+  testing::TempDir dir;
+  WriteEdgeAndPsfFit(dir, 500 * kPhotonScale, "", "");
+  const FitSpec spec = LoadFitSpec(dir.Write(
+      "fit3.toml",
+      "scene = \"model.toml\"\n[rays]\nfit_exposure = false\n[[image]]\nfile = \"exp.tif\"\n"
+      "defocus_um = -6\n[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -3\nupper = "
+      "3\nstep = 0.2\n[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 10\nupper = "
+      "18\nstep = 0.2\n[[parameter]]\nkey = \"camera.psf_sigma_um\"\nlower = 0\nupper = 1.5\n"));
+  FitModel focused(spec, 0, nullptr), wide(spec, 0, nullptr);
+  const double wide_radius = focused.region_radius();
+  // The search's evaluations (their near lists and backgrounds are the wide region's).
+  for (const std::vector<double>& theta : {std::vector<double>{0.5, 13, 1.2}, {1, 14, 1.2}}) {
+    const Image a = focused.Expected(theta, 1.0, 11, nullptr).photons[0];
+    EXPECT_EQ(a.pixels, wide.Expected(theta, 1.0, 11, nullptr).photons[0].pixels);
+  }
+  ASSERT_TRUE(focused.FocusRegion({1, 14, 1.2}, 2));
+  EXPECT_LT(focused.region_radius(), 16.5);  // about 1.02 (0.4 + 14.4) + 0.5 um with bounds
+  EXPECT_LT(focused.region_radius(), 0.85 * wide_radius);
+  EXPECT_FALSE(focused.FocusRegion({1, 14, 1.2}, 2)) << "narrowed again to the same region";
+  std::map<std::string, std::pair<uint64_t, uint64_t>> rays;  // focused, wide
+  for (const auto& [name, theta] :
+       std::vector<std::pair<std::string, std::vector<double>>>{{"start", {1, 14, 1.05}},
+                                                                {"x", {1.1, 14, 1.2}},
+                                                                {"radius", {1, 14.1, 1.2}},
+                                                                {"psf", {1, 14, 1.25}},
+                                                                {"outside", {-2.5, 17, 1.2}},
+                                                                {"back", {0.9, 14, 1.2}}}) {
+    uint64_t a_rays = 0, b_rays = 0;
+    const Image a = focused.Expected(theta, 1.0, 11, &a_rays).photons[0];
+    const Image b = wide.Expected(theta, 1.0, 11, &b_rays).photons[0];
+    EXPECT_EQ(a.pixels, b.pixels) << name;
+    rays[name] = {a_rays, b_rays};
+  }
+  // The first new trace splits the rays about the new region (one pass over all of them, as
+  // a new seed's first evaluation does); the next re-trace fewer than the wide region's.
+  EXPECT_GT(rays["x"].first, rays["x"].second);
+  EXPECT_LT(rays["radius"].first, 0.8 * rays["radius"].second);
+  EXPECT_GT(rays["outside"].first, rays["outside"].second) << "the drop left: every ray";
+  EXPECT_LT(rays["back"].first, 0.8 * rays["back"].second);
+}
+
 // Keys are resolved once into typed bindings, and the model patches the scene it built once
 // instead of reading the scene file at every evaluation. The patched scene must trace exactly
 // the image the file would give with every key set in it: at values away from the file's, each

@@ -314,7 +314,11 @@ struct FitResult {
   double region_radius_um = 0;       ///< region the objects can occupy (rays outside reused)
   double object_pixel_um = 0;        ///< the camera's pixel at the object plane (0: unknown)
   std::array<double, 3> region_center_um{};
-  double near_ray_fraction = 0;  ///< share of rays re-traced per evaluation
+  /// The region after the search, narrowed to two steps of each key about its optimum (0: not
+  /// narrowed); its centre.
+  double focused_region_radius_um = 0;
+  std::array<double, 3> focused_region_center_um{};
+  double near_ray_fraction = 0;  ///< share of rays re-traced per evaluation (in the search)
   /// Grid landscape (method grid): axes values and errors in row-major order (last axis fastest).
   std::vector<std::vector<double>> grid_axes;
   std::vector<double> grid_errors;

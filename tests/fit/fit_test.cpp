@@ -613,16 +613,24 @@ TEST(FitModelNuisances, PsfDrawnInTwoPartsIsTheWholeCountsToTheBit) {
   EXPECT_GT(total, 0.8 * 36 * 32 * 10);  // most of the fine interior's rays land inside
 }
 
+/// WriteEdgeAndPsfFit's scene and experiment with a fit file freeing `parameters` and the PSF
+/// (the edge held).
+FitSpec DropAndPsfFit(testing::TempDir& dir, const std::string& parameters) {
+  WriteEdgeAndPsfFit(dir, 500 * kPhotonScale, "", "");
+  return LoadFitSpec(dir.Write(
+      "drop_psf.toml",
+      "scene = \"model.toml\"\n[rays]\nfit_exposure = false\n[[image]]\nfile = \"exp.tif\"\n"
+      "defocus_um = -6\n" +
+          parameters + "[[parameter]]\nkey = \"camera.psf_sigma_um\"\nlower = 0\nupper = 1.5\n"));
+}
+
 // In a fit, a derivative step of the drop keeps the background and takes its PSF part from the
 // cache: the images must be a fresh model's (which draws it anew) to the bit.
 TEST(FitModelNuisances, PsfOfTheKeptBackgroundIsAFreshModelsToTheBit) {
   testing::TempDir dir;
-  WriteEdgeAndPsfFit(dir, 500 * kPhotonScale, "", "");
-  const FitSpec spec = LoadFitSpec(dir.Write(
-      "fit2.toml",
-      "scene = \"model.toml\"\n[rays]\nfit_exposure = false\n[[image]]\nfile = \"exp.tif\"\n"
-      "defocus_um = -6\n[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = "
-      "2\nstep = 0.2\n[[parameter]]\nkey = \"camera.psf_sigma_um\"\nlower = 0\nupper = 1.5\n"));
+  const FitSpec spec = DropAndPsfFit(
+      dir,
+      "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -2\nupper = 2\nstep = 0.2\n");
   FitModel model(spec, 0, nullptr);
   model.Expected({1, 1.2}, 1.0, 11, nullptr);
   for (const std::vector<double>& theta :
@@ -642,13 +650,10 @@ TEST(FitModelNuisances, PsfOfTheKeptBackgroundIsAFreshModelsToTheBit) {
 // drop stays inside the narrow region (fewer rays re-traced) or leaves it (every ray traced).
 TEST(FitModelNuisances, FocusedRegionTracesFewerRaysForTheSameImages) {
   testing::TempDir dir;
-  WriteEdgeAndPsfFit(dir, 500 * kPhotonScale, "", "");
-  const FitSpec spec = LoadFitSpec(dir.Write(
-      "fit3.toml",
-      "scene = \"model.toml\"\n[rays]\nfit_exposure = false\n[[image]]\nfile = \"exp.tif\"\n"
-      "defocus_um = -6\n[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -3\nupper = "
-      "3\nstep = 0.2\n[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 10\nupper = "
-      "18\nstep = 0.2\n[[parameter]]\nkey = \"camera.psf_sigma_um\"\nlower = 0\nupper = 1.5\n"));
+  const FitSpec spec = DropAndPsfFit(
+      dir,
+      "[[parameter]]\nkey = \"object.drop.center_um[0]\"\nlower = -3\nupper = 3\nstep = 0.2\n"
+      "[[parameter]]\nkey = \"object.drop.radius_um\"\nlower = 10\nupper = 18\nstep = 0.2\n");
   FitModel focused(spec, 0, nullptr), wide(spec, 0, nullptr);
   const double wide_radius = focused.region_radius();
   // The search's evaluations (their near lists and backgrounds are the wide region's).

@@ -532,7 +532,7 @@ Parameter ReadParameter(TomlReader& p, const toml::table& t, const simulate::Sce
 /// [rays]: the ray budget, fractions, binning and the estimator's switches.
 void ReadRays(TomlReader ry, FitSpec* f_out) {
   FitSpec& f = *f_out;
-  f.rays.ray_factor = ry.InRange("ray_factor", 1.0 / 1024, 1024, 1);
+  f.rays.ray_factor = ry.InRange("ray_factor", kMinRayFactor, kMaxRayFactor, 1);
   if (ry.Has("fractions")) {
     f.rays.fractions = ry.Numbers("fractions", 1, 32);
     for (double v : f.rays.fractions)
@@ -547,7 +547,8 @@ void ReadRays(TomlReader ry, FitSpec* f_out) {
   f.rays.finite_ray_correction = ry.Bool("finite_ray_correction", true);
   f.rays.smooth_polish = ry.Bool("smooth_polish", true);
   f.rays.polish = ry.Bool("polish", false);
-  f.rays.jacobian_seeds = int(ry.Integer("jacobian_seeds", f.rays.jacobian_seeds, 2, 64));
+  f.rays.jacobian_seeds = int(
+      ry.Integer("jacobian_seeds", f.rays.jacobian_seeds, kMinJacobianSeeds, kMaxJacobianSeeds));
   if (ry.Has("binning")) {
     for (double b : ry.Numbers("binning", f.rays.fractions.size(), f.rays.fractions.size())) {
       if (!(b >= 1 && b <= 64 && b == std::floor(b)))
@@ -561,7 +562,7 @@ void ReadRays(TomlReader ry, FitSpec* f_out) {
 /// [uncertainty]: repeats, Cramer-Rao bound, slices and profile-likelihood intervals.
 void ReadUncertainty(TomlReader u, FitSpec* f_out) {
   FitSpec& f = *f_out;
-  f.repeat_seeds = static_cast<int>(u.Integer("repeat_seeds", f.repeat_seeds, 0, 1000));
+  f.repeat_seeds = static_cast<int>(u.Integer("repeat_seeds", f.repeat_seeds, 0, kMaxRepeatSeeds));
   if (f.repeat_seeds == 1) u.Fail("repeat_seeds", "0 (none) or at least 2 repeated fits");
   f.cramer_rao = u.Bool("cramer_rao", true);
   f.slice_points = static_cast<int>(u.Integer("slice_points", 7, 0, 1001));

@@ -206,6 +206,7 @@ nlohmann::json FitJson(const FitSpec& spec, const FitResult& res) {
   if (res.final_steps_q >= 0) j["final_steps_q"] = J(res.final_steps_q);
   if (res.goodness.pixels > 0) j["goodness_of_fit"] = GoodnessJson(res.goodness);
   j["optics"] = spec.exact_images ? "mie" : "rays";
+  const bool focused = res.focused_region_radius_um > 0;  // null where not narrowed
   j["rays"] = {{"ray_factor", spec.rays.ray_factor},
                {"fractions", spec.rays.fractions},
                {"common_random_numbers", spec.rays.common_random_numbers},
@@ -214,9 +215,10 @@ nlohmann::json FitJson(const FitSpec& spec, const FitResult& res) {
                {"fit_exposure", spec.rays.fit_exposure},
                {"region_center_um", res.region_center_um},
                {"region_radius_um", J(res.region_radius_um)},
-               {"focused_region_center_um", res.focused_region_center_um},
+               {"focused_region_center_um",
+                focused ? nlohmann::json(res.focused_region_center_um) : nlohmann::json(nullptr)},
                {"focused_region_radius_um",
-                res.focused_region_radius_um > 0 ? J(res.focused_region_radius_um) : nullptr},
+                focused ? J(res.focused_region_radius_um) : nlohmann::json(nullptr)},
                {"retraced_ray_fraction", J(res.near_ray_fraction)}};
   for (const FitImage& im : spec.images)
     j["images"].push_back(

@@ -47,20 +47,22 @@ std::vector<FitCostSetting> Settings(const FitCostOptions& o) {
   return s;
 }
 
-/// The fit file at one setting; throws Error for a value the fit file could not take (the same
-/// ranges as its keys: fit/src/fit_file.cpp).
+/// The fit file at one setting; throws Error for a value the fit file could not take (its keys'
+/// ranges, fit.h).
 fit::FitSpec AtSetting(fit::FitSpec spec, const FitCostSetting& s) {
   const auto bad = [&](const std::string& why) {
     throw Error("raymatch bench fit: " + s.knob + " " + Num(s.value) + ": " + why);
   };
   if (s.knob == "ray_factor") {
-    if (!(s.value >= 1.0 / 1024 && s.value <= 1024)) bad("expected a ray factor in [1/1024, 1024]");
+    if (!(s.value >= fit::kMinRayFactor && s.value <= fit::kMaxRayFactor))
+      bad("expected a ray factor in [1/1024, 1024]");
     spec.rays.ray_factor = s.value;
   } else if (s.knob == "jacobian_seeds") {
-    if (s.value < 2 || s.value > 64) bad("expected 2 to 64 derivative sets");
+    if (s.value < fit::kMinJacobianSeeds || s.value > fit::kMaxJacobianSeeds)
+      bad("expected 2 to 64 derivative sets");
     spec.rays.jacobian_seeds = int(s.value);
   } else if (s.knob == "repeat_seeds") {
-    if (s.value < 0 || s.value == 1 || s.value > 1000)
+    if (s.value < 0 || s.value == 1 || s.value > fit::kMaxRepeatSeeds)
       bad("expected 0 (none) or 2 to 1000 repeated fits");
     spec.repeat_seeds = int(s.value);
   } else if (s.knob == "last_fraction") {

@@ -90,6 +90,11 @@ struct Parameter {
   FileLocation where;
 };
 
+/// The ranges a fit file's [rays] ray_factor, jacobian_seeds and [uncertainty] repeat_seeds
+/// take (repeat_seeds: 0 or from 2).
+inline constexpr double kMinRayFactor = 1.0 / 1024, kMaxRayFactor = 1024;
+inline constexpr int kMinJacobianSeeds = 2, kMaxJacobianSeeds = 64, kMaxRepeatSeeds = 1000;
+
 struct RaySchedule {
   double ray_factor = 1;                               ///< simulated rays per experimental photon
   std::vector<double> fractions{1.0 / 16, 0.25, 1.0};  ///< coarse-to-fine; last = final

@@ -390,8 +390,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
   // the estimate did not move, the sets already taken there are kept and the new ones join them.
   int more_sets = 0;
   auto MoreSets = [&](bool moved) {
-    if (!(od.root_q > 1) || more_sets >= 2 || 2 * s_all > size_t(kMaxJacobianSeeds) ||
-        !run.Budget())
+    if (!(od.root_q > 1) || more_sets >= 2 || 2 * s_all > kMaxJacobianSeeds || !run.Budget())
       return false;
     ++more_sets, s_all *= 2;
     if (moved) sets.clear();

@@ -2,7 +2,8 @@
 # Same images, bit for bit, from two raymatch builds (a change that must not alter any image):
 #   scripts/check-identical-images.sh OLD/raymatch NEW/raymatch [OUTDIR]
 # Traces the scenes in scripts/identity-scenes/ (every source the packet path takes, the sphere
-# stage, corrector, two lenses, polarised Fresnel, PSF, photon target) with both binaries, two
+# stage, corrector, two lenses, polarised Fresnel, PSF, photon target; a mesh, a gradient-index
+# sphere, nested objects and the interaction cap on the scalar objects stage) with both binaries, two
 # of them also with --no-simd, and compares every image pixel for pixel (tifffile + numpy: the
 # same shape, dtype and bits) and the sidecars' counters, fates, hits and path classes.
 set -euo pipefail
@@ -10,7 +11,7 @@ old=$(realpath "$1"); new=$(realpath "$2")
 out=${3:-$(mktemp -d)}
 here=$(cd "$(dirname "$0")" && pwd)
 run() {  # binary, folder
-  for s in s1 s2 s3 s4 s5; do
+  for s in s1 s2 s3 s4 s5 s6; do
     "$1" simulate "$here/identity-scenes/$s.toml" -o "$2/$s" --threads 2 > /dev/null
   done
   for s in s1 s2; do

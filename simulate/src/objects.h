@@ -2,7 +2,7 @@
 // The objects stage of the scalar path: a ray through the scene's objects (refraction, total
 // internal reflection, Fresnel branches, the object stack, gradient-index media) until it leaves
 // them all. The packet path's sphere stage (packet.cpp, Sphere) does the same for one
-// homogeneous sphere.
+// homogeneous sphere; at each surface both run one interface event (stages-inl.h).
 #include <algorithm>
 #include <cmath>
 
@@ -190,16 +190,16 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const IndexField& f,
 /// Traces a ray through the objects until it leaves them all (or ends). Updates o, d (and the
 /// polarisation) to the ray leaving the last surface; returns true with *fate set when the ray
 /// ended inside the objects (interaction cap, numerical loss, step cap). `seen`: the objects'
-/// indices, fields and positions at this ray's wavelength and time (RayObjects).
+/// indices, fields and positions at this ray's wavelength and time (RayObjects). Each surface
+/// met is the interface event the packet path's sphere stage runs too (stages-inl.h,
+/// InterfaceEvent), on one lane.
 template <PartialReflection kPR, bool kMesh>
 bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng, Vec3& o, Vec3& d,
                   Vec3& pol, TraceCounters& c, Fate* fate_out, const RayObjects& seen = {}) {
   const Geometry& geo = im.geometry;
-  Fate fate = Fate::kDetected;
-  bool done = false;
-  // Objects the ray is inside, innermost last (nested objects: a bubble in a drop).
+  // Objects the ray is inside, innermost last (nested objects: a bubble in a drop); their count
+  // is path.depth.
   int stack[kMaxNesting];
-  int depth = 0;
   const double* const index = seen.index ? seen.index : im.index.data();
   const IndexField* const* const field = seen.field ? seen.field : im.field.data();
   const ObjectShifts* const moved = seen.moved;
@@ -208,18 +208,19 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
     if (im.has_grin && field[obj]) return field[obj]->Index(x - ObjectCenter(im, obj, moved));
     return index[obj];
   };
-  int events = 0, internal_reflections = 0;
-  bool classified = false;
+  st::ObjectPath<L1> path = st::ObjectPath<L1>::Start();
+  st::Outcome<L1> out = st::Outcome<L1>::Open();
+  auto v3 = [](const Vec3& v) { return st::V3<L1>{v.x, v.y, v.z}; };
   for (;;) {
     Hit h;
     Vec3 hp;
+    const int depth = static_cast<int>(path.depth);
     const int cur = depth ? stack[depth - 1] : -1;
     if (im.has_grin && cur >= 0 && field[cur]) {
       const GrinOutcome g =
           IntegrateToSurface<kMesh>(im, *field[cur], trace.grin, cur, o, d, &h, &hp, &d, c, moved);
       if (g != GrinOutcome::kHit) {
-        fate = g == GrinOutcome::kStepCap ? Fate::kGrinStepCap : Fate::kLostInside;
-        done = true;
+        out.Mark(true, g == GrinOutcome::kStepCap ? Fate::kGrinStepCap : Fate::kLostInside);
         break;
       }
     } else {
@@ -228,96 +229,73 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
       if (!geo.Intersect<kMesh>(o, d, &h, moved)) break;
       hp = o + d * h.t;
     }
-    if (events == 0) ++c.rays_hitting_objects;
-    if (++events > trace.max_interactions) {
-      fate = Fate::kInteractionCap;
-      done = true;
-      break;
-    }
-    ++c.interface_events;
-    const bool entering = Dot(d, h.normal) < 0;
+    if (path.events == 0) ++c.rays_hitting_objects;
+    int on_stack = -1;  // where the surface's object is on the stack
+    for (int k = depth - 1; k >= 0; --k)
+      if (stack[k] == h.object) {
+        on_stack = k;
+        break;
+      }
     // The medium beyond a surface being left is the innermost enclosing object other than
     // the one left.
-    int outer = -1;
-    if (!entering)
+    auto indices = [&](const st::FacedSurface<L1>& face, double& n1, double& n2) {
+      if (face.entering) {
+        n1 = index_at(cur, hp), n2 = index_at(h.object, hp);
+        return;
+      }
+      int outer = -1;
       for (int k = depth - 1; k >= 0; --k)
         if (stack[k] != h.object) {
           outer = stack[k];
           break;
         }
-    const double n1 = entering ? index_at(cur, hp) : index_at(h.object, hp);
-    const double n2 = entering ? index_at(h.object, hp) : index_at(outer, hp);
-    const Vec3 nf = entering ? h.normal : -h.normal;  // faces the incoming ray
-    const double cos_i = -Dot(d, nf);
-    // Refraction and the Fresnel draw: the stages the packet path's sphere stage runs too.
-    st::V3<L1> t;
-    double cos_t = 0;
-    bool reflect = st::Refract<L1>({d.x, d.y, d.z}, {nf.x, nf.y, nf.z}, n1 / n2, cos_i, t, cos_t);
-    const Vec3 dt(t.x, t.y, t.z);  // (not a direction where reflect: total internal reflection)
-    if (!reflect) {
+      n1 = index_at(h.object, hp), n2 = index_at(outer, hp);
+    };
+    auto draw = [&](bool tir, const st::FacedSurface<L1>& face, double n1, double n2, double cos_t,
+                    const st::V3<L1>& t, bool&, st::Outcome<L1>&) {
+      if (tir) return true;
       if constexpr (kPR == PartialReflection::kUnpolarized) {
         ++c.fresnel_evaluations;
-        reflect = rng.Uniform() < st::FresnelReflectance<L1>(n1, n2, cos_i, cos_t);
+        return rng.Uniform() < st::FresnelReflectance<L1>(n1, n2, face.cos_i, cos_t);
       } else if constexpr (kPR == PartialReflection::kPolarized) {
         ++c.fresnel_evaluations;
         // Split the field into s (perpendicular to the plane of incidence) and p parts;
         // reflect with the power-weighted reflectance, then carry the new s/p mixture.
-        const FresnelCoefficients fc = Fresnel(n1, n2, cos_i, cos_t);
+        const Vec3 nf(face.nf.x, face.nf.y, face.nf.z), dt(t.x, t.y, t.z);
+        const FresnelCoefficients fc = Fresnel(n1, n2, face.cos_i, cos_t);
         Vec3 s_dir = Cross(d, nf);
         const double sl = Length(s_dir);
         s_dir = sl > 1e-12 ? s_dir / sl : RandomPerpendicular(d, 0.0);
         const double es = Dot(pol, s_dir), ep = Dot(pol, Cross(s_dir, d));
         const double R = es * es * fc.Rs + ep * ep * fc.Rp;
-        reflect = rng.Uniform() < R;
+        const bool reflect = rng.Uniform() < R;
         const Vec3 dn = reflect ? Reflect(d, nf) : dt;
         const double as = reflect ? fc.rs * es : (1 + fc.rs) * es;            // t_s = 1 + r_s
         const double ap = reflect ? fc.rp * ep : (1 + fc.rp) * ep * n1 / n2;  // t_p
         const Vec3 e = s_dir * as + Cross(s_dir, dn) * ap;
         const double el = Length(e);
         pol = el > 0 ? e / el : RandomPerpendicular(dn, 0.25);
-      }
-    }
-    if (reflect) {
-      d = Normalize(Reflect(d, nf));
-      o = hp + nf * geo.epsilon(h.object);
-      if (!classified) {
-        if (entering && events == 1) {
-          ++c.path_class[0];
-          classified = true;
-        } else if (!entering) {
-          ++internal_reflections;
-        }
-      }
-    } else {
-      d = Normalize(dt);
-      o = hp - nf * geo.epsilon(h.object);
-      if (entering) {
-        if (depth == kMaxNesting) {
-          fate = Fate::kLostInside;  // deeper nesting than supported
-          done = true;
-          break;
-        }
-        stack[depth++] = h.object;
+        return reflect;
       } else {
-        for (int k = depth - 1; k >= 0; --k)
-          if (stack[k] == h.object) {
-            for (int m = k; m + 1 < depth; ++m) stack[m] = stack[m + 1];
-            --depth;
-            break;
-          }
+        return false;
       }
-      if (!classified && !entering) {
-        ++c.path_class[std::min(1 + internal_reflections, kNumPathClasses - 1)];
-        classified = true;
-      }
-    }
+    };
+    st::V3<L1> dl = v3(d), ol = v3(o);
+    bool active = true;
+    const st::StackMoves<L1> moves =
+        st::InterfaceEvent<L1>(trace.max_interactions, v3(hp), v3(h.normal), geo.epsilon(h.object),
+                               on_stack >= 0, dl, ol, active, path, out, indices, draw);
+    d = Vec3(dl.x, dl.y, dl.z), o = Vec3(ol.x, ol.y, ol.z);
+    if (!active) break;
+    if (moves.push) stack[depth] = h.object;
+    if (moves.pop)
+      for (int m = on_stack; m + 1 < depth; ++m) stack[m] = stack[m + 1];
   }
-  if (!done && depth > 0) {
-    fate = Fate::kLostInside;
-    done = true;
-  }
-  *fate_out = fate;
-  return done;
+  c.interface_events += uint64_t(path.interface_events);
+  if (path.path_class >= 0) ++c.path_class[path.path_class];
+  out.Mark(path.depth > 0, Fate::kLostInside);
+  *fate_out = out.settled ? st::FateOf(out.code) : Fate::kDetected;
+  return out.settled;
 }
 
 }  // namespace raymatch::simulate

@@ -392,9 +392,9 @@ HWY_INLINE hn::Mask<DF> SphereAhead(hn::Vec<DF> fx, hn::Vec<DF> fy, hn::Vec<DF> 
   return hn::AndNot(away, hn::Or(hn::Gt(t0, zero), hn::Gt(t1, zero)));
 }
 
-// TraceObjects for one homogeneous sphere, several rays at a time (packet.h, Sphere). Each line
-// mirrors the scalar one it is named after: IntersectSphere, Normalize, Refract, Fresnel,
-// Reflect and the object stack (here a depth: the stack can only hold this sphere).
+// TraceObjects for one homogeneous sphere, several rays at a time (packet.h, Sphere): the sphere
+// test (IntersectSphere), its normal, and the interface event both paths run
+// (stages-inl.h, InterfaceEvent); the object stack is a depth (it can only hold this sphere).
 void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
   const DF df;
   const DI di;
@@ -402,136 +402,76 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
   const auto zero = hn::Zero(df), one = hn::Set(df, 1.0);
   const auto cx = hn::Set(df, sp.center[0]), cy = hn::Set(df, sp.center[1]),
              cz = hn::Set(df, sp.center[2]), r2 = hn::Set(df, sp.radius2);
+  const auto n_obj = hn::Set(df, sp.index), n_med = hn::Set(df, sp.medium);
+  const auto eps = hn::Set(df, sp.epsilon);
   for (size_t i = 0; i < n; i += N) {
     const auto px = hn::LoadU(df, r->px + i), py = hn::LoadU(df, r->py + i),
                pz = hn::LoadU(df, r->pz + i);
-    auto dx = hn::LoadU(df, r->dx + i), dy = hn::LoadU(df, r->dy + i),
-         dz = hn::LoadU(df, r->dz + i);
-    const st::V3<L> o = st::OnPlane<L>(sp.source_z, {px, py, pz}, {dx, dy, dz}, hn::Div(one, dz));
-    auto ox = o.x, oy = o.y, oz = o.z;
+    st::V3<L> d{hn::LoadU(df, r->dx + i), hn::LoadU(df, r->dy + i), hn::LoadU(df, r->dz + i)};
+    st::V3<L> o = st::OnPlane<L>(sp.source_z, {px, py, pz}, d, hn::Div(one, d.z));
     auto cursor = hn::LoadU(di, r->cursor + i);
-    auto out = hn::Zero(df);
+    auto out = st::Outcome<L>::Open();
     auto active = hn::FirstN(df, n - i);
-    auto depth = hn::Zero(di), events = hn::Zero(di), internal = hn::Zero(di);
-    auto queries = hn::Zero(di), interface = hn::Zero(di), fresnel = hn::Zero(di);
-    auto path_class = hn::Set(di, -1);
-    auto classified = hn::Lt(zero, zero);             // all false
-    auto finish = [&](hn::Mask<DF> m, double code) {  // lanes that end here with this outcome
-      out = hn::IfThenElse(m, hn::Set(df, code), out);
-      active = hn::AndNot(m, active);
-    };
-    auto as_i = [&](hn::Mask<DF> m) { return hn::RebindMask(di, m); };
+    auto path = st::ObjectPath<L>::Start();
+    auto queries = hn::Zero(di), fresnel = hn::Zero(di);
     auto count = [&](hn::Vec<DI>& v, hn::Mask<DF> m) {
-      v = hn::IfThenElse(as_i(m), hn::Add(v, hn::Set(di, 1)), v);
+      v = hn::IfThenElse(hn::RebindMask(di, m), hn::Add(v, hn::Set(di, 1)), v);
+    };
+    // The media on either side: entering from the medium (or from inside the sphere itself,
+    // which the stack cannot hold twice), leaving into the medium.
+    auto indices = [&](const st::FacedSurface<L>& face, hn::Vec<DF>& n1, hn::Vec<DF>& n2) {
+      const auto inside = hn::RebindMask(df, hn::Gt(path.depth, hn::Zero(di)));
+      n1 = hn::IfThenElse(face.entering, hn::IfThenElse(inside, n_obj, n_med), n_obj);
+      n2 = hn::IfThenElse(face.entering, n_obj, n_med);
+    };
+    // The unpolarised Fresnel draw from each lane's next word; a lane out of words goes to the
+    // scalar path.
+    auto draw = [&](hn::Mask<DF> tir, const st::FacedSurface<L>& face, hn::Vec<DF> n1,
+                    hn::Vec<DF> n2, hn::Vec<DF> cos_t, const st::V3<L>&, hn::Mask<DF>& live,
+                    st::Outcome<L>& ends) {
+      if (!sp.fresnel) return tir;
+      const auto drawn = hn::AndNot(tir, live);
+      count(fresnel, drawn);
+      const auto out_of_words =
+          hn::And(drawn, hn::RebindMask(df, hn::Gt(cursor, hn::Set(di, kWords - 1))));
+      ends.MarkCode(out_of_words, kScalar);
+      live = hn::AndNot(out_of_words, live);
+      const auto drawing = hn::AndNot(out_of_words, drawn);
+      const auto u = UniformAtCursor(*r, i, cursor, drawing);
+      count(cursor, drawing);
+      const auto R = st::FresnelReflectance<L>(n1, n2, face.cos_i, cos_t);
+      return hn::Or(tir, hn::And(drawing, hn::Lt(u, R)));
     };
     while (!hn::AllFalse(df, active)) {
       count(queries, active);  // ++c.shape_queries
       hn::Vec<DF> t;
       const auto hit =
-          SphereAhead(hn::Sub(ox, cx), hn::Sub(oy, cy), hn::Sub(oz, cz), dx, dy, dz, r2, &t);
+          SphereAhead(hn::Sub(o.x, cx), hn::Sub(o.y, cy), hn::Sub(o.z, cz), d.x, d.y, d.z, r2, &t);
       active = hn::And(active, hit);  // the others left the sphere for good
       if (hn::AllFalse(df, active)) break;
       // hp = o + d * t; normal = Normalize(hp - c)
-      const auto hx = hn::Add(ox, hn::Mul(dx, t)), hy = hn::Add(oy, hn::Mul(dy, t)),
-                 hz = hn::Add(oz, hn::Mul(dz, t));
-      const auto vx = hn::Sub(hx, cx), vy = hn::Sub(hy, cy), vz = hn::Sub(hz, cz);
-      const auto len = hn::Sqrt(st::Dot<L>({vx, vy, vz}, {vx, vy, vz}));
-      const auto nx = hn::Div(vx, len), ny = hn::Div(vy, len), nz = hn::Div(vz, len);
-      // if (++events > max_interactions) the ray ends
-      count(events, active);
-      finish(hn::And(active, hn::RebindMask(df, hn::Gt(events, hn::Set(di, sp.max_interactions)))),
-             FateCode(Fate::kInteractionCap));
-      if (hn::AllFalse(df, active)) break;
-      count(interface, active);
-      const auto entering = hn::Lt(st::Dot<L>({dx, dy, dz}, {nx, ny, nz}), zero);
-      const auto inside = hn::RebindMask(df, hn::Gt(depth, hn::Zero(di)));
-      const auto n_obj = hn::Set(df, sp.index), n_med = hn::Set(df, sp.medium);
-      const auto n1 = hn::IfThenElse(entering, hn::IfThenElse(inside, n_obj, n_med), n_obj);
-      const auto n2 = hn::IfThenElse(entering, n_obj, n_med);
-      const auto fx2 = hn::IfThenElse(entering, nx, hn::Neg(nx)),
-                 fy2 = hn::IfThenElse(entering, ny, hn::Neg(ny)),
-                 fz2 = hn::IfThenElse(entering, nz, hn::Neg(nz));  // nf: faces the incoming ray
-      const auto cos_i = hn::Neg(st::Dot<L>({dx, dy, dz}, {fx2, fy2, fz2}));
-      // Refract(d, nf, n1 / n2)
-      st::V3<L> tr;
-      hn::Vec<DF> ct;
-      const auto tir =
-          st::Refract<L>({dx, dy, dz}, {fx2, fy2, fz2}, hn::Div(n1, n2), cos_i, tr, ct);
-      const auto tx = tr.x, ty = tr.y, tz = tr.z;
-      auto reflect = tir;
-      if (sp.fresnel) {
-        const auto draw = hn::AndNot(tir, active);
-        count(fresnel, draw);
-        // rng.Uniform() from the lane's next word; a lane out of words goes to the scalar path
-        const auto out_of_words =
-            hn::And(draw, hn::RebindMask(df, hn::Gt(cursor, hn::Set(di, kWords - 1))));
-        finish(out_of_words, kScalar);
-        const auto drawing = hn::AndNot(out_of_words, draw);
-        const auto u = UniformAtCursor(*r, i, cursor, drawing);
-        count(cursor, drawing);
-        const auto R = st::FresnelReflectance<L>(n1, n2, cos_i, ct);  // Fresnel(...).R()
-        reflect = hn::Or(reflect, hn::And(drawing, hn::Lt(u, R)));
-      }
-      // Reflected: d = Normalize(Reflect(d, nf)), o = hp + nf eps; transmitted: d = Normalize(t),
-      // o = hp - nf eps.
-      const auto two_dn = hn::Mul(hn::Set(df, 2.0), st::Dot<L>({dx, dy, dz}, {fx2, fy2, fz2}));
-      const auto rx = hn::Sub(dx, hn::Mul(fx2, two_dn)), ry = hn::Sub(dy, hn::Mul(fy2, two_dn)),
-                 rz = hn::Sub(dz, hn::Mul(fz2, two_dn));
-      const auto ex = hn::IfThenElse(reflect, rx, tx), ey = hn::IfThenElse(reflect, ry, ty),
-                 ez = hn::IfThenElse(reflect, rz, tz);
-      const auto elen = hn::Sqrt(st::Dot<L>({ex, ey, ez}, {ex, ey, ez}));
-      const auto eps = hn::Set(df, sp.epsilon);
-      const auto ax = hn::Mul(fx2, eps), ay = hn::Mul(fy2, eps), az = hn::Mul(fz2, eps);
-      const auto new_ox = hn::IfThenElse(reflect, hn::Add(hx, ax), hn::Sub(hx, ax));
-      const auto new_oy = hn::IfThenElse(reflect, hn::Add(hy, ay), hn::Sub(hy, ay));
-      const auto new_oz = hn::IfThenElse(reflect, hn::Add(hz, az), hn::Sub(hz, az));
-      // The object stack: entering pushes (one level beyond kMaxNesting is lost inside), leaving
-      // pops.
-      const auto transmit = hn::AndNot(reflect, active);
-      const auto push = hn::And(transmit, entering);
-      finish(hn::And(push, hn::RebindMask(df, hn::Eq(depth, hn::Set(di, kMaxNesting)))),
-             FateCode(Fate::kLostInside));
-      const auto pushing = hn::And(push, active);
-      const auto popping = hn::And(hn::AndNot(entering, transmit), inside);
-      depth = hn::IfThenElse(as_i(pushing), hn::Add(depth, hn::Set(di, 1)), depth);
-      depth = hn::IfThenElse(as_i(popping), hn::Sub(depth, hn::Set(di, 1)), depth);
-      // Path classes of the first departure (TraceObjects): reflected at the first entry -> 0;
-      // internal reflections counted until the ray first leaves -> 1 + their number (max 7).
-      const auto open = hn::AndNot(classified, active);
-      const auto first_reflection =
-          hn::And(hn::And(open, reflect),
-                  hn::And(entering, hn::RebindMask(df, hn::Eq(events, hn::Set(di, 1)))));
-      path_class = hn::IfThenElse(as_i(first_reflection), hn::Zero(di), path_class);
-      count(internal, hn::AndNot(first_reflection, hn::AndNot(entering, hn::And(open, reflect))));
-      const auto leaves = hn::AndNot(entering, hn::AndNot(reflect, open));
-      path_class = hn::IfThenElse(
-          as_i(leaves), hn::Min(hn::Add(internal, hn::Set(di, 1)), hn::Set(di, kPathClasses - 1)),
-          path_class);
-      classified = hn::Or(classified, hn::Or(first_reflection, leaves));
-      // The ray moves on (lanes still in the loop only).
-      dx = hn::IfThenElse(active, hn::Div(ex, elen), dx);
-      dy = hn::IfThenElse(active, hn::Div(ey, elen), dy);
-      dz = hn::IfThenElse(active, hn::Div(ez, elen), dz);
-      ox = hn::IfThenElse(active, new_ox, ox);
-      oy = hn::IfThenElse(active, new_oy, oy);
-      oz = hn::IfThenElse(active, new_oz, oz);
+      const st::V3<L> hp{hn::Add(o.x, hn::Mul(d.x, t)), hn::Add(o.y, hn::Mul(d.y, t)),
+                         hn::Add(o.z, hn::Mul(d.z, t))};
+      const st::V3<L> v{hn::Sub(hp.x, cx), hn::Sub(hp.y, cy), hn::Sub(hp.z, cz)};
+      const auto len = hn::Sqrt(st::Dot<L>(v, v));
+      const st::V3<L> normal{hn::Div(v.x, len), hn::Div(v.y, len), hn::Div(v.z, len)};
+      const auto inside = hn::RebindMask(df, hn::Gt(path.depth, hn::Zero(di)));
+      st::InterfaceEvent<L>(sp.max_interactions, hp, normal, eps, inside, d, o, active, path, out,
+                            indices, draw);
     }
     // Left the sphere: still inside by the stack -> lost; travelling away from the objective
     // (d.z <= 0) -> escaped; the rest go on to the optics from where they left.
-    const auto ended = hn::Lt(out, zero);
-    out = hn::IfThenElse(hn::AndNot(ended, hn::RebindMask(df, hn::Gt(depth, hn::Zero(di)))),
-                         hn::Set(df, FateCode(Fate::kLostInside)), out);
-    out = hn::IfThenElse(hn::And(hn::Eq(out, zero), hn::Le(dz, zero)),
-                         hn::Set(df, FateCode(Fate::kEscaped)), out);
-    hn::StoreU(out, df, r->out + i);
-    hn::StoreU(ox, df, r->px + i), hn::StoreU(oy, df, r->py + i), hn::StoreU(oz, df, r->pz + i);
-    hn::StoreU(dx, df, r->dx + i), hn::StoreU(dy, df, r->dy + i), hn::StoreU(dz, df, r->dz + i);
+    out.Mark(hn::RebindMask(df, hn::Gt(path.depth, hn::Zero(di))), Fate::kLostInside);
+    out.Mark(hn::Le(d.z, zero), Fate::kEscaped);
+    hn::StoreU(out.code, df, r->out + i);
+    hn::StoreU(o.x, df, r->px + i), hn::StoreU(o.y, df, r->py + i), hn::StoreU(o.z, df, r->pz + i);
+    hn::StoreU(d.x, df, r->dx + i), hn::StoreU(d.y, df, r->dy + i), hn::StoreU(d.z, df, r->dz + i);
     hn::StoreU(cursor, di, r->cursor + i);
     hn::StoreU(queries, di, r->queries + i);
-    hn::StoreU(interface, di, r->interface_events + i);
+    hn::StoreU(path.interface_events, di, r->interface_events + i);
     hn::StoreU(fresnel, di, r->fresnel + i);
-    hn::StoreU(path_class, di, r->path_class + i);
-    hn::StoreU(events, di, r->events + i);
+    hn::StoreU(path.path_class, di, r->path_class + i);
+    hn::StoreU(path.events, di, r->events + i);
   }
 }
 

@@ -48,6 +48,7 @@ struct VecLanes {
   static HWY_INLINE V Sub(V a, V b) { return hn::Sub(a, b); }
   static HWY_INLINE V Mul(V a, V b) { return hn::Mul(a, b); }
   static HWY_INLINE V Div(V a, V b) { return hn::Div(a, b); }
+  static HWY_INLINE V Neg(V a) { return hn::Neg(a); }
   static HWY_INLINE V Sqrt(V a) { return hn::Sqrt(a); }
   static HWY_INLINE V Floor(V a) { return hn::Floor(a); }
   static HWY_INLINE M Lt(V a, V b) { return hn::Lt(a, b); }
@@ -62,15 +63,18 @@ struct VecLanes {
   static HWY_INLINE M Not(M a) { return hn::Not(a); }
   static HWY_INLINE M False() { return hn::Lt(hn::Zero(D()), hn::Zero(D())); }
   static HWY_INLINE M True() { return hn::Eq(hn::Zero(D()), hn::Zero(D())); }
+  static HWY_INLINE bool None(M m) { return hn::AllFalse(D(), m); }
   static HWY_INLINE bool Stop(M) { return false; }
   static HWY_INLINE I ISet(int64_t x) { return hn::Set(DI(), x); }
   static HWY_INLINE I IAdd(I a, I b) { return hn::Add(a, b); }
   static HWY_INLINE I ISub(I a, I b) { return hn::Sub(a, b); }
   static HWY_INLINE MI ILt(I a, I b) { return hn::Lt(a, b); }
   static HWY_INLINE MI IGt(I a, I b) { return hn::Gt(a, b); }
+  static HWY_INLINE MI IEq(I a, I b) { return hn::Eq(a, b); }
   static HWY_INLINE I ISelect(MI m, I a, I b) { return hn::IfThenElse(m, a, b); }
   static HWY_INLINE MI IAnd(MI a, MI b) { return hn::And(a, b); }
   static HWY_INLINE MI ToIMask(M m) { return hn::RebindMask(DI(), m); }
+  static HWY_INLINE M ToMask(MI m) { return hn::RebindMask(D(), m); }
   static HWY_INLINE bool INone(MI m) { return hn::AllFalse(DI(), m); }
   static HWY_INLINE I ToInt(V x) { return hn::ConvertTo(DI(), x); }
   static HWY_INLINE V ToDouble(I x) { return hn::ConvertTo(D(), x); }
@@ -246,6 +250,121 @@ HWY_INLINE typename L::V FresnelReflectance(typename L::V n1, typename L::V n2, 
   const typename L::V b1 = L::Mul(n2, cos_i), b2 = L::Mul(n1, cos_t);
   const typename L::V rp = L::Div(L::Sub(b1, b2), L::Add(b1, b2));
   return L::Mul(L::Set(0.5), L::Add(L::Mul(rs, rs), L::Mul(rp, rp)));
+}
+
+/// A ray's state among the objects, per lane: its interface events, how many objects it is inside
+/// (the scalar path keeps their indices beside the count), and the path class of its first
+/// departure from the first object hit (TraceCounters::path_class; -1 until it is known) with the
+/// internal reflections counted until then.
+template <class L>
+struct ObjectPath {
+  typename L::I events, interface_events, depth, internal, path_class;
+  typename L::M classified;
+  static HWY_INLINE ObjectPath Start() {
+    const typename L::I zero = L::ISet(0);
+    return {zero, zero, zero, zero, L::ISet(-1), L::False()};
+  }
+};
+
+/// The surface an interface event meets, as the incoming ray sees it: whether it enters the
+/// object (Dot(d, n) < 0), the normal facing the ray (nf = n entering, -n leaving), and
+/// cos_i = -Dot(d, nf).
+template <class L>
+struct FacedSurface {
+  typename L::M entering;
+  V3<L> nf;
+  typename L::V cos_i;
+};
+
+/// What an interface event did to each lane's object stack: pushed the surface's object
+/// (transmitted into it) or popped it (transmitted out of it).
+template <class L>
+struct StackMoves {
+  typename L::M push, pop;
+};
+
+/// One interface event of the objects stage, for both paths: the lanes `active` reach the
+/// surface point hp along unit d, where the surface has the unit normal n (pointing out of its
+/// object); `inside`: the surface's object is on the lane's stack. In order:
+///  1. ++events; a lane beyond max_interactions ends (interaction cap);
+///  2. the surface faced (FacedSurface);
+///  3. indices(face, n1, n2): the indices before and beyond the surface;
+///  4. Refract from n1 into n2: total internal reflection reflects;
+///  5. reflect = draw(tir, face, n1, n2, cos_t, t, active, out): the partial-reflection branch
+///     (the scalar path's random stream, the packet path's words; a draw may end lanes);
+///  6. the ray leaves: d = Normalize(reflect ? Reflect(d, nf) : t) from o = hp + nf eps
+///     (reflected) or hp - nf eps (transmitted), eps the surface's offset;
+///  7. transmitted into the object pushes it (a lane already kMaxNesting deep ends: lost inside),
+///     transmitted out of it pops it;
+///  8. the path class of the first departure: reflected at the first entry, class 0; reflected
+///     from inside, one more internal reflection; leaving, class 1 + internal reflections (the
+///     last class holds the rest).
+/// `active` loses the lanes that end here; `out` gets their fates.
+template <class L, class Indices, class Draw>
+HWY_INLINE StackMoves<L> InterfaceEvent(int max_interactions, const V3<L>& hp, const V3<L>& n,
+                                        typename L::V eps, typename L::M inside, V3<L>& d, V3<L>& o,
+                                        typename L::M& active, ObjectPath<L>& path, Outcome<L>& out,
+                                        Indices&& indices, Draw&& draw) {
+  using V = typename L::V;
+  using M = typename L::M;
+  const typename L::I one_i = L::ISet(1);
+  const typename L::MI counted = L::ToIMask(active);
+  path.events = L::ISelect(counted, L::IAdd(path.events, one_i), path.events);
+  const M capped = L::And(active, L::ToMask(L::IGt(path.events, L::ISet(max_interactions))));
+  out.Mark(capped, Fate::kInteractionCap);
+  active = L::AndNot(capped, active);
+  if (L::None(active)) return {L::False(), L::False()};
+  const typename L::MI on = L::ToIMask(active);
+  path.interface_events =
+      L::ISelect(on, L::IAdd(path.interface_events, one_i), path.interface_events);
+  FacedSurface<L> face;
+  const V zero = L::Set(0.0);
+  face.entering = L::Lt(Dot(d, n), zero);
+  face.nf = {L::Select(face.entering, n.x, L::Neg(n.x)), L::Select(face.entering, n.y, L::Neg(n.y)),
+             L::Select(face.entering, n.z, L::Neg(n.z))};
+  face.cos_i = L::Neg(Dot(d, face.nf));
+  V n1, n2;
+  indices(face, n1, n2);
+  V3<L> t;
+  V cos_t;
+  const M tir = Refract<L>(d, face.nf, L::Div(n1, n2), face.cos_i, t, cos_t);
+  const M reflect = draw(tir, face, n1, n2, cos_t, t, active, out);
+  // The ray leaves (Reflect and Normalize of interfaces.h and vec.h, in their order).
+  const V two_dn = L::Mul(L::Set(2.0), Dot(d, face.nf));
+  const V3<L> r{L::Sub(d.x, L::Mul(face.nf.x, two_dn)), L::Sub(d.y, L::Mul(face.nf.y, two_dn)),
+                L::Sub(d.z, L::Mul(face.nf.z, two_dn))};
+  const V3<L> e{L::Select(reflect, r.x, t.x), L::Select(reflect, r.y, t.y),
+                L::Select(reflect, r.z, t.z)};
+  const V len = L::Sqrt(Dot(e, e));
+  const V3<L> a{L::Mul(face.nf.x, eps), L::Mul(face.nf.y, eps), L::Mul(face.nf.z, eps)};
+  d = {L::Select(active, L::Div(e.x, len), d.x), L::Select(active, L::Div(e.y, len), d.y),
+       L::Select(active, L::Div(e.z, len), d.z)};
+  o = {L::Select(active, L::Select(reflect, L::Add(hp.x, a.x), L::Sub(hp.x, a.x)), o.x),
+       L::Select(active, L::Select(reflect, L::Add(hp.y, a.y), L::Sub(hp.y, a.y)), o.y),
+       L::Select(active, L::Select(reflect, L::Add(hp.z, a.z), L::Sub(hp.z, a.z)), o.z)};
+  // The object stack.
+  const M transmit = L::AndNot(reflect, active);
+  const M push = L::And(transmit, face.entering);
+  const M deepest = L::And(push, L::ToMask(L::IEq(path.depth, L::ISet(kMaxNesting))));
+  out.Mark(deepest, Fate::kLostInside);
+  active = L::AndNot(deepest, active);
+  const StackMoves<L> moves{L::And(push, active),
+                            L::And(L::AndNot(face.entering, transmit), inside)};
+  path.depth = L::ISelect(L::ToIMask(moves.push), L::IAdd(path.depth, one_i), path.depth);
+  path.depth = L::ISelect(L::ToIMask(moves.pop), L::ISub(path.depth, one_i), path.depth);
+  // The path class of the first departure.
+  const M open = L::AndNot(path.classified, active);
+  const M first_reflection =
+      L::And(L::And(open, reflect), L::And(face.entering, L::ToMask(L::IEq(path.events, one_i))));
+  path.path_class = L::ISelect(L::ToIMask(first_reflection), L::ISet(0), path.path_class);
+  const M internal = L::AndNot(first_reflection, L::AndNot(face.entering, L::And(open, reflect)));
+  path.internal = L::ISelect(L::ToIMask(internal), L::IAdd(path.internal, one_i), path.internal);
+  const M leaves = L::AndNot(face.entering, L::AndNot(reflect, open));
+  const typename L::I cls = L::IAdd(path.internal, one_i), last = L::ISet(kNumPathClasses - 1);
+  path.path_class =
+      L::ISelect(L::ToIMask(leaves), L::ISelect(L::IGt(cls, last), last, cls), path.path_class);
+  path.classified = L::Or(path.classified, L::Or(first_reflection, leaves));
+  return moves;
 }
 
 // ---------------------------------------------------------------- optics

@@ -88,6 +88,7 @@ struct ScalarLanes {
   static V Sub(V a, V b) { return a - b; }
   static V Mul(V a, V b) { return a * b; }
   static V Div(V a, V b) { return a / b; }
+  static V Neg(V a) { return -a; }
   static V Sqrt(V a) { return std::sqrt(a); }
   static V Floor(V a) { return std::floor(a); }
   static M Lt(V a, V b) { return a < b; }
@@ -102,6 +103,7 @@ struct ScalarLanes {
   static M Not(M a) { return !a; }
   static M False() { return false; }
   static M True() { return true; }
+  static bool None(M m) { return !m; }
   /// Whether a stage may stop here because every lane is settled: one lane stops as soon as
   /// its fate is known; vectors run every lane to the end of the stage (no branch).
   static bool Stop(M settled) { return settled; }
@@ -111,9 +113,11 @@ struct ScalarLanes {
   static I ISub(I a, I b) { return a - b; }
   static MI ILt(I a, I b) { return a < b; }
   static MI IGt(I a, I b) { return a > b; }
+  static MI IEq(I a, I b) { return a == b; }
   static I ISelect(MI m, I a, I b) { return m ? a : b; }
   static MI IAnd(MI a, MI b) { return a && b; }
   static MI ToIMask(M m) { return m; }
+  static M ToMask(MI m) { return m; }
   static bool INone(MI m) { return !m; }
   static I ToInt(V x) { return static_cast<int64_t>(x); }  ///< truncation
   static V ToDouble(I x) { return static_cast<double>(x); }

@@ -45,7 +45,7 @@ uint64_t CountBatch(const packet::Rays& r, size_t n, Accum& acc);
 
 /// The queued rays that meet the sphere, through the sphere stage and on through the optics;
 /// those that run out of random words are traced again on the scalar path.
-template <PartialReflection kPR, bool kCorrector, bool kMesh, bool kDraws, class Source>
+template <class Cfg, class Source>
 void TraceSphereQueue(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
                       const Optics& op, uint32_t plane, const RaySelection& sel, Accum& acc,
                       std::vector<uint64_t>* near_out, const PacketPlan& plan) {
@@ -55,8 +55,9 @@ void TraceSphereQueue(const Simulator::Impl& im, const Source& src, const TraceS
   // All their words (the batch made the third Philox block only where the source needed it).
   packet::PhiloxWords(trace.seed, plane, q.ids, m, &q);
   packet::Sphere(*plan.sphere, m, &q);
-  if constexpr (kCorrector) CorrectorDraws(q, m, 0);  // the corrector's draw follows the sphere's
-  if (op.psf_sigma_sensor > 0) PsfDraws(q, m, kCorrector ? 1 : 0, op.psf_sigma_sensor);
+  if constexpr (Cfg::kCorrector)
+    CorrectorDraws(q, m, 0);  // the corrector's draw follows the sphere's
+  if (op.psf_sigma_sensor > 0) PsfDraws(q, m, Cfg::kCorrector ? 1 : 0, op.psf_sigma_sensor);
   packet::OpticsAfterObjects(op, m, &q);
   const uint64_t optics = CountBatch(q, m, acc);
   TraceCounters& c = acc.counters;
@@ -68,60 +69,57 @@ void TraceSphereQueue(const Simulator::Impl& im, const Source& src, const TraceS
     c.rays_hitting_objects += q.events[i] > 0;
     if (q.path_class[i] >= 0) ++c.path_class[static_cast<size_t>(q.path_class[i])];
   }
-  if constexpr (kCorrector) c.corrector_tests += optics;
+  if constexpr (Cfg::kCorrector) c.corrector_tests += optics;
   for (size_t k = 0; k < q.num_handed_back; ++k)
-    TraceRay<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane,
-                                             q.ids[static_cast<size_t>(q.handed_back[k])], sel, acc,
-                                             near_out);
+    TraceRay<Cfg>(im, src, trace, op, plane, q.ids[static_cast<size_t>(q.handed_back[k])], sel, acc,
+                  near_out);
 }
 
 /// One batch of packet::kBatch rays (at most; their indices in acc.rays->ids): the source, the
 /// near test and the optics in packets, then each ray the packets handed back, in ray order.
-template <PartialReflection kPR, bool kCorrector, bool kMesh, bool kDraws, class Source>
+template <class Cfg, class Source>
 void TraceBatch(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
                 const Optics& op, uint32_t plane, const RaySelection& sel, Accum& acc,
                 std::vector<uint64_t>* near_out, const PacketPlan& plan, size_t n) {
   packet::Rays& r = *acc.rays;
   // Words drawn after the source by a ray that meets nothing: polarisation, corrector.
-  constexpr int kPolWords = kPR == PartialReflection::kPolarized ? 1 : 0;
-  constexpr int kExtraWords = kPolWords + (kCorrector ? 1 : 0);
+  constexpr int kPolWords = Cfg::kPR == PartialReflection::kPolarized ? 1 : 0;
+  constexpr int kExtraWords = kPolWords + (Cfg::kCorrector ? 1 : 0);
   const bool psf = op.psf_sigma_sensor > 0;  // two more words: the PSF's offset
   packet::SampleSource(plan.source, trace.seed, plane, r.ids, n, kExtraWords + (psf ? 2 : 0), &r);
   if constexpr (std::is_same_v<Source, LightFieldSource>)
     packet::Tabulated(*plan.source.table, n, &r);
   // The corrector's draw follows the source's (and the polarisation's) words.
-  if constexpr (kCorrector) CorrectorDraws(r, n, kPolWords);
+  if constexpr (Cfg::kCorrector) CorrectorDraws(r, n, kPolWords);
   if (psf) PsfDraws(r, n, kExtraWords, op.psf_sigma_sensor);
   packet::NearTestAndOptics(plan.near, op, n, &r);
   const uint64_t optics = CountBatch(r, n, acc);
   TraceCounters& c = acc.counters;
   const uint64_t queries = im.geometry.empty() ? 0 : 1;  // the one query that found nothing
   c.shape_queries += queries * optics;                   // rays that met nothing: one query each
-  if constexpr (kMesh) c.mesh_queries += optics;
-  if constexpr (kCorrector) c.corrector_tests += optics;
+  if constexpr (Cfg::kMesh) c.mesh_queries += optics;
+  if constexpr (Cfg::kCorrector) c.corrector_tests += optics;
   for (size_t k = 0; k < r.num_handed_back; ++k) {  // in ray order: the near list stays ascending
     const size_t i = static_cast<size_t>(r.handed_back[k]);
     const uint64_t ray = r.ids[i];
     if (r.out[i] == packet::kNear) {
       near_out->push_back(ray);
     } else if (r.cursor[i] < 0) {  // the batch's words ran out: all again from the stream
-      TraceRay<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, ray, sel, acc, near_out);
+      TraceRay<Cfg>(im, src, trace, op, plane, ray, sel, acc, near_out);
     } else if (plan.sphere) {  // near the sphere: queued for the sphere stage
       if (acc.sphere_queue.Push(r, i))
-        TraceSphereQueue<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, sel, acc,
-                                                         near_out, plan);
+        TraceSphereQueue<Cfg>(im, src, trace, op, plane, sel, acc, near_out, plan);
     } else {  // near an object: on from the packet's source sample and the stream's cursor
       RayRng rng(trace.seed, plane, ray);
       rng.SkipTo(static_cast<uint64_t>(r.cursor[i]));
-      TraceSampledRay<kPR, kCorrector, kMesh, kDraws, Source>(
-          im, trace, op, ray, Vec3(r.px[i], r.py[i], r.pz[i]), Vec3(r.dx[i], r.dy[i], r.dz[i]), rng,
-          sel, acc, near_out);
+      TraceSampledRay<Cfg, Source>(im, trace, op, ray, Vec3(r.px[i], r.py[i], r.pz[i]),
+                                   Vec3(r.dx[i], r.dy[i], r.dz[i]), rng, sel, acc, near_out);
     }
   }
 }
 
 /// TraceRange in batches of packet::kBatch rays: the same rays, counts and counters.
-template <PartialReflection kPR, bool kCorrector, bool kMesh, bool kDraws, class Source>
+template <class Cfg, class Source>
 void TraceRangePackets(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
                        const Optics& op, uint32_t plane, uint64_t begin, uint64_t end,
                        const RaySelection& sel, Accum& acc, std::vector<uint64_t>* near_out,
@@ -133,17 +131,13 @@ void TraceRangePackets(const Simulator::Impl& im, const Source& src, const Trace
   ForEachSelectedRay(sel, begin, end, [&](uint64_t ray) {
     acc.rays->ids[n++] = ray;
     if (n == packet::kBatch) {
-      TraceBatch<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, sel, acc, near_out,
-                                                 plan, n);
+      TraceBatch<Cfg>(im, src, trace, op, plane, sel, acc, near_out, plan, n);
       n = 0;
     }
   });
-  if (n > 0)
-    TraceBatch<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, sel, acc, near_out, plan,
-                                               n);
+  if (n > 0) TraceBatch<Cfg>(im, src, trace, op, plane, sel, acc, near_out, plan, n);
   if (acc.sphere_queue.count > 0)
-    TraceSphereQueue<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, sel, acc, near_out,
-                                                     plan);
+    TraceSphereQueue<Cfg>(im, src, trace, op, plane, sel, acc, near_out, plan);
 }
 
 }  // namespace raymatch::simulate

@@ -13,13 +13,13 @@
 
 namespace raymatch::simulate {
 
-template <PartialReflection kPR, bool kCorrector, bool kMesh, bool kDraws, class Source>
+template <class Cfg, class Source>
 void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Optics& op,
                      uint64_t ray, const Vec3& p, Vec3 d, RayRng& rng, const RaySelection& sel,
                      Accum& acc, std::vector<uint64_t>* near_out);
 
 /// One ray of the plane, from its own stream: the scalar path, and the packet path's fallback.
-template <PartialReflection kPR, bool kCorrector, bool kMesh, bool kDraws, class Source>
+template <class Cfg, class Source>
 void TraceRay(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
               const Optics& op, uint32_t plane, uint64_t ray, const RaySelection& sel, Accum& acc,
               std::vector<uint64_t>* near_out) {
@@ -30,12 +30,11 @@ void TraceRay(const Simulator::Impl& im, const Source& src, const TraceSpec& tra
     ++c.fates[int(Fate::kEscaped)];
     return;
   }
-  TraceSampledRay<kPR, kCorrector, kMesh, kDraws, Source>(im, trace, op, ray, p, d, rng, sel, acc,
-                                                          near_out);
+  TraceSampledRay<Cfg, Source>(im, trace, op, ray, p, d, rng, sel, acc, near_out);
 }
 
 /// TraceRay after the source: the ray leaves p along d; rng stands after the source's words.
-template <PartialReflection kPR, bool kCorrector, bool kMesh, bool kDraws, class Source>
+template <class Cfg, class Source>
 void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Optics& op,
                      uint64_t ray, const Vec3& p, Vec3 d, RayRng& rng, const RaySelection& sel,
                      Accum& acc, std::vector<uint64_t>* near_out) {
@@ -50,10 +49,10 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Op
   // where it is then (displaced by v_k t; a mesh through Embree's motion blur at that time).
   // The spectrum likewise: such a ray draws its wavelength (after its time), which sets the
   // index of every dispersive object for it.
-  // kDraws: the scene moves or disperses (Scene::has_motion, is_spectral); static monochromatic
-  // scenes compile none of this.
+  // Cfg::kDraws: the scene moves or disperses (Scene::has_motion, is_spectral); static
+  // monochromatic scenes compile none of this.
   bool near = false;
-  if constexpr (kDraws) near = im.NearAnObject(p, d);
+  if constexpr (Cfg::kDraws) near = im.NearAnObject(p, d);
   ObjectShifts shifts;
   const ObjectShifts* moved = nullptr;
   if (near && im.motion) {
@@ -101,12 +100,13 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Op
     o = Vec3(q.x, q.y, q.z);
   }
   Vec3 pol;
-  if constexpr (kPR == PartialReflection::kPolarized) pol = RandomPerpendicular(d, rng.Uniform());
+  if constexpr (Cfg::kPR == PartialReflection::kPolarized)
+    pol = RandomPerpendicular(d, rng.Uniform());
 
   Fate fate = Fate::kDetected;
   bool done = false;
   if (has_objects) {
-    done = TraceObjects<kPR, kMesh>(im, trace, rng, o, d, pol, c, &fate, seen);
+    done = TraceObjects<Cfg::kPR, Cfg::kMesh>(im, trace, rng, o, d, pol, c, &fate, seen);
   }
   if (!done && d.z <= 0) {
     fate = Fate::kEscaped;
@@ -119,8 +119,8 @@ void TraceSampledRay(const Simulator::Impl& im, const TraceSpec& trace, const Op
   // The optics stages (stages-inl.h), one lane.
   auto out = st::Outcome<L1>::Open();
   st::Beam<L1> beam = st::Beam<L1>::From({o.x, o.y, o.z}, {d.x, d.y, d.z}, 1 / d.z);
-  if constexpr (kCorrector) ++c.corrector_tests;
-  st::OpticalTrain<L1, kCorrector>(op, beam, out, [&] { return rng.Uniform(); });
+  if constexpr (Cfg::kCorrector) ++c.corrector_tests;
+  st::OpticalTrain<L1, Cfg::kCorrector>(op, beam, out, [&] { return rng.Uniform(); });
   if (!out.settled) {
     double u, v;
     st::SensorPoint<L1>(op, beam, u, v);
@@ -156,12 +156,12 @@ void ForEachSelectedRay(const RaySelection& sel, uint64_t begin, uint64_t end, F
   }
 }
 
-template <PartialReflection kPR, bool kCorrector, bool kMesh, bool kDraws, class Source>
+template <class Cfg, class Source>
 void TraceRange(const Simulator::Impl& im, const Source& src, const TraceSpec& trace,
                 const Optics& op, uint32_t plane, uint64_t begin, uint64_t end,
                 const RaySelection& sel, Accum& acc, std::vector<uint64_t>* near_out) {
   ForEachSelectedRay(sel, begin, end, [&](uint64_t ray) {
-    TraceRay<kPR, kCorrector, kMesh, kDraws>(im, src, trace, op, plane, ray, sel, acc, near_out);
+    TraceRay<Cfg>(im, src, trace, op, plane, ray, sel, acc, near_out);
   });
 }
 

@@ -278,48 +278,20 @@ PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t r
     Accum& acc = accums.local();
     std::vector<uint64_t>* near_out = sel.split ? &near_by_chunk[ci] : nullptr;
     const TraceSpec& ts = scene_.trace;
-    // Choose the inner loop once per chunk from the scene's effects.
+    // The inner loop chosen from the scene's effects (TraceConfig) and its source.
     std::visit(
         [&](const auto& src) {
           using Source = std::decay_t<decltype(src)>;
-          auto range = [&]<PartialReflection P, bool C, bool M, bool D>() {
+          WithTraceConfig(pr, corr, mesh, draws, [&]<class Cfg>() {
             if constexpr (kPacketSource<Source>) {
               if (plan) {
-                TraceRangePackets<P, C, M, D>(im, src, ts, op, plane_index, b, e, sel, acc,
-                                              near_out, *plan);
+                TraceRangePackets<Cfg>(im, src, ts, op, plane_index, b, e, sel, acc, near_out,
+                                       *plan);
                 return;
               }
             }
-            TraceRange<P, C, M, D>(im, src, ts, op, plane_index, b, e, sel, acc, near_out);
-          };
-          // Each effect a compile-time switch: corrector, meshes, per-ray draws (motion, spectrum).
-          auto with_draws = [&]<PartialReflection P, bool C, bool M>() {
-            if (draws)
-              range.template operator()<P, C, M, true>();
-            else
-              range.template operator()<P, C, M, false>();
-          };
-          auto dispatch = [&]<PartialReflection P>() {
-            if (corr && mesh)
-              with_draws.template operator()<P, true, true>();
-            else if (corr)
-              with_draws.template operator()<P, true, false>();
-            else if (mesh)
-              with_draws.template operator()<P, false, true>();
-            else
-              with_draws.template operator()<P, false, false>();
-          };
-          switch (pr) {
-            case PartialReflection::kOff:
-              dispatch.template operator()<PartialReflection::kOff>();
-              break;
-            case PartialReflection::kUnpolarized:
-              dispatch.template operator()<PartialReflection::kUnpolarized>();
-              break;
-            case PartialReflection::kPolarized:
-              dispatch.template operator()<PartialReflection::kPolarized>();
-              break;
-          }
+            TraceRange<Cfg>(im, src, ts, op, plane_index, b, e, sel, acc, near_out);
+          });
         },
         im.source);
     progress.Add(e - b);
@@ -378,24 +350,11 @@ Simulator::ObjectExit Simulator::TraceThroughObjects(const Vec3& origin, const V
   out.direction = Normalize(direction);
   RayRng rng(scene_.trace.seed, 0, ray_index);
   Vec3 pol = RandomPerpendicular(out.direction, rng.Uniform());
-  auto run = [&]<PartialReflection P>() {
-    out.ended = impl_->geometry.has_meshes()
-                    ? TraceObjects<P, true>(*impl_, scene_.trace, rng, out.origin, out.direction,
-                                            pol, out.counters, &out.fate)
-                    : TraceObjects<P, false>(*impl_, scene_.trace, rng, out.origin, out.direction,
-                                             pol, out.counters, &out.fate);
-  };
-  switch (scene_.trace.partial_reflection) {
-    case PartialReflection::kOff:
-      run.template operator()<PartialReflection::kOff>();
-      break;
-    case PartialReflection::kUnpolarized:
-      run.template operator()<PartialReflection::kUnpolarized>();
-      break;
-    case PartialReflection::kPolarized:
-      run.template operator()<PartialReflection::kPolarized>();
-      break;
-  }
+  const bool mesh = impl_->geometry.has_meshes();
+  WithTraceConfig(scene_.trace.partial_reflection, false, mesh, false, [&]<class Cfg>() {
+    out.ended = TraceObjects<Cfg::kPR, Cfg::kMesh>(*impl_, scene_.trace, rng, out.origin,
+                                                   out.direction, pol, out.counters, &out.fate);
+  });
   return out;
 }
 

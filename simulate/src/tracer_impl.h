@@ -30,6 +30,52 @@ inline bool LinePassesWithin(const Vec3& p, const Vec3& d, const Vec3& c, double
   return st::LineDistance2<L1>(cc, {p.x, p.y, p.z}, {d.x, d.y, d.z}) <= r2;
 }
 
+/// The inner loop's compile-time switches, chosen once per image from what the scene declares:
+/// the partial-reflection branch, the corrector stage, the Embree mesh query and the per-ray
+/// draws (motion, spectrum). Every tracing template takes one (WithTraceConfig makes it).
+template <PartialReflection kPartialReflection, bool kHasCorrector, bool kHasMesh, bool kHasDraws>
+struct TraceConfig {
+  static constexpr PartialReflection kPR = kPartialReflection;
+  static constexpr bool kCorrector = kHasCorrector;
+  static constexpr bool kMesh = kHasMesh;
+  static constexpr bool kDraws = kHasDraws;
+};
+
+/// f.template operator()<Cfg>() with Cfg the TraceConfig of these switches: the one dispatch
+/// from run-time effects to compiled inner loops.
+template <class F>
+void WithTraceConfig(PartialReflection pr, bool corrector, bool mesh, bool draws, F&& f) {
+  auto with_draws = [&]<PartialReflection P, bool C, bool M>() {
+    if (draws)
+      f.template operator()<TraceConfig<P, C, M, true>>();
+    else
+      f.template operator()<TraceConfig<P, C, M, false>>();
+  };
+  auto with_mesh = [&]<PartialReflection P, bool C>() {
+    if (mesh)
+      with_draws.template operator()<P, C, true>();
+    else
+      with_draws.template operator()<P, C, false>();
+  };
+  auto with_corrector = [&]<PartialReflection P>() {
+    if (corrector)
+      with_mesh.template operator()<P, true>();
+    else
+      with_mesh.template operator()<P, false>();
+  };
+  switch (pr) {
+    case PartialReflection::kOff:
+      with_corrector.template operator()<PartialReflection::kOff>();
+      break;
+    case PartialReflection::kUnpolarized:
+      with_corrector.template operator()<PartialReflection::kUnpolarized>();
+      break;
+    case PartialReflection::kPolarized:
+      with_corrector.template operator()<PartialReflection::kPolarized>();
+      break;
+  }
+}
+
 // Which of a plane's rays to trace: all of [0, n), a list of indices, or all but a sorted list.
 struct RaySelection {
   const uint64_t* list = nullptr;

@@ -6,8 +6,10 @@
 #include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <iterator>
 #include <optional>
 #include <thread>
 #include <variant>
@@ -191,7 +193,7 @@ std::vector<std::string> Simulator::Effects() const {
 
 PlaneResult Simulator::TracePlane(double defocus_um, uint32_t plane_index, uint64_t rays,
                                   const RunControl& control) const {
-  return Trace(defocus_um, plane_index, rays, {}, control);
+  return Trace(defocus_um, plane_index, RaySelection::Range(0, rays), control);
 }
 
 PlaneResult Simulator::TracePlaneExcept(double defocus_um, uint32_t plane_index, uint64_t rays,
@@ -203,42 +205,79 @@ PlaneResult Simulator::TracePlaneExcept(double defocus_um, uint32_t plane_index,
 PlaneResult Simulator::TraceRays(double defocus_um, uint32_t plane_index,
                                  std::span<const uint64_t> ray_indices,
                                  const RunControl& control) const {
-  RaySelection sel;
-  sel.list = ray_indices.data();
-  return Trace(defocus_um, plane_index, ray_indices.size(), sel, control);
+  return Trace(defocus_um, plane_index, RaySelection::Of(ray_indices), control);
 }
 
 PlaneResult Simulator::TraceRangeExcept(double defocus_um, uint32_t plane_index, uint64_t first,
                                         uint64_t last, std::span<const uint64_t> excluded,
                                         const RunControl& control) const {
-  RAYMATCH_CHECK(first <= last && std::is_sorted(excluded.begin(), excluded.end()));
-  RaySelection sel;
-  sel.skip = excluded.data(), sel.skip_count = excluded.size(), sel.first = first;
-  return Trace(defocus_um, plane_index, last - first, sel, control);
+  RAYMATCH_CHECK(first <= last);
+  return Trace(defocus_um, plane_index, RaySelection::Range(first, last).Except(excluded), control);
 }
 
 PlaneResult Simulator::TraceFarRays(double defocus_um, uint32_t plane_index, uint64_t first,
                                     uint64_t last, const Vec3& center_um, double radius_um,
                                     std::vector<uint64_t>* near, const RunControl& control) const {
-  RAYMATCH_CHECK(first <= last && near != nullptr);
-  if (GetCluster().size > 1) {
+  RAYMATCH_CHECK(first <= last);
+  return Trace(defocus_um, plane_index,
+               RaySelection::Range(first, last).SplitBy(center_um, radius_um), control, near);
+}
+
+namespace {
+
+// SplitRaysBySphere with the squared radius.
+void SplitRays(const Simulator::Impl& im, uint64_t seed, uint32_t plane_index, uint64_t first,
+               uint64_t last, const Vec3& center_um, double r2, std::vector<uint64_t>* near,
+               std::vector<uint64_t>* far) {
+  constexpr uint64_t kChunk = 65536;
+  const uint64_t chunks = (last - first + kChunk - 1) / kChunk;
+  // Per-chunk lists joined in chunk order: the result does not depend on the thread count.
+  std::vector<std::vector<uint64_t>> near_c(chunks), far_c(chunks);
+  tbb::parallel_for(uint64_t(0), chunks, [&](uint64_t ci) {
+    const uint64_t b = first + ci * kChunk, e = std::min(last, b + kChunk);
+    std::visit(
+        [&](const auto& src) {
+          for (uint64_t ray = b; ray < e; ++ray) {
+            RayRng rng(seed, plane_index, ray);
+            Vec3 p, d;
+            // A ray the source rejects ends at once (escaped) in either list.
+            const bool ok = src.Sample(rng, &p, &d);
+            (ok && LinePassesWithin(p, d, center_um, r2) ? near_c[ci] : far_c[ci]).push_back(ray);
+          }
+        },
+        im.source);
+  });
+  for (uint64_t ci = 0; ci < chunks; ++ci) {
+    if (near) near->insert(near->end(), near_c[ci].begin(), near_c[ci].end());
+    if (far) far->insert(far->end(), far_c[ci].begin(), far_c[ci].end());
+  }
+}
+
+}  // namespace
+
+PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, const RaySelection& sel,
+                             const RunControl& control, std::vector<uint64_t>* near) const {
+  RAYMATCH_CHECK(!sel.skip || std::is_sorted(sel.skip, sel.skip + sel.skip_count));
+  RAYMATCH_CHECK(!sel.split || (near != nullptr && !sel.list));
+  if (sel.split && GetCluster().size > 1) {
     // MPI ranks trace different chunks, but every rank needs the whole near list: split first
     // (every rank samples the whole range), then trace the rest across the ranks.
     std::vector<uint64_t> part;
-    SplitRaysBySphere(plane_index, first, last, center_um, radius_um, &part, nullptr);
-    PlaneResult r = TraceRangeExcept(defocus_um, plane_index, first, last, part, control);
-    near->insert(near->end(), part.begin(), part.end());
+    SplitRays(*impl_, scene_.trace.seed, plane_index, sel.first, sel.first + sel.count,
+              sel.split_center, sel.split_r2, &part, nullptr);
+    const std::span<const uint64_t> skip(sel.skip, sel.skip ? sel.skip_count : 0);
+    std::vector<uint64_t> split_off, left_out;  // the near rays not skipped; both lists
+    std::set_difference(part.begin(), part.end(), skip.begin(), skip.end(),
+                        std::back_inserter(split_off));
+    std::set_union(part.begin(), part.end(), skip.begin(), skip.end(),
+                   std::back_inserter(left_out));
+    RaySelection rest = sel;
+    rest.split = false;
+    PlaneResult r = Trace(defocus_um, plane_index, rest.Except(left_out), control);
+    near->insert(near->end(), split_off.begin(), split_off.end());
     return r;
   }
-  RaySelection sel;
-  sel.first = first, sel.split = true, sel.split_center = center_um;
-  sel.split_r2 = radius_um * radius_um;
-  return Trace(defocus_um, plane_index, last - first, sel, control, near);
-}
-
-PlaneResult Simulator::Trace(double defocus_um, uint32_t plane_index, uint64_t rays,
-                             const RaySelection& sel, const RunControl& control,
-                             std::vector<uint64_t>* near) const {
+  const uint64_t rays = sel.count;
   const Impl& im = *impl_;
   int threads = control.threads > 0 ? control.threads : scene_.trace.threads;
   if (threads <= 0) threads = static_cast<int>(std::thread::hardware_concurrency());
@@ -381,30 +420,8 @@ uint64_t Simulator::RaysForPhotonTarget(double photons_per_pixel, double* hppr) 
 void Simulator::SplitRaysBySphere(uint32_t plane_index, uint64_t first, uint64_t last,
                                   const Vec3& center_um, double radius_um,
                                   std::vector<uint64_t>* near, std::vector<uint64_t>* far) const {
-  const Impl& im = *impl_;
-  const double r2 = radius_um * radius_um;
-  constexpr uint64_t kChunk = 65536;
-  const uint64_t chunks = (last - first + kChunk - 1) / kChunk;
-  // Per-chunk lists joined in chunk order: the result does not depend on the thread count.
-  std::vector<std::vector<uint64_t>> near_c(chunks), far_c(chunks);
-  tbb::parallel_for(uint64_t(0), chunks, [&](uint64_t ci) {
-    const uint64_t b = first + ci * kChunk, e = std::min(last, b + kChunk);
-    std::visit(
-        [&](const auto& src) {
-          for (uint64_t ray = b; ray < e; ++ray) {
-            RayRng rng(scene_.trace.seed, plane_index, ray);
-            Vec3 p, d;
-            // A ray the source rejects ends at once (escaped) in either list.
-            const bool ok = src.Sample(rng, &p, &d);
-            (ok && LinePassesWithin(p, d, center_um, r2) ? near_c[ci] : far_c[ci]).push_back(ray);
-          }
-        },
-        im.source);
-  });
-  for (uint64_t ci = 0; ci < chunks; ++ci) {
-    if (near) near->insert(near->end(), near_c[ci].begin(), near_c[ci].end());
-    if (far) far->insert(far->end(), far_c[ci].begin(), far_c[ci].end());
-  }
+  SplitRays(*impl_, scene_.trace.seed, plane_index, first, last, center_um, radius_um * radius_um,
+            near, far);
 }
 
 double Simulator::field_radius_um() const { return impl_->field_radius_um; }

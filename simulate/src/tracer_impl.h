@@ -1,6 +1,6 @@
 #pragma once
 // What the tracer's files share (tracer.cpp, trace_ray.h, objects.h, packet_driver.*): the
-// Simulator's state, a plane's ray selection, and the per-thread accumulators.
+// Simulator's state, the tracing templates' configuration, and the per-thread accumulators.
 #include <memory>
 #include <vector>
 
@@ -75,17 +75,6 @@ void WithTraceConfig(PartialReflection pr, bool corrector, bool mesh, bool draws
       break;
   }
 }
-
-// Which of a plane's rays to trace: all of [0, n), a list of indices, or all but a sorted list.
-struct RaySelection {
-  const uint64_t* list = nullptr;
-  const uint64_t* skip = nullptr;
-  size_t skip_count = 0;
-  uint64_t first = 0;  // without a list: the rays [first, first + n)
-  bool split = false;  // leave out (and report) rays whose line meets the sphere
-  Vec3 split_center;
-  double split_r2 = 0;
-};
 
 /// Rays of the packet path that meet the scene's one sphere, waiting for the sphere stage.
 struct SphereQueue {

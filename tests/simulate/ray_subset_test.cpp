@@ -3,6 +3,9 @@
 // and the rays far from the region never meet an object.
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <iterator>
+
 #include "raymatch/simulate/tracer.h"
 #include "test_scenes.h"
 
@@ -88,6 +91,46 @@ TEST(RaySubset, SplitDoesNotDependOnThreadsAndIsAscending) {
   sim.SplitRaysBySphere(0, 200000, Vec3(0, 0, 0), 20, &b, nullptr);
   EXPECT_EQ(a, b);
   EXPECT_TRUE(std::is_sorted(a.begin(), a.end()));
+}
+
+// Simulator::Trace with the selections its entry points name, composed: a range split by the
+// sphere, less a list of rays, plus the near rays it reports and the listed rays, is the whole
+// plane bit for bit; each part is the entry point's image of the same rays.
+TEST(RaySubset, ComposedSelectionsOfTraceAddUpToThePlane) {
+  const Simulator sim(DropScene());
+  const uint64_t first = 1000, last = 300000;
+  const Vec3 c(2, -1, 1);
+  std::vector<uint64_t> left_out;  // every 97th ray of the range, ascending
+  for (uint64_t r = first + 5; r < last; r += 97) left_out.push_back(r);
+  std::vector<uint64_t> near;
+  const PlaneResult far =
+      sim.Trace(4, 2, RaySelection::Range(first, last).SplitBy(c, 16).Except(left_out), {}, &near);
+  ASSERT_FALSE(near.empty());
+  EXPECT_TRUE(std::is_sorted(near.begin(), near.end()));
+  for (uint64_t r : left_out) EXPECT_FALSE(std::binary_search(near.begin(), near.end(), r));
+  EXPECT_EQ(far.rays + near.size() + left_out.size(), last - first);
+  EXPECT_EQ(far.counters.interface_events, 0u);  // the far rays never meet the sphere
+  const PlaneResult near_image = sim.Trace(4, 2, RaySelection::Of(near));
+  const PlaneResult listed = sim.TraceRays(4, 2, left_out);
+  const PlaneResult whole = sim.Trace(4, 2, RaySelection::Range(first, last));
+  Image sum = far.counts;
+  for (size_t i = 0; i < sum.size(); ++i)
+    sum.pixels[i] += near_image.counts.pixels[i] + listed.counts.pixels[i];
+  EXPECT_EQ(sum.pixels, whole.counts.pixels);
+  // The same rays through the entry points.
+  std::vector<uint64_t> near_b;
+  const PlaneResult far_b = sim.TraceFarRays(4, 2, first, last, c, 16, &near_b);
+  std::vector<uint64_t> merged;  // the split's near rays, left-out ones included
+  std::set_union(near.begin(), near.end(), left_out.begin(), left_out.end(),
+                 std::back_inserter(merged));
+  std::vector<uint64_t> near_or_listed;
+  std::set_union(near_b.begin(), near_b.end(), left_out.begin(), left_out.end(),
+                 std::back_inserter(near_or_listed));
+  EXPECT_EQ(merged, near_or_listed);
+  const PlaneResult rest = sim.TraceRangeExcept(4, 2, first, last, near_or_listed);
+  EXPECT_EQ(rest.counts.pixels, far.counts.pixels);
+  EXPECT_EQ(sim.TracePlane(4, 2, last).counts.pixels,
+            sim.TraceRangeExcept(4, 2, 0, last, {}).counts.pixels);
 }
 
 }  // namespace

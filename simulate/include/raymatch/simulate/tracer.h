@@ -21,8 +21,6 @@
 
 namespace raymatch::simulate {
 
-struct RaySelection;  // simulate/src/tracer_impl.h: which of a plane's rays to trace
-
 /// What became of a ray. Every traced ray ends in exactly one fate.
 enum class Fate : int {
   kDetected = 0,       ///< reached a sensor pixel
@@ -72,6 +70,48 @@ struct PlaneResult {
                       ///< says whether a scene can; RunControl::simd whether it may)
 };
 
+/// Which of a plane's rays Simulator::Trace traces. Every ray keeps the random stream TracePlane
+/// gives it, so images of disjoint selections add up to the image of their union (fits trace
+/// once the rays that cannot meet an object and re-trace only the others).
+struct RaySelection {
+  uint64_t first = 0;              ///< the rays [first, first + count) ...
+  uint64_t count = 0;              ///<
+  const uint64_t* list = nullptr;  ///< ... or these `count` ray indices instead
+  const uint64_t* skip = nullptr;  ///< ascending indices left out of the range (others ignored)
+  size_t skip_count = 0;
+  /// Leave out the rays whose straight line from the source (before any object) passes within
+  /// sqrt(split_r2) of split_center, and report their indices (Trace's `near`).
+  bool split = false;
+  Vec3 split_center;
+  double split_r2 = 0;
+
+  /// The rays [first, last).
+  static RaySelection Range(uint64_t first, uint64_t last) {
+    RaySelection s;
+    s.first = first, s.count = last - first;
+    return s;
+  }
+  /// The listed rays, in the list's order.
+  static RaySelection Of(std::span<const uint64_t> rays) {
+    RaySelection s;
+    s.list = rays.data(), s.count = rays.size();
+    return s;
+  }
+  /// This range without the listed rays (ascending; entries outside the range are ignored).
+  RaySelection Except(std::span<const uint64_t> excluded) const {
+    RaySelection s = *this;
+    s.skip = excluded.data(), s.skip_count = excluded.size();
+    return s;
+  }
+  /// This range (with or without Except; not a list) without the rays whose line passes within
+  /// radius_um of center_um: Trace reports them.
+  RaySelection SplitBy(const Vec3& center_um, double radius_um) const {
+    RaySelection s = *this;
+    s.split = true, s.split_center = center_um, s.split_r2 = radius_um * radius_um;
+    return s;
+  }
+};
+
 /// The SIMD instruction set the packet path uses on this CPU (chosen at run time), e.g. "AVX3"
 /// (AVX-512), "AVX2", "SSE4" (Google Highway's target names).
 const char* SimdTarget();
@@ -94,8 +134,15 @@ class Simulator {
   explicit Simulator(const Scene& scene);
   ~Simulator();
 
-  /// Traces `rays` rays with the objective focused at `defocus_um`; `plane_index` selects
-  /// the random streams (different planes get independent noise, like separate exposures).
+  /// Traces the selected rays of the plane with the objective focused at `defocus_um`;
+  /// `plane_index` selects the random streams (different planes get independent noise, like
+  /// separate exposures). A split selection appends the rays it leaves out to `near`
+  /// (ascending; required then). Counters cover the traced rays only. The entry points below
+  /// are this call with the selections they name.
+  PlaneResult Trace(double defocus_um, uint32_t plane_index, const RaySelection& rays,
+                    const RunControl& control = {}, std::vector<uint64_t>* near = nullptr) const;
+
+  /// The rays [0, rays) of the plane.
   PlaneResult TracePlane(double defocus_um, uint32_t plane_index, uint64_t rays,
                          const RunControl& control = {}) const;
 
@@ -180,10 +227,6 @@ class Simulator {
   struct Impl;  ///< defined in simulate/src/tracer_impl.h only
 
  private:
-  PlaneResult Trace(double defocus_um, uint32_t plane_index, uint64_t rays,
-                    const RaySelection& selection, const RunControl& control,
-                    std::vector<uint64_t>* near = nullptr) const;
-
   Scene scene_;
   std::unique_ptr<Impl> impl_;
 };

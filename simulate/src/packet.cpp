@@ -417,13 +417,6 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
     auto count = [&](hn::Vec<DI>& v, hn::Mask<DF> m) {
       v = hn::IfThenElse(hn::RebindMask(di, m), hn::Add(v, hn::Set(di, 1)), v);
     };
-    // The media on either side: entering from the medium (or from inside the sphere itself,
-    // which the stack cannot hold twice), leaving into the medium.
-    auto indices = [&](const st::FacedSurface<L>& face, hn::Vec<DF>& n1, hn::Vec<DF>& n2) {
-      const auto inside = hn::RebindMask(df, hn::Gt(path.depth, hn::Zero(di)));
-      n1 = hn::IfThenElse(face.entering, hn::IfThenElse(inside, n_obj, n_med), n_obj);
-      n2 = hn::IfThenElse(face.entering, n_obj, n_med);
-    };
     // The unpolarised Fresnel draw from each lane's next word; a lane out of words goes to the
     // scalar path.
     auto draw = [&](hn::Mask<DF> tir, const st::FacedSurface<L>& face, hn::Vec<DF> n1,
@@ -456,6 +449,12 @@ void SphereImpl(const SphereParams& sp, size_t n, Rays* r) {
       const auto len = hn::Sqrt(st::Dot<L>(v, v));
       const st::V3<L> normal{hn::Div(v.x, len), hn::Div(v.y, len), hn::Div(v.z, len)};
       const auto inside = hn::RebindMask(df, hn::Gt(path.depth, hn::Zero(di)));
+      // The media on either side: entering from the medium (or from inside the sphere itself,
+      // which the stack cannot hold twice), leaving into the medium.
+      auto indices = [&](const st::FacedSurface<L>& face, hn::Vec<DF>& n1, hn::Vec<DF>& n2) {
+        n1 = hn::IfThenElse(face.entering, hn::IfThenElse(inside, n_obj, n_med), n_obj);
+        n2 = hn::IfThenElse(face.entering, n_obj, n_med);
+      };
       st::InterfaceEvent<L>(sp.max_interactions, hp, normal, eps, inside, d, o, active, path, out,
                             indices, draw);
     }

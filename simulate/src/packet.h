@@ -24,8 +24,6 @@ inline constexpr size_t kBatch = 256;  ///< rays per batch: a multiple of every 
 inline constexpr int kWords = 12;      ///< random words per ray made up front (3 Philox blocks)
 inline constexpr int kMaxBounds = 8;   ///< objects the near test takes; more: scalar path
 
-inline constexpr int kPathClasses = 8;  ///< TraceCounters::path_class
-
 /// The light field's angular table (a Distribution2D, sampling.h) laid out for the packet
 /// stage: the marginal over rows and every row's conditional, each a cdf (n + 1 values) and a
 /// guide table, the rows' back to back. Built once per Simulator.

@@ -70,7 +70,9 @@ void RegisterBench(CLI::App& app, int* exit_code) {
   f->add_option("fit_file", fc->fit_file, "Fit file (docs/fit.md), error = \"poisson\"")
       ->required()
       ->check(CLI::ExistingFile);
-  f->add_option("--truth", fc->truth_scene, "Scene that makes the experiments (the truth)")
+  f->add_option("--truth", fc->truth_scene,
+                "Scene that makes the experiments (the truth); its [trace] photons_per_pixel\n"
+                "is the experiments' flat-field level (refused 3x off the fit images' border)")
       ->required()
       ->check(CLI::ExistingFile);
   f->add_option("--calibration", fc->calibration, "Calibration for the fit's and the truth's scene")

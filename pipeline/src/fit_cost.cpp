@@ -106,6 +106,26 @@ std::vector<Image> Experiment(const simulate::Scene& truth_scene, const fit::Fit
   return planes;
 }
 
+/// The fit sizes its rays by its images' photons (FitSpec::RaysPerPhoton) and the study replaces
+/// them by the truth's: a truth whose flat field is far from the images' (a scene without
+/// `[trace] photons_per_pixel` traces the default ray count) would study other fits than the
+/// file's. Throws Error when the two differ by more than a factor 3.
+void CheckTruthExposure(const fit::FitSpec& spec, const simulate::Scene& truth,
+                        const std::string& truth_file) {
+  const simulate::Simulator sim(truth);
+  double hits_per_pixel_per_ray = 0;
+  sim.RaysForPhotonTarget(1, &hits_per_pixel_per_ray);
+  const double flat = double(sim.RaysPerImage()) * hits_per_pixel_per_ray;
+  for (const fit::FitImage& im : spec.images) {
+    const double level = BorderMedian(im.photons);
+    if (level > 0 && flat > level / 3 && flat < level * 3) continue;
+    throw Error(truth_file + ": its flat field gives " + Num(flat) + " photons per pixel, but " +
+                im.file + " has " + Num(level) +
+                " (the median of its border): set [trace] photons_per_pixel in the truth scene to "
+                "the experiments' flat-field level, so its planes are the fit file's");
+  }
+}
+
 /// The Cramer-Rao bound is the truth's and the photons', the same at every setting: each
 /// parameter's is the mean over every fit that computed one (a fit whose derivative sets' halves
 /// give no positive-definite information has none), so all settings are judged by one bound.
@@ -268,6 +288,7 @@ FitCostResult RunFitCostStudy(const FitCostOptions& o) {
                   std::to_string(im.photons.height) + " pixels, but the truth scene " +
                   o.truth_scene + " images " + std::to_string(truth_scene.camera.nx) + " x " +
                   std::to_string(truth_scene.camera.ny));
+  CheckTruthExposure(base, truth_scene, o.truth_scene);
   fs::create_directories(o.output_dir);
   fit::FitOptions fo;
   fo.threads = o.threads;

@@ -20,22 +20,22 @@ namespace raymatch::pipeline {
 namespace {
 
 // A 9 um drop (n 1.36) 6 um before focus under a 27 deg cone, 1 um pixels at the object.
-std::string Drop(double r, int seed, int nx = 32) {
+std::string Drop(double r, int seed, int nx = 32, double photons_per_pixel = 400) {
   std::ostringstream s;
   s << "name = \"drop\"\nseed = " << seed << "\n[source]\ntype = \"cone\"\nhalf_angle_deg = 27\n"
     << "[[object]]\nname = \"drop\"\ntype = \"sphere\"\ncenter_um = [0.3, -0.2, 0]\n"
     << "radius_um = " << r << "\nindex = 1.36\n"
     << "[objective]\nfocal_length_mm = 10\nna = 0.42\nworking_distance_mm = 20\n"
     << "[tube_lens]\nfocal_length_mm = 200\n[camera]\npixels = [" << nx
-    << ", 28]\npixel_pitch_um = 20\n[trace]\nphotons_per_pixel = 400\n";
+    << ", 28]\npixel_pitch_um = 20\n[trace]\nphotons_per_pixel = " << photons_per_pixel << "\n";
   return s.str();
 }
 
 struct Case {
   testing::TempDir dir;
   FitCostOptions o;
-  explicit Case(int truth_nx = 32) {
-    dir.Write("truth.toml", Drop(9.0, 1, truth_nx));
+  explicit Case(int truth_nx = 32, double truth_photons = 400) {
+    dir.Write("truth.toml", Drop(9.0, 1, truth_nx, truth_photons));
     dir.Write("model.toml", Drop(8.8, 1));
     // A placeholder experiment of the right size: the study replaces its pixels.
     const simulate::Simulator sim(simulate::LoadScene(dir.Write("p.toml", Drop(9.0, 7))));
@@ -108,6 +108,8 @@ TEST(FitCost, BadInputIsRefusedBeforeAnyFit) {
   };
   Case wide(40);  // the truth's camera 40 x 28, the fit's images 32 x 28
   Refused(wide.o, "32 x 28 pixels, but the truth scene");
+  Case dim(32, 40);  // the truth's flat field 40 photons per pixel, the fit's images 400
+  Refused(dim.o, "set [trace] photons_per_pixel in the truth scene");
   Case c;
   FitCostOptions o = c.o;
   o.realisations = 1;

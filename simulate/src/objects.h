@@ -60,11 +60,18 @@ inline void ProjectOnInvariants(const IndexField& f, const Vec3& center, const V
 /// the direction T/|T| at the step's end. Across uniform cells of a grid the ray goes straight
 /// in one step (exact there), to the surface if it is nearer.
 /// `f`: object obj's field as this ray sees it (its own, or a view at the ray's wavelength).
-template <bool kMesh>
+/// With kOpticalPath, `*opl` is increased by the optical path from o to *hp, the integral of
+/// n ds (the images' instantiations are the code without it). With the parameter dt = ds / n it
+/// is the integral of n^2 dt, whose derivative 2 D.T is known at both ends of every step, so
+/// each step adds the corrected trapezoid (Hermite) rule h (f0 + f1) / 2 + h^2 (f0' - f1') / 12
+/// (error O(h^5), the order of the Sharma step itself) without another field evaluation;
+/// straight steps across uniform cells and the last chord, at most the surface tolerance long,
+/// add n times their length.
+template <bool kMesh, bool kOpticalPath = false>
 GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const IndexField& f,
                                const GrinSettings& cfg, int obj, const Vec3& o, const Vec3& d,
                                Hit* hit, Vec3* hp, Vec3* dout, TraceCounters& c,
-                               const ObjectShifts* shifts = nullptr) {
+                               const ObjectShifts* shifts = nullptr, double* opl = nullptr) {
   const UniformCells* uniform = im.uniform[obj].empty() ? nullptr : &im.uniform[obj];
   const Vec3 center = ObjectCenter(im, obj, shifts);  // the field moves with its object
   const Geometry& geo = im.geometry;
@@ -127,8 +134,10 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const IndexField& f,
           *hit = h;
           *hp = s.r + dir * h.t;
           *dout = dir;
+          if constexpr (kOpticalPath) *opl += s.n * h.t;
           return GrinOutcome::kHit;
         }
+        if constexpr (kOpticalPath) *opl += s.n * free;
         s = MakeGrinPoint(f, center, s.r + dir * free, s.t);
         moved(free);
         continue;
@@ -136,7 +145,9 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const IndexField& f,
     }
     GrinPoint s1 = s;
     double used = 0, next = dt;
+    [[maybe_unused]] GridCell start_cell;  // the polynomial a cell step's stages used
     if (cell_steps) {
+      if constexpr (kOpticalPath) start_cell = f.Cell(s.r - center);
       CellStep(f, center, local, &cells, &s1, &next, &used);
     } else {
       AdaptiveStep(f, center, local, &s1, &next, &used);
@@ -154,6 +165,19 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const IndexField& f,
       }
       if (!crosses) {
         if (central) ProjectOnInvariants(f, center, angular_momentum, &s1);
+        if constexpr (kOpticalPath) {
+          // A cell step ends just past a face, where the gradient jumps: the end's derivative
+          // is the start cell's polynomial's, the field the step integrated.
+          Vec3 d1 = s1.d;
+          if (cell_steps && shrink == 0) {
+            double n1;
+            IndexField::EvalInCell(start_cell, s1.r - center, &n1, &d1);
+            d1 = d1 * n1;
+          }
+          const double f0 = s.n * s.n, f1 = s1.n * s1.n;
+          const double g0 = 2 * Dot(s.d, s.t), g1 = 2 * Dot(d1, s1.t);  // d(n^2)/dt
+          *opl += used * (f0 + f1) / 2 + used * used * (g0 - g1) / 12;
+        }
         s = s1;
         dt = next;
         if (central) {
@@ -167,6 +191,7 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const IndexField& f,
         *hit = h;
         *hp = s.r + chord * (h.t / L);
         *dout = Normalize(s1.t);
+        if constexpr (kOpticalPath) *opl += s.n * h.t;
         // In a steep gradient the direction at the step's end may already bend back inward;
         // the crossing chord points outward by construction, so leave along it then.
         if (Dot(*dout, h.normal) <= 0) *dout = chord / L;
@@ -192,10 +217,13 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const IndexField& f,
 /// ended inside the objects (interaction cap, numerical loss, step cap). `seen`: the objects'
 /// indices, fields and positions at this ray's wavelength and time (RayObjects). Each surface
 /// met is the interface event the packet path's sphere stage runs too (stages-inl.h,
-/// InterfaceEvent), on one lane.
-template <PartialReflection kPR, bool kMesh>
+/// InterfaceEvent), on one lane. With kOpticalPath, `*opl` receives the optical path, the
+/// integral of n ds, from o as given to o as returned (the last surface's hit point plus its
+/// offset).
+template <PartialReflection kPR, bool kMesh, bool kOpticalPath = false>
 bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng, Vec3& o, Vec3& d,
-                  Vec3& pol, TraceCounters& c, Fate* fate_out, const RayObjects& seen = {}) {
+                  Vec3& pol, TraceCounters& c, Fate* fate_out, const RayObjects& seen = {},
+                  double* opl = nullptr) {
   const Geometry& geo = im.geometry;
   // Objects the ray is inside, innermost last (nested objects: a bubble in a drop); their count
   // is path.depth.
@@ -211,14 +239,18 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
   st::ObjectPath<L1> path = st::ObjectPath<L1>::Start();
   st::Outcome<L1> out = st::Outcome<L1>::Open();
   auto v3 = [](const Vec3& v) { return st::V3<L1>{v.x, v.y, v.z}; };
+  if constexpr (kOpticalPath) *opl = 0;
+  [[maybe_unused]] Vec3 from = o;  // where the path's current segment began (the last hit)
   for (;;) {
     Hit h;
     Vec3 hp;
     const int depth = static_cast<int>(path.depth);
     const int cur = depth ? stack[depth - 1] : -1;
     if (im.has_grin && cur >= 0 && field[cur]) {
-      const GrinOutcome g =
-          IntegrateToSurface<kMesh>(im, *field[cur], trace.grin, cur, o, d, &h, &hp, &d, c, moved);
+      // (The offset from the last hit point, within the surface's epsilon, at the index there.)
+      if constexpr (kOpticalPath) *opl += index_at(cur, o) * Length(o - from);
+      const GrinOutcome g = IntegrateToSurface<kMesh, kOpticalPath>(
+          im, *field[cur], trace.grin, cur, o, d, &h, &hp, &d, c, moved, opl);
       if (g != GrinOutcome::kHit) {
         out.Mark(true, g == GrinOutcome::kStepCap ? Fate::kGrinStepCap : Fate::kLostInside);
         break;
@@ -226,9 +258,14 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
     } else {
       ++c.shape_queries;
       if constexpr (kMesh) ++c.mesh_queries;
-      if (!geo.Intersect<kMesh>(o, d, &h, moved)) break;
+      if (!geo.Intersect<kMesh>(o, d, &h, moved)) {
+        if constexpr (kOpticalPath) *opl += index_at(cur, o) * Length(o - from);
+        break;
+      }
       hp = o + d * h.t;
+      if constexpr (kOpticalPath) *opl += index_at(cur, hp) * Length(hp - from);
     }
+    if constexpr (kOpticalPath) from = hp;
     if (path.events == 0) ++c.rays_hitting_objects;
     int on_stack = -1;  // where the surface's object is on the stack
     for (int k = depth - 1; k >= 0; --k)

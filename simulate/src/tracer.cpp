@@ -391,8 +391,9 @@ Simulator::ObjectExit Simulator::TraceThroughObjects(const Vec3& origin, const V
   Vec3 pol = RandomPerpendicular(out.direction, rng.Uniform());
   const bool mesh = impl_->geometry.has_meshes();
   WithTraceConfig(scene_.trace.partial_reflection, false, mesh, false, [&]<class Cfg>() {
-    out.ended = TraceObjects<Cfg::kPR, Cfg::kMesh>(*impl_, scene_.trace, rng, out.origin,
-                                                   out.direction, pol, out.counters, &out.fate);
+    out.ended = TraceObjects<Cfg::kPR, Cfg::kMesh, true>(*impl_, scene_.trace, rng, out.origin,
+                                                         out.direction, pol, out.counters,
+                                                         &out.fate, {}, &out.optical_path_um);
   });
   return out;
 }

@@ -267,6 +267,105 @@ TEST(Grin, CellStepsFollowAPiecewiseLinearIndexExactly) {
               worst_cells, worst_halves);
 }
 
+// The optical path (the integral of n ds) through the piecewise-linear slab grid against the
+// exact one: with beta = |(d_y, d_z)| conserved, ds = n dx / sqrt(n^2 - beta^2), so a slab
+// where n = n_i + b (x - x_i) adds integral n^2 dn / (b sqrt(n^2 - beta^2)) =
+// [n sqrt(n^2 - beta^2) + beta^2 acosh(n / beta)] / (2 b). In front of the box and after its
+// exit (the surface offset) the ray runs straight in the medium of index 1. A position error e
+// changes the path by at most n e, so the bound is n_max x tolerance x steps, as for the exit.
+TEST(OpticalPath, ThroughAPiecewiseLinearGridIsTheExactIntegral) {
+  const SlabGrid g = MakeSlabGrid(5);
+  ObjectSpec o = testing::BoxObject({10, 10, 10}, g.n[0]);
+  o.index_field = g.field;
+  Scene s = LensScene();
+  s.objects = {o};
+  const double tol = 1e-7;
+  s.trace.grin.tolerance_um = tol;
+  const Simulator sim(s);
+  RayRng rng(11, 0, 0);
+  double worst = 0;
+  for (int k = 0; k < 40; ++k) {
+    const Vec3 d = Normalize(Vec3(1, 0.6 * (rng.Uniform() - 0.5), 0.6 * (rng.Uniform() - 0.5)));
+    const Vec3 entry(-10, 4 * (rng.Uniform() - 0.5), 4 * (rng.Uniform() - 0.5));
+    const Vec3 start = entry - d * (2 / d.x);
+    const double beta = std::hypot(d.y, d.z);
+    double inside = 0;
+    for (size_t i = 0; i + 1 < g.n.size(); ++i) {
+      const double b = (g.n[i + 1] - g.n[i]) / g.h;
+      auto F = [&](double n) {
+        return 0.5 * (n * std::sqrt(n * n - beta * beta) + beta * beta * std::acosh(n / beta));
+      };
+      inside += std::abs(b) < 1e-12
+                    ? g.h * g.n[i] * g.n[i] / std::sqrt(g.n[i] * g.n[i] - beta * beta)
+                    : (F(g.n[i + 1]) - F(g.n[i])) / b;
+    }
+    const auto e = sim.TraceThroughObjects(start, d, k);
+    ASSERT_FALSE(e.ended);
+    const double exact = 2 / d.x + inside + Length(e.origin - SlabExit(g, entry, d));
+    const double err = std::abs(e.optical_path_um - exact);
+    EXPECT_LT(err, 1.6 * tol * double(e.counters.grin_steps)) << k;
+    worst = std::max(worst, err);
+  }
+  std::printf("worst optical path error at %g um: %.2e um\n", tol, worst);
+}
+
+// Fermat's principle through a Luneburg lens n = sqrt(2 - (r/R)^2) in vacuum: a collimated beam
+// focuses on the rear pole F = (0, 0, R), so every ray's optical path from the plane z = -2R to
+// F is the same; on the axis it is R + R integral_{-1}^{1} sqrt(2 - u^2) du = R (2 + pi / 2).
+// Each ray leaves just past F (the surface offset, with the integrator's error across it); the
+// part beyond F along the ray is taken off. The bound is that of the slab above (n <= sqrt 2).
+TEST(OpticalPath, EveryRayThroughALuneburgLensHasTheSamePathToItsFocus) {
+  const double R = 20;
+  Scene s = LensScene();
+  s.objects = {testing::LuneburgSphere(R)};
+  const double tol = 1e-7;
+  s.trace.grin.tolerance_um = tol;
+  const Simulator sim(s);
+  const Vec3 focus(0, 0, R);
+  double worst = 0;
+  for (double h : {0.0, 0.1, 0.3, 0.5, 0.7, 0.9, 0.97}) {
+    const double phi = 2 * M_PI * h;  // skew the rays' planes too
+    const Vec3 start(h * R * std::cos(phi), h * R * std::sin(phi), -2 * R);
+    const auto e = sim.TraceThroughObjects(start, {0, 0, 1});
+    ASSERT_FALSE(e.ended) << h;
+    ASSERT_LT(Length(e.origin - focus), 1e-2) << h;
+    const double to_focus = e.optical_path_um - Dot(e.direction, e.origin - focus);
+    const double err = std::abs(to_focus - R * (2 + M_PI / 2));
+    EXPECT_LT(err, 1.5 * tol * double(e.counters.grin_steps)) << h;
+    worst = std::max(worst, err);
+  }
+  std::printf("worst Fermat error through the Luneburg lens at %g um: %.2e um\n", tol, worst);
+}
+
+// Through a homogeneous sphere (n 1.40 in water, 1.33) the path is straight in each medium:
+// a ray at height h enters at z = -sqrt(R^2 - h^2) with sin(theta_i) = h / R, crosses the
+// chord 2 R cos(theta_t) (Snell: n sin(theta_t) = n_m sin(theta_i)) and leaves at the chord's
+// end, then runs on in the medium to the offset origin. Exact but for the surface offsets
+// (1e-9 of the object's size, geometry.cpp), each of which moves the traced ray by that much.
+TEST(OpticalPath, ThroughAHomogeneousSphereIsEachChordTimesItsIndex) {
+  const double R = 10, n = 1.40, nm = 1.33, offset = 1e-9 * R;
+  Scene s = LensScene();
+  s.medium_index = nm;
+  s.objects = {testing::SphereObject(R, n)};
+  const Simulator sim(s);
+  for (double h : {0.0, 2.0, 5.0, 8.0, 9.9}) {
+    const auto e = sim.TraceThroughObjects({h, 0, -3 * R}, {0, 0, 1});
+    ASSERT_FALSE(e.ended) << h;
+    const double sin_i = h / R, sin_t = nm * sin_i / n;
+    const double cos_i = std::sqrt(1 - sin_i * sin_i), cos_t = std::sqrt(1 - sin_t * sin_t);
+    const Vec3 entry(h, 0, -R * cos_i);
+    // Refracted towards the axis by theta_i - theta_t in the x-z plane.
+    const double tilt = std::asin(sin_i) - std::asin(sin_t);
+    const Vec3 exit = entry + Vec3(-std::sin(tilt), 0, std::cos(tilt)) * (2 * R * cos_t);
+    ASSERT_LT(Length(e.origin - exit), 1e-6) << h;
+    const double exact =
+        nm * (3 * R - R * cos_i) + n * 2 * R * cos_t + nm * Length(e.origin - exit);
+    EXPECT_NEAR(e.optical_path_um, exact, 4 * n * offset) << h;
+  }
+  // A ray that meets no object has travelled no optical path.
+  EXPECT_EQ(sim.TraceThroughObjects({2 * R, 0, -3 * R}, {0, 0, 1}).optical_path_um, 0.0);
+}
+
 // Rays entering a box along z, parallel to the grid's faces and some exactly on its node planes,
 // through n = a + b x (exactly trilinear): T_z = n0 is conserved, and the path is the catenary
 // n(x(z)) = n0 cosh(b (z - z0) / n0) (from dz = n0 dx / sqrt(n^2 - n0^2)). The x faces are

@@ -191,10 +191,14 @@ class Simulator {
                                double* hits_per_pixel_per_ray = nullptr) const;
 
   /// One ray through the objects only (no source, no optics), with the scene's physics and the
-  /// random stream of `ray_index`: where and in which direction it leaves the last surface.
-  /// For tests and accuracy studies.
+  /// random stream of `ray_index`: where and in which direction it leaves the last surface,
+  /// and its optical path there. For tests, accuracy studies and physical optics.
   struct ObjectExit {
     Vec3 origin, direction;
+    /// The optical path from the origin given to `origin` (um): the integral of n ds through
+    /// the medium, homogeneous objects and gradient-index fields (0 for a ray that meets no
+    /// object). Meaningless when `ended`.
+    double optical_path_um = 0;
     bool ended = false;  ///< ended inside (then `fate` says why)
     Fate fate = Fate::kDetected;
     TraceCounters counters;

@@ -3,6 +3,8 @@
 
 #include <gtest/gtest.h>
 
+#include <complex>
+
 #include "raymatch/simulate/water.h"
 
 namespace raymatch::simulate {
@@ -55,6 +57,61 @@ TEST(Fresnel, EnergyIsConserved) {
         EXPECT_NEAR(Fresnel(a, b, ci, ct).R() + T, 1.0, 1e-13) << a << "->" << b << " " << ti;
       }
     }
+}
+
+// The complex amplitudes below the critical angle are the real ones (and the transmission
+// amplitudes of the test above); beyond it |r| = 1 with B&W's phases (eq. 1.5.58), no power is
+// transmitted, and at the critical angle the phases start from 0 (continuity).
+TEST(Fresnel, ComplexAmplitudesAreTheRealOnesAndTheTotalReflectionPhases) {
+  for (double n2 : {1.0, 1.333, 1.5})
+    for (double ti = 0; ti < kPi / 2; ti += 0.01)
+      for (auto [a, b] : {std::pair{1.0, n2}, std::pair{1.5, n2 / 1.6}}) {
+        const double ci = std::cos(ti), s2 = std::pow(a / b * std::sin(ti), 2);
+        const FresnelAmplitudes c = ComplexFresnel(a, b, ci);
+        ASSERT_EQ(c.total, s2 > 1) << a << "->" << b << " " << ti;
+        if (s2 <= 1) {
+          const double ct = std::sqrt(1 - s2);
+          const FresnelCoefficients f = Fresnel(a, b, ci, ct);
+          // (To rounding: the two compute cos t_t from sin^2 in other orders, and near the
+          // critical angle its square root amplifies the difference.)
+          EXPECT_NEAR(std::abs(c.rs - f.rs), 0, 1e-12);
+          EXPECT_NEAR(std::abs(c.rp - f.rp), 0, 1e-12);
+          EXPECT_NEAR(std::abs(c.ts - 2 * a * ci / (a * ci + b * ct)), 0, 1e-12);
+          EXPECT_NEAR(std::abs(c.tp - 2 * a * ci / (b * ci + a * ct)), 0, 1e-12);
+          EXPECT_EQ(c.rs.imag(), 0.0);
+          continue;
+        }
+        const double n = b / a, root = std::sqrt(std::sin(ti) * std::sin(ti) - n * n);
+        EXPECT_NEAR(std::abs(c.rs), 1, 1e-14);
+        EXPECT_NEAR(std::abs(c.rp), 1, 1e-14);
+        EXPECT_NEAR(std::arg(c.rs), -2 * std::atan(root / ci), 1e-13) << ti;
+        EXPECT_NEAR(std::arg(c.rp), -2 * std::atan(root / (n * n * ci)), 1e-13) << ti;
+      }
+  const double n1 = 1.5, n2 = 1.0, tc = std::asin(n2 / n1);
+  const FresnelAmplitudes past = ComplexFresnel(n1, n2, std::cos(tc + 1e-9));
+  EXPECT_TRUE(past.total);
+  EXPECT_LT(std::abs(std::arg(past.rs)), 1e-3);
+  EXPECT_LT(std::abs(std::arg(past.rp)), 1e-3);
+}
+
+// Fresnel's rhomb (Born & Wolf sec. 1.5.4): in glass of n = 1.51 the phase difference between
+// p and s after total reflection is 45 degrees at 48 deg 37' and 54 deg 37' of incidence, so two
+// reflections at 54 deg 37' turn linear light at 45 degrees into circular light. The difference
+// follows tan(delta / 2) = cos t sqrt(sin^2 t - n^2) / sin^2 t (eq. 1.5.60), here from the
+// amplitudes; the angles are the book's to a minute of arc (3e-4 rad).
+TEST(Fresnel, TotalReflectionPhaseDifferenceIsFresnelsRhomb) {
+  auto difference = [](double t) {
+    const FresnelAmplitudes c = ComplexFresnel(1.51, 1.0, std::cos(t));
+    return std::arg(c.rp / c.rs);
+  };
+  const double deg = kPi / 180;
+  for (double t : {(48 + 37.0 / 60) * deg, (54 + 37.0 / 60) * deg}) {
+    const double n = 1 / 1.51, s2 = std::sin(t) * std::sin(t);
+    EXPECT_NEAR(std::tan(std::abs(difference(t)) / 2), std::cos(t) * std::sqrt(s2 - n * n) / s2,
+                1e-13);
+    // 45 degrees within what a minute of arc changes it (d delta / d theta < 2 here).
+    EXPECT_NEAR(std::abs(difference(t)), 45 * deg, 2 * deg / 60) << t / deg;
+  }
 }
 
 TEST(Snell, RoundTripRestoresDirectionAndObeysSnell) {

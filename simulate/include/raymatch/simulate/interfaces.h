@@ -6,6 +6,7 @@
 // index on the incoming side. All functions are branch-light and allocation-free.
 #include <algorithm>
 #include <cmath>
+#include <complex>
 
 #include "raymatch/core/vec.h"
 
@@ -40,6 +41,32 @@ inline FresnelCoefficients Fresnel(double n1, double n2, double cos_i, double co
   f.rp = (n2 * cos_i - n1 * cos_t) / (n2 * cos_i + n1 * cos_t);
   f.Rs = f.rs * f.rs;
   f.Rp = f.rp * f.rp;
+  return f;
+}
+
+/// The complex Fresnel amplitude coefficients of a ray with incidence cosine cos_i from n1 into
+/// n2, also beyond the critical angle, for fields exp(i (k.r - omega t)) (Born & Wolf sec. 1.5;
+/// the same r_p sign as Fresnel): the phase a ray carries across the surface, for physical
+/// optics. Beyond the critical angle the transmitted cosine is i sqrt(sin^2 t_t - 1) (the
+/// evanescent wave decays away from the surface), |r_s| = |r_p| = 1, and the phases are
+/// tan(delta_s / 2) = -sqrt(sin^2 t_i - n^2) / cos t_i and
+/// tan(delta_p / 2) = -sqrt(sin^2 t_i - n^2) / (n^2 cos t_i) with n = n2 / n1 (B&W eq. 1.5.58
+/// for the principal branch, delta in (-pi, 0]).
+struct FresnelAmplitudes {
+  std::complex<double> rs, rp, ts, tp;
+  bool total = false;  ///< total internal reflection (no transmitted power)
+};
+
+inline FresnelAmplitudes ComplexFresnel(double n1, double n2, double cos_i) {
+  const double sin2_t = (n1 / n2) * (n1 / n2) * std::max(0.0, 1.0 - cos_i * cos_i);
+  FresnelAmplitudes f;
+  f.total = sin2_t > 1.0;
+  const std::complex<double> ct =
+      f.total ? std::complex<double>(0, std::sqrt(sin2_t - 1)) : std::sqrt(1.0 - sin2_t);
+  const std::complex<double> a = n1 * cos_i, b = n2 * ct;  // s: n cos of each side
+  const std::complex<double> c = n2 * cos_i, d = n1 * ct;  // p: the indices swapped
+  f.rs = (a - b) / (a + b), f.ts = 2.0 * a / (a + b);
+  f.rp = (c - d) / (c + d), f.tp = 2.0 * a / (c + d);
   return f;
 }
 

@@ -60,8 +60,8 @@ TEST(Fresnel, EnergyIsConserved) {
 }
 
 // The complex amplitudes below the critical angle are the real ones (and the transmission
-// amplitudes of the test above); beyond it |r| = 1 with B&W's phases (eq. 1.5.58), no power is
-// transmitted, and at the critical angle the phases start from 0 (continuity).
+// amplitudes of the test above); beyond it the reflection is total (`total`), |r| = 1 with B&W's
+// phases (eq. 1.5.58), and just past the critical angle the phases start from 0 (continuity).
 TEST(Fresnel, ComplexAmplitudesAreTheRealOnesAndTheTotalReflectionPhases) {
   for (double n2 : {1.0, 1.333, 1.5})
     for (double ti = 0; ti < kPi / 2; ti += 0.01)

@@ -212,6 +212,40 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const IndexField& f,
   return GrinOutcome::kStepCap;
 }
 
+/// A physical-optics ray's branch choices and field (Simulator::TraceFieldRay) as
+/// TraceObjects carries them.
+struct FieldTrace {
+  Simulator::FieldRay* ray = nullptr;
+  uint32_t reflect_mask = 0;
+  double index_after = 1;  // the medium's index after the last event
+};
+
+/// The field of a physical-optics ray across one surface: the branch its mask chooses (total
+/// internal reflection always reflects), the s and p parts of its complex field times the
+/// power-normalised amplitude coefficients (ComplexFresnel). Returns whether it reflects.
+inline bool FieldBranch(FieldTrace& ft, bool tir, const Vec3& d, const Vec3& nf, const Vec3& t,
+                        double n1, double n2, double cos_i, double cos_t) {
+  Simulator::FieldRay& r = *ft.ray;
+  const bool asked = (ft.reflect_mask >> r.events) & 1u;
+  ++r.events;
+  if (tir && !asked) r.evanescent = true;
+  const bool reflect = tir || asked;
+  Vec3 s_dir = Cross(d, nf);
+  const double sl = Length(s_dir);
+  // At normal incidence any s direction will do (s and p have the same coefficients there).
+  s_dir = sl > 1e-12 ? s_dir / sl : RandomPerpendicular(d, 0.0);
+  const Vec3 p_in = Cross(s_dir, d), dn = reflect ? Reflect(d, nf) : t, p_out = Cross(s_dir, dn);
+  using C = std::complex<double>;
+  const C es = r.field[0] * s_dir.x + r.field[1] * s_dir.y + r.field[2] * s_dir.z;
+  const C ep = r.field[0] * p_in.x + r.field[1] * p_in.y + r.field[2] * p_in.z;
+  const FresnelAmplitudes fa = ComplexFresnel(n1, n2, cos_i);
+  const double power = reflect ? 1.0 : std::sqrt(n2 * cos_t / (n1 * cos_i));
+  const C as = (reflect ? fa.rs : fa.ts * power) * es, ap = (reflect ? fa.rp : fa.tp * power) * ep;
+  r.field = {as * s_dir.x + ap * p_out.x, as * s_dir.y + ap * p_out.y, as * s_dir.z + ap * p_out.z};
+  ft.index_after = reflect ? n1 : n2;
+  return reflect;
+}
+
 /// Traces a ray through the objects until it leaves them all (or ends). Updates o, d (and the
 /// polarisation) to the ray leaving the last surface; returns true with *fate set when the ray
 /// ended inside the objects (interaction cap, numerical loss, step cap). `seen`: the objects'
@@ -220,10 +254,13 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const IndexField& f,
 /// InterfaceEvent), on one lane. With kOpticalPath, `*opl` receives the optical path, the
 /// integral of n ds, from o as given to o as returned (the last surface's hit point plus its
 /// offset).
-template <PartialReflection kPR, bool kMesh, bool kOpticalPath = false>
+/// With kField (which needs kOpticalPath), `*ft` chooses each branch and carries the ray's field
+/// (FieldBranch), and its ray records the path's segments.
+template <PartialReflection kPR, bool kMesh, bool kOpticalPath = false, bool kField = false>
 bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng, Vec3& o, Vec3& d,
                   Vec3& pol, TraceCounters& c, Fate* fate_out, const RayObjects& seen = {},
-                  double* opl = nullptr) {
+                  double* opl = nullptr, FieldTrace* ft = nullptr) {
+  static_assert(!kField || kOpticalPath, "a field ray records its optical path");
   const Geometry& geo = im.geometry;
   // Objects the ray is inside, innermost last (nested objects: a bubble in a drop); their count
   // is path.depth.
@@ -290,6 +327,10 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
     };
     auto draw = [&](bool tir, const st::FacedSurface<L1>& face, double n1, double n2, double cos_t,
                     const st::V3<L1>& t, bool&, st::Outcome<L1>&) {
+      if constexpr (kField) {
+        return FieldBranch(*ft, tir, d, Vec3(face.nf.x, face.nf.y, face.nf.z), Vec3(t.x, t.y, t.z),
+                           n1, n2, face.cos_i, cos_t);
+      }
       if (tir) return true;
       if constexpr (kPR == PartialReflection::kUnpolarized) {
         ++c.fresnel_evaluations;
@@ -327,6 +368,14 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
     if (moves.push) stack[depth] = h.object;
     if (moves.pop)
       for (int m = on_stack; m + 1 < depth; ++m) stack[m] = stack[m + 1];
+    if constexpr (kField) {
+      Simulator::FieldRay& r = *ft->ray;
+      const int now = static_cast<int>(path.depth);
+      const int inner = now ? stack[now - 1] : -1;
+      if (r.n_segments < int(r.segments.size()))
+        r.segments[r.n_segments++] = {hp, d, *opl, ft->index_after,
+                                      im.has_grin && inner >= 0 && field[inner] != nullptr};
+    }
   }
   c.interface_events += uint64_t(path.interface_events);
   if (path.path_class >= 0) ++c.path_class[path.path_class];

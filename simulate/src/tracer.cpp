@@ -398,6 +398,31 @@ Simulator::ObjectExit Simulator::TraceThroughObjects(const Vec3& origin, const V
   return out;
 }
 
+Simulator::FieldRay Simulator::TraceFieldRay(const Vec3& origin, const Vec3& direction,
+                                             const std::array<std::complex<double>, 3>& field,
+                                             uint32_t reflect_mask, int max_events) const {
+  RAYMATCH_CHECK(max_events >= 0 && max_events <= FieldRay::kMaxEvents);
+  FieldRay r;
+  r.origin = origin;
+  r.direction = Normalize(direction);
+  r.field = field;
+  r.segments[0] = {origin, r.direction, 0.0, scene_.medium_index, false};
+  r.n_segments = 1;
+  TraceSpec trace = scene_.trace;
+  trace.max_interactions = max_events;
+  FieldTrace ft{&r, reflect_mask, scene_.medium_index};
+  RayRng rng(scene_.trace.seed, 0, 0);  // not drawn from: the mask chooses every branch
+  Vec3 pol(0, 0, 0);
+  TraceCounters counters;
+  const bool mesh = impl_->geometry.has_meshes();
+  WithTraceConfig(PartialReflection::kOff, false, mesh, false, [&]<class Cfg>() {
+    r.ended = TraceObjects<Cfg::kPR, Cfg::kMesh, true, true>(*impl_, trace, rng, r.origin,
+                                                             r.direction, pol, counters, &r.fate,
+                                                             {}, &r.optical_path_um, &ft);
+  });
+  return r;
+}
+
 uint64_t Simulator::RaysForPhotonTarget(double photons_per_pixel, double* hppr) const {
   // Pilot: the same source and optics without objects (a flat field), fixed seed and stream.
   Scene flat = scene_;

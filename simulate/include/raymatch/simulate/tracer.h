@@ -10,6 +10,7 @@
 // thread count.
 #include <array>
 #include <atomic>
+#include <complex>
 #include <cstdint>
 #include <memory>
 #include <span>
@@ -205,6 +206,39 @@ class Simulator {
   };
   ObjectExit TraceThroughObjects(const Vec3& origin, const Vec3& direction,
                                  uint64_t ray_index = 0) const;
+
+  /// Physical optics: one ray of a coherent wave through the objects along a chosen branch of
+  /// the surfaces' Fresnel splits, carrying its complex field. At its k-th surface event (k from
+  /// 0) the ray reflects if bit k of `reflect_mask` is set and is refracted otherwise; total
+  /// internal reflection always reflects (a transmission asked for there sets `evanescent`).
+  /// `field` (the complex field vector, perpendicular to `direction`) is split into its s and p
+  /// parts at each surface and multiplied by the power-normalised amplitude coefficients
+  /// (ComplexFresnel's r, and t x sqrt(n2 cos t / n1 cos i)), so |field|^2 is the ray tube's
+  /// power share and the tube's area change is left to the caller. A ray with more than
+  /// `max_events` surface events ends (fate kInteractionCap). The path is recorded as straight
+  /// or curved segments with the optical path at each start (the integral of n ds from
+  /// `origin`).
+  struct FieldRay {
+    struct Segment {
+      Vec3 point, direction;       ///< where the segment starts and its direction there
+      double optical_path_um = 0;  ///< from the origin to `point`
+      double index = 1;            ///< the medium's index along it (at its start)
+      bool curved = false;         ///< in a gradient-index object
+    };
+    static constexpr int kMaxEvents = 8;
+    std::array<Segment, kMaxEvents + 1> segments{};  ///< [0]: from the origin
+    int n_segments = 0;
+    int events = 0;                               ///< surface events met
+    std::array<std::complex<double>, 3> field{};  ///< leaving the last surface
+    Vec3 origin, direction;                       ///< where and how it leaves the objects
+    double optical_path_um = 0;                   ///< from the origin given to `origin`
+    bool ended = false;                           ///< ended inside (`fate` says why)
+    bool evanescent = false;  ///< a transmission was asked for beyond the critical angle
+    Fate fate = Fate::kDetected;
+  };
+  FieldRay TraceFieldRay(const Vec3& origin, const Vec3& direction,
+                         const std::array<std::complex<double>, 3>& field, uint32_t reflect_mask,
+                         int max_events) const;
 
   /// Rays per image for this scene (given directly, or from the photon target).
   uint64_t RaysPerImage() const;

@@ -1,0 +1,688 @@
+// Physical optics from rays (ray_field.h): the silhouette's shadow and the branches' ray tubes
+// sampled on the exit plane, Fourier transformed.
+#include "raymatch/simulate/ray_field.h"
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <opencv2/core.hpp>
+#include <unordered_map>
+
+#include "raymatch/core/error.h"
+
+namespace raymatch::simulate {
+namespace {
+
+using C = std::complex<double>;
+constexpr double kInf = std::numeric_limits<double>::infinity();
+
+/// The lattice of ray starts on the plane z_start: point (I, J) at (x_lo + I h, y_lo + J h),
+/// h the finest spacing; coarse points are every `step` (2^levels) of them.
+struct Lattice {
+  double x_lo = 0, y_lo = 0, z_start = 0, h = 0;
+  int64_t step = 1, ni = 0, nj = 0;  // coarse cells along x and y
+  Vec3 Start(int64_t i, int64_t j) const {
+    return {x_lo + double(i) * h, y_lo + double(j) * h, z_start};
+  }
+  uint64_t Key(int64_t i, int64_t j) const {
+    return uint64_t(i) * uint64_t(nj * step + 1) + uint64_t(j);
+  }
+};
+
+struct Wave {
+  const Simulator* sim = nullptr;
+  Vec3 din, origin;
+  CVec3 e0{};
+  double k = 0, k0 = 0;  // wavenumbers in the medium and in vacuum (rad / um)
+  double n_medium = 1;
+  double plane_z = 0;              // the exit plane, where the branches' field is sampled
+  double k_pass = 0, k_taper = 0;  // a ray's field tapers off from k_pass to k_pass + k_taper
+  double Taper(double kt) const {
+    if (kt <= k_pass) return 1;
+    if (kt >= k_pass + k_taper) return 0;
+    return 0.5 * (1 + std::cos(M_PI * (kt - k_pass) / k_taper));
+  }
+};
+
+/// A straight segment of a ray as positions p = b + w tau over its optical path tau.
+struct Line {
+  Vec3 b, w;
+  double lo = 0, hi = kInf;
+  bool curved = false;
+};
+
+/// One traced ray of a branch.
+struct Node {
+  bool valid = false;    // exits after exactly the branch's events, forward
+  bool goes_on = false;  // meets more surfaces than the branch's
+  double kx = 0, ky = 0;
+  double px = 0, py = 0;  // where the ray (extended) crosses the origin's z-plane
+  double phi = 0;         // the wave's phase there
+  double cos = 1;         // d.z
+  double tau_plane = 0;   // the optical path there
+  CVec3 e{};              // times the taper beyond the passed disc
+  double power = 0;       // |E|^2 before the taper
+  int n_lines = 0;
+  std::array<Line, Simulator::FieldRay::kMaxEvents + 1> lines;
+};
+
+Node TraceNode(const Wave& w, const Lattice& lat, int64_t i, int64_t j, uint32_t mask, int events) {
+  Node nd;
+  const Vec3 s = lat.Start(i, j);
+  const Simulator::FieldRay r = w.sim->TraceFieldRay(s, w.din, w.e0, mask, events);
+  nd.goes_on = r.ended && r.fate == Fate::kInteractionCap;
+  nd.valid = !r.ended && !r.evanescent && r.events == events && r.direction.z > 0;
+  if (!nd.valid) return nd;
+  const Vec3 d = r.direction, rel = r.origin - w.origin;
+  nd.kx = w.k * d.x, nd.ky = w.k * d.y;
+  const double to_plane = (w.plane_z - r.origin.z) / d.z;  // along the ray (may be negative)
+  nd.px = rel.x + d.x * to_plane, nd.py = rel.y + d.y * to_plane;
+  nd.cos = d.z;
+  nd.tau_plane = r.optical_path_um + w.n_medium * to_plane;
+  nd.phi = w.k * Dot(w.din, s - w.origin) + w.k0 * nd.tau_plane;
+  const double taper = w.Taper(std::hypot(nd.kx, nd.ky));
+  for (int c = 0; c < 3; ++c) nd.e[c] = r.field[c] * taper, nd.power += std::norm(r.field[c]);
+  nd.n_lines = r.n_segments;
+  for (int q = 0; q < r.n_segments; ++q) {
+    const Simulator::FieldRay::Segment& g = r.segments[q];
+    Line& l = nd.lines[q];
+    l.w = g.direction / g.index;
+    l.b = g.point - l.w * g.optical_path_um;
+    l.lo = g.optical_path_um;
+    l.hi = q + 1 < r.n_segments ? r.segments[q + 1].optical_path_um : kInf;
+    l.curved = g.curved;
+  }
+  return nd;
+}
+
+/// The focal lines a tube of three straight rays p_i(tau) = b_i + w_i tau passes between
+/// optical paths lo and hi, from its cross-section (the triangle projected across the mean
+/// direction u) at both ends: the linear map L taking the first to the second is mirrored
+/// (det L < 0) past one focal line and turned about (trace L < 0) past two, as through a point
+/// focus, where the section's area only touches zero (Kravtsov and Orlov, Caustics,
+/// Catastrophes and Wave Fields, sec. 2.3: the Maslov index of a ray tube).
+int FocalLinesBetween(const Line& l0, const Line& l1, const Line& l2, double lo, double hi) {
+  const Vec3 u = Normalize(l0.w + l1.w + l2.w);
+  const Vec3 e1 = Normalize(Cross(u, std::abs(u.x) < 0.6 ? Vec3(1, 0, 0) : Vec3(0, 1, 0)));
+  const Vec3 e2 = Cross(u, e1);
+  auto section = [&](double tau, double m[4]) {
+    const Vec3 p0 = l0.b + l0.w * tau, d1 = l1.b + l1.w * tau - p0, d2 = l2.b + l2.w * tau - p0;
+    m[0] = Dot(d1, e1), m[1] = Dot(d2, e1), m[2] = Dot(d1, e2), m[3] = Dot(d2, e2);
+  };
+  double s0[4], s1[4];
+  section(lo, s0);
+  section(hi, s1);
+  const double det0 = s0[0] * s0[3] - s0[1] * s0[2], det1 = s1[0] * s1[3] - s1[1] * s1[2];
+  if (det0 == 0 || det1 == 0) return 0;
+  if ((det0 < 0) != (det1 < 0)) return 1;
+  // trace(S1 S0^-1) with S0^-1 = adj(S0) / det0.
+  const double tr = (s1[0] * s0[3] - s1[1] * s0[2] - s1[2] * s0[1] + s1[3] * s0[0]) / det0;
+  return tr < 0 ? 2 : 0;
+}
+
+/// The focal lines the tube of three rays passes from the start to the exit plane, on every
+/// straight segment between equal optical paths (curved ones are skipped); on the last one up
+/// to the plane, or back to it (counted negative) where the plane lies before the exits.
+int FocalLines(const Node& a, const Node& b, const Node& c) {
+  int count = 0;
+  const int n = std::min({a.n_lines, b.n_lines, c.n_lines});
+  for (int q = 0; q < n; ++q) {
+    const Line &l0 = a.lines[q], &l1 = b.lines[q], &l2 = c.lines[q];
+    if (l0.curved || l1.curved || l2.curved) continue;
+    double lo = std::max({l0.lo, l1.lo, l2.lo}), hi = std::min({l0.hi, l1.hi, l2.hi});
+    int sign = 1;
+    if (q + 1 == n) {
+      const double t_lo = std::min({a.tau_plane, b.tau_plane, c.tau_plane});
+      const double t_hi = std::max({a.tau_plane, b.tau_plane, c.tau_plane});
+      if (t_lo >= lo) {
+        hi = t_lo;
+      } else if (t_hi <= std::min({l0.lo, l1.lo, l2.lo})) {
+        hi = std::min({l0.lo, l1.lo, l2.lo}), lo = t_hi, sign = -1;
+      } else {
+        continue;  // the plane cuts through the exits: nothing between
+      }
+    }
+    if (!(hi > lo)) continue;
+    count += sign * FocalLinesBetween(l0, l1, l2, lo, hi);
+  }
+  return count;
+}
+
+/// A lattice triangle of a branch, ready to be rasterised on the plane.
+struct Tri {
+  uint64_t id[3];
+  double px[3], py[3], kx[3], ky[3], phi[3], cos[3];
+  CVec3 e[3];
+  double g = 0;  // sqrt(dA_in / dA_plane): the tube's amplitude change (over sqrt(cos))
+  double focal_phase = 0;
+};
+
+/// The origin's z-plane sampled for the branches' field: nodes x = x_lo + p h, y = y_lo + q h,
+/// n x n, periodic (the spectrum's grid step is 2 pi / (n h)).
+struct PlaneGrid {
+  int n = 0;
+  double h = 0, x_lo = 0, y_lo = 0;
+  double cell = 0;  // the refinement's length scale (the passed band's sampling step)
+};
+
+struct Branch {
+  uint32_t mask = 0;
+  int events = 0;
+};
+
+/// Traces and refines one branch's lattice cells and collects its triangles (in a fixed order).
+class BranchMapper {
+ public:
+  BranchMapper(const Wave& w, const Lattice& lat, const SpectrumGrid& g, const PlaneGrid& plane,
+               const RaySpectrumSettings& set, Branch br)
+      : w_(w), lat_(lat), g_(g), plane_(plane), set_(set), br_(br) {}
+
+  /// The coarse lattice's nodes, then every coarse cell; false when no ray takes the branch.
+  bool Run(std::vector<Tri>* tris, bool* goes_on, uint64_t* rays, double* power) {
+    const int64_t nx = lat_.ni + 1, ny = lat_.nj + 1;
+    coarse_.assign(size_t(nx * ny), Node{});
+    tbb::parallel_for(int64_t(0), ny, [&](int64_t j) {
+      for (int64_t i = 0; i < nx; ++i)
+        coarse_[size_t(j * nx + i)] =
+            TraceNode(w_, lat_, i * lat_.step, j * lat_.step, br_.mask, br_.events);
+    });
+    bool any = false, more = false;
+    for (const Node& n : coarse_) any |= n.valid, more |= n.goes_on;
+    *goes_on = more;
+    *rays += uint64_t(nx * ny);
+    if (!any) return false;
+    std::vector<std::vector<Tri>> rows(size_t(lat_.nj));
+    std::vector<uint64_t> row_rays(size_t(lat_.nj), 0);
+    std::vector<double> row_power(size_t(lat_.nj), 0.0);
+    tbb::parallel_for(int64_t(0), lat_.nj, [&](int64_t cj) {
+      Cells cells{this, {}, &rows[size_t(cj)], 0, 0};
+      for (int64_t ci = 0; ci < lat_.ni; ++ci) {
+        const Node* c[4] = {&At(ci, cj), &At(ci + 1, cj), &At(ci + 1, cj + 1), &At(ci, cj + 1)};
+        cells.Refine(ci * lat_.step, cj * lat_.step, lat_.step, c);
+        cells.cache.clear();
+      }
+      row_rays[size_t(cj)] = cells.rays;
+      row_power[size_t(cj)] = cells.power;
+    });
+    for (int64_t cj = 0; cj < lat_.nj; ++cj) {
+      tris->insert(tris->end(), rows[size_t(cj)].begin(), rows[size_t(cj)].end());
+      *rays += row_rays[size_t(cj)];
+      *power += row_power[size_t(cj)];
+    }
+    return true;
+  }
+
+ private:
+  const Node& At(int64_t ci, int64_t cj) const { return coarse_[size_t(cj * (lat_.ni + 1) + ci)]; }
+
+  /// One row of coarse cells (one thread): refined nodes cached by lattice key.
+  struct Cells {
+    const BranchMapper* m;
+    std::unordered_map<uint64_t, Node> cache;
+    std::vector<Tri>* out;
+    uint64_t rays;
+    double power;
+
+    const Node& Get(int64_t i, int64_t j) {
+      const uint64_t key = m->lat_.Key(i, j);
+      auto it = cache.find(key);
+      if (it != cache.end()) return it->second;
+      ++rays;
+      return cache.emplace(key, TraceNode(m->w_, m->lat_, i, j, m->br_.mask, m->br_.events))
+          .first->second;
+    }
+
+    /// Cell (i, j) of side s (finest units), corners c: 00, 10, 11, 01.
+    void Refine(int64_t i, int64_t j, int64_t s, const Node* const c[4]) {
+      int valid = 0;
+      double kx_lo = kInf, kx_hi = -kInf, ky_lo = kInf, ky_hi = -kInf;
+      for (int q = 0; q < 4; ++q) {
+        if (!c[q]->valid) continue;
+        ++valid;
+        kx_lo = std::min(kx_lo, c[q]->kx), kx_hi = std::max(kx_hi, c[q]->kx);
+        ky_lo = std::min(ky_lo, c[q]->ky), ky_hi = std::max(ky_hi, c[q]->ky);
+      }
+      if (valid == 0) return;
+      const double span = std::max(kx_hi - kx_lo, ky_hi - ky_lo);
+      // Cells whose directions (grown by their own spread) all lie beyond the taper.
+      const double grow = span + m->g_.dk;
+      const double ex = std::max({kx_lo - grow, 0.0, -(kx_hi + grow)});
+      const double ey = std::max({ky_lo - grow, 0.0, -(ky_hi + grow)});
+      const double k_end = m->w_.k_pass + m->w_.k_taper;
+      if (valid == 4 && ex * ex + ey * ey > k_end * k_end) {
+        // Its power still counts (the branches' power is the light leaving forward); cells
+        // across the branch's edge are refined on, for it.
+        double e2 = 0;
+        for (int q = 0; q < 4; ++q) e2 += c[q]->power / 4;
+        power += e2 * double(s * s) * m->lat_.h * m->lat_.h * std::abs(m->w_.din.z);
+        return;
+      }
+      double px_lo = kInf, px_hi = -kInf, py_lo = kInf, py_hi = -kInf;
+      for (int q = 0; q < 4; ++q) {
+        if (!c[q]->valid) continue;
+        px_lo = std::min(px_lo, c[q]->px), px_hi = std::max(px_hi, c[q]->px);
+        py_lo = std::min(py_lo, c[q]->py), py_hi = std::max(py_hi, c[q]->py);
+      }
+      const double extent = std::max(px_hi - px_lo, py_hi - py_lo);
+      if (s == 1 || (valid == 4 && extent <= m->set_.max_cell_steps * m->plane_.cell)) {
+        Emit(i, j, s, c);
+        return;
+      }
+      const int64_t h = s / 2;
+      const Node* mid[5] = {&Get(i + h, j), &Get(i + s, j + h), &Get(i + h, j + s), &Get(i, j + h),
+                            &Get(i + h, j + h)};
+      // (References into the cache stay valid: unordered_map does not move its nodes.)
+      const Node* q00[4] = {c[0], mid[0], mid[4], mid[3]};
+      const Node* q10[4] = {mid[0], c[1], mid[1], mid[4]};
+      const Node* q11[4] = {mid[4], mid[1], c[2], mid[2]};
+      const Node* q01[4] = {mid[3], mid[4], mid[2], c[3]};
+      Refine(i, j, h, q00);
+      Refine(i + h, j, h, q10);
+      Refine(i + h, j + h, h, q11);
+      Refine(i, j + h, h, q01);
+    }
+
+    void Emit(int64_t i, int64_t j, int64_t s, const Node* const c[4]) {
+      const uint64_t id[4] = {m->lat_.Key(i, j), m->lat_.Key(i + s, j), m->lat_.Key(i + s, j + s),
+                              m->lat_.Key(i, j + s)};
+      const double area_in = 0.5 * double(s * s) * m->lat_.h * m->lat_.h * std::abs(m->w_.din.z);
+      static constexpr int kTri[2][3] = {{0, 1, 2}, {0, 2, 3}};
+      for (const auto& t : kTri) {
+        const Node *a = c[t[0]], *b = c[t[1]], *d = c[t[2]];
+        if (!a->valid || !b->valid || !d->valid) continue;
+        const Node* v[3] = {a, b, d};
+        power += (a->power + b->power + d->power) / 3 * area_in;
+        bool lit = false;  // (rays beyond the taper carry no field)
+        for (const Node* x : v)
+          for (const C& e : x->e) lit |= e != C(0);
+        const double area_p =
+            0.5 * std::abs((b->px - a->px) * (d->py - a->py) - (b->py - a->py) * (d->px - a->px));
+        if (!lit || !(area_p > 0)) continue;
+        Tri tr;
+        for (int q = 0; q < 3; ++q) {
+          tr.id[q] = id[t[q]];
+          tr.kx[q] = v[q]->kx, tr.ky[q] = v[q]->ky, tr.px[q] = v[q]->px, tr.py[q] = v[q]->py;
+          tr.phi[q] = v[q]->phi, tr.cos[q] = v[q]->cos, tr.e[q] = v[q]->e;
+        }
+        tr.g = std::sqrt(area_in / area_p);
+        tr.focal_phase = -0.5 * M_PI * FocalLines(*a, *b, *d);
+        out->push_back(tr);
+      }
+    }
+  };
+
+  const Wave& w_;
+  const Lattice& lat_;
+  const SpectrumGrid& g_;
+  const PlaneGrid& plane_;
+  const RaySpectrumSettings& set_;
+  Branch br_;
+  std::vector<Node> coarse_;
+};
+
+/// The sign of the edge function of (a, b) at p, with the edge taken from the lower key to the
+/// higher (the same bits in both triangles that share it) and exact zeros broken by moving p
+/// by (eps, eps^2) (simulation of simplicity), so a node on a shared edge or vertex falls in
+/// exactly one triangle of an unfolded sheet.
+int EdgeSign(double ax, double ay, uint64_t ia, double bx, double by, uint64_t ib, double px,
+             double py) {
+  bool flip = false;
+  if (ib < ia) std::swap(ax, bx), std::swap(ay, by), flip = true;
+  double e = (bx - ax) * (py - ay) - (by - ay) * (px - ax);
+  if (e == 0) e = (by != ay) ? -(by - ay) : (bx - ax);
+  const int s = e > 0 ? 1 : -1;
+  return flip ? -s : s;
+}
+
+/// Adds the triangles' field to the plane's rows [r0, r1) (rows wrap: the grid is periodic):
+/// at a node inside a triangle, the barycentric mean of its rays' fields and of their phases
+/// carried to the node along their own wave vectors (second order), times the tube's amplitude.
+void Rasterise(const std::vector<Tri>& tris, const PlaneGrid& pg, int r0, int r1,
+               std::vector<CVec3>* field) {
+  const int n = pg.n;
+  auto wrap = [n](int i) { return ((i % n) + n) % n; };
+  for (const Tri& t : tris) {
+    const double y_lo = std::min({t.py[0], t.py[1], t.py[2]});
+    const double y_hi = std::max({t.py[0], t.py[1], t.py[2]});
+    const int jl = int(std::ceil((y_lo - pg.y_lo) / pg.h));
+    const int jh = int(std::floor((y_hi - pg.y_lo) / pg.h));
+    if (jl > jh) continue;
+    const double x_lo = std::min({t.px[0], t.px[1], t.px[2]});
+    const double x_hi = std::max({t.px[0], t.px[1], t.px[2]});
+    const int il = int(std::ceil((x_lo - pg.x_lo) / pg.h));
+    const int ih = int(std::floor((x_hi - pg.x_lo) / pg.h));
+    if (il > ih) continue;
+    const double s2 =
+        (t.px[1] - t.px[0]) * (t.py[2] - t.py[0]) - (t.py[1] - t.py[0]) * (t.px[2] - t.px[0]);
+    const int side[3] = {
+        EdgeSign(t.px[0], t.py[0], t.id[0], t.px[1], t.py[1], t.id[1], t.px[2], t.py[2]),
+        EdgeSign(t.px[1], t.py[1], t.id[1], t.px[2], t.py[2], t.id[2], t.px[0], t.py[0]),
+        EdgeSign(t.px[2], t.py[2], t.id[2], t.px[0], t.py[0], t.id[0], t.px[1], t.py[1])};
+    for (int j = jl; j <= jh; ++j) {
+      const int row = wrap(j);
+      if (row < r0 || row >= r1) continue;
+      const double y = pg.y_lo + j * pg.h;
+      for (int i = il; i <= ih; ++i) {
+        const double x = pg.x_lo + i * pg.h;
+        if (EdgeSign(t.px[0], t.py[0], t.id[0], t.px[1], t.py[1], t.id[1], x, y) != side[0] ||
+            EdgeSign(t.px[1], t.py[1], t.id[1], t.px[2], t.py[2], t.id[2], x, y) != side[1] ||
+            EdgeSign(t.px[2], t.py[2], t.id[2], t.px[0], t.py[0], t.id[0], x, y) != side[2])
+          continue;
+        double wb[3];
+        wb[0] = ((t.px[1] - x) * (t.py[2] - y) - (t.py[1] - y) * (t.px[2] - x)) / s2;
+        wb[1] = ((t.px[2] - x) * (t.py[0] - y) - (t.py[2] - y) * (t.px[0] - x)) / s2;
+        wb[2] = 1 - wb[0] - wb[1];
+        double phi = 0, cos = 0;
+        CVec3 e{};
+        for (int q = 0; q < 3; ++q) {
+          phi += wb[q] * (t.phi[q] + t.kx[q] * (x - t.px[q]) + t.ky[q] * (y - t.py[q]));
+          cos += wb[q] * t.cos[q];
+          for (int c = 0; c < 3; ++c) e[c] += wb[q] * t.e[q][c];
+        }
+        const C f = t.g / std::sqrt(cos) * std::exp(C(0, phi + t.focal_phase));
+        CVec3& out = (*field)[size_t(row) * n + wrap(i)];
+        for (int c = 0; c < 3; ++c) out[c] += f * e[c];
+      }
+    }
+  }
+}
+
+/// Adds the angular spectrum of the plane's field, (h^2 / (2 pi)^2) sum E(x) exp(-i k_t . x),
+/// at the grid's nodes (transverse parts only), by one DFT per component of the field
+/// modulated by exp(-i k_0 . x) (k_0 the grid's first node).
+void AddPlaneSpectrum(const std::vector<CVec3>& field, const PlaneGrid& pg, const SpectrumGrid& g,
+                      double k, double dz, RaySpectrum* out) {
+  const int n = pg.n;
+  std::array<cv::Mat, 3> m;
+  for (int c = 0; c < 3; ++c) m[c].create(n, n, CV_64FC2);
+  tbb::parallel_for(0, n, [&](int q) {
+    const double y = pg.y_lo + q * pg.h;
+    for (int p = 0; p < n; ++p) {
+      const double x = pg.x_lo + p * pg.h;
+      const C mod = std::exp(C(0, -(g.kx0 * x + g.ky0 * y)));
+      for (int c = 0; c < 3; ++c) {
+        const C v = field[size_t(q) * n + p][c] * mod;
+        m[c].at<cv::Vec2d>(q, p) = cv::Vec2d(v.real(), v.imag());
+      }
+    }
+  });
+  for (int c = 0; c < 3; ++c) cv::dft(m[c], m[c]);  // forward: sum exp(-2 pi i (p i + q j) / n)
+  const double scale = pg.h * pg.h / (4 * M_PI * M_PI);
+  tbb::parallel_for(0, g.ny, [&](int j) {
+    const double ky = g.ky0 + j * g.dk;
+    for (int i = 0; i < g.nx; ++i) {
+      const double kx = g.kx0 + i * g.dk, kt2 = kx * kx + ky * ky;
+      if (kt2 > g.k_max * g.k_max || kt2 >= k * k) continue;
+      const double kz = std::sqrt(k * k - kt2);
+      const C shift =
+          scale * std::exp(C(0, -((kx - g.kx0) * pg.x_lo + (ky - g.ky0) * pg.y_lo) - kz * dz));
+      CVec3 e;
+      for (int c = 0; c < 3; ++c) {
+        const cv::Vec2d v = m[c].at<cv::Vec2d>(j % n, i % n);
+        e[c] = C(v[0], v[1]) * shift;
+      }
+      const Vec3 u(kx / k, ky / k, kz / k);
+      const C along = e[0] * u.x + e[1] * u.y + e[2] * u.z;
+      CVec3& a = out->a[size_t(j) * g.nx + i];
+      a[0] += e[0] - along * u.x;
+      a[1] += e[1] - along * u.y;
+      a[2] += e[2] - along * u.z;
+    }
+  });
+}
+
+/// The silhouette's outline on the start plane: oriented segments (the shadow on their left).
+class Outline {
+ public:
+  Outline(const Wave& w, const Lattice& lat, int levels) : w_(w), lat_(lat), levels_(levels) {}
+
+  std::vector<std::array<double, 4>> Segments() {
+    const int64_t nx = lat_.ni + 1, ny = lat_.nj + 1;
+    std::vector<char> hit(size_t(nx * ny));
+    tbb::parallel_for(int64_t(0), ny, [&](int64_t j) {
+      for (int64_t i = 0; i < nx; ++i) hit[size_t(j * nx + i)] = Hits(i * lat_.step, j * lat_.step);
+    });
+    std::vector<std::vector<std::array<double, 4>>> rows(size_t(lat_.nj));
+    tbb::parallel_for(int64_t(0), lat_.nj, [&](int64_t cj) {
+      for (int64_t ci = 0; ci < lat_.ni; ++ci) {
+        const bool c[4] = {bool(hit[size_t(cj * nx + ci)]), bool(hit[size_t(cj * nx + ci + 1)]),
+                           bool(hit[size_t((cj + 1) * nx + ci + 1)]),
+                           bool(hit[size_t((cj + 1) * nx + ci)])};
+        Cell(ci * lat_.step, cj * lat_.step, lat_.step, c, &rows[size_t(cj)]);
+      }
+    });
+    std::vector<std::array<double, 4>> all;
+    for (const auto& r : rows) all.insert(all.end(), r.begin(), r.end());
+    return all;
+  }
+
+ private:
+  bool Hits(int64_t i, int64_t j) const { return HitsAt(lat_.Start(i, j)); }
+  bool HitsAt(const Vec3& s) const {
+    return w_.sim->TraceFieldRay(s, w_.din, w_.e0, 0, 1).events > 0;
+  }
+
+  /// The outline's crossing of the lattice edge from (i0, j0) to (i1, j1), by bisection from
+  /// the lower key's end (the same point for both cells that share the edge).
+  std::array<double, 2> Crossing(int64_t i0, int64_t j0, int64_t i1, int64_t j1) const {
+    if (lat_.Key(i1, j1) < lat_.Key(i0, j0)) std::swap(i0, i1), std::swap(j0, j1);
+    const Vec3 a = lat_.Start(i0, j0), b = lat_.Start(i1, j1);
+    const bool in_a = HitsAt(a);
+    double lo = 0, hi = 1;
+    for (int it = 0; it < 30; ++it) {
+      const double mid = 0.5 * (lo + hi);
+      (HitsAt(a + (b - a) * mid) == in_a ? lo : hi) = mid;
+    }
+    const Vec3 p = a + (b - a) * (0.5 * (lo + hi));
+    return {p.x, p.y};
+  }
+
+  void Cell(int64_t i, int64_t j, int64_t s, const bool c[4],
+            std::vector<std::array<double, 4>>* out) const {
+    if (c[0] == c[1] && c[1] == c[2] && c[2] == c[3]) return;
+    if (s > (lat_.step >> levels_)) {
+      const int64_t h = s / 2;
+      const bool m[5] = {Hits(i + h, j), Hits(i + s, j + h), Hits(i + h, j + s), Hits(i, j + h),
+                         Hits(i + h, j + h)};
+      const bool q00[4] = {c[0], m[0], m[4], m[3]}, q10[4] = {m[0], c[1], m[1], m[4]};
+      const bool q11[4] = {m[4], m[1], c[2], m[2]}, q01[4] = {m[3], m[4], m[2], c[3]};
+      Cell(i, j, h, q00, out);
+      Cell(i + h, j, h, q10, out);
+      Cell(i + h, j + h, h, q11, out);
+      Cell(i, j + h, h, q01, out);
+      return;
+    }
+    // Marching squares: corners counter-clockwise; crossings in that order around the cell.
+    const int64_t ci[4] = {i, i + s, i + s, i}, cj[4] = {j, j, j + s, j + s};
+    struct X {
+      std::array<double, 2> p;
+      bool into;  // the walk enters the shadow here
+    };
+    X xs[4];
+    int n = 0;
+    for (int q = 0; q < 4; ++q) {
+      const int r = (q + 1) % 4;
+      if (c[q] != c[r]) xs[n++] = {Crossing(ci[q], cj[q], ci[r], cj[r]), c[r]};
+    }
+    // A saddle's centre decides whether the shadow joins across it.
+    const bool centre_in = n == 4 && Hits(i + s / 2, j + s / 2);
+    for (int q = 0; q < n; ++q) {
+      if (xs[q].into) continue;
+      // Leaving the shadow at q: the outline runs back to the previous entry, or on to the
+      // next one when the shadow joins across a saddle.
+      const X& to = centre_in ? xs[(q + 1) % n] : xs[(q + n - 1) % n];
+      out->push_back({xs[q].p[0], xs[q].p[1], to.p[0], to.p[1]});
+    }
+  }
+
+  const Wave& w_;
+  const Lattice& lat_;
+  int levels_;
+};
+
+/// The integral of exp(-i q . x) over the region the segments enclose (the region on their
+/// left), by Green's theorem: (i / q^2) sum over segments of (q_x e_y - q_y e_x) exp(-i q . a)
+/// (exp(-i q . e) - 1) / (-i q . e); near q = 0 its Taylor series to second order from the
+/// region's moments.
+struct RegionTransform {
+  std::vector<std::array<double, 4>> seg;
+  double area = 0, mx = 0, my = 0, mxx = 0, mxy = 0, myy = 0, r_max = 0;
+
+  explicit RegionTransform(std::vector<std::array<double, 4>> s) : seg(std::move(s)) {
+    // Green: integral of f dA = closed integral of F dy with dF/dx = f, by 3-point
+    // Gauss-Legendre along each segment (exact: F dy is at most cubic).
+    const double gx[3] = {0.5 - std::sqrt(0.15), 0.5, 0.5 + std::sqrt(0.15)};
+    const double gw[3] = {5.0 / 18, 8.0 / 18, 5.0 / 18};
+    for (const auto& e : seg) {
+      const double dy = e[3] - e[1];
+      for (int q = 0; q < 3; ++q) {
+        const double x = e[0] + (e[2] - e[0]) * gx[q], y = e[1] + dy * gx[q], w = gw[q] * dy;
+        area += w * x, mx += w * x * x / 2, my += w * x * y;
+        mxx += w * x * x * x / 3, mxy += w * x * x * y / 2, myy += w * x * y * y;
+      }
+      r_max = std::max({r_max, std::hypot(e[0], e[1]), std::hypot(e[2], e[3])});
+    }
+  }
+
+  C At(double qx, double qy) const {
+    const double q2 = qx * qx + qy * qy;
+    if (std::sqrt(q2) * r_max < 0.02)
+      return C(area - 0.5 * (qx * qx * mxx + 2 * qx * qy * mxy + qy * qy * myy),
+               -(qx * mx + qy * my));
+    C sum = 0;
+    for (const auto& e : seg) {
+      const double ex = e[2] - e[0], ey = e[3] - e[1], u = qx * ex + qy * ey;
+      const C phi = std::abs(u) < 1e-8 ? C(1, -0.5 * u) : (std::exp(C(0, -u)) - 1.0) / C(0, -u);
+      sum += (qx * ey - qy * ex) * std::exp(C(0, -(qx * e[0] + qy * e[1]))) * phi;
+    }
+    return C(0, 1) / q2 * sum;
+  }
+};
+
+Lattice MakeLattice(const Simulator& sim, const Vec3& din, double spacing, int levels) {
+  const auto bounds = sim.ObjectBounds();
+  RAYMATCH_CHECK(!bounds.empty());
+  double z_lo = kInf;
+  for (const auto& [c, r] : bounds) z_lo = std::min(z_lo, c.z - r);
+  Lattice lat;
+  lat.z_start = z_lo - 1.0;
+  double x_lo = kInf, x_hi = -kInf, y_lo = kInf, y_hi = -kInf;
+  for (const auto& [c, r] : bounds) {
+    // The bounding sphere's shadow on the start plane, along din: within r / din.z of the
+    // projected centre.
+    const double t = (c.z - lat.z_start) / din.z;
+    const double cx = c.x - din.x * t, cy = c.y - din.y * t, rr = r / din.z + spacing;
+    x_lo = std::min(x_lo, cx - rr), x_hi = std::max(x_hi, cx + rr);
+    y_lo = std::min(y_lo, cy - rr), y_hi = std::max(y_hi, cy + rr);
+  }
+  lat.step = int64_t(1) << levels;
+  lat.h = spacing / double(lat.step);
+  lat.ni = int64_t(std::ceil((x_hi - x_lo) / spacing));
+  lat.nj = int64_t(std::ceil((y_hi - y_lo) / spacing));
+  lat.x_lo = x_lo, lat.y_lo = y_lo;
+  return lat;
+}
+
+/// Adds the shadow's spectrum, -(E0 / (2 pi)^2) times the silhouette's transform at
+/// q = k_t - k_in,t, on the origin's z-plane.
+void AddShadow(const Wave& w, const Lattice& lat, const SpectrumGrid& g, RaySpectrum* out) {
+  Outline outline(w, lat, std::min<int>(3, int(std::log2(double(lat.step)))));
+  std::vector<std::array<double, 4>> seg = outline.Segments();
+  // Start plane to the origin's plane along din, relative to the origin.
+  const double t = (w.origin.z - lat.z_start) / w.din.z;
+  const double sx = w.din.x * t - w.origin.x, sy = w.din.y * t - w.origin.y;
+  for (auto& e : seg) e[0] += sx, e[1] += sy, e[2] += sx, e[3] += sy;
+  const RegionTransform region(std::move(seg));
+  out->shadow_area_um2 = region.area;
+  out->outline_segments = int(region.seg.size());
+  const double k = w.k, kin_x = k * w.din.x, kin_y = k * w.din.y;
+  tbb::parallel_for(0, g.ny, [&](int j) {
+    const double ky = g.ky0 + j * g.dk;
+    for (int i = 0; i < g.nx; ++i) {
+      const double kx = g.kx0 + i * g.dk, kt2 = kx * kx + ky * ky;
+      if (kt2 > g.k_max * g.k_max || kt2 >= k * k) continue;
+      const double kz = std::sqrt(k * k - kt2);
+      const C f = -region.At(kx - kin_x, ky - kin_y) / (4 * M_PI * M_PI);
+      const Vec3 u(kx / k, ky / k, kz / k);
+      const C along = w.e0[0] * u.x + w.e0[1] * u.y + w.e0[2] * u.z;
+      CVec3& a = out->a[size_t(j) * g.nx + i];
+      a[0] += f * (w.e0[0] - along * u.x);
+      a[1] += f * (w.e0[1] - along * u.y);
+      a[2] += f * (w.e0[2] - along * u.z);
+    }
+  });
+}
+
+}  // namespace
+
+RaySpectrum RayAngularSpectrum(const Simulator& sim, const Vec3& direction, const CVec3& e0,
+                               const Vec3& origin, const SpectrumGrid& grid,
+                               const RaySpectrumSettings& set) {
+  const Scene& scene = sim.scene();
+  Wave w;
+  w.sim = &sim;
+  w.din = Normalize(direction);
+  w.e0 = e0;
+  w.origin = origin;
+  w.k0 = 2 * M_PI / scene.wavelength_um;
+  w.k = w.k0 * scene.medium_index;
+  w.n_medium = scene.medium_index;
+  RAYMATCH_CHECK(w.din.z > 0 && grid.nx > 0 && grid.ny > 0 && grid.dk > 0);
+  RAYMATCH_CHECK(set.taper > 0 && set.plane_oversample >= 1 && set.max_events >= 0 &&
+                 set.max_events <= Simulator::FieldRay::kMaxEvents);
+  RAYMATCH_CHECK(set.refine_levels >= 0 && set.refine_levels <= 20);
+  RaySpectrum out;
+  out.a.assign(size_t(grid.nx) * grid.ny, CVec3{});
+  if (scene.objects.empty()) return out;
+  const double spacing =
+      set.ray_spacing_um > 0 ? set.ray_spacing_um : scene.wavelength_um / scene.medium_index;
+  const Lattice lat = MakeLattice(sim, w.din, spacing, set.refine_levels);
+  w.plane_z = origin.z + set.exit_plane_um;
+  // The branches' rays pass up to the grid's k_max, then taper off.
+  w.k_pass = std::min(grid.k_max, w.k);
+  w.k_taper = std::min(set.taper * grid.k_max, 0.5 * (w.k - w.k_pass) + 1e-9);
+  PlaneGrid pg;
+  const double window = 2 * M_PI / grid.dk;
+  const double h_max = M_PI / (w.k_pass + w.k_taper) / 1.25;
+  // Finer than the band needs: a sheet's edge sampled at points is a staircase whose error in
+  // the spectrum falls as the step.
+  pg.n = cv::getOptimalDFTSize(
+      std::max({grid.nx, grid.ny, int(std::ceil(set.plane_oversample * window / h_max))}));
+  pg.h = window / pg.n;
+  pg.cell = h_max;
+  pg.x_lo = pg.y_lo = -0.5 * window;
+  AddShadow(w, lat, grid, &out);
+  // The branches, shortest first: a branch of m events grows into m + 1 only where its rays
+  // meet another surface.
+  std::vector<Branch> open = {{0, 0}};
+  std::vector<Tri> tris;
+  for (int m = 1; m <= set.max_events && !open.empty(); ++m) {
+    std::vector<Branch> next;
+    for (const Branch& parent : open)
+      for (uint32_t bit = 0; bit < 2; ++bit) {
+        const Branch br{parent.mask | (bit << (m - 1)), m};
+        BranchMapper mapper(w, lat, grid, pg, set, br);
+        std::vector<Tri> bt;
+        bool goes_on = false;
+        if (mapper.Run(&bt, &goes_on, &out.rays, &out.branch_power)) {
+          ++out.branches;
+          tris.insert(tris.end(), bt.begin(), bt.end());
+        }
+        if (goes_on) next.push_back(br);
+      }
+    open = std::move(next);
+  }
+  out.triangles = tris.size();
+  std::vector<CVec3> field(size_t(pg.n) * pg.n, CVec3{});
+  constexpr int kRows = 8;
+  tbb::parallel_for(0, (pg.n + kRows - 1) / kRows, [&](int b) {
+    Rasterise(tris, pg, b * kRows, std::min(pg.n, (b + 1) * kRows), &field);
+  });
+  AddPlaneSpectrum(field, pg, grid, w.k, w.plane_z - origin.z, &out);
+  return out;
+}
+
+}  // namespace raymatch::simulate

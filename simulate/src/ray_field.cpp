@@ -390,6 +390,28 @@ void Rasterise(const std::vector<Tri>& tris, const PlaneGrid& pg, int r0, int r1
   }
 }
 
+/// Calls f(j * nx + i, kx, ky, kz) for the grid's nodes within k_max (and below k), rows in
+/// parallel.
+template <class F>
+void ForEachPassedNode(const SpectrumGrid& g, double k, F&& f) {
+  tbb::parallel_for(0, g.ny, [&](int j) {
+    const double ky = g.ky0 + j * g.dk;
+    for (int i = 0; i < g.nx; ++i) {
+      const double kx = g.kx0 + i * g.dk, kt2 = kx * kx + ky * ky;
+      if (kt2 > g.k_max * g.k_max || kt2 >= k * k) continue;
+      f(size_t(j) * g.nx + i, kx, ky, std::sqrt(k * k - kt2));
+    }
+  });
+}
+
+/// Adds the part of f e transverse to the unit vector u to a.
+void AddTransverse(const C& f, const CVec3& e, const Vec3& u, CVec3* a) {
+  const C along = e[0] * u.x + e[1] * u.y + e[2] * u.z;
+  (*a)[0] += f * (e[0] - along * u.x);
+  (*a)[1] += f * (e[1] - along * u.y);
+  (*a)[2] += f * (e[2] - along * u.z);
+}
+
 /// Adds the angular spectrum of the plane's field, (h^2 / (2 pi)^2) sum E(x) exp(-i k_t . x),
 /// at the grid's nodes (transverse parts only), by one DFT per component of the field
 /// modulated by exp(-i k_0 . x) (k_0 the grid's first node).
@@ -411,26 +433,16 @@ void AddPlaneSpectrum(const std::vector<CVec3>& field, const PlaneGrid& pg, cons
   });
   for (int c = 0; c < 3; ++c) cv::dft(m[c], m[c]);  // forward: sum exp(-2 pi i (p i + q j) / n)
   const double scale = pg.h * pg.h / (4 * M_PI * M_PI);
-  tbb::parallel_for(0, g.ny, [&](int j) {
-    const double ky = g.ky0 + j * g.dk;
-    for (int i = 0; i < g.nx; ++i) {
-      const double kx = g.kx0 + i * g.dk, kt2 = kx * kx + ky * ky;
-      if (kt2 > g.k_max * g.k_max || kt2 >= k * k) continue;
-      const double kz = std::sqrt(k * k - kt2);
-      const C shift =
-          scale * std::exp(C(0, -((kx - g.kx0) * pg.x_lo + (ky - g.ky0) * pg.y_lo) - kz * dz));
-      CVec3 e;
-      for (int c = 0; c < 3; ++c) {
-        const cv::Vec2d v = m[c].at<cv::Vec2d>(j % n, i % n);
-        e[c] = C(v[0], v[1]) * shift;
-      }
-      const Vec3 u(kx / k, ky / k, kz / k);
-      const C along = e[0] * u.x + e[1] * u.y + e[2] * u.z;
-      CVec3& a = out->a[size_t(j) * g.nx + i];
-      a[0] += e[0] - along * u.x;
-      a[1] += e[1] - along * u.y;
-      a[2] += e[2] - along * u.z;
+  ForEachPassedNode(g, k, [&](size_t p, double kx, double ky, double kz) {
+    const C shift =
+        scale * std::exp(C(0, -((kx - g.kx0) * pg.x_lo + (ky - g.ky0) * pg.y_lo) - kz * dz));
+    const int i = int(p % size_t(g.nx)), j = int(p / size_t(g.nx));
+    CVec3 e;
+    for (int c = 0; c < 3; ++c) {
+      const cv::Vec2d v = m[c].at<cv::Vec2d>(j % n, i % n);
+      e[c] = C(v[0], v[1]);
     }
+    AddTransverse(shift, e, Vec3(kx / k, ky / k, kz / k), &out->a[p]);
   });
 }
 
@@ -599,20 +611,9 @@ void AddShadow(const Wave& w, const Lattice& lat, const SpectrumGrid& g, RaySpec
   out->shadow_area_um2 = region.area;
   out->outline_segments = int(region.seg.size());
   const double k = w.k, kin_x = k * w.din.x, kin_y = k * w.din.y;
-  tbb::parallel_for(0, g.ny, [&](int j) {
-    const double ky = g.ky0 + j * g.dk;
-    for (int i = 0; i < g.nx; ++i) {
-      const double kx = g.kx0 + i * g.dk, kt2 = kx * kx + ky * ky;
-      if (kt2 > g.k_max * g.k_max || kt2 >= k * k) continue;
-      const double kz = std::sqrt(k * k - kt2);
-      const C f = -region.At(kx - kin_x, ky - kin_y) / (4 * M_PI * M_PI);
-      const Vec3 u(kx / k, ky / k, kz / k);
-      const C along = w.e0[0] * u.x + w.e0[1] * u.y + w.e0[2] * u.z;
-      CVec3& a = out->a[size_t(j) * g.nx + i];
-      a[0] += f * (w.e0[0] - along * u.x);
-      a[1] += f * (w.e0[1] - along * u.y);
-      a[2] += f * (w.e0[2] - along * u.z);
-    }
+  ForEachPassedNode(g, k, [&](size_t p, double kx, double ky, double kz) {
+    const C f = -region.At(kx - kin_x, ky - kin_y) / (4 * M_PI * M_PI);
+    AddTransverse(f, w.e0, Vec3(kx / k, ky / k, kz / k), &out->a[p]);
   });
 }
 

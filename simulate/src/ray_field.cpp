@@ -2,7 +2,6 @@
 // sampled on the exit plane, Fourier transformed.
 #include "raymatch/simulate/ray_field.h"
 
-#include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
 #include <algorithm>
@@ -216,6 +215,9 @@ class BranchMapper {
   }
 
  private:
+  /// A lattice cell of side s (finest units) across the incident wave.
+  double CellArea(int64_t s) const { return double(s * s) * lat_.h * lat_.h * std::abs(w_.din.z); }
+
   const Node& At(int64_t ci, int64_t cj) const { return coarse_[size_t(cj * (lat_.ni + 1) + ci)]; }
 
   /// One row of coarse cells (one thread): refined nodes cached by lattice key.
@@ -239,11 +241,14 @@ class BranchMapper {
     void Refine(int64_t i, int64_t j, int64_t s, const Node* const c[4]) {
       int valid = 0;
       double kx_lo = kInf, kx_hi = -kInf, ky_lo = kInf, ky_hi = -kInf;
+      double px_lo = kInf, px_hi = -kInf, py_lo = kInf, py_hi = -kInf;
       for (int q = 0; q < 4; ++q) {
         if (!c[q]->valid) continue;
         ++valid;
         kx_lo = std::min(kx_lo, c[q]->kx), kx_hi = std::max(kx_hi, c[q]->kx);
         ky_lo = std::min(ky_lo, c[q]->ky), ky_hi = std::max(ky_hi, c[q]->ky);
+        px_lo = std::min(px_lo, c[q]->px), px_hi = std::max(px_hi, c[q]->px);
+        py_lo = std::min(py_lo, c[q]->py), py_hi = std::max(py_hi, c[q]->py);
       }
       if (valid == 0) return;
       const double span = std::max(kx_hi - kx_lo, ky_hi - ky_lo);
@@ -257,14 +262,8 @@ class BranchMapper {
         // across the branch's edge are refined on, for it.
         double e2 = 0;
         for (int q = 0; q < 4; ++q) e2 += c[q]->power / 4;
-        power += e2 * double(s * s) * m->lat_.h * m->lat_.h * std::abs(m->w_.din.z);
+        power += e2 * m->CellArea(s);
         return;
-      }
-      double px_lo = kInf, px_hi = -kInf, py_lo = kInf, py_hi = -kInf;
-      for (int q = 0; q < 4; ++q) {
-        if (!c[q]->valid) continue;
-        px_lo = std::min(px_lo, c[q]->px), px_hi = std::max(px_hi, c[q]->px);
-        py_lo = std::min(py_lo, c[q]->py), py_hi = std::max(py_hi, c[q]->py);
       }
       const double extent = std::max(px_hi - px_lo, py_hi - py_lo);
       if (s == 1 || (valid == 4 && extent <= m->set_.max_cell_steps * m->plane_.cell)) {
@@ -288,7 +287,7 @@ class BranchMapper {
     void Emit(int64_t i, int64_t j, int64_t s, const Node* const c[4]) {
       const uint64_t id[4] = {m->lat_.Key(i, j), m->lat_.Key(i + s, j), m->lat_.Key(i + s, j + s),
                               m->lat_.Key(i, j + s)};
-      const double area_in = 0.5 * double(s * s) * m->lat_.h * m->lat_.h * std::abs(m->w_.din.z);
+      const double area_in = 0.5 * m->CellArea(s);
       static constexpr int kTri[2][3] = {{0, 1, 2}, {0, 2, 3}};
       for (const auto& t : kTri) {
         const Node *a = c[t[0]], *b = c[t[1]], *d = c[t[2]];

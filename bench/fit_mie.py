@@ -24,6 +24,8 @@ its minimum (docs/wave-optics.md, "Case 2 needs a finer model than case 1").
 
 Usage: bench/fit_mie.py OUT [--case 1] [--k 16] [--seed-base 200]
 Writes OUT/k<i>/ (experiment, scene, fit) and OUT/summary.json; prints a Markdown table.
+A realisation whose OUT/k<i>/done.json has the same seed and hop setting is not fitted again,
+so an interrupted run goes on where it stopped.
 Environment: RAYMATCH (the executable; default build/release/apps/raymatch).
 """
 import argparse
@@ -112,6 +114,11 @@ def fit_file(case, images, hop):
 
 def run(out, case, k, seed, hop):
     d = os.path.join(out, f"k{k}")
+    done = os.path.join(d, "done.json")
+    if os.path.exists(done):  # a realisation fitted by an earlier, interrupted run
+        r = json.load(open(done))
+        if r["seed"] == seed and r["hop"] == hop:
+            return r
     os.makedirs(d, exist_ok=True)
     truth = (*POSITION, case["radius"], case["index"])
     with open(os.path.join(d, "experiment.toml"), "w") as f:
@@ -129,7 +136,11 @@ def run(out, case, k, seed, hop):
     rc = subprocess.run([RAYMATCH, "fit", "fit.toml", "-o", "fit", "-q"], cwd=d).returncode
     wall = time.time() - t0
     fit = json.load(open(os.path.join(d, "fit", "fit.json")))
-    return dict(fit=fit, wall=wall, rc=rc)
+    r = dict(fit=fit, wall=wall, rc=rc, seed=seed, hop=hop)
+    with open(done + ".tmp", "w") as f:
+        json.dump(r, f)
+    os.replace(done + ".tmp", done)
+    return r
 
 
 def main():

@@ -467,6 +467,14 @@ Parameter ReadParameter(TomlReader& p, const toml::table& t, const simulate::Sce
     p.Fail("key", err.what());
   }
   using Kind = internal::Binding::Kind;
+  // A coated sphere's wave image needs its two spheres concentric and moving together.
+  if (scene.trace.optics == simulate::ImageOptics::kMie && scene.objects.size() == 2 &&
+      bound.kind == Kind::kObject &&
+      (bound.field == internal::Binding::Field::kCenter ||
+       q.key.find(".velocity_um_per_us") != std::string::npos))
+    p.Fail("key", "'" + q.key +
+                      "' moves one sphere of a coated sphere off the other's centre, which the "
+                      "wave model (optics = \"mie\") cannot image; fit its radii and indices");
   // The calibration's edge and PSF as keys of a scene that takes them from the calibration:
   // written into the scene's tables with the calibration's values, so they can be set.
   if (bound.kind == Kind::kEdge && !f.scene.contains("light_field_edge") &&

@@ -57,6 +57,10 @@ MieImageModel::~MieImageModel() = default;
 
 ModelImages MieImageModel::Images(const simulate::Scene& scene, const Draw& draw, uint64_t*) {
   if (last_ && !draw.across_key.empty() && draw.across_key == last_key_) {
+    // The kept fields serve a lateral move of the whole sphere; a key that moves a coated
+    // sphere's shell or core alone is refused as a fresh imager would refuse it.
+    if (const std::string why = simulate::MieUnsupportedReason(scene); !why.empty())
+      throw Error(FileLocation{scene.file}, why);
     const Vec3& c = scene.objects.at(0).center_um;
     last_->MoveAcross(c.x, c.y);
   } else {

@@ -38,20 +38,35 @@ Complex LogDerivativeStart(int n, Complex z) {
 
 }  // namespace
 
-MieCoefficients ComputeMie(Complex m, double x) {
-  if (!(x > 0) || !std::isfinite(x))
-    throw std::invalid_argument("Mie: size parameter must be positive, got " + std::to_string(x));
+namespace {
+
+void CheckIndex(Complex m) {
   if (!(m.real() > 0) || m.imag() < 0)
     throw std::invalid_argument("Mie: relative index needs Re m > 0 and Im m >= 0");
-  MieCoefficients c;
-  c.m = m;
-  c.x = x;
-  const int n_terms = MieTerms(x);
-  const Complex z = m * x;
-  // Downward recurrence D_{n-1} = n / z - 1 / (D_n + n / z) from a continued-fraction start.
+}
+
+void CheckSize(double x) {
+  if (!(x > 0) || !std::isfinite(x))
+    throw std::invalid_argument("Mie: size parameter must be positive, got " + std::to_string(x));
+}
+
+/// D_n(z) for n = 0..n_terms: downward recurrence D_{n-1} = n / z - 1 / (D_n + n / z) from a
+/// continued-fraction start, stable for any |z|.
+std::vector<Complex> LogDerivatives(Complex z, int n_terms) {
   std::vector<Complex> dn(n_terms + 1);
   dn[n_terms] = LogDerivativeStart(n_terms, z);
   for (int n = n_terms; n >= 1; --n) dn[n - 1] = double(n) / z - 1.0 / (dn[n] + double(n) / z);
+  return dn;
+}
+
+/// a_n, b_n from the logarithmic derivatives H^a_n, H^b_n (n = 1..N at [n]) of the field just
+/// inside the outer surface (for a homogeneous sphere both are D_n(m x)): Bohren and Huffman
+/// eq. 4.88 with D_n / m replaced by H^a_n / m and m D_n by m H^b_n.
+void OuterCoefficients(MieCoefficients& c, const std::vector<Complex>& ha,
+                       const std::vector<Complex>& hb) {
+  const int n_terms = static_cast<int>(ha.size()) - 1;
+  const double x = c.x;
+  const Complex m = c.m;
   // Riccati-Bessel psi_n(x) = x j_n(x), chi_n(x) = -x y_n(x), xi_n = psi_n - i chi_n, upward.
   double psi0 = std::cos(x), psi1 = std::sin(x);   // psi_{-1}, psi_0
   double chi0 = -std::sin(x), chi1 = std::cos(x);  // chi_{-1}, chi_0
@@ -62,13 +77,83 @@ MieCoefficients ComputeMie(Complex m, double x) {
     const double psi = (2.0 * n - 1.0) * psi1 / x - psi0;
     const double chi = (2.0 * n - 1.0) * chi1 / x - chi0;
     const Complex xi(psi, -chi);
-    const Complex ta = dn[n] / m + double(n) / x, tb = m * dn[n] + double(n) / x;
+    const Complex ta = ha[n] / m + double(n) / x, tb = m * hb[n] + double(n) / x;
     c.a[n - 1] = (ta * psi - psi1) / (ta * xi - xi1);
     c.b[n - 1] = (tb * psi - psi1) / (tb * xi - xi1);
     psi0 = psi1, psi1 = psi;
     chi0 = chi1, chi1 = chi;
     xi1 = xi;
   }
+}
+
+/// D3_n(z) = xi_n'(z) / xi_n(z) for n = 0..N from D1 = D_n(z) (Yang 2003, eqs. 18-19):
+/// psi_0 xi_0 = (1 - exp(2iz)) / 2, D3_0 = i, psi_n xi_n = psi_{n-1} xi_{n-1} (n / z -
+/// D1_{n-1}) (n / z - D3_{n-1}) and D3_n = D1_n + i / (psi_n xi_n).
+std::vector<Complex> OutgoingLogDerivatives(Complex z, const std::vector<Complex>& d1) {
+  const Complex i(0, 1);
+  std::vector<Complex> d3(d1.size());
+  Complex psixi = 0.5 * (1.0 - std::exp(2.0 * i * z));
+  d3[0] = i;
+  for (size_t n = 1; n < d1.size(); ++n) {
+    const Complex nz = double(n) / z;
+    psixi *= (nz - d1[n - 1]) * (nz - d3[n - 1]);
+    d3[n] = d1[n] + i / psixi;
+  }
+  return d3;
+}
+
+}  // namespace
+
+MieCoefficients ComputeMie(Complex m, double x) {
+  CheckSize(x);
+  CheckIndex(m);
+  MieCoefficients c;
+  c.m = m;
+  c.x = x;
+  const std::vector<Complex> dn = LogDerivatives(m * x, MieTerms(x));
+  OuterCoefficients(c, dn, dn);
+  return c;
+}
+
+MieCoefficients ComputeCoatedMie(Complex m_core, double x_core, Complex m_shell, double x) {
+  CheckSize(x);
+  CheckSize(x_core);
+  CheckIndex(m_core);
+  CheckIndex(m_shell);
+  if (x_core > x)
+    throw std::invalid_argument("Mie: the core (x " + std::to_string(x_core) +
+                                ") must lie inside the shell (x " + std::to_string(x) + ")");
+  MieCoefficients c;
+  c.m = m_shell;
+  c.x = x;
+  c.m_core = m_core;
+  c.x_core = x_core;
+  const int n_terms = MieTerms(x);
+  const Complex z11 = m_core * x_core, z21 = m_shell * x_core, z22 = m_shell * x;
+  const std::vector<Complex> d11 = LogDerivatives(z11, n_terms);
+  const std::vector<Complex> d21 = LogDerivatives(z21, n_terms);
+  const std::vector<Complex> d22 = LogDerivatives(z22, n_terms);
+  const std::vector<Complex> d3_21 = OutgoingLogDerivatives(z21, d21);
+  const std::vector<Complex> d3_22 = OutgoingLogDerivatives(z22, d22);
+  // Q_0 = [psi_0 / xi_0](z21) / [psi_0 / xi_0](z22) with psi_0 / xi_0 = (1 - exp(-2iz)) / 2,
+  // written with exp(2iz) so that an absorbing shell (Im z > 0) does not overflow; then
+  // [psi_n / xi_n] / [psi_{n-1} / xi_{n-1}] = (D3_n + n / z) / (D1_n + n / z).
+  const Complex i(0, 1);
+  Complex q = std::exp(2.0 * i * (z22 - z21)) * (std::exp(2.0 * i * z21) - 1.0) /
+              (std::exp(2.0 * i * z22) - 1.0);
+  std::vector<Complex> ha(n_terms + 1), hb(n_terms + 1);
+  for (int n = 1; n <= n_terms; ++n) {
+    const Complex n21 = double(n) / z21, n22 = double(n) / z22;
+    q *= (d3_21[n] + n21) / (d21[n] + n21) * (d22[n] + n22) / (d3_22[n] + n22);
+    // The core's field inside: H = D1_n(m_core x_core); matched at the interface (Yang eq. 14).
+    const Complex g1 = m_shell * d11[n] - m_core * d21[n],
+                  g2 = m_shell * d11[n] - m_core * d3_21[n];
+    const Complex h1 = m_core * d11[n] - m_shell * d21[n],
+                  h2 = m_core * d11[n] - m_shell * d3_21[n];
+    ha[n] = (g2 * d22[n] - q * g1 * d3_22[n]) / (g2 - q * g1);
+    hb[n] = (h2 * d22[n] - q * h1 * d3_22[n]) / (h2 - q * h1);
+  }
+  OuterCoefficients(c, ha, hb);
   return c;
 }
 

@@ -254,7 +254,16 @@ PlaneResult MiePlane(const MieImager& mie, double dz, uint32_t plane_index,
   const Image expected = mie.Expected(dz, control.threads > 0 ? control.threads : s.trace.threads);
   r.counts = PoissonSample(expected, s.trace.seed, plane_index);
   r.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  const ObjectSpec& o = s.objects[0];
+  // A homogeneous sphere, or a coated one: its shell and the concentric core inside.
+  nlohmann::json objects = nlohmann::json::array();
+  for (const ObjectSpec& o : s.objects)
+    objects.push_back({{"name", o.name},
+                       {"type", "sphere"},
+                       {"center_um", {o.center_um.x, o.center_um.y, o.center_um.z}},
+                       {"radius_um", o.radius_um},
+                       {"index", o.index},
+                       {"absorption_index", o.absorption_index},
+                       {"material", o.material}});
   *meta = {
       {"provenance", ProvenanceJson()},
       {"scene_file", s.file},
@@ -278,14 +287,7 @@ PlaneResult MiePlane(const MieImager& mie, double dz, uint32_t plane_index,
       {"image", ImageJson(s, r.counts)},
       {"wavelength_um", s.wavelength_um},
       {"medium_index", s.medium_index},
-      {"objects",
-       nlohmann::json::array({{{"name", o.name},
-                               {"type", "sphere"},
-                               {"center_um", {o.center_um.x, o.center_um.y, o.center_um.z}},
-                               {"radius_um", o.radius_um},
-                               {"index", o.index},
-                               {"absorption_index", o.absorption_index},
-                               {"material", o.material}}})},
+      {"objects", objects},
   };
   return r;
 }

@@ -71,15 +71,49 @@ struct Node {
 
 }  // namespace
 
+namespace {
+/// The sphere whose outer surface scatters (the larger of a coated sphere's two) and the core
+/// inside it (null for a homogeneous sphere); MieUnsupportedReason says when a scene has them.
+struct MieSpheres {
+  const ObjectSpec* shell = nullptr;
+  const ObjectSpec* core = nullptr;
+};
+
+MieSpheres SpheresOf(const Scene& s) {
+  if (s.objects.size() == 1) return {&s.objects[0], nullptr};
+  const bool first_outer = s.objects[0].radius_um >= s.objects[1].radius_um;
+  return {&s.objects[first_outer ? 0 : 1], &s.objects[first_outer ? 1 : 0]};
+}
+}  // namespace
+
 std::string MieUnsupportedReason(const Scene& s) {
-  if (s.objects.size() != 1)
-    return "optics = \"mie\" needs exactly one object (a sphere); the scene has " +
-           std::to_string(s.objects.size());
-  const ObjectSpec& o = s.objects[0];
-  if (o.shape != ShapeType::kSphere)
-    return "optics = \"mie\" needs a sphere; object '" + o.name + "' is not one";
-  if (o.index_field)
-    return "optics = \"mie\" needs a homogeneous sphere; '" + o.name + "' has an index field";
+  if (s.objects.empty() || s.objects.size() > 2)
+    return "optics = \"mie\" needs one sphere (or two concentric ones: a coated sphere); the "
+           "scene has " +
+           std::to_string(s.objects.size()) + " objects";
+  for (const ObjectSpec& o : s.objects) {
+    if (o.shape != ShapeType::kSphere)
+      return "optics = \"mie\" needs a sphere; object '" + o.name + "' is not one";
+    if (o.index_field)
+      return "optics = \"mie\" needs a homogeneous sphere; '" + o.name + "' has an index field";
+  }
+  if (const MieSpheres sp = SpheresOf(s); sp.core) {
+    // Concentric to well below a wavelength's thousandth: the series assumes one centre.
+    const double off = Length(sp.core->center_um - sp.shell->center_um);
+    if (off > 1e-9 * sp.shell->radius_um)
+      return "optics = \"mie\" takes two spheres as a coated sphere only when they are "
+             "concentric: '" +
+             sp.core->name + "' is " + std::to_string(off) + " um from the centre of '" +
+             sp.shell->name + "' (a fit key that moves one of them moves it off)";
+    if (!(sp.core->radius_um < sp.shell->radius_um))
+      return "optics = \"mie\": the core '" + sp.core->name +
+             "' of a coated sphere must be "
+             "smaller than its shell '" +
+             sp.shell->name + "'";
+    if (Length(sp.core->velocity_um_per_us - sp.shell->velocity_um_per_us) > 0)
+      return "optics = \"mie\": a coated sphere's core '" + sp.core->name + "' and shell '" +
+             sp.shell->name + "' must move together (the same velocity_um_per_us)";
+  }
   switch (s.source.type) {
     case SourceType::kCone:
     case SourceType::kLightField:
@@ -105,7 +139,8 @@ nlohmann::json MieSampling::ToJson() const {
           {"pixel_subsamples", pixel_subsamples},
           {"mie_terms", terms},
           {"wavelengths", wavelengths},
-          {"size_parameter", size_parameter}};
+          {"size_parameter", size_parameter},
+          {"core_size_parameter", core_size_parameter}};
 }
 
 /// What the render reads besides the harmonics: the sphere's place, the pupil, the sensor's map
@@ -364,9 +399,9 @@ MieImager::MieImager(const Scene& scene, int stride, int offset) : impl_(std::ma
         Scene one = scene;
         one.source.spectrum = SpectrumSpec{};
         one.wavelength_um = nodes[k].wavelength;
-        ObjectSpec& o = one.objects[0];
-        if (o.dispersion.law != DispersionLaw::kNone)
-          o.index = o.dispersion.IndexAt(nodes[k].wavelength);
+        for (ObjectSpec& o : one.objects)
+          if (o.dispersion.law != DispersionLaw::kNone)
+            o.index = o.dispersion.IndexAt(nodes[k].wavelength);
         im.wavelengths[k] = {nodes[k].share, std::make_unique<MieImager>(one, S, nodes[k].cls)};
       };
       make(0);
@@ -391,14 +426,20 @@ MieImager::MieImager(const Scene& scene, int stride, int offset) : impl_(std::ma
     im.last = im.SpectrumSampling();
     return;
   }
-  const ObjectSpec& o = scene.objects[0];
+  const MieSpheres spheres = SpheresOf(scene);
+  const ObjectSpec& o = *spheres.shell;
   im.radius = o.radius_um;
   im.center = o.center_um;
   im.lambda_medium = scene.wavelength_um / scene.medium_index;
   im.k = 2 * M_PI / im.lambda_medium;
   im.s_na = AcceptanceSin(scene);
-  const Complex m(o.index / scene.medium_index, o.absorption_index / scene.medium_index);
-  im.mie = ComputeMie(m, im.k * im.radius);
+  auto relative = [&](const ObjectSpec& a) {
+    return Complex(a.index / scene.medium_index, a.absorption_index / scene.medium_index);
+  };
+  const ObjectSpec* core = spheres.core;
+  im.mie = core ? ComputeCoatedMie(relative(*core), im.k * core->radius_um, relative(o),
+                                   im.k * im.radius)
+                : ComputeMie(relative(o), im.k * im.radius);
   // Corrector zones as edges in sin(theta) for a direction leaving the axis point: the ray
   // model's zones (MakeOptics: radii at the corrector plane) at r = d tan(theta).
   const OpticsSpec& op = scene.optics;
@@ -474,6 +515,7 @@ MieImager::MieImager(const Scene& scene, int stride, int offset) : impl_(std::ma
   im.last.harmonics = im.harmonics;
   im.last.terms = im.mie.terms();
   im.last.size_parameter = im.mie.x;
+  im.last.core_size_parameter = im.mie.x_core;
   im.last.background = im.flat;
 }
 
@@ -492,7 +534,12 @@ std::vector<std::string> MieImager::Effects() const {
   if (s.camera.psf_sigma_um > 0) e.push_back("psf");
   if (!impl_->wavelengths.empty()) e.push_back("spectrum");
   if (s.has_motion()) e.push_back("motion");
-  if (s.objects[0].absorption_index > 0) e.push_back("absorption");
+  if (s.objects.size() == 2) e.push_back("coated");
+  for (const ObjectSpec& o : s.objects)
+    if (o.absorption_index > 0) {
+      e.push_back("absorption");
+      break;
+    }
   return e;
 }
 
@@ -688,7 +735,8 @@ Window WindowFor(const Scene& s, double radius_um, double dz) {
 }  // namespace
 
 double AutomaticMieWindowUm(const Scene& scene, double defocus_um) {
-  const ObjectSpec& o = scene.objects.at(0);
+  if (scene.objects.empty()) throw std::invalid_argument("AutomaticMieWindowUm: no sphere");
+  const ObjectSpec& o = *SpheresOf(scene).shell;
   const Window w = WindowFor(scene, o.radius_um, defocus_um - o.center_um.z);
   return 2 * (w.rho_light + w.margin);
 }
@@ -784,7 +832,7 @@ const MieImager::Impl::Pattern& MieImager::Impl::PatternAt(double dz,
 void MieImager::MoveAcross(double x_um, double y_um) {
   Impl& im = *impl_;
   im.center.x = x_um, im.center.y = y_um;
-  im.scene.objects[0].center_um.x = x_um, im.scene.objects[0].center_um.y = y_um;
+  for (ObjectSpec& o : im.scene.objects) o.center_um.x = x_um, o.center_um.y = y_um;
   for (auto& [w, one] : im.wavelengths) one->MoveAcross(x_um, y_um);
 }
 

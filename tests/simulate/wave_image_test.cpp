@@ -3,6 +3,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 
@@ -50,41 +51,92 @@ TEST(WaveImage, FlatFieldIsExactlyThePhotonTarget) {
 // integral the image never computes: the image sums a Fourier grid of plane waves). This
 // tests the angular-spectrum factor 1 / (-2 pi i k cos theta) and its phase: a wrong phase
 // gives a wrong extinction, a wrong magnitude a wrong scattered power.
+/// Checks that theorem for the collimated scene `s` (0.5 um pixels, 1000 photons per pixel, a
+/// 60 um margin) whose scatterer has coefficients `c` and outer radius `radius`.
+void ExpectExtinctionLessLightScatteredIntoTheNa(const Scene& s, const MieCoefficients& c,
+                                                 double radius) {
+  const MieImager imager(s);
+  for (double defocus : {0.0, 6.0}) {
+    const Image img = imager.Expected(defocus, 2);
+    const double pix = 0.5;
+    double removed = 0;
+    for (float v : img.pixels) removed += (v / 1000.0 - 1) * pix * pix;
+    const double k = 2 * M_PI / s.wavelength_um;
+    const double c_ext = Efficiencies(c).q_ext * M_PI * radius * radius;
+    const double t_na = std::asin(0.42);
+    const int steps = 20000;
+    double sca = 0;
+    for (int i = 0; i <= steps; ++i) {  // Simpson
+      const double t = t_na * i / steps;
+      const MieAmplitudes a = Amplitudes(c, t);
+      sca += (std::norm(a.s1) + std::norm(a.s2)) / 2 * std::sin(t) *
+             (i == 0 || i == steps ? 1 : (i % 2 ? 4 : 2));
+    }
+    const double c_sca_na = 2 * M_PI / (k * k) * sca * t_na / steps / 3;
+    SCOPED_TRACE("defocus " + std::to_string(defocus));
+    // The sensor (60 um from the sphere to its edge) misses the diffraction tails of the NA's
+    // sharp edge beyond it: for a circular pupil 1 - encircled energy ~ 2 / (pi v) at
+    // v = k NA R (Born and Wolf sec. 8.5.2), 0.19 % of C_sca,NA here; plus 0.2 % of C_ext for
+    // the discrete pupil (its edge cells are averaged over their Fourier cell, which takes the
+    // sharp edge's far tails out of the window).
+    const double tails = 2 / (M_PI * k * 0.42 * 60.0) * c_sca_na;
+    EXPECT_NEAR(removed, -c_ext + c_sca_na, tails + 2e-3 * c_ext)
+        << "C_ext " << c_ext << " C_sca,NA " << c_sca_na;
+  }
+}
+
 TEST(WaveImage, LightRemovedIsExtinctionMinusLightScatteredIntoTheNa) {
   for (double n : {1.2, 1.45}) {
+    SCOPED_TRACE("n = " + std::to_string(n));
     Scene s = WaveScene(2.0, n, 0, 240);
     s.source.type = SourceType::kCollimated;
     s.trace.mie.margin_um = 60;
-    const MieImager imager(s);
-    for (double defocus : {0.0, 6.0}) {
-      const Image img = imager.Expected(defocus, 2);
-      const double pix = 0.5;
-      double removed = 0;
-      for (float v : img.pixels) removed += (v / 1000.0 - 1) * pix * pix;
-      const double k = 2 * M_PI / s.wavelength_um, x = k * 2.0;
-      const MieCoefficients c = ComputeMie({n, 0}, x);
-      const double c_ext = Efficiencies(c).q_ext * M_PI * 4.0;
-      const double t_na = std::asin(0.42);
-      const int steps = 20000;
-      double sca = 0;
-      for (int i = 0; i <= steps; ++i) {  // Simpson
-        const double t = t_na * i / steps;
-        const MieAmplitudes a = Amplitudes(c, t);
-        sca += (std::norm(a.s1) + std::norm(a.s2)) / 2 * std::sin(t) *
-               (i == 0 || i == steps ? 1 : (i % 2 ? 4 : 2));
-      }
-      const double c_sca_na = 2 * M_PI / (k * k) * sca * t_na / steps / 3;
-      SCOPED_TRACE("n = " + std::to_string(n) + ", defocus " + std::to_string(defocus));
-      // The sensor (60 um from the sphere to its edge) misses the diffraction tails of the NA's
-      // sharp edge beyond it: for a circular pupil 1 - encircled energy ~ 2 / (pi v) at
-      // v = k NA R (Born and Wolf sec. 8.5.2), 0.19 % of C_sca,NA here; plus 0.2 % of C_ext for
-      // the discrete pupil (its edge cells are averaged over their Fourier cell, which takes the
-      // sharp edge's far tails out of the window).
-      const double tails = 2 / (M_PI * k * 0.42 * 60.0) * c_sca_na;
-      EXPECT_NEAR(removed, -c_ext + c_sca_na, tails + 2e-3 * c_ext)
-          << "C_ext " << c_ext << " C_sca,NA " << c_sca_na;
-    }
+    const double k = 2 * M_PI / s.wavelength_um;
+    ExpectExtinctionLessLightScatteredIntoTheNa(s, ComputeMie({n, 0}, k * 2.0), 2.0);
   }
+}
+
+// The same for coated spheres (two concentric spheres in the scene, the core listed first or
+// second): a 2 um drop of index 1.45 with a 0.6 um bubble, and a 2 um shell of 1.2 on a 1.2 um
+// core of 1.6 with absorption 0.01; their coefficients from Yang's recursion (tested against
+// published values in mie_test.cpp). Measured: 0.08 and 0.06 % of C_ext off. A bubble of half
+// the drop's radius scatters more light to the pupil's edge and beyond the sensor than this
+// tolerance's model allows for (0.36 % off at focus; 0.27 % with a sensor twice as wide).
+TEST(WaveImage, CoatedSphereRemovesItsExtinctionLessWhatItScattersIntoTheNa) {
+  const struct {
+    double r_core, n_core, k_core, n_shell;
+    bool core_first;
+  } kCases[] = {{0.6, 1.0, 0, 1.45, false}, {1.2, 1.6, 0.01, 1.2, true}};
+  for (const auto& c : kCases) {
+    SCOPED_TRACE("core " + std::to_string(c.r_core) + " um of " + std::to_string(c.n_core));
+    Scene s = WaveScene(2.0, c.n_shell, 0, 240);
+    s.source.type = SourceType::kCollimated;
+    s.trace.mie.margin_um = 60;
+    ObjectSpec core = SphereObject(c.r_core, c.n_core);
+    core.absorption_index = c.k_core;
+    s.objects.insert(c.core_first ? s.objects.begin() : s.objects.end(), core);
+    const double k = 2 * M_PI / s.wavelength_um;
+    ExpectExtinctionLessLightScatteredIntoTheNa(
+        s, ComputeCoatedMie({c.n_core, c.k_core}, k * c.r_core, {c.n_shell, 0}, k * 2.0), 2.0);
+  }
+}
+
+// A coated sphere whose shell has the medium's index is its core alone: the same image as the
+// homogeneous core's (in the same FFT window; the two Mie tables' steps differ, step 0.05 / x,
+// so their interpolation differs by about 1e-5 of |S|).
+TEST(WaveImage, CoatedSphereWithAShellOfTheMediumsIndexIsItsCore) {
+  Scene core = WaveScene(2.0, 1.45, 15, 64);
+  core.trace.mie.window_um = 60;
+  Scene coated = core;
+  coated.objects.push_back(SphereObject(4.0, 1.0));
+  const Image a = MieImager(core).Expected(4.0, 2), b = MieImager(coated).Expected(4.0, 2);
+  double worst = 0, change = 0;
+  for (size_t i = 0; i < a.pixels.size(); ++i) {
+    worst = std::max(worst, double(std::abs(a.pixels[i] - b.pixels[i])));
+    change = std::max(change, double(std::abs(a.pixels[i] - 1000.0f)));
+  }
+  EXPECT_GT(change, 100);  // the core's image is not the flat field
+  EXPECT_LT(worst, 1e-3 * change) << "of the largest change " << change;
 }
 
 TEST(WaveImage, SameImageForAnyThreadCount) {
@@ -393,8 +445,17 @@ TEST(WaveImage, PoissonSampleHasTheExpectedMeanAndVariance) {
 TEST(WaveImage, ScenesWithoutAnExactWaveImageAreRejected) {
   Scene s = WaveScene(3, 1.38, 12);
   s.objects.push_back(SphereObject(2, 1.4, Vec3(10, 0, 0)));
-  EXPECT_NE(MieUnsupportedReason(s).find("exactly one object"), std::string::npos);
+  EXPECT_NE(MieUnsupportedReason(s).find("concentric"), std::string::npos);
   EXPECT_THROW(MieImager{s}, Error);
+  s.objects[1].center_um = s.objects[0].center_um;
+  EXPECT_EQ(MieUnsupportedReason(s), "");  // a coated sphere
+  s.objects[1].radius_um = 3;
+  EXPECT_NE(MieUnsupportedReason(s).find("smaller than its shell"), std::string::npos);
+  s.objects[1].radius_um = 2;
+  s.objects[1].velocity_um_per_us = Vec3(1, 0, 0);
+  EXPECT_NE(MieUnsupportedReason(s).find("move together"), std::string::npos);
+  s.objects.push_back(SphereObject(1, 1.4));
+  EXPECT_NE(MieUnsupportedReason(s).find("3 objects"), std::string::npos);
   s.objects = {testing::BoxObject(Vec3(2, 2, 2), 1.4)};
   EXPECT_NE(MieUnsupportedReason(s).find("needs a sphere"), std::string::npos);
   s.objects = {SphereObject(3, 1.38)};

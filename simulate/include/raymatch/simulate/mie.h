@@ -26,6 +26,8 @@ using Complex = std::complex<double>;
 struct MieCoefficients {
   Complex m;  ///< relative index n_sphere / n_medium (imaginary part >= 0: absorbing)
   double x = 0;
+  Complex m_core;     ///< a coated sphere's core index relative to the medium (else 0)
+  double x_core = 0;  ///< its size parameter 2 pi n_medium a_core / lambda (0: homogeneous)
   std::vector<Complex> a, b;
   int terms() const { return static_cast<int>(a.size()); }
 };
@@ -36,6 +38,18 @@ int MieTerms(double x);
 /// Mie coefficients of a homogeneous sphere of relative index `m` and size parameter `x`.
 /// Throws std::invalid_argument for x <= 0, Im m < 0 or Re m <= 0.
 MieCoefficients ComputeMie(Complex m, double x);
+
+/// Mie coefficients of a concentric coated sphere: a core of relative index `m_core` and size
+/// parameter `x_core` inside a shell of `m_shell` whose outer size parameter is `x` (the
+/// coefficients' m and x are the shell's). The recursion of W. Yang, "Improved recursive
+/// algorithm for light scattering by a multilayered sphere", Appl. Opt. 42, 1710 (2003): each
+/// interface carries the logarithmic derivatives H^a_n, H^b_n of the field inside it outwards,
+/// with the ratio Q_n = [psi_n / xi_n](m_shell x_core) / [psi_n / xi_n](m_shell x) by upward
+/// recurrence from Q_0 and D3_n = xi_n' / xi_n from the products psi_n xi_n, so no Bessel
+/// function of the complex arguments is formed; D1_n as for a homogeneous sphere. N terms as
+/// for the outer size parameter. Equal indices give the homogeneous sphere's coefficients.
+/// Throws std::invalid_argument unless 0 < x_core <= x and both indices are valid.
+MieCoefficients ComputeCoatedMie(Complex m_core, double x_core, Complex m_shell, double x);
 
 /// Efficiencies and asymmetry parameter (Bohren and Huffman eqs. 4.61, 4.62, 4.82 and p. 120).
 struct MieEfficiencies {

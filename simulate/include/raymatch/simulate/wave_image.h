@@ -38,22 +38,24 @@
 namespace raymatch::simulate {
 
 /// The reason a scene has no exact wave image ("" when it has one): optics = "mie" needs one
-/// homogeneous sphere and a cone, light-field or on-axis collimated source.
+/// homogeneous sphere, or two concentric ones (a coated sphere: a shell and the core inside it,
+/// e.g. a bubble in a drop), and a cone, light-field or on-axis collimated source.
 std::string MieUnsupportedReason(const Scene& scene);
 
 /// How finely the wave image was sampled (from the scene's [trace.mie] table; how far the
 /// defaults converge: docs/wave-optics.md).
 struct MieSampling {
-  int directions = 0;         ///< polar-angle nodes of the illumination (quadrature)
-  int harmonics = 0;          ///< azimuthal harmonics of the source kept (0: symmetric)
-  int grid = 0;               ///< FFT grid per side
-  double grid_um = 0;         ///< its spacing at the object plane
-  double window_um = 0;       ///< its size
-  int pixel_subsamples = 0;   ///< per pixel side
-  int terms = 0;              ///< Mie series terms (at the first wavelength)
-  int wavelengths = 1;        ///< wavelength nodes of a spectrum
-  double size_parameter = 0;  ///< 2 pi n_medium a / lambda
-  double background = 0;      ///< flat-field flux before scaling (source units)
+  int directions = 0;              ///< polar-angle nodes of the illumination (quadrature)
+  int harmonics = 0;               ///< azimuthal harmonics of the source kept (0: symmetric)
+  int grid = 0;                    ///< FFT grid per side
+  double grid_um = 0;              ///< its spacing at the object plane
+  double window_um = 0;            ///< its size
+  int pixel_subsamples = 0;        ///< per pixel side
+  int terms = 0;                   ///< Mie series terms (at the first wavelength)
+  int wavelengths = 1;             ///< wavelength nodes of a spectrum
+  double size_parameter = 0;       ///< 2 pi n_medium a / lambda
+  double core_size_parameter = 0;  ///< a coated sphere's core's (0: homogeneous)
+  double background = 0;           ///< flat-field flux before scaling (source units)
   nlohmann::json ToJson() const;
 };
 

@@ -184,34 +184,64 @@ MieEfficiencies Efficiencies(const MieCoefficients& c) {
 
 namespace {
 /// S1 and S2 (Bohren and Huffman eq. 4.74) as sums over the terms, with each term's factors
-/// (2n + 1) / (n (n + 1)) a_n, b_n and the recurrence's for pi_n computed once.
+/// (2n + 1) / (n (n + 1)) a_n, b_n and the recurrence's for pi_n computed once. A block of
+/// angles is summed term by term across the block: the pi_n recurrence of one angle is a chain
+/// of dependent multiplications, and the block's independent chains fill the pipeline (each
+/// angle's arithmetic, and so its result, is the same as alone).
 class AmplitudeSums {
  public:
+  static constexpr int kBlock = 16;
+
   explicit AmplitudeSums(const MieCoefficients& c)
-      : terms_(c.terms()), fa_(terms_ + 1), fb_(terms_ + 1), up_(terms_ + 1), down_(terms_ + 1) {
+      : terms_(c.terms()),
+        far_(terms_ + 1),
+        fai_(terms_ + 1),
+        fbr_(terms_ + 1),
+        fbi_(terms_ + 1),
+        up_(terms_ + 1),
+        down_(terms_ + 1) {
     for (int k = 1; k <= terms_; ++k) {
       const double fn = (2.0 * k + 1.0) / (k * (k + 1.0));
-      fa_[k] = fn * c.a[k - 1], fb_[k] = fn * c.b[k - 1];
+      const Complex fa = fn * c.a[k - 1], fb = fn * c.b[k - 1];
+      far_[k] = fa.real(), fai_[k] = fa.imag(), fbr_[k] = fb.real(), fbi_[k] = fb.imag();
       up_[k] = (2.0 * k + 1.0) / k, down_[k] = (k + 1.0) / k;
     }
   }
-  MieAmplitudes At(double theta) const {
-    const double mu = std::cos(theta);
-    double pi0 = 0, pi1 = 1;  // pi_{n-1}, pi_n
-    MieAmplitudes s{0, 0};
-    for (int k = 1; k <= terms_; ++k) {
-      const double tau = k * mu * pi1 - (k + 1) * pi0;
-      s.s1 += fa_[k] * pi1 + fb_[k] * tau;
-      s.s2 += fa_[k] * tau + fb_[k] * pi1;
-      const double pi2 = up_[k] * mu * pi1 - down_[k] * pi0;  // pi_{n+1}
-      pi0 = pi1, pi1 = pi2;
+
+  /// S1, S2 at `count` <= kBlock angles.
+  void At(const double* theta, int count, MieAmplitudes* out) const {
+    double mu[kBlock], pi0[kBlock], pi1[kBlock];
+    double s1r[kBlock], s1i[kBlock], s2r[kBlock], s2i[kBlock];
+    for (int l = 0; l < kBlock; ++l) {
+      mu[l] = std::cos(theta[std::min(l, count - 1)]);
+      pi0[l] = 0, pi1[l] = 1;  // pi_{n-1}, pi_n
+      s1r[l] = s1i[l] = s2r[l] = s2i[l] = 0;
     }
+    for (int k = 1; k <= terms_; ++k) {
+      const double ar = far_[k], ai = fai_[k], br = fbr_[k], bi = fbi_[k];
+      const double kk = k, k1 = k + 1, up = up_[k], down = down_[k];
+      for (int l = 0; l < kBlock; ++l) {
+        const double tau = kk * mu[l] * pi1[l] - k1 * pi0[l];
+        s1r[l] += ar * pi1[l] + br * tau;
+        s1i[l] += ai * pi1[l] + bi * tau;
+        s2r[l] += ar * tau + br * pi1[l];
+        s2i[l] += ai * tau + bi * pi1[l];
+        const double pi2 = up * mu[l] * pi1[l] - down * pi0[l];  // pi_{n+1}
+        pi0[l] = pi1[l], pi1[l] = pi2;
+      }
+    }
+    for (int l = 0; l < count; ++l) out[l] = {{s1r[l], s1i[l]}, {s2r[l], s2i[l]}};
+  }
+
+  MieAmplitudes At(double theta) const {
+    MieAmplitudes s;
+    At(&theta, 1, &s);
     return s;
   }
 
  private:
   int terms_;
-  std::vector<Complex> fa_, fb_;
+  std::vector<double> far_, fai_, fbr_, fbi_;
   std::vector<double> up_, down_;
 };
 }  // namespace
@@ -229,10 +259,14 @@ MieTable::MieTable(const MieCoefficients& c, double theta_max, double step_per_x
   s1_.resize(n);
   s2_.resize(n);
   const AmplitudeSums sums(c);
-  tbb::parallel_for(0, n, [&](int i) {  // each node on its own: the same table for any threads
-    const MieAmplitudes s = sums.At(std::abs((i - 1) * step_));
-    s1_[i] = s.s1;
-    s2_[i] = s.s2;
+  const int blocks = (n + AmplitudeSums::kBlock - 1) / AmplitudeSums::kBlock;
+  tbb::parallel_for(0, blocks, [&](int b) {  // each node on its own: the same for any threads
+    const int i0 = b * AmplitudeSums::kBlock, count = std::min(AmplitudeSums::kBlock, n - i0);
+    double theta[AmplitudeSums::kBlock];
+    MieAmplitudes s[AmplitudeSums::kBlock];
+    for (int l = 0; l < count; ++l) theta[l] = std::abs((i0 + l - 1) * step_);
+    sums.At(theta, count, s);
+    for (int l = 0; l < count; ++l) s1_[i0 + l] = s[l].s1, s2_[i0 + l] = s[l].s2;
   });
 }
 

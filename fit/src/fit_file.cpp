@@ -343,6 +343,11 @@ simulate::Scene ReadSceneAndOptics(TomlReader& r, const std::string& path,
     if (ray_start_fit) trace.erase("mie");
   }
   const simulate::Scene scene = simulate::LoadScene(f.scene, f.scene_file);  // checks it
+  if (scene.trace.optics == simulate::ImageOptics::kPhysical)
+    throw Error(FileLocation{f.scene_file},
+                "[trace] optics = \"physical\" makes images with `raymatch simulate` and the "
+                "Python module; fits and sensitivity studies do not take it yet (use \"rays\" or, "
+                "for a sphere, \"mie\")");
   if (scene.trace.optics == simulate::ImageOptics::kMie) {
     // An exact image model: one level, the two derivative sets the uncertainties need (any two
     // sets are the same images), no repeats with other ray streams; [rays] may still set them.

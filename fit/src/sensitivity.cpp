@@ -286,6 +286,10 @@ SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
   if (spec.keys.empty()) throw Error(where, "no keys: name at least one scene key");
   if (spec.sets < 4 || spec.sets % 2) throw Error(where, "sets: expected an even number >= 4");
   const simulate::Scene scene = simulate::LoadScene(spec.scene, spec.scene_file);
+  if (scene.trace.optics == simulate::ImageOptics::kPhysical)
+    throw Error(where,
+                "[trace] optics = \"physical\": a sensitivity study does not take it yet (use "
+                "\"rays\" or, for a sphere, \"mie\")");
   SensitivityResult r;
   r.defocus_um = spec.defocus_um.empty() ? scene.defocus_um : spec.defocus_um;
   r.photons_per_pixel =

@@ -9,6 +9,7 @@
 #include "raymatch/core/provenance.h"
 #include "raymatch/core/toml_reader.h"
 #include "raymatch/core/version.h"
+#include "raymatch/simulate/physical_image.h"
 #include "raymatch/simulate/scan.h"
 #include "raymatch/simulate/scene.h"
 #include "raymatch/simulate/tracer.h"
@@ -154,16 +155,19 @@ py::tuple Simulate(const PyScene& ps, std::optional<uint64_t> rays,
   if (!ps.from_file) scene.file.clear();
 
   std::unique_ptr<simulate::Simulator> sim;
-  std::unique_ptr<simulate::MieImager> mie;  // optics = "mie": the exact wave image
+  std::unique_ptr<simulate::MieImager> mie;        // optics = "mie": the exact wave image
+  std::unique_ptr<simulate::PhysicalImager> phys;  // optics = "physical"
   uint64_t rays_per_image = 0;
   double hits_per_ray = 0;
   {
     py::gil_scoped_release nogil;
     if (scene.trace.optics == simulate::ImageOptics::kMie)
       mie = std::make_unique<simulate::MieImager>(scene);
+    else if (scene.trace.optics == simulate::ImageOptics::kPhysical)
+      phys = std::make_unique<simulate::PhysicalImager>(scene);
     else
       sim = std::make_unique<simulate::Simulator>(scene);
-    if (mie)
+    if (mie || phys)
       rays_per_image = 0;
     else if (rays)
       rays_per_image = *rays;
@@ -187,6 +191,8 @@ py::tuple Simulate(const PyScene& ps, std::optional<uint64_t> rays,
       py::gil_scoped_release nogil;
       if (mie) {
         r = simulate::MiePlane(*mie, dz, static_cast<uint32_t>(i), ctl, &meta);
+      } else if (phys) {
+        r = simulate::PhysicalPlane(*phys, dz, static_cast<uint32_t>(i), ctl, &meta);
       } else {
         r = sim->TracePlane(dz, static_cast<uint32_t>(i), rays_per_image, ctl);
         meta = simulate::PlaneMetadata(*sim, r, static_cast<uint32_t>(i));
@@ -204,7 +210,10 @@ py::tuple Simulate(const PyScene& ps, std::optional<uint64_t> rays,
     if (PyErr_CheckSignals() != 0) throw py::error_already_set();  // Ctrl-C between planes
   }
   return py::make_tuple(images, py::cast(scene.defocus_um), sidecars, rays_per_image, hits_per_ray,
-                        py::cast(mie ? mie->Effects() : sim->Effects()), code_values);
+                        py::cast(mie    ? mie->Effects()
+                                 : phys ? phys->Effects()
+                                        : sim->Effects()),
+                        code_values);
 }
 
 }  // namespace

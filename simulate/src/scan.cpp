@@ -9,12 +9,14 @@
 #include <memory>
 #include <set>
 #include <sstream>
+#include <type_traits>
 
 #include "raymatch/core/atomic_file.h"
 #include "raymatch/core/error.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/provenance.h"
 #include "raymatch/simulate/geometry.h"
+#include "raymatch/simulate/physical_image.h"
 #include "raymatch/simulate/water.h"
 #include "raymatch/simulate/wave_image.h"
 
@@ -245,20 +247,42 @@ bool CodeValues(const Scene& scene, const Image& counts, uint32_t plane_index, I
   return true;
 }
 
-PlaneResult MiePlane(const MieImager& mie, double dz, uint32_t plane_index,
-                     const RunControl& control, nlohmann::json* meta) {
+/// One plane of an image model without rays (the exact wave image, physical optics): the
+/// expected image, its Poisson photon counts and the sidecar.
+const char* ShapeName(ShapeType t) {
+  switch (t) {
+    case ShapeType::kSphere:
+      return "sphere";
+    case ShapeType::kEllipsoid:
+      return "ellipsoid";
+    case ShapeType::kBox:
+      return "box";
+    case ShapeType::kMesh:
+      return "mesh";
+  }
+  return "";
+}
+
+template <class Imager>
+PlaneResult ExpectedImagePlane(const Imager& mie, const char* optics, const char* model, double dz,
+                               uint32_t plane_index, const RunControl& control,
+                               nlohmann::json* meta) {
   const auto t0 = std::chrono::steady_clock::now();
   const Scene& s = mie.scene();
   PlaneResult r;
   r.defocus_um = dz;
-  const Image expected = mie.Expected(dz, control.threads > 0 ? control.threads : s.trace.threads);
+  const int threads = control.threads > 0 ? control.threads : s.trace.threads;
+  Image expected;
+  if constexpr (std::is_same_v<Imager, PhysicalImager>)
+    expected = mie.Expected(dz, threads, control.progress, control.label);
+  else
+    expected = mie.Expected(dz, threads);
   r.counts = PoissonSample(expected, s.trace.seed, plane_index);
   r.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  // A homogeneous sphere, or a coated one: its shell and the concentric core inside.
   nlohmann::json objects = nlohmann::json::array();
   for (const ObjectSpec& o : s.objects)
     objects.push_back({{"name", o.name},
-                       {"type", "sphere"},
+                       {"type", ShapeName(o.shape)},
                        {"center_um", {o.center_um.x, o.center_um.y, o.center_um.z}},
                        {"radius_um", o.radius_um},
                        {"index", o.index},
@@ -269,11 +293,8 @@ PlaneResult MiePlane(const MieImager& mie, double dz, uint32_t plane_index,
       {"scene_file", s.file},
       {"scene_checksum_fnv1a64", s.file.empty() ? "" : FileChecksum(s.file)},
       {"units", {{"pixel_values", "photon counts"}, {"lengths", "micrometres"}}},
-      {"optics", "mie"},
-      {"model",
-       "exact wave image: Mie scattering of each illumination plane wave (unpolarised), "
-       "partially coherent Koehler imaging through an aplanatic objective, Poisson photon counts "
-       "of the expected image (docs/wave-optics.md)"},
+      {"optics", optics},
+      {"model", model},
       {"sampling", mie.sampling().ToJson()},
       {"defocus_um", dz},
       {"defocus_convention",
@@ -292,16 +313,43 @@ PlaneResult MiePlane(const MieImager& mie, double dz, uint32_t plane_index,
   return r;
 }
 
+PlaneResult MiePlane(const MieImager& mie, double dz, uint32_t plane_index,
+                     const RunControl& control, nlohmann::json* meta) {
+  return ExpectedImagePlane(
+      mie, "mie",
+      "exact wave image: Mie scattering of each illumination plane wave (unpolarised), "
+      "partially coherent Koehler imaging through an aplanatic objective, Poisson photon "
+      "counts of the expected image (docs/wave-optics.md)",
+      dz, plane_index, control, meta);
+}
+
+PlaneResult PhysicalPlane(const PhysicalImager& phys, double dz, uint32_t plane_index,
+                          const RunControl& control, nlohmann::json* meta) {
+  return ExpectedImagePlane(
+      phys, "physical",
+      "physical optics: each illumination plane wave's angular spectrum behind the objects "
+      "from rays that carry their field (Kirchhoff's shadow plus ray tubes on every Fresnel "
+      "branch), imaged through an aplanatic objective, intensities summed over directions "
+      "and polarisations, Poisson photon counts of the expected image "
+      "(docs/physical-optics.md)",
+      dz, plane_index, control, meta);
+}
+
 ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
   const auto t0 = std::chrono::steady_clock::now();
   CheckPlanePositions(scene);
   // Every input (meshes, index fields, ray lists, the calibration) is read and checked while the
   // simulator is built, before the output folder is made: a refused input leaves no folder.
-  const bool wave = scene.trace.optics == ImageOptics::kMie;
+  const bool mie_optics = scene.trace.optics == ImageOptics::kMie;
+  const bool physical = scene.trace.optics == ImageOptics::kPhysical;
+  const bool wave = mie_optics || physical;
   std::unique_ptr<Simulator> sim_ptr;
   std::unique_ptr<MieImager> mie;
-  if (wave)
+  std::unique_ptr<PhysicalImager> phys;
+  if (mie_optics)
     mie = std::make_unique<MieImager>(scene);
+  else if (physical)
+    phys = std::make_unique<PhysicalImager>(scene);
   else
     sim_ptr = std::make_unique<Simulator>(scene);
   EnsureDirectory(opt.output_dir);
@@ -313,7 +361,7 @@ ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
   // no index listing planes it did not write (or planes of two different scans).
   RemoveStaleOutput(sum.index_json);
   RemoveStaleOutput(sum.index_csv);
-  sum.effects = wave ? mie->Effects() : sim_ptr->Effects();
+  sum.effects = mie ? mie->Effects() : phys ? phys->Effects() : sim_ptr->Effects();
   if (wave) {
     sum.rays_per_image = 0;  // no rays: the expected image, then Poisson photon counts
   } else if (opt.rays) {
@@ -336,8 +384,10 @@ ScanSummary RunScan(const Scene& scene, const ScanOptions& opt) {
     ctl.label = label;
     PlaneResult r;
     nlohmann::json meta;
-    if (wave) {
+    if (mie) {
       r = MiePlane(*mie, dz, static_cast<uint32_t>(i), ctl, &meta);
+    } else if (phys) {
+      r = PhysicalPlane(*phys, dz, static_cast<uint32_t>(i), ctl, &meta);
     } else {
       r = sim_ptr->TracePlane(dz, static_cast<uint32_t>(i), sum.rays_per_image, ctl);
       meta = PlaneMetadata(*sim_ptr, r, static_cast<uint32_t>(i));

@@ -9,6 +9,7 @@
 #include "raymatch/core/calibration_file.h"
 #include "raymatch/core/image_io.h"
 #include "raymatch/core/toml_reader.h"
+#include "raymatch/simulate/physical_image.h"
 #include "raymatch/simulate/shapes.h"
 #include "raymatch/simulate/water.h"
 #include "raymatch/simulate/wave_image.h"
@@ -737,6 +738,21 @@ static void ReadMieSettings(TomlReader mr, MieSettings* m_out) {
   mr.Finish();
 }
 
+/// [trace.physical]: the physical-optics image's sampling.
+static void ReadPhysicalSettings(TomlReader pr, PhysicalSettings* p_out) {
+  PhysicalSettings& p = *p_out;
+  p.polar_nodes = static_cast<int>(pr.Integer("polar_nodes", p.polar_nodes, 1, 64));
+  p.azimuths = static_cast<int>(pr.Integer("azimuths", p.azimuths, 1, 256));
+  p.oversample = pr.InRange("oversample", 1.0, 8.0, p.oversample);
+  p.margin_um = pr.InRange("margin_um", 0.0, 1000.0, p.margin_um);
+  p.pixel_subsamples = static_cast<int>(pr.Integer("pixel_subsamples", p.pixel_subsamples, 0, 64));
+  p.ray_spacing_um = pr.InRange("ray_spacing_um", 0.0, 100.0, p.ray_spacing_um);
+  p.refine_levels = static_cast<int>(pr.Integer("refine_levels", p.refine_levels, 0, 12));
+  p.max_cell_steps = pr.InRange("max_cell_steps", 0.05, 100.0, p.max_cell_steps);
+  p.max_events = static_cast<int>(pr.Integer("max_events", p.max_events, 0, 16));
+  pr.Finish();
+}
+
 /// [trace]: the ray or photon count, partial reflection, limits, gradient-index integration
 /// and the image model.
 static void ReadTrace(TomlReader tr, Scene* s_out) {
@@ -768,12 +784,21 @@ static void ReadTrace(TomlReader tr, Scene* s_out) {
   s.trace.grin.uniform_tolerance =
       tr.InRange("grin_uniform_tolerance", -1.0, 1e-3, s.trace.grin.uniform_tolerance);
   s.trace.grin.cell_steps = tr.Bool("grin_cell_steps", s.trace.grin.cell_steps);
-  s.trace.optics = tr.Choice("optics", {"rays", "mie"}, "rays") == "mie" ? ImageOptics::kMie
-                                                                         : ImageOptics::kRays;
+  const std::string optics = tr.Choice("optics", {"rays", "mie", "physical"}, "rays");
+  s.trace.optics = optics == "mie"        ? ImageOptics::kMie
+                   : optics == "physical" ? ImageOptics::kPhysical
+                                          : ImageOptics::kRays;
   if (tr.Has("mie")) {
     ReadMieSettings(tr.Table("mie"), &s.trace.mie);
     if (s.trace.optics != ImageOptics::kMie)
       tr.Fail("mie", "[trace.mie] sets the wave image's sampling: it needs optics = \"mie\"");
+  }
+  if (tr.Has("physical")) {
+    ReadPhysicalSettings(tr.Table("physical"), &s.trace.physical);
+    if (s.trace.optics != ImageOptics::kPhysical)
+      tr.Fail("physical",
+              "[trace.physical] sets the physical-optics image's sampling: it needs optics = "
+              "\"physical\"");
   }
   tr.Finish();
 }
@@ -875,8 +900,9 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
   if (s.trace.rays == 0 && s.trace.photons_per_pixel == 0) s.trace.rays = 1000000;
 
   ReadMotion(r, path, &s);
-  if (s.trace.optics == ImageOptics::kMie) {
-    const std::string why = MieUnsupportedReason(s);
+  if (s.trace.optics != ImageOptics::kRays) {
+    const std::string why = s.trace.optics == ImageOptics::kMie ? MieUnsupportedReason(s)
+                                                                : PhysicalUnsupportedReason(s);
     if (!why.empty()) r.Table("trace").Fail("optics", why);
   }
 
@@ -895,7 +921,9 @@ Scene LoadScene(const toml::table& t, const std::string& path) {
   return s;
 }
 
-const char* ImageOpticsName(ImageOptics o) { return o == ImageOptics::kMie ? "mie" : "rays"; }
+const char* ImageOpticsName(ImageOptics o) {
+  return o == ImageOptics::kMie ? "mie" : o == ImageOptics::kPhysical ? "physical" : "rays";
+}
 
 bool Scene::has_motion() const {
   if (exposure.shape == PulseShape::kNone) return false;

@@ -20,6 +20,7 @@
 #include "raymatch/core/error.h"
 #include "raymatch/core/rng.h"
 #include "raymatch/simulate/mie.h"
+#include "raymatch/simulate/sampling.h"
 #include "raymatch/simulate/tracer.h"
 #include "sources.h"
 #include "stages.h"
@@ -29,28 +30,6 @@ namespace raymatch::simulate {
 namespace {
 
 constexpr double kDeg = M_PI / 180.0;
-
-/// Gauss-Legendre nodes and weights on [a, b] (Newton's iteration on P_n from the Chebyshev
-/// guess; Golub and Welsch's eigenvalue method gives the same to rounding).
-void GaussLegendre(int n, double a, double b, std::vector<double>* x, std::vector<double>* w) {
-  for (int i = 0; i < n; ++i) {
-    double z = std::cos(M_PI * (i + 0.75) / (n + 0.5)), dp = 1;
-    for (int it = 0; it < 100; ++it) {
-      double p0 = 1, p1 = z;  // P_0, P_1
-      for (int k = 2; k <= n; ++k) {
-        const double p2 = ((2.0 * k - 1) * z * p1 - (k - 1.0) * p0) / k;
-        p0 = p1, p1 = p2;
-      }
-      if (n == 1) p1 = z, p0 = 1;
-      dp = n * (z * p1 - p0) / (z * z - 1);
-      const double dz = p1 / dp;
-      z -= dz;
-      if (std::abs(dz) < 1e-15) break;
-    }
-    x->push_back(a + (b - a) * (1 - z) / 2);
-    w->push_back((b - a) / ((1 - z * z) * dp * dp));
-  }
-}
 
 /// Keys' cubic convolution weights (a = -1/2) for offset t in [0, 1).
 inline void KeysWeights(double t, double w[4]) {

@@ -249,6 +249,17 @@ TEST(WaveFit, FitFileChoosesTheOptics) {
   } catch (const Error& e) {
     EXPECT_NE(std::string(e.what()).find("concentric"), std::string::npos) << e.what();
   }
+  // A physical-optics scene: not yet a fit's model, said at the scene.
+  std::string phys_scene = rays_scene;
+  phys_scene.replace(phys_scene.find("[trace]\n"), 8, "[trace]\noptics = \"physical\"\n");
+  dir.Write("phys.toml", phys_scene);
+  try {
+    LoadFitSpec(
+        dir.Write("p.toml", "scene = \"phys.toml\"\n" + base.substr(base.find("[[image]]"))));
+    FAIL() << "expected an error";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("do not take it yet"), std::string::npos) << e.what();
+  }
   // [search]: a ray start only before an exact model, scans of the fit's own parameters, no
   // stages for a grid; each error names the key.
   struct Bad {

@@ -63,4 +63,7 @@ inline void SampleUnitDisc(Rng& rng, double* x, double* y) {
   *y = b;
 }
 
+/// Gauss-Legendre nodes and weights of order n on [a, b], appended to x and w.
+void GaussLegendre(int n, double a, double b, std::vector<double>* x, std::vector<double>* w);
+
 }  // namespace raymatch::simulate

@@ -74,13 +74,18 @@ std::vector<OpticsComparisonPlane> CompareOptics(const Scene& scene, const ScanO
 /// RunScan checks this before anything is written, the Python module before tracing.
 void CheckPlanePositions(const Scene& scene);
 
-class MieImager;  // wave_image.h
+class MieImager;       // wave_image.h
+class PhysicalImager;  // physical_image.h
 
 /// One plane of the exact wave model ([trace] optics = "mie"): the expected image, Poisson
 /// photon counts from the streams (seed, plane index, pixel) in `counts`, and its sidecar
 /// metadata in `*meta`.
 PlaneResult MiePlane(const MieImager& mie, double defocus_um, uint32_t plane_index,
                      const RunControl& control, nlohmann::json* meta);
+
+/// One plane of the physical-optics model ([trace] optics = "physical"), as MiePlane.
+PlaneResult PhysicalPlane(const PhysicalImager& phys, double defocus_um, uint32_t plane_index,
+                          const RunControl& control, nlohmann::json* meta);
 
 /// The sidecar metadata for one traced plane (also embedded in the TIFF ImageDescription).
 nlohmann::json PlaneMetadata(const Simulator& sim, const PlaneResult& r, uint32_t plane_index);

@@ -231,8 +231,8 @@ enum class PartialReflection { kOff, kUnpolarized, kPolarized };
 
 /// Which model makes the images: Monte Carlo rays (the default), or the exact wave image of a
 /// homogeneous sphere (Mie scattering with partially coherent imaging, wave_image.h).
-enum class ImageOptics { kRays, kMie };
-const char* ImageOpticsName(ImageOptics o);  ///< "rays", "mie"
+enum class ImageOptics { kRays, kMie, kPhysical };
+const char* ImageOpticsName(ImageOptics o);  ///< "rays", "mie", "physical"
 
 /// [trace.mie]: the wave image's sampling (defaults converge to below 0.1 % of the background for
 /// spheres above about 10 um radius; smaller ones need a finer grid: docs/wave-optics.md).
@@ -255,6 +255,19 @@ struct MieSettings {
   int motion_nodes = 8;  ///< times over the pulse of a moving sphere (equal power)
 };
 
+/// [trace.physical]: the sampling of the physical-optics image (docs/physical-optics.md).
+struct PhysicalSettings {
+  int polar_nodes = 3;        ///< Gauss-Legendre nodes in sin(theta) across a cone source
+  int azimuths = 8;           ///< illumination directions per polar node of a cone
+  double oversample = 1.5;    ///< image grid spacing lambda_medium / (4 NA / n) / oversample
+  double margin_um = 0;       ///< window margin beyond the objects' light (0: 8 um + 8 lambda/NA)
+  int pixel_subsamples = 0;   ///< per pixel side (0: spacing at most lambda_medium / (8 NA / n))
+  double ray_spacing_um = 0;  ///< field rays' coarse lattice (0: the medium's wavelength)
+  int refine_levels = 6;      ///< halvings of a lattice cell at most
+  double max_cell_steps = 1;  ///< a cell is halved while its exit-plane image spans more steps
+  int max_events = 4;         ///< surface events of the longest Fresnel branch
+};
+
 struct TraceSpec {
   uint64_t rays = 0;             ///< rays per image; 0 = derive from photons_per_pixel
   double photons_per_pixel = 0;  ///< target mean hits per pixel in the flat field
@@ -265,6 +278,7 @@ struct TraceSpec {
   GrinSettings grin;                        ///< gradient-index integration tolerances
   ImageOptics optics = ImageOptics::kRays;  ///< [trace] optics = "rays" | "mie"
   MieSettings mie;                          ///< [trace.mie]
+  PhysicalSettings physical;                ///< [trace.physical]
 };
 
 struct Scene {

@@ -1,0 +1,73 @@
+#pragma once
+// The physical-optics image of any scene ([trace] optics = "physical"): for each illumination
+// plane wave, the angular spectrum the objects leave behind them from rays that carry their
+// field (ray_field.h), imaged through the microscope as the wave model images a sphere's
+// (wave_image.h), the intensities summed over the mutually incoherent directions and the two
+// polarisations.
+//
+// Model (docs/physical-optics.md):
+//  * A cone source is sampled at `polar_nodes` Gauss-Legendre nodes in sin(theta) times
+//    `azimuths` equally spaced azimuths, each a plane wave of unit flux density through the
+//    z-plane per unit of the source's density (the ray model's convention); a collimated
+//    source is one plane wave. Each is unpolarised: the images of two orthogonal polarisations
+//    are averaged.
+//  * Its scattered angular spectrum A(k_t) (RayAngularSpectrum, on the Fourier grid of the
+//    image window, the objects' centre as origin) passes the objective's NA; the aplanatic
+//    objective and tube lens carry each plane wave to the camera with amplitude sqrt(cos theta)
+//    and its meridional component turned radial (Richards and Wolf, Proc. R. Soc. A 253, 358
+//    (1959)); defocus is the propagation phase exp(i (k_z - k_z,in) (z_focus - z_origin)).
+//  * The image is the flat field plus the intensity change |E_direct + E_s|^2 - |E_direct|^2,
+//    integrated over each pixel, scaled so the flat field gives `photons_per_pixel` on
+//    average (without objects, exactly).
+// What it does not take yet (refused with the reason): a light-field or point source or a ray
+// list, the corrector, the camera PSF, a spectrum, motion.
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <vector>
+
+#include "raymatch/core/image.h"
+#include "raymatch/simulate/scene.h"
+
+namespace raymatch::simulate {
+
+/// The reason a scene has no physical-optics image here ("" when it has one).
+std::string PhysicalUnsupportedReason(const Scene& scene);
+
+/// How the physical-optics image was sampled.
+struct PhysicalSampling {
+  int directions = 0;        ///< illumination plane waves
+  int grid = 0;              ///< FFT grid per side
+  double grid_um = 0;        ///< its spacing at the object plane
+  double window_um = 0;      ///< its size
+  int pixel_subsamples = 0;  ///< per pixel side
+  uint64_t field_rays = 0;   ///< field rays traced for the last image
+  nlohmann::json ToJson() const;
+};
+
+class PhysicalImager {
+ public:
+  /// Throws Error (naming the scene file) when PhysicalUnsupportedReason is not empty.
+  explicit PhysicalImager(const Scene& scene);
+  ~PhysicalImager();
+  PhysicalImager(const PhysicalImager&) = delete;
+  PhysicalImager& operator=(const PhysicalImager&) = delete;
+
+  /// The expected image (photons per pixel, no noise) with the objective focused at
+  /// `defocus_um`; `threads` 0: all cores. The same for any thread count. `progress`: a
+  /// progress bar on stderr over the illumination directions, labelled `label`.
+  Image Expected(double defocus_um, int threads = 0, bool progress = false,
+                 const std::string& label = "") const;
+  /// The sampling of the last Expected call (or the constructor's, before one).
+  PhysicalSampling sampling() const;
+  /// The stages this model runs, e.g. {"optics:physical", "source:cone", "partial_reflection"}.
+  std::vector<std::string> Effects() const;
+  const Scene& scene() const;
+
+  struct Impl;
+
+ private:
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace raymatch::simulate

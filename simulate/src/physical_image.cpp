@@ -1,0 +1,312 @@
+#include "raymatch/simulate/physical_image.h"
+
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
+
+#include <algorithm>
+#include <cmath>
+#include <complex>
+#include <opencv2/core.hpp>
+
+#include "raymatch/core/error.h"
+#include "raymatch/core/progress.h"
+#include "raymatch/simulate/ray_field.h"
+#include "raymatch/simulate/sampling.h"
+#include "raymatch/simulate/tracer.h"
+#include "stages.h"
+
+namespace raymatch::simulate {
+
+namespace {
+
+using C = std::complex<double>;
+constexpr double kDeg = M_PI / 180.0;
+
+/// One illumination plane wave: its direction and its weight (flux per unit density).
+struct Direction {
+  Vec3 d;
+  double weight = 0;
+};
+
+C DotC(const CVec3& a, const Vec3& b) { return a[0] * b.x + a[1] * b.y + a[2] * b.z; }
+
+/// The unit vectors e_theta, e_phi of direction u about the optical axis (for u on the axis,
+/// those of azimuth 0).
+void PolarBasis(const Vec3& u, Vec3* e_th, Vec3* e_ph) {
+  const double st = std::hypot(u.x, u.y);
+  const double cp = st > 1e-12 ? u.x / st : 1.0, sp = st > 1e-12 ? u.y / st : 0.0;
+  *e_th = Vec3(u.z * cp, u.z * sp, -st);
+  *e_ph = Vec3(-sp, cp, 0);
+}
+
+/// The camera-side field (x, y at the object-conjugate plane) of an object-side plane wave of
+/// direction u and field a: its e_theta component turned radial, e_phi kept (Richards and
+/// Wolf), the camera's rays being paraxial.
+std::array<C, 2> ToCamera(const Vec3& u, const CVec3& a) {
+  Vec3 e_th, e_ph;
+  PolarBasis(u, &e_th, &e_ph);
+  const C at = DotC(a, e_th), ap = DotC(a, e_ph);
+  const double st = std::hypot(u.x, u.y);
+  const double cp = st > 1e-12 ? u.x / st : 1.0, sp = st > 1e-12 ? u.y / st : 0.0;
+  return {at * cp - ap * sp, at * sp + ap * cp};
+}
+
+}  // namespace
+
+std::string PhysicalUnsupportedReason(const Scene& s) {
+  switch (s.source.type) {
+    case SourceType::kCone:
+    case SourceType::kCollimated:
+      break;
+    case SourceType::kLightField:
+      return "optics = \"physical\" takes a cone or collimated source (a light field is not "
+             "yet imaged this way)";
+    case SourceType::kPoint:
+      return "optics = \"physical\" needs plane-wave illumination; a point source is not one";
+    case SourceType::kRayList:
+      return "optics = \"physical\" needs a source with an angular distribution, not a ray list";
+  }
+  if (s.optics.corrector.enabled) return "optics = \"physical\" does not take the corrector yet";
+  if (s.camera.psf_sigma_um > 0)
+    return "optics = \"physical\" does not take camera.psf_sigma_um yet";
+  if (s.source.spectrum.type != SpectrumType::kNone)
+    return "optics = \"physical\" is monochromatic: it does not take [source] spectrum yet";
+  if (s.has_motion()) return "optics = \"physical\" does not take motion yet";
+  return "";
+}
+
+nlohmann::json PhysicalSampling::ToJson() const {
+  return {{"directions", directions},
+          {"fft_grid", grid},
+          {"fft_grid_um", grid_um},
+          {"window_um", window_um},
+          {"pixel_subsamples", pixel_subsamples},
+          {"field_rays", field_rays}};
+}
+
+struct PhysicalImager::Impl {
+  Scene scene;
+  std::unique_ptr<Simulator> sim;
+  std::vector<Direction> dirs;
+  double k = 0, lambda_medium = 0, s_na = 0;
+  double sensor_sign = -1;
+  Vec3 origin;                 // the objects' centre: the spectra's origin and exit plane
+  double extent = 0;           // radius about it that holds the objects
+  double flat = 0, scale = 1;  // flat-field flux; photons per unit of it
+  mutable PhysicalSampling last;
+
+  std::pair<double, double> ObjectPoint(double col, double row) const {
+    const CameraSpec& cam = scene.camera;
+    const double u = (col - cam.nx / 2.0) * cam.pixel_pitch_um;
+    const double v = (cam.ny / 2.0 - row) * cam.pixel_pitch_um;
+    return {(u + cam.offset_um[0]) / sensor_sign, (v + cam.offset_um[1]) / sensor_sign};
+  }
+
+  /// The intensity change of one direction and polarisation on the window's grid (n x n,
+  /// spacing h, corner x0, y0), added with `weight` to `dev`.
+  void AddDirection(const Direction& dir, const CVec3& pol, double dz, int n, double h, double x0,
+                    double y0, double weight, std::vector<double>* dev, uint64_t* rays) const;
+};
+
+PhysicalImager::PhysicalImager(const Scene& scene) : impl_(std::make_unique<Impl>()) {
+  const std::string why = PhysicalUnsupportedReason(scene);
+  if (!why.empty()) throw Error(FileLocation{scene.file}, why);
+  Impl& im = *impl_;
+  im.scene = scene;
+  Scene traced = scene;
+  traced.trace.optics = ImageOptics::kRays;
+  im.sim = std::make_unique<Simulator>(traced);
+  im.lambda_medium = scene.wavelength_um / scene.medium_index;
+  im.k = 2 * M_PI / im.lambda_medium;
+  im.s_na = AcceptanceSin(scene);
+  im.sensor_sign = MakeOptics(scene).sign * Magnification(scene.optics);
+  // The objects' bounding sphere: the origin of every spectrum (its exit plane through it).
+  const auto bounds = im.sim->ObjectBounds();
+  if (!bounds.empty()) {
+    Vec3 lo = bounds[0].first, hi = lo;
+    for (const auto& [c, r] : bounds) {
+      lo = Vec3(std::min(lo.x, c.x - r), std::min(lo.y, c.y - r), std::min(lo.z, c.z - r));
+      hi = Vec3(std::max(hi.x, c.x + r), std::max(hi.y, c.y + r), std::max(hi.z, c.z + r));
+    }
+    im.origin = (lo + hi) * 0.5;
+    for (const auto& [c, r] : bounds) im.extent = std::max(im.extent, Length(c - im.origin) + r);
+  }
+  const SourceSpec& ss = scene.source;
+  if (ss.type == SourceType::kCollimated) {
+    const double t = ss.tilt_deg * kDeg, a = ss.azimuth_deg * kDeg;
+    im.dirs.push_back({Vec3(std::sin(t) * std::cos(a), std::sin(t) * std::sin(a), std::cos(t)), 1});
+  } else {
+    // Uniform in direction cosines (u, v) within sin(half angle): nodes in s = sin(theta) with
+    // the s ds measure, azimuths equally spaced (offset by half a step on alternate rings).
+    const PhysicalSettings& ps = scene.trace.physical;
+    std::vector<double> xs, ws;
+    GaussLegendre(ps.polar_nodes, 0, std::sin(ss.half_angle_deg * kDeg), &xs, &ws);
+    for (size_t i = 0; i < xs.size(); ++i)
+      for (int j = 0; j < ps.azimuths; ++j) {
+        const double phi = 2 * M_PI * (j + 0.5 * (i % 2)) / ps.azimuths, st = xs[i];
+        im.dirs.push_back({Vec3(st * std::cos(phi), st * std::sin(phi), std::sqrt(1 - st * st)),
+                           ws[i] * st * 2 * M_PI / ps.azimuths});
+      }
+  }
+  // The direct light that passes the NA is the flat field (unit flux density per weight).
+  for (const Direction& d : im.dirs)
+    if (std::hypot(d.d.x, d.d.y) <= im.s_na) im.flat += d.weight;
+  if (!(im.flat > 0))
+    throw Error(FileLocation{scene.file},
+                "optics = \"physical\": no direct light passes the objective (a dark field): the "
+                "photon scale is defined by the flat field");
+  double photons = scene.trace.photons_per_pixel;
+  if (!(photons > 0)) {
+    Scene flat = traced;
+    flat.objects.clear();
+    double per_ray = 0;
+    Simulator(flat).RaysForPhotonTarget(1.0, &per_ray);
+    photons = per_ray * double(scene.trace.rays);
+  }
+  im.scale = photons / im.flat;
+  im.last.directions = int(im.dirs.size());
+}
+
+PhysicalImager::~PhysicalImager() = default;
+const Scene& PhysicalImager::scene() const { return impl_->scene; }
+PhysicalSampling PhysicalImager::sampling() const { return impl_->last; }
+
+std::vector<std::string> PhysicalImager::Effects() const {
+  const Scene& s = impl_->scene;
+  std::vector<std::string> e{"optics:physical"};
+  e.push_back(s.source.type == SourceType::kCone ? "source:cone" : "source:collimated");
+  if (!s.objects.empty()) e.push_back("fresnel_branches");
+  return e;
+}
+
+void PhysicalImager::Impl::AddDirection(const Direction& dir, const CVec3& pol, double dz, int n,
+                                        double h, double x0, double y0, double weight,
+                                        std::vector<double>* dev, uint64_t* rays) const {
+  const double L = n * h, dk = 2 * M_PI / L;
+  const int j_hi = int(std::floor(k * s_na / dk));
+  SpectrumGrid g;
+  g.nx = g.ny = 2 * j_hi + 1;
+  g.kx0 = g.ky0 = -j_hi * dk;
+  g.dk = dk;
+  g.k_max = k * s_na;
+  const PhysicalSettings& ps = scene.trace.physical;
+  RaySpectrumSettings rs;
+  rs.ray_spacing_um = ps.ray_spacing_um;
+  rs.refine_levels = ps.refine_levels;
+  rs.max_cell_steps = ps.max_cell_steps;
+  rs.max_events = ps.max_events;
+  // Unit flux density through the z-plane: |E0|^2 cos(theta_in) = 1.
+  const double e_scale = 1 / std::sqrt(dir.d.z);
+  const CVec3 e0{pol[0] * e_scale, pol[1] * e_scale, pol[2] * e_scale};
+  const RaySpectrum sp = RayAngularSpectrum(*sim, dir.d, e0, origin, g, rs);
+  *rays += sp.rays;
+  // The camera's field as plane waves: sqrt(cos theta) (aplanatic), the defocus phase, the
+  // window's corner phase (fields are relative to the origin), on the FFT's bins; one
+  // transform per component.
+  const double cx = x0 - origin.x, cy = y0 - origin.y;
+  std::array<cv::Mat, 2> m;
+  for (cv::Mat& a : m) a = cv::Mat(n, n, CV_64FC2, cv::Scalar::all(0));
+  const double kz_in = k * dir.d.z;
+  for (int j = 0; j < g.ny; ++j)
+    for (int i = 0; i < g.nx; ++i) {
+      const double kx = g.kx0 + i * dk, ky = g.ky0 + j * dk, kt2 = kx * kx + ky * ky;
+      if (kt2 > g.k_max * g.k_max) continue;
+      const CVec3& a = sp.a[size_t(j) * g.nx + i];
+      const double kz = std::sqrt(k * k - kt2), ct = kz / k;
+      const Vec3 u(kx / k, ky / k, ct);
+      const C f = dk * dk * std::sqrt(ct) * std::exp(C(0, (kz - kz_in) * dz + kx * cx + ky * cy));
+      const std::array<C, 2> e = ToCamera(u, a);
+      const int bi = ((i - j_hi) % n + n) % n, bj = ((j - j_hi) % n + n) % n;
+      for (int c = 0; c < 2; ++c) {
+        const C v = f * e[c];
+        m[c].at<cv::Vec2d>(bj, bi) += cv::Vec2d(v.real(), v.imag());
+      }
+    }
+  for (cv::Mat& a : m) cv::dft(a, a, cv::DFT_INVERSE);  // sums, no 1 / N
+  // The direct wave (inside the NA): amplitude sqrt(cos theta_in) |E0| = 1 on the camera.
+  const bool direct = std::hypot(dir.d.x, dir.d.y) <= s_na;
+  const std::array<C, 2> b0 = ToCamera(dir.d, pol);
+  for (int q = 0; q < n; ++q)
+    for (int p = 0; p < n; ++p) {
+      const cv::Vec2d ex = m[0].at<cv::Vec2d>(q, p), ey = m[1].at<cv::Vec2d>(q, p);
+      const C sx(ex[0], ex[1]), sy(ey[0], ey[1]);
+      double d = std::norm(sx) + std::norm(sy);
+      if (direct) {
+        const C ph = std::exp(C(0, k * (dir.d.x * (cx + p * h) + dir.d.y * (cy + q * h))));
+        d += 2 * (std::conj(b0[0] * ph) * sx + std::conj(b0[1] * ph) * sy).real();
+      }
+      (*dev)[size_t(q) * n + p] += weight * d;
+    }
+}
+
+Image PhysicalImager::Expected(double defocus_um, int threads, bool progress,
+                               const std::string& label) const {
+  const Impl& im = *impl_;
+  const Scene& s = im.scene;
+  const CameraSpec& cam = s.camera;
+  // The window: the objects' light on the focal plane (their extent, spread by the NA over
+  // the defocus) and a margin for the pupil's diffraction tails, periodic.
+  const PhysicalSettings& ps = s.trace.physical;
+  const double dz = defocus_um - im.origin.z;
+  const double tan_na = im.s_na / std::sqrt(1 - im.s_na * im.s_na);
+  const double margin =
+      ps.margin_um > 0 ? ps.margin_um : 8 + 8 * s.wavelength_um / (im.s_na * s.medium_index);
+  const double half = im.extent + (std::abs(dz) + im.extent) * tan_na + margin;
+  const double h_max = im.lambda_medium / (4 * im.s_na) / ps.oversample;
+  const int n = cv::getOptimalDFTSize(int(std::ceil(2 * half / h_max)));
+  const double h = 2 * half / n;
+  const double x0 = im.origin.x - half, y0 = im.origin.y - half;
+  std::vector<double> dev(size_t(n) * n, 0.0);
+  uint64_t rays = 0;
+  if (!s.objects.empty()) {
+    tbb::task_arena arena(threads > 0 ? threads : tbb::task_arena::automatic);
+    // Directions one after another (each spectrum runs in parallel itself), in a fixed order:
+    // the same sums for any thread count.
+    Progress bar(progress, label.empty() ? "physical optics" : label, im.dirs.size());
+    arena.execute([&] {
+      for (const Direction& d : im.dirs) {
+        // Two orthogonal polarisations transverse to the direction, averaged.
+        Vec3 e_th, e_ph;
+        PolarBasis(d.d, &e_th, &e_ph);
+        for (const Vec3& e : {e_th, e_ph})
+          im.AddDirection(d, {e.x, e.y, e.z}, dz, n, h, x0, y0, 0.5 * d.weight, &dev, &rays);
+        bar.Add(1);
+      }
+    });
+  }
+  // Pixels integrated on K x K sub-samples, the grid read bilinearly (zero change outside).
+  const double pix_obj = cam.pixel_pitch_um / std::abs(Magnification(s.optics));
+  const int kss = ps.pixel_subsamples > 0
+                      ? ps.pixel_subsamples
+                      : std::max(1, int(std::ceil(pix_obj / (im.lambda_medium / (8 * im.s_na)))));
+  auto at = [&](double x, double y) {
+    const double fx = (x - x0) / h, fy = (y - y0) / h;
+    const int ix = int(std::floor(fx)), iy = int(std::floor(fy));
+    if (ix < 0 || iy < 0 || ix + 1 >= n || iy + 1 >= n) return 0.0;
+    const double tx = fx - ix, ty = fy - iy;
+    const double* r0 = &dev[size_t(iy) * n + ix];
+    const double* r1 = r0 + n;
+    return (1 - ty) * ((1 - tx) * r0[0] + tx * r0[1]) + ty * ((1 - tx) * r1[0] + tx * r1[1]);
+  };
+  Image img(cam.nx, cam.ny);
+  tbb::parallel_for(0, cam.ny, [&](int r) {
+    for (int c = 0; c < cam.nx; ++c) {
+      double sum = 0;
+      for (int b = 0; b < kss; ++b)
+        for (int a = 0; a < kss; ++a) {
+          const auto [x, y] = im.ObjectPoint(c + (a + 0.5) / kss, r + (b + 0.5) / kss);
+          sum += at(x, y);
+        }
+      const double val = im.scale * (im.flat + sum / (kss * kss));
+      img.at(c, r) = float(std::max(0.0, val));
+    }
+  });
+  im.last.grid = n;
+  im.last.grid_um = h;
+  im.last.window_um = 2 * half;
+  im.last.pixel_subsamples = kss;
+  im.last.field_rays = rays;
+  return img;
+}
+
+}  // namespace raymatch::simulate

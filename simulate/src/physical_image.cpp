@@ -137,10 +137,13 @@ PhysicalImager::PhysicalImager(const Scene& scene) : impl_(std::make_unique<Impl
     im.dirs.push_back({Vec3(std::sin(t) * std::cos(a), std::sin(t) * std::sin(a), std::cos(t)), 1});
   } else {
     // Uniform in direction cosines (u, v) within sin(half angle): nodes in s = sin(theta) with
-    // the s ds measure, azimuths equally spaced (offset by half a step on alternate rings).
+    // the s ds measure, azimuths equally spaced (offset by half a step on alternate rings). A
+    // cone wider than the NA is split there, where its direct light stops reaching the camera.
     const PhysicalSettings& ps = scene.trace.physical;
+    const double s_cone = std::sin(ss.half_angle_deg * kDeg);
     std::vector<double> xs, ws;
-    GaussLegendre(ps.polar_nodes, 0, std::sin(ss.half_angle_deg * kDeg), &xs, &ws);
+    GaussLegendre(ps.polar_nodes, 0, std::min(s_cone, im.s_na), &xs, &ws);
+    if (s_cone > im.s_na) GaussLegendre(ps.polar_nodes, im.s_na, s_cone, &xs, &ws);
     for (size_t i = 0; i < xs.size(); ++i)
       for (int j = 0; j < ps.azimuths; ++j) {
         const double phi = 2 * M_PI * (j + 0.5 * (i % 2)) / ps.azimuths, st = xs[i];

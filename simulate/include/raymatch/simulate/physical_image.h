@@ -6,11 +6,11 @@
 // polarisations.
 //
 // Model (docs/physical-optics.md):
-//  * A cone source is sampled at `polar_nodes` Gauss-Legendre nodes in sin(theta) times
-//    `azimuths` equally spaced azimuths, each a plane wave of unit flux density through the
-//    z-plane per unit of the source's density (the ray model's convention); a collimated
-//    source is one plane wave. Each is unpolarised: the images of two orthogonal polarisations
-//    are averaged.
+//  * A cone source is sampled at `polar_nodes` Gauss-Legendre nodes in sin(theta) (on each
+//    side of the NA where the cone is wider) times `azimuths` equally spaced azimuths, each a plane
+//    wave of unit flux density through the z-plane per unit of the source's density (the ray
+//    model's convention); a collimated source is one plane wave. Each is unpolarised: the images of
+//    two orthogonal polarisations are averaged.
 //  * Its scattered angular spectrum A(k_t) (RayAngularSpectrum, on the Fourier grid of the
 //    image window, the objects' centre as origin) passes the objective's NA; the aplanatic
 //    objective and tube lens carry each plane wave to the camera with amplitude sqrt(cos theta)

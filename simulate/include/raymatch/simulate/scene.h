@@ -257,7 +257,7 @@ struct MieSettings {
 
 /// [trace.physical]: the sampling of the physical-optics image (docs/physical-optics.md).
 struct PhysicalSettings {
-  int polar_nodes = 3;        ///< Gauss-Legendre nodes in sin(theta) across a cone source
+  int polar_nodes = 3;        ///< Gauss-Legendre nodes in sin(theta) across a cone (per side of NA)
   int azimuths = 8;           ///< illumination directions per polar node of a cone
   double oversample = 1.5;    ///< image grid spacing lambda_medium / (4 NA / n) / oversample
   double margin_um = 0;       ///< window margin beyond the objects' light (0: 8 um + 8 lambda/NA)

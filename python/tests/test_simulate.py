@@ -173,35 +173,22 @@ def test_example_script_runs(tmp_path):
     assert (tmp_path / "focus_scan.png").exists() or (tmp_path / "focus_scan.npz").exists()
 
 
-def test_wave_optics_bit_identical_to_cli(exe, tmp_path):
-    # [trace] optics = "mie": the exact wave image's Poisson counts, equal to the CLI's, with the
-    # sidecar naming the optics and its sampling.
-    text = TINY_SCENE.replace("rays = 30000", 'photons_per_pixel = 400\noptics = "mie"\n'
-                              "[trace.mie]\nnodes_per_panel = 3\npanel_width = 0.1")
+@pytest.mark.parametrize("optics,radius,sampling,key", [
+    ("mie", 10, "[trace.mie]\nnodes_per_panel = 3\npanel_width = 0.1", "mie_terms"),
+    ("physical", 3, "[trace.physical]\npolar_nodes = 1\nazimuths = 2", "field_rays")])
+def test_image_models_bit_identical_to_cli(exe, tmp_path, optics, radius, sampling, key):
+    # [trace] optics = "mie" (the exact wave image) and "physical": the Poisson counts of the
+    # expected image, equal to the CLI's, with the sidecar naming the optics and its sampling.
+    text = TINY_SCENE.replace("radius_um = 10", f"radius_um = {radius}").replace(
+        "rays = 30000", f'photons_per_pixel = 400\noptics = "{optics}"\n{sampling}')
     scene_file = tmp_path / "tiny.toml"
     scene_file.write_text(text)
     index, cli_images, cli_sidecars = cli_scan(exe, scene_file, tmp_path / "cli", "--defocus-um",
                                                "2")
     r = raymatch.simulate(raymatch.Scene.from_file(scene_file), defocus_um=[2])
     np.testing.assert_array_equal(r.images[0], cli_images[0])
-    assert r.sidecars[0]["optics"] == cli_sidecars[0]["optics"] == "mie"
-    assert r.sidecars[0]["sampling"]["mie_terms"] > 0
-    assert "optics:mie" in r.effects
+    assert r.sidecars[0]["optics"] == cli_sidecars[0]["optics"] == optics
+    assert r.sidecars[0]["sampling"][key] > 0
+    assert f"optics:{optics}" in r.effects
     assert abs(np.median(r.images[0][:4]) - 400) < 60  # the flat field's photons, away from the drop
 
-
-def test_physical_optics_bit_identical_to_cli(exe, tmp_path):
-    # [trace] optics = "physical": the physical-optics image's Poisson counts, equal to the CLI's.
-    text = TINY_SCENE.replace("radius_um = 10", "radius_um = 3").replace(
-        "rays = 30000", 'photons_per_pixel = 400\noptics = "physical"\n'
-        "[trace.physical]\npolar_nodes = 1\nazimuths = 2")
-    scene_file = tmp_path / "tiny.toml"
-    scene_file.write_text(text)
-    index, cli_images, cli_sidecars = cli_scan(exe, scene_file, tmp_path / "cli", "--defocus-um",
-                                               "2")
-    r = raymatch.simulate(raymatch.Scene.from_file(scene_file), defocus_um=[2])
-    np.testing.assert_array_equal(r.images[0], cli_images[0])
-    assert r.sidecars[0]["optics"] == cli_sidecars[0]["optics"] == "physical"
-    assert r.sidecars[0]["sampling"]["field_rays"] > 0
-    assert "optics:physical" in r.effects
-    assert abs(np.median(r.images[0][:4]) - 400) < 60  # the flat field's photons, away from the drop

@@ -86,7 +86,7 @@ void OuterCoefficients(MieCoefficients& c, const std::vector<Complex>& ha,
   }
 }
 
-/// D3_n(z) = xi_n'(z) / xi_n(z) for n = 0..N from D1 = D_n(z) (Yang 2003, eqs. 18-19):
+/// D3_n(z) = xi_n'(z) / xi_n(z) for n = 0..N from D1 = D_n(z) (Yang 2003):
 /// psi_0 xi_0 = (1 - exp(2iz)) / 2, D3_0 = i, psi_n xi_n = psi_{n-1} xi_{n-1} (n / z -
 /// D1_{n-1}) (n / z - D3_{n-1}) and D3_n = D1_n + i / (psi_n xi_n).
 std::vector<Complex> OutgoingLogDerivatives(Complex z, const std::vector<Complex>& d1) {
@@ -145,7 +145,7 @@ MieCoefficients ComputeCoatedMie(Complex m_core, double x_core, Complex m_shell,
   for (int n = 1; n <= n_terms; ++n) {
     const Complex n21 = double(n) / z21, n22 = double(n) / z22;
     q *= (d3_21[n] + n21) / (d21[n] + n21) * (d22[n] + n22) / (d3_22[n] + n22);
-    // The core's field inside: H = D1_n(m_core x_core); matched at the interface (Yang eq. 14).
+    // The core's field inside: H = D1_n(m_core x_core); matched at the interface.
     const Complex g1 = m_shell * d11[n] - m_core * d21[n],
                   g2 = m_shell * d11[n] - m_core * d3_21[n];
     const Complex h1 = m_core * d11[n] - m_shell * d21[n],

@@ -1,10 +1,30 @@
 // The optics after the objects (stages.h: Optics) from a scene's description.
+#include <algorithm>
 #include <cmath>
 
 #include "raymatch/simulate/scene.h"
 #include "stages.h"
 
 namespace raymatch::simulate {
+
+std::pair<double, double> SensorToObject(const CameraSpec& cam, double sensor_sign, double col,
+                                         double row) {
+  const double u = (col - cam.nx / 2.0) * cam.pixel_pitch_um;
+  const double v = (cam.ny / 2.0 - row) * cam.pixel_pitch_um;
+  return {(u + cam.offset_um[0]) / sensor_sign, (v + cam.offset_um[1]) / sensor_sign};
+}
+
+WaveWindow WaveWindowFor(const Scene& s, double margin_um, double radius_um, double dz) {
+  const double s_na = AcceptanceSin(s), tan_na = s_na / std::sqrt(1 - s_na * s_na);
+  const double margin =
+      margin_um > 0 ? margin_um : 8 + 8 * s.wavelength_um / (s_na * s.medium_index);
+  return {radius_um + (std::abs(dz) + radius_um) * tan_na, margin};
+}
+
+int PixelSubsamples(int setting, double pixel_object_um, double lambda_medium, double s_na) {
+  return setting > 0 ? setting
+                     : std::max(1, int(std::ceil(pixel_object_um / (lambda_medium / (8 * s_na)))));
+}
 
 Optics MakeOptics(const Scene& s) {
   Optics o;

@@ -95,13 +95,6 @@ struct PhysicalImager::Impl {
   double flat = 0, scale = 1;  // flat-field flux; photons per unit of it
   mutable PhysicalSampling last;
 
-  std::pair<double, double> ObjectPoint(double col, double row) const {
-    const CameraSpec& cam = scene.camera;
-    const double u = (col - cam.nx / 2.0) * cam.pixel_pitch_um;
-    const double v = (cam.ny / 2.0 - row) * cam.pixel_pitch_um;
-    return {(u + cam.offset_um[0]) / sensor_sign, (v + cam.offset_um[1]) / sensor_sign};
-  }
-
   /// The intensity change of one direction and polarisation on the window's grid (n x n,
   /// spacing h, corner x0, y0), added with `weight` to `dev`.
   void AddDirection(const Direction& dir, const CVec3& pol, double dz, int n, double h, double x0,
@@ -229,17 +222,24 @@ void PhysicalImager::Impl::AddDirection(const Direction& dir, const CVec3& pol, 
   // The direct wave (inside the NA): amplitude sqrt(cos theta_in) |E0| = 1 on the camera.
   const bool direct = std::hypot(dir.d.x, dir.d.y) <= s_na;
   const std::array<C, 2> b0 = ToCamera(dir.d, pol);
-  for (int q = 0; q < n; ++q)
+  // Its phase is separable: a factor per column times one per row (2n exponentials, not n^2).
+  std::vector<C> col_phase(static_cast<size_t>(n)), row_phase(static_cast<size_t>(n));
+  for (int p = 0; p < n; ++p) {
+    col_phase[size_t(p)] = std::exp(C(0, k * dir.d.x * (cx + p * h)));
+    row_phase[size_t(p)] = std::exp(C(0, k * dir.d.y * (cy + p * h)));
+  }
+  tbb::parallel_for(0, n, [&](int q) {  // each grid point on its own: any thread count
     for (int p = 0; p < n; ++p) {
       const cv::Vec2d ex = m[0].at<cv::Vec2d>(q, p), ey = m[1].at<cv::Vec2d>(q, p);
       const C sx(ex[0], ex[1]), sy(ey[0], ey[1]);
       double d = std::norm(sx) + std::norm(sy);
       if (direct) {
-        const C ph = std::exp(C(0, k * (dir.d.x * (cx + p * h) + dir.d.y * (cy + q * h))));
+        const C ph = col_phase[size_t(p)] * row_phase[size_t(q)];
         d += 2 * (std::conj(b0[0] * ph) * sx + std::conj(b0[1] * ph) * sy).real();
       }
       (*dev)[size_t(q) * n + p] += weight * d;
     }
+  });
 }
 
 Image PhysicalImager::Expected(double defocus_um, int threads, bool progress,
@@ -251,10 +251,8 @@ Image PhysicalImager::Expected(double defocus_um, int threads, bool progress,
   // the defocus) and a margin for the pupil's diffraction tails, periodic.
   const PhysicalSettings& ps = s.trace.physical;
   const double dz = defocus_um - im.origin.z;
-  const double tan_na = im.s_na / std::sqrt(1 - im.s_na * im.s_na);
-  const double margin =
-      ps.margin_um > 0 ? ps.margin_um : 8 + 8 * s.wavelength_um / (im.s_na * s.medium_index);
-  const double half = im.extent + (std::abs(dz) + im.extent) * tan_na + margin;
+  const WaveWindow win = WaveWindowFor(s, ps.margin_um, im.extent, dz);
+  const double half = win.rho_light + win.margin;
   const double h_max = im.lambda_medium / (4 * im.s_na) / ps.oversample;
   const int n = cv::getOptimalDFTSize(int(std::ceil(2 * half / h_max)));
   const double h = 2 * half / n;
@@ -279,9 +277,7 @@ Image PhysicalImager::Expected(double defocus_um, int threads, bool progress,
   }
   // Pixels integrated on K x K sub-samples, the grid read bilinearly (zero change outside).
   const double pix_obj = cam.pixel_pitch_um / std::abs(Magnification(s.optics));
-  const int kss = ps.pixel_subsamples > 0
-                      ? ps.pixel_subsamples
-                      : std::max(1, int(std::ceil(pix_obj / (im.lambda_medium / (8 * im.s_na)))));
+  const int kss = PixelSubsamples(ps.pixel_subsamples, pix_obj, im.lambda_medium, im.s_na);
   auto at = [&](double x, double y) {
     const double fx = (x - x0) / h, fy = (y - y0) / h;
     const int ix = int(std::floor(fx)), iy = int(std::floor(fy));
@@ -297,7 +293,8 @@ Image PhysicalImager::Expected(double defocus_um, int threads, bool progress,
       double sum = 0;
       for (int b = 0; b < kss; ++b)
         for (int a = 0; a < kss; ++a) {
-          const auto [x, y] = im.ObjectPoint(c + (a + 0.5) / kss, r + (b + 0.5) / kss);
+          const auto [x, y] =
+              SensorToObject(cam, im.sensor_sign, c + (a + 0.5) / kss, r + (b + 0.5) / kss);
           sum += at(x, y);
         }
       const double val = im.scale * (im.flat + sum / (kss * kss));

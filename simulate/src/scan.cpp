@@ -247,8 +247,8 @@ bool CodeValues(const Scene& scene, const Image& counts, uint32_t plane_index, I
   return true;
 }
 
-/// One plane of an image model without rays (the exact wave image, physical optics): the
-/// expected image, its Poisson photon counts and the sidecar.
+/// The scene file's name of a shape (as ReadObject reads it; revolutions and volume fractions
+/// are meshes by then).
 const char* ShapeName(ShapeType t) {
   switch (t) {
     case ShapeType::kSphere:
@@ -263,6 +263,8 @@ const char* ShapeName(ShapeType t) {
   return "";
 }
 
+/// One plane of an image model without rays (the exact wave image, physical optics): the
+/// expected image, its Poisson photon counts and the sidecar.
 template <class Imager>
 PlaneResult ExpectedImagePlane(const Imager& mie, const char* optics, const char* model, double dz,
                                uint32_t plane_index, const RunControl& control,

@@ -4,6 +4,7 @@
 // the packet path, limits both paths obey, and the one-lane "vector" the scalar path traces with.
 #include <cmath>
 #include <cstdint>
+#include <utility>
 #include <vector>
 
 #include "raymatch/simulate/tracer.h"
@@ -54,6 +55,26 @@ struct Optics {
 
 /// The scene's optics at defocus 0.
 Optics MakeOptics(const Scene& s);
+
+// What the image models without rays (wave_image.cpp, physical_image.cpp) share.
+
+/// The object-plane point of the sensor position (col, row) in pixels (pixel centres at +0.5):
+/// the inverse of the tracer's sensor stage (camera offset, flip, magnification); `sensor_sign`
+/// is the optics' sign times the magnification.
+std::pair<double, double> SensorToObject(const CameraSpec& cam, double sensor_sign, double col,
+                                         double row);
+
+/// Light from an object of radius `radius_um` whose centre lies `dz` before the focal plane
+/// reaches that plane within rho_light of its axis; the window adds `margin` for the pupil's
+/// diffraction tails (periodic wrap-around): `margin_um`, or 0 for 8 um + 8 lambda / NA.
+struct WaveWindow {
+  double rho_light, margin;
+};
+WaveWindow WaveWindowFor(const Scene& s, double margin_um, double radius_um, double dz);
+
+/// Pixel sub-samples per side: `setting`, or 0 for a spacing of at most lambda_medium / (8 s_na)
+/// on a pixel `pixel_object_um` wide at the object.
+int PixelSubsamples(int setting, double pixel_object_um, double lambda_medium, double s_na);
 
 /// Whether the packet path can trace a scene, and if not, why (Simulator::Effects lists it).
 struct PacketSupport {

@@ -48,9 +48,6 @@ struct Node {
   std::vector<double> wc, ws;  // integral of w(s, phi) cos(m phi), sin(m phi) d phi
 };
 
-}  // namespace
-
-namespace {
 /// The sphere whose outer surface scatters (the larger of a coated sphere's two) and the core
 /// inside it (null for a homogeneous sphere); MieUnsupportedReason says when a scene has them.
 struct MieSpheres {
@@ -176,13 +173,9 @@ struct MieImager::Impl : RenderGeometry {
     return 0;
   }
 
-  /// The object-plane point of the sensor position (col, row) in pixels (pixel centres at
-  /// +0.5): the inverse of the tracer's sensor stage (camera offset, flip, magnification).
+  /// The object-plane point of the sensor position (col, row) in pixels.
   std::pair<double, double> ObjectPoint(double col, double row) const {
-    const CameraSpec& cam = scene.camera;
-    const double u = (col - cam.nx / 2.0) * cam.pixel_pitch_um;
-    const double v = (cam.ny / 2.0 - row) * cam.pixel_pitch_um;
-    return {(u + cam.offset_um[0]) / sensor_sign, (v + cam.offset_um[1]) / sensor_sign};
+    return SensorToObject(scene.camera, sensor_sign, col, row);
   }
 
   double SpatialAt(double x, double y) const {
@@ -698,30 +691,21 @@ void MieImager::Impl::NodeHarmonics(const Node& nd, double dz, int n, double h, 
 }
 
 namespace {
-/// Light from the sphere reaches the focal plane within rho_light of its axis; the window adds
-/// a margin for the pupil's diffraction tails (periodic wrap-around).
-struct Window {
-  double rho_light, margin;
-};
-/// For a sphere of `radius_um` whose centre lies `dz` before the focal plane.
-Window WindowFor(const Scene& s, double radius_um, double dz) {
-  const double s_na = AcceptanceSin(s), tan_na = s_na / std::sqrt(1 - s_na * s_na);
-  const double margin = s.trace.mie.margin_um > 0
-                            ? s.trace.mie.margin_um
-                            : 8 + 8 * s.wavelength_um / (s_na * s.medium_index);
-  return {radius_um + (std::abs(dz) + radius_um) * tan_na, margin};
+/// The window for a sphere of `radius_um` whose centre lies `dz` before the focal plane.
+WaveWindow WindowFor(const Scene& s, double radius_um, double dz) {
+  return WaveWindowFor(s, s.trace.mie.margin_um, radius_um, dz);
 }
 }  // namespace
 
 double AutomaticMieWindowUm(const Scene& scene, double defocus_um) {
   if (scene.objects.empty()) throw std::invalid_argument("AutomaticMieWindowUm: no sphere");
   const ObjectSpec& o = *SpheresOf(scene).shell;
-  const Window w = WindowFor(scene, o.radius_um, defocus_um - o.center_um.z);
+  const WaveWindow w = WindowFor(scene, o.radius_um, defocus_um - o.center_um.z);
   return 2 * (w.rho_light + w.margin);
 }
 
 MieImager::Impl::Grid MieImager::Impl::GridAt(double dz) const {
-  const Window win = WindowFor(scene, radius, dz);
+  const WaveWindow win = WindowFor(scene, radius, dz);
   const double margin = win.margin;
   Grid g;
   g.h = lambda_medium / (4 * s_na) / set.oversample;
@@ -839,9 +823,7 @@ Image MieImager::Expected(double defocus_um, int threads) const {
   // Render: pixels integrated on K x K sub-samples; the PSF convolves the fine image.
   const CameraSpec& cam = s.camera;
   const double pix_obj = cam.pixel_pitch_um / std::abs(im.magnification);
-  const int kss = set.pixel_subsamples > 0
-                      ? set.pixel_subsamples
-                      : std::max(1, int(std::ceil(pix_obj / (im.lambda_medium / (8 * im.s_na)))));
+  const int kss = PixelSubsamples(set.pixel_subsamples, pix_obj, im.lambda_medium, im.s_na);
   const double fine = pix_obj / kss;
   const double psf = cam.psf_sigma_um;
   const int pad = psf > 0 ? int(std::ceil(4 * psf / fine)) : 0;

@@ -21,6 +21,16 @@ WaveWindow WaveWindowFor(const Scene& s, double margin_um, double radius_um, dou
   return {radius_um + (std::abs(dz) + radius_um) * tan_na, margin};
 }
 
+double FlatFieldPhotons(const Scene& s) {
+  if (s.trace.photons_per_pixel > 0) return s.trace.photons_per_pixel;
+  Scene flat = s;
+  flat.objects.clear();
+  flat.trace.optics = ImageOptics::kRays;
+  double per_ray = 0;
+  Simulator(flat).RaysForPhotonTarget(1.0, &per_ray);
+  return per_ray * double(s.trace.rays);
+}
+
 int PixelSubsamples(int setting, double pixel_object_um, double lambda_medium, double s_na) {
   return setting > 0 ? setting
                      : std::max(1, int(std::ceil(pixel_object_um / (lambda_medium / (8 * s_na)))));

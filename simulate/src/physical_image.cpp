@@ -151,15 +151,7 @@ PhysicalImager::PhysicalImager(const Scene& scene) : impl_(std::make_unique<Impl
     throw Error(FileLocation{scene.file},
                 "optics = \"physical\": no direct light passes the objective (a dark field): the "
                 "photon scale is defined by the flat field");
-  double photons = scene.trace.photons_per_pixel;
-  if (!(photons > 0)) {
-    Scene flat = traced;
-    flat.objects.clear();
-    double per_ray = 0;
-    Simulator(flat).RaysForPhotonTarget(1.0, &per_ray);
-    photons = per_ray * double(scene.trace.rays);
-  }
-  im.scale = photons / im.flat;
+  im.scale = FlatFieldPhotons(scene) / im.flat;
   im.last.directions = int(im.dirs.size());
 }
 

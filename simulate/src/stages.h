@@ -72,6 +72,10 @@ struct WaveWindow {
 };
 WaveWindow WaveWindowFor(const Scene& s, double margin_um, double radius_um, double dz);
 
+/// The flat field's photons per pixel an image model without rays is scaled to: [trace]
+/// photons_per_pixel, or with a ray count instead the ray model's flat field of that many rays.
+double FlatFieldPhotons(const Scene& s);
+
 /// Pixel sub-samples per side: `setting`, or 0 for a spacing of at most lambda_medium / (8 s_na)
 /// on a pixel `pixel_object_um` wide at the object.
 int PixelSubsamples(int setting, double pixel_object_um, double lambda_medium, double s_na);

@@ -469,15 +469,7 @@ MieImager::MieImager(const Scene& scene, int stride, int offset) : impl_(std::ma
       sum += im.SpatialAt(x, y);
     }
   im.spatial_mean = sum / (double(cam.nx) * cam.ny);
-  double photons = scene.trace.photons_per_pixel;
-  if (!(photons > 0)) {
-    Scene flat = scene;
-    flat.objects.clear();
-    flat.trace.optics = ImageOptics::kRays;
-    double per_ray = 0;
-    Simulator(flat).RaysForPhotonTarget(1.0, &per_ray);
-    photons = per_ray * double(scene.trace.rays);
-  }
+  const double photons = FlatFieldPhotons(scene);
   if (!(im.spatial_mean > 0))
     throw Error(FileLocation{scene.file},
                 "optics = \"mie\": the light field's spatial map is "

@@ -36,10 +36,6 @@ Complex LogDerivativeStart(int n, Complex z) {
   return -double(n) / z + f;
 }
 
-}  // namespace
-
-namespace {
-
 void CheckIndex(Complex m) {
   if (!(m.real() > 0) || m.imag() < 0)
     throw std::invalid_argument("Mie: relative index needs Re m > 0 and Im m >= 0");

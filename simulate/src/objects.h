@@ -4,7 +4,9 @@
 // them all. The packet path's sphere stage (packet.cpp, Sphere) does the same for one
 // homogeneous sphere; at each surface both run one interface event (stages-inl.h).
 #include <algorithm>
+#include <array>
 #include <cmath>
+#include <complex>
 
 #include "grin_cells.h"
 #include "raymatch/core/rng.h"
@@ -53,6 +55,32 @@ inline void ProjectOnInvariants(const IndexField& f, const Vec3& center, const V
   s->t = t_perp + p * (sign * std::sqrt(std::max(0.0, radial2)) / std::sqrt(p2));
 }
 
+/// A field carried along a curved ray from (x0, t0) to (x1, t1) (t: the unit tangents): in an
+/// isotropic gradient-index medium the field turns only as much as it must to stay transverse
+/// to the ray, which is parallel transport along it (Rytov's law; Born and Wolf, Principles of
+/// Optics, sec. 3.1.3). Over one step it is the double reflection of Wang, Juttler, Zheng and
+/// Liu, ACM Trans. Graph. 27, 2 (2008), a fourth-order rotation-minimising frame: reflect in
+/// the plane normal to the chord, then in the plane that takes the reflected tangent to t1. Both
+/// reflections are real and linear, so they act on a complex field's parts alike and keep its
+/// length.
+inline void TransportField(std::array<std::complex<double>, 3>& e, const Vec3& x0, const Vec3& x1,
+                           const Vec3& t0, const Vec3& t1) {
+  auto reflect = [&e](const Vec3& v, double c) {
+    const std::complex<double> along = (e[0] * v.x + e[1] * v.y + e[2] * v.z) * (2 / c);
+    e[0] -= along * v.x, e[1] -= along * v.y, e[2] -= along * v.z;
+  };
+  const Vec3 v1 = x1 - x0;
+  const double c1 = Dot(v1, v1);
+  Vec3 tl = t0;
+  if (c1 > 0) {
+    reflect(v1, c1);
+    tl = t0 - v1 * (2 * Dot(v1, t0) / c1);
+  }
+  const Vec3 v2 = t1 - tl;
+  const double c2 = Dot(v2, v2);
+  if (c2 > 1e-30) reflect(v2, c2);
+}
+
 /// Follows a curved ray inside gradient-index object `obj` from `o` (direction `d`) to the next
 /// surface. Each accepted step's chord is tested against the surfaces; a step whose chord crosses
 /// one is shortened (the crossing parameter scales the step) until the crossing chord is shorter
@@ -66,12 +94,14 @@ inline void ProjectOnInvariants(const IndexField& f, const Vec3& center, const V
 /// each step adds the corrected trapezoid (Hermite) rule h (f0 + f1) / 2 + h^2 (f0' - f1') / 12
 /// (error O(h^5), the order of the Sharma step itself) without another field evaluation;
 /// straight steps across uniform cells and the last chord, at most the surface tolerance long,
-/// add n times their length.
+/// add n times their length. With `field`, that field is carried along the path
+/// (TransportField, step by step) from `d` to `*dout`.
 template <bool kMesh, bool kOpticalPath = false>
 GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const IndexField& f,
                                const GrinSettings& cfg, int obj, const Vec3& o, const Vec3& d,
                                Hit* hit, Vec3* hp, Vec3* dout, TraceCounters& c,
-                               const ObjectShifts* shifts = nullptr, double* opl = nullptr) {
+                               const ObjectShifts* shifts = nullptr, double* opl = nullptr,
+                               std::array<std::complex<double>, 3>* field = nullptr) {
   const UniformCells* uniform = im.uniform[obj].empty() ? nullptr : &im.uniform[obj];
   const Vec3 center = ObjectCenter(im, obj, shifts);  // the field moves with its object
   const Geometry& geo = im.geometry;
@@ -178,6 +208,7 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const IndexField& f,
           const double g0 = 2 * Dot(s.d, s.t), g1 = 2 * Dot(d1, s1.t);  // d(n^2)/dt
           *opl += used * (f0 + f1) / 2 + used * used * (g0 - g1) / 12;
         }
+        if (field) TransportField(*field, s.r, s1.r, Normalize(s.t), Normalize(s1.t));
         s = s1;
         dt = next;
         if (central) {
@@ -195,6 +226,7 @@ GrinOutcome IntegrateToSurface(const Simulator::Impl& im, const IndexField& f,
         // In a steep gradient the direction at the step's end may already bend back inward;
         // the crossing chord points outward by construction, so leave along it then.
         if (Dot(*dout, h.normal) <= 0) *dout = chord / L;
+        if (field) TransportField(*field, s.r, *hp, Normalize(s.t), *dout);
         return GrinOutcome::kHit;
       }
       // Aim the (shorter) step at the crossing point; it is within the accepted error. Near a
@@ -286,8 +318,10 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
     if (im.has_grin && cur >= 0 && field[cur]) {
       // (The offset from the last hit point, within the surface's epsilon, at the index there.)
       if constexpr (kOpticalPath) *opl += index_at(cur, o) * Length(o - from);
+      std::array<std::complex<double>, 3>* carried = nullptr;
+      if constexpr (kField) carried = &ft->ray->field;
       const GrinOutcome g = IntegrateToSurface<kMesh, kOpticalPath>(
-          im, *field[cur], trace.grin, cur, o, d, &h, &hp, &d, c, moved, opl);
+          im, *field[cur], trace.grin, cur, o, d, &h, &hp, &d, c, moved, opl, carried);
       if (g != GrinOutcome::kHit) {
         out.Mark(true, g == GrinOutcome::kStepCap ? Fate::kGrinStepCap : Fate::kLostInside);
         break;

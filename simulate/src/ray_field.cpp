@@ -339,8 +339,11 @@ int EdgeSign(double ax, double ay, uint64_t ia, double bx, double by, uint64_t i
 /// Adds the triangles' field to the plane's rows [r0, r1) (rows wrap: the grid is periodic):
 /// at a node inside a triangle, the barycentric mean of its rays' fields and of their phases
 /// carried to the node along their own wave vectors (second order), times the tube's amplitude.
-void Rasterise(const std::vector<Tri>& tris, const PlaneGrid& pg, int r0, int r1,
-               std::vector<CVec3>* field) {
+/// Returns the flux through the plane that the nodes carry, each triangle's own (|E|^2 cos
+/// theta h^2; where sheets overlap, without their interference).
+double Rasterise(const std::vector<Tri>& tris, const PlaneGrid& pg, int r0, int r1,
+                 std::vector<CVec3>* field) {
+  double flux = 0;
   const int n = pg.n;
   auto wrap = [n](int i) { return ((i % n) + n) % n; };
   for (const Tri& t : tris) {
@@ -384,9 +387,11 @@ void Rasterise(const std::vector<Tri>& tris, const PlaneGrid& pg, int r0, int r1
         const C f = t.g / std::sqrt(cos) * std::exp(C(0, phi + t.focal_phase));
         CVec3& out = (*field)[size_t(row) * n + wrap(i)];
         for (int c = 0; c < 3; ++c) out[c] += f * e[c];
+        flux += std::norm(f) * cos * (std::norm(e[0]) + std::norm(e[1]) + std::norm(e[2]));
       }
     }
   }
+  return flux * pg.h * pg.h;
 }
 
 /// Calls f(j * nx + i, kx, ky, kz) for the grid's nodes within k_max (and below k), rows in
@@ -456,9 +461,25 @@ class Outline {
     tbb::parallel_for(int64_t(0), ny, [&](int64_t j) {
       for (int64_t i = 0; i < nx; ++i) hit[size_t(j * nx + i)] = Hits(i * lat_.step, j * lat_.step);
     });
+    // Coarse cells whose corners differ, and every cell next to one, are marched at the finest
+    // level throughout: two cells that share an edge then find the outline's crossings of it
+    // on the same finest edges. (Refined only where their own corners differ, a cell next to
+    // a coarser one would cross the shared edge where the coarse cell does not, and the outline
+    // would not close: at a polygon's corner that pokes through a coarse edge between two
+    // nodes outside it.)
+    auto mixed = [&](int64_t ci, int64_t cj) {
+      if (ci < 0 || cj < 0 || ci >= lat_.ni || cj >= lat_.nj) return false;
+      const char a = hit[size_t(cj * nx + ci)];
+      return hit[size_t(cj * nx + ci + 1)] != a || hit[size_t((cj + 1) * nx + ci + 1)] != a ||
+             hit[size_t((cj + 1) * nx + ci)] != a;
+    };
     std::vector<std::vector<std::array<double, 4>>> rows(size_t(lat_.nj));
     tbb::parallel_for(int64_t(0), lat_.nj, [&](int64_t cj) {
       for (int64_t ci = 0; ci < lat_.ni; ++ci) {
+        bool near = false;
+        for (int64_t dj = -1; dj <= 1 && !near; ++dj)
+          for (int64_t di = -1; di <= 1 && !near; ++di) near = mixed(ci + di, cj + dj);
+        if (!near) continue;
         const bool c[4] = {bool(hit[size_t(cj * nx + ci)]), bool(hit[size_t(cj * nx + ci + 1)]),
                            bool(hit[size_t((cj + 1) * nx + ci + 1)]),
                            bool(hit[size_t((cj + 1) * nx + ci)])};
@@ -491,9 +512,10 @@ class Outline {
     return {p.x, p.y};
   }
 
+  /// Cell (i, j) of side s, corners c, split down to the finest level; the finest cells whose
+  /// corners differ are marched.
   void Cell(int64_t i, int64_t j, int64_t s, const bool c[4],
             std::vector<std::array<double, 4>>* out) const {
-    if (c[0] == c[1] && c[1] == c[2] && c[2] == c[3]) return;
     if (s > (lat_.step >> levels_)) {
       const int64_t h = s / 2;
       const bool m[5] = {Hits(i + h, j), Hits(i + s, j + h), Hits(i + h, j + s), Hits(i, j + h),
@@ -506,6 +528,7 @@ class Outline {
       Cell(i, j + h, h, q01, out);
       return;
     }
+    if (c[0] == c[1] && c[1] == c[2] && c[2] == c[3]) return;
     // Marching squares: corners counter-clockwise; crossings in that order around the cell.
     const int64_t ci[4] = {i, i + s, i + s, i}, cj[4] = {j, j, j + s, j + s};
     struct X {
@@ -678,9 +701,11 @@ RaySpectrum RayAngularSpectrum(const Simulator& sim, const Vec3& direction, cons
   out.triangles = tris.size();
   std::vector<CVec3> field(size_t(pg.n) * pg.n, CVec3{});
   constexpr int kRows = 8;
+  std::vector<double> flux(size_t((pg.n + kRows - 1) / kRows), 0.0);
   tbb::parallel_for(0, (pg.n + kRows - 1) / kRows, [&](int b) {
-    Rasterise(tris, pg, b * kRows, std::min(pg.n, (b + 1) * kRows), &field);
+    flux[size_t(b)] = Rasterise(tris, pg, b * kRows, std::min(pg.n, (b + 1) * kRows), &field);
   });
+  for (double f : flux) out.plane_power += f;
   AddPlaneSpectrum(field, pg, grid, w.k, w.plane_z - origin.z, &out);
   return out;
 }

@@ -81,6 +81,10 @@ struct RaySpectrum {
   /// before the taper); what a non-absorbing object does not send forward it reflects back or
   /// keeps past `max_events`.
   double branch_power = 0;
+  /// The same power as the exit plane's samples carry it (the sum over the plane's nodes of
+  /// |E|^2 cos theta times the node's area, each ray tube's own, without the interference where
+  /// tubes overlap, after the taper): the tubes' amplitudes conserve what the lattice sent.
+  double plane_power = 0;
   double shadow_area_um2 = 0;  ///< the silhouette's area on the origin's z-plane
   int outline_segments = 0;    ///< of the silhouette's outline
 };

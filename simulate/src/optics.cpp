@@ -93,4 +93,15 @@ Optics MakeOptics(const Scene& s) {
   return o;
 }
 
+CorrectorZones CorrectorZonesOf(const Scene& scene) {
+  const Optics optics = MakeOptics(scene);
+  CorrectorZones z;
+  if (optics.corrector)
+    for (size_t i = 0; i < optics.ring_outer2.size(); ++i) {
+      z.s.push_back(std::sin(std::atan(std::sqrt(optics.ring_outer2[i]) / optics.corrector_z)));
+      z.t.push_back(optics.ring_t[i]);
+    }
+  return z;
+}
+
 }  // namespace raymatch::simulate

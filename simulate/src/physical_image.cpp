@@ -7,6 +7,7 @@
 #include <cmath>
 #include <complex>
 #include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "raymatch/core/error.h"
 #include "raymatch/core/progress.h"
@@ -66,9 +67,6 @@ std::string PhysicalUnsupportedReason(const Scene& s) {
     case SourceType::kRayList:
       return "optics = \"physical\" needs a source with an angular distribution, not a ray list";
   }
-  if (s.optics.corrector.enabled) return "optics = \"physical\" does not take the corrector yet";
-  if (s.camera.psf_sigma_um > 0)
-    return "optics = \"physical\" does not take camera.psf_sigma_um yet";
   if (s.source.spectrum.type != SpectrumType::kNone)
     return "optics = \"physical\" is monochromatic: it does not take [source] spectrum yet";
   if (s.has_motion()) return "optics = \"physical\" does not take motion yet";
@@ -90,6 +88,7 @@ struct PhysicalImager::Impl {
   std::vector<Direction> dirs;
   double k = 0, lambda_medium = 0, s_na = 0;
   double sensor_sign = -1;
+  CorrectorZones zones;        // the pupil's apodisation by angle (none: empty)
   Vec3 origin;                 // the objects' centre: the spectra's origin and exit plane
   double extent = 0;           // radius about it that holds the objects
   double flat = 0, scale = 1;  // flat-field flux; photons per unit of it
@@ -124,6 +123,7 @@ PhysicalImager::PhysicalImager(const Scene& scene) : impl_(std::make_unique<Impl
     im.origin = (lo + hi) * 0.5;
     for (const auto& [c, r] : bounds) im.extent = std::max(im.extent, Length(c - im.origin) + r);
   }
+  im.zones = CorrectorZonesOf(scene);
   const SourceSpec& ss = scene.source;
   if (ss.type == SourceType::kCollimated) {
     const double t = ss.tilt_deg * kDeg, a = ss.azimuth_deg * kDeg;
@@ -132,11 +132,24 @@ PhysicalImager::PhysicalImager(const Scene& scene) : impl_(std::make_unique<Impl
     // Uniform in direction cosines (u, v) within sin(half angle): nodes in s = sin(theta) with
     // the s ds measure, azimuths equally spaced (offset by half a step on alternate rings). A
     // cone wider than the NA is split there, where its direct light stops reaching the camera.
+    // Each side is split again at the corrector's zone edges, where the direct light's
+    // transmission jumps, its nodes shared out by width (at least one per zone).
     const PhysicalSettings& ps = scene.trace.physical;
     const double s_cone = std::sin(ss.half_angle_deg * kDeg);
     std::vector<double> xs, ws;
-    GaussLegendre(ps.polar_nodes, 0, std::min(s_cone, im.s_na), &xs, &ws);
-    if (s_cone > im.s_na) GaussLegendre(ps.polar_nodes, im.s_na, s_cone, &xs, &ws);
+    auto side = [&](double lo, double hi) {
+      std::vector<double> b{lo};
+      for (double e : im.zones.s)
+        if (e > lo && e < hi) b.push_back(e);
+      b.push_back(hi);
+      for (size_t i = 0; i + 1 < b.size(); ++i) {
+        const double share = b.size() == 2 ? 1.0 : (b[i + 1] - b[i]) / (hi - lo);
+        const int nodes = std::max(1, int(std::ceil(ps.polar_nodes * share - 1e-9)));
+        GaussLegendre(nodes, b[i], b[i + 1], &xs, &ws);
+      }
+    };
+    side(0, std::min(s_cone, im.s_na));
+    if (s_cone > im.s_na) side(im.s_na, s_cone);
     for (size_t i = 0; i < xs.size(); ++i)
       for (int j = 0; j < ps.azimuths; ++j) {
         const double phi = 2 * M_PI * (j + 0.5 * (i % 2)) / ps.azimuths, st = xs[i];
@@ -144,9 +157,12 @@ PhysicalImager::PhysicalImager(const Scene& scene) : impl_(std::make_unique<Impl
                            ws[i] * st * 2 * M_PI / ps.azimuths});
       }
   }
-  // The direct light that passes the NA is the flat field (unit flux density per weight).
-  for (const Direction& d : im.dirs)
-    if (std::hypot(d.d.x, d.d.y) <= im.s_na) im.flat += d.weight;
+  // The direct light that passes the NA and the corrector is the flat field (unit flux
+  // density per weight).
+  for (const Direction& d : im.dirs) {
+    const double st = std::hypot(d.d.x, d.d.y);
+    if (st <= im.s_na) im.flat += d.weight * im.zones.At(st);
+  }
   if (!(im.flat > 0))
     throw Error(FileLocation{scene.file},
                 "optics = \"physical\": no direct light passes the objective (a dark field): the "
@@ -164,6 +180,8 @@ std::vector<std::string> PhysicalImager::Effects() const {
   std::vector<std::string> e{"optics:physical"};
   e.push_back(s.source.type == SourceType::kCone ? "source:cone" : "source:collimated");
   if (!s.objects.empty()) e.push_back("fresnel_branches");
+  if (!impl_->zones.s.empty()) e.push_back("corrector");
+  if (s.camera.psf_sigma_um > 0) e.push_back("psf");
   return e;
 }
 
@@ -188,9 +206,9 @@ void PhysicalImager::Impl::AddDirection(const Direction& dir, const CVec3& pol, 
   const CVec3 e0{pol[0] * e_scale, pol[1] * e_scale, pol[2] * e_scale};
   const RaySpectrum sp = RayAngularSpectrum(*sim, dir.d, e0, origin, g, rs);
   *rays += sp.rays;
-  // The camera's field as plane waves: sqrt(cos theta) (aplanatic), the defocus phase, the
-  // window's corner phase (fields are relative to the origin), on the FFT's bins; one
-  // transform per component.
+  // The camera's field as plane waves: sqrt(cos theta) (aplanatic) times the corrector's
+  // amplitude sqrt(T), the defocus phase, the window's corner phase (fields are relative to the
+  // origin), on the FFT's bins; one transform per component.
   const double cx = x0 - origin.x, cy = y0 - origin.y;
   std::array<cv::Mat, 2> m;
   for (cv::Mat& a : m) a = cv::Mat(n, n, CV_64FC2, cv::Scalar::all(0));
@@ -202,7 +220,9 @@ void PhysicalImager::Impl::AddDirection(const Direction& dir, const CVec3& pol, 
       const CVec3& a = sp.a[size_t(j) * g.nx + i];
       const double kz = std::sqrt(k * k - kt2), ct = kz / k;
       const Vec3 u(kx / k, ky / k, ct);
-      const C f = dk * dk * std::sqrt(ct) * std::exp(C(0, (kz - kz_in) * dz + kx * cx + ky * cy));
+      const double amp = std::sqrt(ct * zones.At(std::sqrt(kt2) / k));
+      if (amp == 0) continue;
+      const C f = dk * dk * amp * std::exp(C(0, (kz - kz_in) * dz + kx * cx + ky * cy));
       const std::array<C, 2> e = ToCamera(u, a);
       const int bi = ((i - j_hi) % n + n) % n, bj = ((j - j_hi) % n + n) % n;
       for (int c = 0; c < 2; ++c) {
@@ -211,9 +231,12 @@ void PhysicalImager::Impl::AddDirection(const Direction& dir, const CVec3& pol, 
       }
     }
   for (cv::Mat& a : m) cv::dft(a, a, cv::DFT_INVERSE);  // sums, no 1 / N
-  // The direct wave (inside the NA): amplitude sqrt(cos theta_in) |E0| = 1 on the camera.
-  const bool direct = std::hypot(dir.d.x, dir.d.y) <= s_na;
-  const std::array<C, 2> b0 = ToCamera(dir.d, pol);
+  // The direct wave (inside the NA): amplitude sqrt(cos theta_in) |E0| = 1 on the camera,
+  // times the corrector's sqrt(T).
+  const double s_in = std::hypot(dir.d.x, dir.d.y);
+  const bool direct = s_in <= s_na;
+  std::array<C, 2> b0 = ToCamera(dir.d, pol);
+  for (C& b : b0) b *= std::sqrt(zones.At(s_in));
   // Its phase is separable: a factor per column times one per row (2n exponentials, not n^2).
   std::vector<C> col_phase(static_cast<size_t>(n)), row_phase(static_cast<size_t>(n));
   for (int p = 0; p < n; ++p) {
@@ -266,6 +289,13 @@ Image PhysicalImager::Expected(double defocus_um, int threads, bool progress,
         bar.Add(1);
       }
     });
+  }
+  // The camera's PSF (a Gaussian of psf_sigma_um at the object plane) blurs the intensity; the
+  // flat field is unchanged by it.
+  if (s.camera.psf_sigma_um > 0) {
+    cv::Mat m(n, n, CV_64F, dev.data());
+    cv::GaussianBlur(m, m, cv::Size(0, 0), s.camera.psf_sigma_um / h, s.camera.psf_sigma_um / h,
+                     cv::BORDER_REPLICATE);
   }
   // Pixels integrated on K x K sub-samples, the grid read bilinearly (zero change outside).
   const double pix_obj = cam.pixel_pitch_um / std::abs(Magnification(s.optics));

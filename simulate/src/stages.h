@@ -80,6 +80,22 @@ double FlatFieldPhotons(const Scene& s);
 /// on a pixel `pixel_object_um` wide at the object.
 int PixelSubsamples(int setting, double pixel_object_um, double lambda_medium, double s_na);
 
+/// The corrector's zones as angles: the ray model's zones (MakeOptics: radii at the corrector
+/// plane) seen from the focal plane's axis point, r = d tan(theta), as outer edges in sin(theta)
+/// with their intensity transmissions (empty without a corrector).
+struct CorrectorZones {
+  std::vector<double> s, t;
+  /// The transmission of light at sin(theta) = `sin_theta` (1 without a corrector; 0 beyond
+  /// the last zone).
+  double At(double sin_theta) const {
+    if (s.empty()) return 1;
+    for (size_t i = 0; i < s.size(); ++i)
+      if (sin_theta <= s[i]) return t[i];
+    return 0;
+  }
+};
+CorrectorZones CorrectorZonesOf(const Scene& scene);
+
 /// Whether the packet path can trace a scene, and if not, why (Simulator::Effects lists it).
 struct PacketSupport {
   bool ok = false;

@@ -412,16 +412,9 @@ MieImager::MieImager(const Scene& scene, int stride, int offset) : impl_(std::ma
   im.mie = core ? ComputeCoatedMie(relative(*core), im.k * core->radius_um, relative(o),
                                    im.k * im.radius)
                 : ComputeMie(relative(o), im.k * im.radius);
-  // Corrector zones as edges in sin(theta) for a direction leaving the axis point: the ray
-  // model's zones (MakeOptics: radii at the corrector plane) at r = d tan(theta).
   const OpticsSpec& op = scene.optics;
-  const Optics optics = MakeOptics(scene);
-  if (optics.corrector)
-    for (size_t i = 0; i < optics.ring_outer2.size(); ++i) {
-      im.zone_s.push_back(
-          std::sin(std::atan(std::sqrt(optics.ring_outer2[i]) / optics.corrector_z)));
-      im.zone_t.push_back(optics.ring_t[i]);
-    }
+  const CorrectorZones zones = CorrectorZonesOf(scene);
+  im.zone_s = zones.s, im.zone_t = zones.t;
   for (size_t i = 0; i < im.zone_s.size() && im.zone_s[i] < im.s_na; ++i) {
     im.pupil_edges.push_back(im.zone_s[i]);
     im.pupil_amp.push_back(std::sqrt(im.zone_t[i]));
@@ -450,7 +443,7 @@ MieImager::MieImager(const Scene& scene, int stride, int offset) : impl_(std::ma
                 "optics = \"mie\": no direct light passes the objective (a dark field): the "
                 "photon scale is defined by the flat field");
   im.magnification = Magnification(op);
-  im.sensor_sign = optics.sign * im.magnification;
+  im.sensor_sign = MakeOptics(scene).sign * im.magnification;
   if (scene.source.type == SourceType::kLightField && !scene.source.spatial_map.empty()) {
     im.spatial = scene.source.spatial_map;
     im.sp_w = scene.source.field_size_um[0];

@@ -16,11 +16,15 @@
 //    objective and tube lens carry each plane wave to the camera with amplitude sqrt(cos theta)
 //    and its meridional component turned radial (Richards and Wolf, Proc. R. Soc. A 253, 358
 //    (1959)); defocus is the propagation phase exp(i (k_z - k_z,in) (z_focus - z_origin)).
+//  * The corrector apodises the pupil by angle: every plane wave, scattered or direct, passes
+//    with amplitude sqrt(T) of the zone its direction falls in (the zones as the Mie model sees
+//    them, from the focal plane's axis point); a cone's nodes are split at the zone edges.
 //  * The image is the flat field plus the intensity change |E_direct + E_s|^2 - |E_direct|^2,
-//    integrated over each pixel, scaled so the flat field gives `photons_per_pixel` on
-//    average (without objects, exactly).
+//    blurred by the camera's PSF (a Gaussian at the object plane) where one is set, integrated
+//    over each pixel, scaled so the flat field gives `photons_per_pixel` on average (without
+//    objects, exactly).
 // What it does not take yet (refused with the reason): a light-field or point source or a ray
-// list, the corrector, the camera PSF, a spectrum, motion.
+// list, a spectrum, motion.
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <string>

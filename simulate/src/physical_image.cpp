@@ -14,6 +14,7 @@
 #include "raymatch/simulate/ray_field.h"
 #include "raymatch/simulate/sampling.h"
 #include "raymatch/simulate/tracer.h"
+#include "raymatch/simulate/water.h"
 #include "stages.h"
 
 namespace raymatch::simulate {
@@ -67,9 +68,6 @@ std::string PhysicalUnsupportedReason(const Scene& s) {
     case SourceType::kRayList:
       return "optics = \"physical\" needs a source with an angular distribution, not a ray list";
   }
-  if (s.source.spectrum.type != SpectrumType::kNone)
-    return "optics = \"physical\" is monochromatic: it does not take [source] spectrum yet";
-  if (s.has_motion()) return "optics = \"physical\" does not take motion yet";
   return "";
 }
 
@@ -79,7 +77,9 @@ nlohmann::json PhysicalSampling::ToJson() const {
           {"fft_grid_um", grid_um},
           {"window_um", window_um},
           {"pixel_subsamples", pixel_subsamples},
-          {"field_rays", field_rays}};
+          {"field_rays", field_rays},
+          {"wavelengths", wavelengths},
+          {"times", times}};
 }
 
 struct PhysicalImager::Impl {
@@ -93,6 +93,13 @@ struct PhysicalImager::Impl {
   double extent = 0;           // radius about it that holds the objects
   double flat = 0, scale = 1;  // flat-field flux; photons per unit of it
   mutable PhysicalSampling last;
+  // A spectrum or motion: the scene's monochromatic, still parts (a wavelength at a time of the
+  // pulse) with their shares of the power, each scaled to the photon target, so their weighted
+  // sum is too. Empty: this imager is one such part itself.
+  std::vector<std::pair<double, std::unique_ptr<PhysicalImager>>> parts;
+
+  /// The parts of a spectrum and of motion (`parts`), and this imager's sampling from them.
+  void BuildParts();
 
   /// The intensity change of one direction and polarisation on the window's grid (n x n,
   /// spacing h, corner x0, y0), added with `weight` to `dev`.
@@ -105,6 +112,10 @@ PhysicalImager::PhysicalImager(const Scene& scene) : impl_(std::make_unique<Impl
   if (!why.empty()) throw Error(FileLocation{scene.file}, why);
   Impl& im = *impl_;
   im.scene = scene;
+  if (scene.source.spectrum.type != SpectrumType::kNone || scene.has_motion()) {
+    im.BuildParts();
+    return;
+  }
   Scene traced = scene;
   traced.trace.optics = ImageOptics::kRays;
   im.sim = std::make_unique<Simulator>(traced);
@@ -171,6 +182,61 @@ PhysicalImager::PhysicalImager(const Scene& scene) : impl_(std::make_unique<Impl
   im.last.directions = int(im.dirs.size());
 }
 
+void PhysicalImager::Impl::BuildParts() {
+  // Incoherent over wavelengths: lines as given; a Gaussian or tabulated spectrum at the
+  // midpoints of `spectrum_nodes` equal-power quantiles (the ray model draws from the same
+  // distribution), each with the objects' indices at its wavelength (their dispersion laws; a
+  // water density field's grid mapped to it, WaterIndexMap, in a copy). Motion: the pulse's
+  // `motion_nodes` equal-power quantiles (midpoints) as times, every object where it is then.
+  const SpectrumSpec& sp = scene.source.spectrum;
+  const PhysicalSettings& ps = scene.trace.physical;
+  std::vector<std::pair<double, double>> lambdas;  // wavelength, share
+  if (sp.type == SpectrumType::kLines) {
+    for (size_t k = 0; k < sp.wavelengths_um.size(); ++k)
+      lambdas.emplace_back(sp.wavelengths_um[k], sp.weights[k]);
+  } else if (sp.type != SpectrumType::kNone) {
+    for (int k = 0; k < ps.spectrum_nodes; ++k)
+      lambdas.emplace_back(sp.Sample((k + 0.5) / ps.spectrum_nodes), 1.0 / ps.spectrum_nodes);
+  } else {
+    lambdas.emplace_back(scene.wavelength_um, 1.0);
+  }
+  const int times = scene.has_motion() ? ps.motion_nodes : 1;
+  for (const auto& [lambda, share] : lambdas)
+    for (int t = 0; t < times; ++t) {
+      Scene one = scene;
+      one.source.spectrum = SpectrumSpec{};
+      one.wavelength_um = lambda;
+      const double at = scene.has_motion() ? scene.exposure.Offset((t + 0.5) / times) : 0.0;
+      for (ObjectSpec& o : one.objects) {
+        if (o.dispersion.law != DispersionLaw::kNone) o.index = o.dispersion.IndexAt(lambda);
+        if (o.index_field && o.index_field->water &&
+            lambda != o.index_field->water->wavelength_um) {
+          const IndexField::WaterStates& w = *o.index_field->water;
+          const AffineIndexMap m =
+              WaterIndexMap(w.density_kg_m3, w.temperature_K, w.wavelength_um, lambda);
+          auto at_lambda = std::make_shared<IndexField>(*o.index_field);
+          for (double& v : at_lambda->values) v = m.offset + m.scale * v;
+          at_lambda->min_n = m.offset + m.scale * at_lambda->min_n;
+          at_lambda->max_n = m.offset + m.scale * at_lambda->max_n;
+          auto states = std::make_shared<IndexField::WaterStates>(w);
+          states->wavelength_um = lambda;
+          at_lambda->water = states;
+          o.index_field = at_lambda;
+        }
+        o.center_um = o.center_um + o.velocity_um_per_us * at;
+        o.velocity_um_per_us = Vec3();
+      }
+      one.exposure = ExposureSpec{};
+      parts.emplace_back(share / times, std::make_unique<PhysicalImager>(one));
+    }
+  last = parts[0].second->sampling();
+  last.directions = 0;
+  for (const auto& [share, p] : parts) last.directions += p->sampling().directions;
+  last.directions /= int(parts.size());
+  last.wavelengths = int(lambdas.size());
+  last.times = times;
+}
+
 PhysicalImager::~PhysicalImager() = default;
 const Scene& PhysicalImager::scene() const { return impl_->scene; }
 PhysicalSampling PhysicalImager::sampling() const { return impl_->last; }
@@ -182,6 +248,8 @@ std::vector<std::string> PhysicalImager::Effects() const {
   if (!s.objects.empty()) e.push_back("fresnel_branches");
   if (!impl_->zones.s.empty()) e.push_back("corrector");
   if (s.camera.psf_sigma_um > 0) e.push_back("psf");
+  if (s.source.spectrum.type != SpectrumType::kNone) e.push_back("spectrum");
+  if (s.has_motion()) e.push_back("motion");
   return e;
 }
 
@@ -262,6 +330,25 @@ Image PhysicalImager::Expected(double defocus_um, int threads, bool progress,
   const Impl& im = *impl_;
   const Scene& s = im.scene;
   const CameraSpec& cam = s.camera;
+  if (!im.parts.empty()) {
+    // The parts one after another, each summed in a fixed order: the same for any threads.
+    std::vector<double> sum(size_t(cam.nx) * cam.ny, 0.0);
+    Progress bar(progress, label.empty() ? "physical optics" : label, im.parts.size());
+    uint64_t rays = 0;
+    for (const auto& [share, part] : im.parts) {
+      const Image one = part->Expected(defocus_um, threads);
+      for (size_t i = 0; i < sum.size(); ++i) sum[i] += share * one.pixels[i];
+      rays += part->sampling().field_rays;
+      bar.Add(1);
+    }
+    Image img(cam.nx, cam.ny);
+    for (size_t i = 0; i < sum.size(); ++i) img.pixels[i] = float(sum[i]);
+    const PhysicalSampling first = im.parts[0].second->sampling();
+    im.last.grid = first.grid, im.last.grid_um = first.grid_um, im.last.window_um = first.window_um;
+    im.last.pixel_subsamples = first.pixel_subsamples;
+    im.last.field_rays = rays;
+    return img;
+  }
   // The window: the objects' light on the focal plane (their extent, spread by the NA over
   // the defocus) and a margin for the pupil's diffraction tails, periodic.
   const PhysicalSettings& ps = s.trace.physical;

@@ -749,7 +749,9 @@ static void ReadPhysicalSettings(TomlReader pr, PhysicalSettings* p_out) {
   p.ray_spacing_um = pr.InRange("ray_spacing_um", 0.0, 100.0, p.ray_spacing_um);
   p.refine_levels = static_cast<int>(pr.Integer("refine_levels", p.refine_levels, 0, 12));
   p.max_cell_steps = pr.InRange("max_cell_steps", 0.05, 100.0, p.max_cell_steps);
-  p.max_events = static_cast<int>(pr.Integer("max_events", p.max_events, 0, 16));
+  p.max_events = static_cast<int>(pr.Integer("max_events", p.max_events, 0, 8));
+  p.spectrum_nodes = static_cast<int>(pr.Integer("spectrum_nodes", p.spectrum_nodes, 1, 256));
+  p.motion_nodes = static_cast<int>(pr.Integer("motion_nodes", p.motion_nodes, 1, 256));
   pr.Finish();
 }
 

@@ -23,8 +23,12 @@
 //    blurred by the camera's PSF (a Gaussian at the object plane) where one is set, integrated
 //    over each pixel, scaled so the flat field gives `photons_per_pixel` on average (without
 //    objects, exactly).
+//  * A spectrum is incoherent over wavelengths (lines as given, a Gaussian or tabulated
+//    spectrum at `spectrum_nodes` equal-power quantiles), each with the objects' indices at its
+//    wavelength; motion averages `motion_nodes` equal-power times of the pulse, the objects
+//    where they are then. Each such part is the image above, with its share of the power.
 // What it does not take yet (refused with the reason): a light-field or point source or a ray
-// list, a spectrum, motion.
+// list.
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <string>
@@ -46,6 +50,8 @@ struct PhysicalSampling {
   double window_um = 0;      ///< its size
   int pixel_subsamples = 0;  ///< per pixel side
   uint64_t field_rays = 0;   ///< field rays traced for the last image
+  int wavelengths = 1;       ///< of a spectrum (monochromatic: 1)
+  int times = 1;             ///< of the pulse, for moving objects (still: 1)
   nlohmann::json ToJson() const;
 };
 

@@ -265,7 +265,9 @@ struct PhysicalSettings {
   double ray_spacing_um = 0;  ///< field rays' coarse lattice (0: the medium's wavelength)
   int refine_levels = 6;      ///< halvings of a lattice cell at most
   double max_cell_steps = 1;  ///< a cell is halved while its exit-plane image spans more steps
-  int max_events = 4;         ///< surface events of the longest Fresnel branch
+  int max_events = 4;         ///< surface events of the longest Fresnel branch (at most 8)
+  int spectrum_nodes = 8;     ///< wavelengths of a Gaussian or tabulated spectrum (equal power)
+  int motion_nodes = 8;       ///< times over the pulse of moving objects (equal power)
 };
 
 struct TraceSpec {

@@ -3,6 +3,7 @@
 #include <cmath>
 
 #include "raymatch/simulate/scene.h"
+#include "sources.h"
 #include "stages.h"
 
 namespace raymatch::simulate {
@@ -102,6 +103,44 @@ CorrectorZones CorrectorZonesOf(const Scene& scene) {
       z.t.push_back(optics.ring_t[i]);
     }
   return z;
+}
+
+AngularDensity LightFieldDensity(const SourceSpec& ss) {
+  AngularDensity d;
+  d.extent = ss.angular_extent;
+  const bool edge = ss.edge_half_angle_deg > 0 && ss.map_na_limit > 0;
+  d.map = std::make_shared<Image>(edge ? ContinuedMap(ss, &d.extent) : ss.angular_map);
+  d.pu = 2 * d.extent / d.map->width;
+  if (ss.map_na_limit > 0) {
+    d.breaks.push_back(ss.map_na_limit);
+    d.breaks.push_back(ss.map_na_limit -
+                       kEdgeRingPixels * 2 * ss.angular_extent / ss.angular_map.width);
+  }
+  d.s_max = std::min(0.999, d.extent * std::sqrt(2.0));
+  const Image& m = *d.map;
+  for (int y = 0; y < m.height; ++y)
+    for (int x = 0; x < m.width; ++x)
+      if (m.at(x, y) > 0) {
+        // The cell's corner farthest from the axis.
+        const double u0 = -d.extent + x * d.pu, v0 = d.extent - y * d.pu;
+        const double u = std::max(std::abs(u0), std::abs(u0 + d.pu));
+        const double v = std::max(std::abs(v0), std::abs(v0 - d.pu));
+        d.reach = std::max(d.reach, std::hypot(u, v));
+      }
+  d.reach = std::min(d.reach, d.s_max);
+  return d;
+}
+
+SpatialEnvelope SpatialEnvelopeOf(const Scene& scene) {
+  SpatialEnvelope e;
+  const SourceSpec& ss = scene.source;
+  if (ss.type == SourceType::kLightField && !ss.spatial_map.empty()) {
+    e.map = ss.spatial_map;
+    e.w = ss.field_size_um[0], e.h = ss.field_size_um[1];
+    e.x0 = ss.field_center_um.x, e.y0 = ss.field_center_um.y;
+    e.clamp = ss.extend_spatial_map;
+  }
+  return e;
 }
 
 }  // namespace raymatch::simulate

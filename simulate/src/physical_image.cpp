@@ -53,16 +53,101 @@ std::array<C, 2> ToCamera(const Vec3& u, const CVec3& a) {
   return {at * cp - ap * sp, at * sp + ap * cp};
 }
 
+/// The illumination's plane waves, their weights the source's flux per unit density.
+///  * Collimated: one, along the source's tilt.
+///  * A cone: uniform in direction cosines (u, v) within sin(half angle); nodes in s =
+///    sin(theta) with the s ds measure, azimuths equally spaced (offset by half a step on
+///    alternate rings).
+///  * A light field: the same rings out to its map's reach (LightFieldDensity), each
+///    direction weighted by the density averaged over its azimuth sector; the outermost
+///    directions that together carry less than 1e-9 of the power (a soft edge's far tail) are
+///    left out, as the exact model leaves them.
+/// Rings are split at the NA, where the direct light stops reaching the camera, and on each
+/// side again at the corrector's zone edges (and the light field's NA limit and edge ring),
+/// where the light's transmission or density jumps; `polar_nodes` per side, shared out by width,
+/// at least one per piece.
+std::vector<Direction> IlluminationDirections(const Scene& scene, double s_na,
+                                              const CorrectorZones& zones) {
+  const SourceSpec& ss = scene.source;
+  std::vector<Direction> dirs;
+  if (ss.type == SourceType::kCollimated) {
+    const double t = ss.tilt_deg * kDeg, a = ss.azimuth_deg * kDeg;
+    dirs.push_back({Vec3(std::sin(t) * std::cos(a), std::sin(t) * std::sin(a), std::cos(t)), 1});
+    return dirs;
+  }
+  const bool field = ss.type == SourceType::kLightField;
+  AngularDensity density;
+  std::vector<double> cuts = zones.s;
+  double s_max = std::sin(ss.half_angle_deg * kDeg);
+  if (field) {
+    density = LightFieldDensity(ss);
+    cuts.insert(cuts.end(), density.breaks.begin(), density.breaks.end());
+    s_max = density.reach;
+  }
+  const PhysicalSettings& ps = scene.trace.physical;
+  std::vector<double> xs, ws;
+  auto side = [&](double lo, double hi) {
+    std::vector<double> b{lo, hi};
+    for (double e : cuts)
+      if (e > lo && e < hi) b.push_back(e);
+    std::sort(b.begin(), b.end());
+    b.erase(std::unique(b.begin(), b.end()), b.end());
+    for (size_t i = 0; i + 1 < b.size(); ++i) {
+      const double share = b.size() == 2 ? 1.0 : (b[i + 1] - b[i]) / (hi - lo);
+      const int nodes = std::max(1, int(std::ceil(ps.polar_nodes * share - 1e-9)));
+      GaussLegendre(nodes, b[i], b[i + 1], &xs, &ws);
+    }
+  };
+  side(0, std::min(s_max, s_na));
+  if (s_max > s_na) side(s_na, s_max);
+  constexpr int kSector = 16;  // density samples across an azimuth sector
+  const int az = ps.azimuths;
+  double total = 0;
+  for (size_t i = 0; i < xs.size(); ++i)
+    for (int j = 0; j < az; ++j) {
+      const double phi = 2 * M_PI * (j + 0.5 * (i % 2)) / az, st = xs[i];
+      double mean = 1;
+      if (field) {
+        mean = 0;
+        for (int q = 0; q < kSector; ++q) {
+          const double p = phi + 2 * M_PI / az * ((q + 0.5) / kSector - 0.5);
+          mean += density(st * std::cos(p), st * std::sin(p)) / kSector;
+        }
+        if (!(mean > 0)) continue;
+      }
+      const double w = ws[i] * st * 2 * M_PI / az * mean;
+      dirs.push_back({Vec3(st * std::cos(phi), st * std::sin(phi), std::sqrt(1 - st * st)), w});
+      total += w;
+    }
+  if (field) {
+    // The far tail: outermost first, while their sum stays below 1e-9 of the power.
+    std::vector<size_t> order(dirs.size());
+    for (size_t i = 0; i < order.size(); ++i) order[i] = i;
+    auto sin_of = [&](size_t i) { return std::hypot(dirs[i].d.x, dirs[i].d.y); };
+    std::stable_sort(order.begin(), order.end(),
+                     [&](size_t a, size_t b) { return sin_of(a) > sin_of(b); });
+    double tail = 0;
+    std::vector<char> drop(dirs.size(), 0);
+    for (size_t i : order) {
+      if (tail + dirs[i].weight > 1e-9 * total) break;
+      tail += dirs[i].weight, drop[i] = 1;
+    }
+    std::vector<Direction> kept;
+    for (size_t i = 0; i < dirs.size(); ++i)
+      if (!drop[i]) kept.push_back(dirs[i]);
+    dirs = std::move(kept);
+  }
+  return dirs;
+}
+
 }  // namespace
 
 std::string PhysicalUnsupportedReason(const Scene& s) {
   switch (s.source.type) {
     case SourceType::kCone:
     case SourceType::kCollimated:
-      break;
     case SourceType::kLightField:
-      return "optics = \"physical\" takes a cone or collimated source (a light field is not "
-             "yet imaged this way)";
+      break;
     case SourceType::kPoint:
       return "optics = \"physical\" needs plane-wave illumination; a point source is not one";
     case SourceType::kRayList:
@@ -89,6 +174,8 @@ struct PhysicalImager::Impl {
   double k = 0, lambda_medium = 0, s_na = 0;
   double sensor_sign = -1;
   CorrectorZones zones;        // the pupil's apodisation by angle (none: empty)
+  SpatialEnvelope spatial;     // a light field's spatial map (none: empty)
+  double spatial_mean = 1;     // its mean over the sensor's pixel centres
   Vec3 origin;                 // the objects' centre: the spectra's origin and exit plane
   double extent = 0;           // radius about it that holds the objects
   double flat = 0, scale = 1;  // flat-field flux; photons per unit of it
@@ -135,39 +222,7 @@ PhysicalImager::PhysicalImager(const Scene& scene) : impl_(std::make_unique<Impl
     for (const auto& [c, r] : bounds) im.extent = std::max(im.extent, Length(c - im.origin) + r);
   }
   im.zones = CorrectorZonesOf(scene);
-  const SourceSpec& ss = scene.source;
-  if (ss.type == SourceType::kCollimated) {
-    const double t = ss.tilt_deg * kDeg, a = ss.azimuth_deg * kDeg;
-    im.dirs.push_back({Vec3(std::sin(t) * std::cos(a), std::sin(t) * std::sin(a), std::cos(t)), 1});
-  } else {
-    // Uniform in direction cosines (u, v) within sin(half angle): nodes in s = sin(theta) with
-    // the s ds measure, azimuths equally spaced (offset by half a step on alternate rings). A
-    // cone wider than the NA is split there, where its direct light stops reaching the camera.
-    // Each side is split again at the corrector's zone edges, where the direct light's
-    // transmission jumps, its nodes shared out by width (at least one per zone).
-    const PhysicalSettings& ps = scene.trace.physical;
-    const double s_cone = std::sin(ss.half_angle_deg * kDeg);
-    std::vector<double> xs, ws;
-    auto side = [&](double lo, double hi) {
-      std::vector<double> b{lo};
-      for (double e : im.zones.s)
-        if (e > lo && e < hi) b.push_back(e);
-      b.push_back(hi);
-      for (size_t i = 0; i + 1 < b.size(); ++i) {
-        const double share = b.size() == 2 ? 1.0 : (b[i + 1] - b[i]) / (hi - lo);
-        const int nodes = std::max(1, int(std::ceil(ps.polar_nodes * share - 1e-9)));
-        GaussLegendre(nodes, b[i], b[i + 1], &xs, &ws);
-      }
-    };
-    side(0, std::min(s_cone, im.s_na));
-    if (s_cone > im.s_na) side(im.s_na, s_cone);
-    for (size_t i = 0; i < xs.size(); ++i)
-      for (int j = 0; j < ps.azimuths; ++j) {
-        const double phi = 2 * M_PI * (j + 0.5 * (i % 2)) / ps.azimuths, st = xs[i];
-        im.dirs.push_back({Vec3(st * std::cos(phi), st * std::sin(phi), std::sqrt(1 - st * st)),
-                           ws[i] * st * 2 * M_PI / ps.azimuths});
-      }
-  }
+  im.dirs = IlluminationDirections(scene, im.s_na, im.zones);
   // The direct light that passes the NA and the corrector is the flat field (unit flux
   // density per weight).
   for (const Direction& d : im.dirs) {
@@ -178,7 +233,24 @@ PhysicalImager::PhysicalImager(const Scene& scene) : impl_(std::make_unique<Impl
     throw Error(FileLocation{scene.file},
                 "optics = \"physical\": no direct light passes the objective (a dark field): the "
                 "photon scale is defined by the flat field");
-  im.scale = FlatFieldPhotons(scene) / im.flat;
+  // A light field's spatial map is an envelope of the image; its mean over the sensor's pixel
+  // centres keeps the flat field's mean at the photon target.
+  im.spatial = SpatialEnvelopeOf(scene);
+  if (!im.spatial.empty()) {
+    const CameraSpec& cam = scene.camera;
+    double sum = 0;
+    for (int r = 0; r < cam.ny; ++r)
+      for (int c = 0; c < cam.nx; ++c) {
+        const auto [x, y] = SensorToObject(cam, im.sensor_sign, c + 0.5, r + 0.5);
+        sum += im.spatial.At(x, y);
+      }
+    im.spatial_mean = sum / (double(cam.nx) * cam.ny);
+    if (!(im.spatial_mean > 0))
+      throw Error(FileLocation{scene.file},
+                  "optics = \"physical\": the light field's spatial map is zero over the whole "
+                  "sensor");
+  }
+  im.scale = FlatFieldPhotons(scene) / (im.flat * im.spatial_mean);
   im.last.directions = int(im.dirs.size());
 }
 
@@ -243,13 +315,21 @@ PhysicalSampling PhysicalImager::sampling() const { return impl_->last; }
 
 std::vector<std::string> PhysicalImager::Effects() const {
   const Scene& s = impl_->scene;
+  // A spectrum's or motion's parts image the rest alike.
+  if (!impl_->parts.empty()) {
+    std::vector<std::string> e = impl_->parts[0].second->Effects();
+    if (s.source.spectrum.type != SpectrumType::kNone) e.push_back("spectrum");
+    if (s.has_motion()) e.push_back("motion");
+    return e;
+  }
   std::vector<std::string> e{"optics:physical"};
-  e.push_back(s.source.type == SourceType::kCone ? "source:cone" : "source:collimated");
+  e.push_back(s.source.type == SourceType::kCone         ? "source:cone"
+              : s.source.type == SourceType::kLightField ? "source:light_field"
+                                                         : "source:collimated");
+  if (!impl_->spatial.empty()) e.push_back("spatial_map");
   if (!s.objects.empty()) e.push_back("fresnel_branches");
   if (!impl_->zones.s.empty()) e.push_back("corrector");
   if (s.camera.psf_sigma_um > 0) e.push_back("psf");
-  if (s.source.spectrum.type != SpectrumType::kNone) e.push_back("spectrum");
-  if (s.has_motion()) e.push_back("motion");
   return e;
 }
 
@@ -406,7 +486,8 @@ Image PhysicalImager::Expected(double defocus_um, int threads, bool progress,
               SensorToObject(cam, im.sensor_sign, c + (a + 0.5) / kss, r + (b + 0.5) / kss);
           sum += at(x, y);
         }
-      const double val = im.scale * (im.flat + sum / (kss * kss));
+      const auto [xc, yc] = SensorToObject(cam, im.sensor_sign, c + 0.5, r + 0.5);
+      const double val = im.scale * im.spatial.At(xc, yc) * (im.flat + sum / (kss * kss));
       img.at(c, r) = float(std::max(0.0, val));
     }
   });

@@ -2,11 +2,14 @@
 // What the tracer's stages share between the scalar path and the SIMD packet path, apart from
 // the stage functions themselves (stages-inl.h): the optics' description, the outcome codes of
 // the packet path, limits both paths obey, and the one-lane "vector" the scalar path traces with.
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <memory>
 #include <utility>
 #include <vector>
 
+#include "raymatch/core/image.h"
 #include "raymatch/simulate/tracer.h"
 
 namespace raymatch::simulate {
@@ -95,6 +98,45 @@ struct CorrectorZones {
   }
 };
 CorrectorZones CorrectorZonesOf(const Scene& scene);
+
+/// A light field's angular density over direction cosines (u, v), as the image models without
+/// rays sample it: the measured map, continued beyond the NA under the fitted edge where one is
+/// set (ContinuedMap), zero outside it and beyond sin(theta) = 1; `breaks`, the radii in
+/// sin(theta) where it changes abruptly (the map's NA limit and the edge ring inside it);
+/// `s_max`, the largest sin(theta) the map spans (below 0.999), and `reach`, the largest its
+/// non-zero cells reach.
+struct AngularDensity {
+  std::shared_ptr<const Image> map;
+  double extent = 0, pu = 0;
+  std::vector<double> breaks;
+  double s_max = 0, reach = 0;
+  double operator()(double u, double v) const {
+    if (u * u + v * v >= 1) return 0.0;
+    const int x = int(std::floor((u + extent) / pu)), y = int(std::floor((extent - v) / pu));
+    if (x < 0 || y < 0 || x >= map->width || y >= map->height) return 0.0;
+    return double(map->at(x, y));
+  }
+};
+AngularDensity LightFieldDensity(const SourceSpec& ss);
+
+/// A light field's spatial map as an envelope of the image (the image models without rays):
+/// its value at an object-plane point (1 without a map; 0 beyond it unless it extends).
+struct SpatialEnvelope {
+  Image map;
+  double x0 = 0, y0 = 0, w = 0, h = 0;
+  bool clamp = false;
+  bool empty() const { return map.empty(); }
+  double At(double x, double y) const {
+    if (map.empty()) return 1;
+    const double fx = (x - x0) / w + 0.5, fy = 0.5 - (y - y0) / h;
+    int cx = int(std::floor(fx * map.width)), cy = int(std::floor(fy * map.height));
+    if (!clamp && (cx < 0 || cy < 0 || cx >= map.width || cy >= map.height)) return 0;
+    cx = std::clamp(cx, 0, map.width - 1);
+    cy = std::clamp(cy, 0, map.height - 1);
+    return map.at(cx, cy);
+  }
+};
+SpatialEnvelope SpatialEnvelopeOf(const Scene& scene);
 
 /// Whether the packet path can trace a scene, and if not, why (Simulator::Effects lists it).
 struct PacketSupport {

@@ -132,9 +132,8 @@ struct RenderGeometry {
   double magnification = 1;
   double sensor_sign = -1;  // sign x M: sensor coordinate per object coordinate
   // Spatial envelope (light field's spatial map; empty: uniform).
-  Image spatial;
-  double sp_x0 = 0, sp_y0 = 0, sp_w = 0, sp_h = 0, spatial_mean = 1;
-  bool spatial_clamp = false;
+  SpatialEnvelope spatial;
+  double spatial_mean = 1;
 };
 
 struct MieImager::Impl : RenderGeometry {
@@ -178,16 +177,7 @@ struct MieImager::Impl : RenderGeometry {
     return SensorToObject(scene.camera, sensor_sign, col, row);
   }
 
-  double SpatialAt(double x, double y) const {
-    if (spatial.empty()) return 1;
-    const double fx = (x - sp_x0) / sp_w + 0.5, fy = 0.5 - (y - sp_y0) / sp_h;
-    int cx = int(std::floor(fx * spatial.width)), cy = int(std::floor(fy * spatial.height));
-    if (!spatial_clamp && (cx < 0 || cy < 0 || cx >= spatial.width || cy >= spatial.height))
-      return 0;
-    cx = std::clamp(cx, 0, spatial.width - 1);
-    cy = std::clamp(cy, 0, spatial.height - 1);
-    return spatial.at(cx, cy);
-  }
+  double SpatialAt(double x, double y) const { return spatial.At(x, y); }
 
   /// The image's azimuthal harmonics about the sphere for one axial offset `dz` of the focal
   /// plane from its centre: the illumination nodes' intensity changes, summed with their
@@ -306,22 +296,9 @@ void MieImager::Impl::BuildSource() {
     }
     case SourceType::kLightField: {
       harmonics = set.harmonics;
-      double extent = ss.angular_extent;
-      const bool edge = ss.edge_half_angle_deg > 0 && ss.map_na_limit > 0;
-      auto map = std::make_shared<Image>(edge ? ContinuedMap(ss, &extent) : ss.angular_map);
-      const double pu = 2 * extent / map->width;
-      auto density = [map, extent, pu](double u, double v) {
-        if (u * u + v * v >= 1) return 0.0;
-        const int x = int(std::floor((u + extent) / pu)), y = int(std::floor((extent - v) / pu));
-        if (x < 0 || y < 0 || x >= map->width || y >= map->height) return 0.0;
-        return double(map->at(x, y));
-      };
-      if (ss.map_na_limit > 0) {
-        breaks.push_back(ss.map_na_limit);
-        breaks.push_back(ss.map_na_limit -
-                         kEdgeRingPixels * 2 * ss.angular_extent / ss.angular_map.width);
-      }
-      BuildNodes(breaks, std::min(0.999, extent * std::sqrt(2.0)), density);
+      const AngularDensity density = LightFieldDensity(ss);
+      breaks.insert(breaks.end(), density.breaks.begin(), density.breaks.end());
+      BuildNodes(breaks, density.s_max, density);
       break;
     }
     default:
@@ -444,14 +421,7 @@ MieImager::MieImager(const Scene& scene, int stride, int offset) : impl_(std::ma
                 "photon scale is defined by the flat field");
   im.magnification = Magnification(op);
   im.sensor_sign = MakeOptics(scene).sign * im.magnification;
-  if (scene.source.type == SourceType::kLightField && !scene.source.spatial_map.empty()) {
-    im.spatial = scene.source.spatial_map;
-    im.sp_w = scene.source.field_size_um[0];
-    im.sp_h = scene.source.field_size_um[1];
-    im.sp_x0 = scene.source.field_center_um.x;
-    im.sp_y0 = scene.source.field_center_um.y;
-    im.spatial_clamp = scene.source.extend_spatial_map;
-  }
+  im.spatial = SpatialEnvelopeOf(scene);
   // Photons: the flat field's mean over the sensor is photons_per_pixel (as in the ray model's
   // photon target); with a ray count instead, the ray model's flat field of that many rays.
   const CameraSpec& cam = scene.camera;

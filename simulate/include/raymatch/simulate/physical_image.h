@@ -27,8 +27,9 @@
 //    spectrum at `spectrum_nodes` equal-power quantiles), each with the objects' indices at its
 //    wavelength; motion averages `motion_nodes` equal-power times of the pulse, the objects
 //    where they are then. Each such part is the image above, with its share of the power.
-// What it does not take yet (refused with the reason): a light-field or point source or a ray
-// list.
+//  * A light field's directions are rings out to its angular map's reach, each direction
+//    weighted by the map over its azimuth sector; its spatial map is the image's envelope.
+// What it does not take yet (refused with the reason): a point source or a ray list.
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <string>

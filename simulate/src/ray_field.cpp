@@ -341,16 +341,24 @@ int EdgeSign(double ax, double ay, uint64_t ia, double bx, double by, uint64_t i
 /// carried to the node along their own wave vectors (second order), times the tube's amplitude.
 /// Returns the flux through the plane that the nodes carry, each triangle's own (|E|^2 cos
 /// theta h^2; where sheets overlap, without their interference).
-double Rasterise(const std::vector<Tri>& tris, const PlaneGrid& pg, int r0, int r1,
-                 std::vector<CVec3>* field) {
+/// The plane's rows a triangle covers, [*jl, *jh] before they wrap (empty: jl > jh).
+void RowsOf(const Tri& t, const PlaneGrid& pg, int* jl, int* jh) {
+  const double y_lo = std::min({t.py[0], t.py[1], t.py[2]});
+  const double y_hi = std::max({t.py[0], t.py[1], t.py[2]});
+  *jl = int(std::ceil((y_lo - pg.y_lo) / pg.h));
+  *jh = int(std::floor((y_hi - pg.y_lo) / pg.h));
+}
+
+/// Only the triangles `which` (indices into tris, ascending) are added.
+double Rasterise(const std::vector<Tri>& tris, const std::vector<uint32_t>& which,
+                 const PlaneGrid& pg, int r0, int r1, std::vector<CVec3>* field) {
   double flux = 0;
   const int n = pg.n;
   auto wrap = [n](int i) { return ((i % n) + n) % n; };
-  for (const Tri& t : tris) {
-    const double y_lo = std::min({t.py[0], t.py[1], t.py[2]});
-    const double y_hi = std::max({t.py[0], t.py[1], t.py[2]});
-    const int jl = int(std::ceil((y_lo - pg.y_lo) / pg.h));
-    const int jh = int(std::floor((y_hi - pg.y_lo) / pg.h));
+  for (const uint32_t index : which) {
+    const Tri& t = tris[index];
+    int jl, jh;
+    RowsOf(t, pg, &jl, &jh);
     if (jl > jh) continue;
     const double x_lo = std::min({t.px[0], t.px[1], t.px[2]});
     const double x_hi = std::max({t.px[0], t.px[1], t.px[2]});
@@ -594,6 +602,33 @@ struct RegionTransform {
     }
     return C(0, 1) / q2 * sum;
   }
+
+  /// At(q) on a row of nodes q = (qx0 + i dq, qy), i = 0 ... n - 1, into out[i]: the same sums,
+  /// with each segment's end phasors exp(-i q . a), exp(-i q . b) stepped along the row (one
+  /// complex product a node instead of an exponential and a complex division):
+  /// exp(-i q . a) (exp(-i q . e) - 1) / (-i q . e) = i (exp(-i q . b) - exp(-i q . a)) / (q . e).
+  void Row(double qx0, double dq, double qy, int n, C* out) const {
+    std::vector<C> sum(static_cast<size_t>(n), C(0));
+    for (const auto& e : seg) {
+      const double ex = e[2] - e[0], ey = e[3] - e[1];
+      C pa = std::exp(C(0, -(qx0 * e[0] + qy * e[1]))),
+        pb = std::exp(C(0, -(qx0 * e[2] + qy * e[3])));
+      const C sa = std::exp(C(0, -dq * e[0])), sb = std::exp(C(0, -dq * e[2]));
+      double u = qx0 * ex + qy * ey, w = qx0 * ey - qy * ex;
+      for (int i = 0; i < n; ++i) {
+        if (std::abs(u) < 1e-3) {
+          sum[size_t(i)] += w * pa * C(1 - u * u / 6, -u / 2 + u * u * u / 24);
+        } else {
+          sum[size_t(i)] += (w / u) * C(0, 1) * (pb - pa);
+        }
+        pa *= sa, pb *= sb, u += dq * ex, w += dq * ey;
+      }
+    }
+    for (int i = 0; i < n; ++i) {
+      const double qx = qx0 + i * dq, q2 = qx * qx + qy * qy;
+      out[i] = std::sqrt(q2) * r_max < 0.02 ? At(qx, qy) : C(0, 1) / q2 * sum[size_t(i)];
+    }
+  }
 };
 
 Lattice MakeLattice(const Simulator& sim, const Vec3& din, double spacing, int levels) {
@@ -633,8 +668,12 @@ void AddShadow(const Wave& w, const Lattice& lat, const SpectrumGrid& g, RaySpec
   out->shadow_area_um2 = region.area;
   out->outline_segments = int(region.seg.size());
   const double k = w.k, kin_x = k * w.din.x, kin_y = k * w.din.y;
+  std::vector<C> transform(size_t(g.nx) * g.ny);
+  tbb::parallel_for(0, g.ny, [&](int j) {
+    region.Row(g.kx0 - kin_x, g.dk, g.ky0 + j * g.dk - kin_y, g.nx, &transform[size_t(j) * g.nx]);
+  });
   ForEachPassedNode(g, k, [&](size_t p, double kx, double ky, double kz) {
-    const C f = -region.At(kx - kin_x, ky - kin_y) / (4 * M_PI * M_PI);
+    const C f = -transform[p] / (4 * M_PI * M_PI);
     AddTransverse(f, w.e0, Vec3(kx / k, ky / k, kz / k), &out->a[p]);
   });
 }
@@ -700,10 +739,32 @@ RaySpectrum RayAngularSpectrum(const Simulator& sim, const Vec3& direction, cons
   }
   out.triangles = tris.size();
   std::vector<CVec3> field(size_t(pg.n) * pg.n, CVec3{});
+  // Bands of rows, each with the triangles that reach it (in their order, so each node sums
+  // its triangles in the same order whatever the bands).
   constexpr int kRows = 8;
-  std::vector<double> flux(size_t((pg.n + kRows - 1) / kRows), 0.0);
-  tbb::parallel_for(0, (pg.n + kRows - 1) / kRows, [&](int b) {
-    flux[size_t(b)] = Rasterise(tris, pg, b * kRows, std::min(pg.n, (b + 1) * kRows), &field);
+  const int bands = (pg.n + kRows - 1) / kRows;
+  std::vector<std::vector<uint32_t>> in_band(static_cast<size_t>(bands));
+  for (size_t t = 0; t < tris.size(); ++t) {
+    int jl, jh;
+    RowsOf(tris[t], pg, &jl, &jh);
+    if (jl > jh) continue;
+    auto band = [&](int j) { return (((j % pg.n) + pg.n) % pg.n) / kRows; };
+    if (int64_t(jh) - jl + 1 >= pg.n) {
+      for (auto& b : in_band) b.push_back(uint32_t(t));
+      continue;
+    }
+    int last = -1;
+    for (int j = jl; j <= jh; ++j)  // rows wrap: a band may come round again
+      if (const int b = band(j); b != last) {
+        if (in_band[size_t(b)].empty() || in_band[size_t(b)].back() != uint32_t(t))
+          in_band[size_t(b)].push_back(uint32_t(t));
+        last = b;
+      }
+  }
+  std::vector<double> flux(static_cast<size_t>(bands), 0.0);
+  tbb::parallel_for(0, bands, [&](int b) {
+    flux[size_t(b)] =
+        Rasterise(tris, in_band[size_t(b)], pg, b * kRows, std::min(pg.n, (b + 1) * kRows), &field);
   });
   for (double f : flux) out.plane_power += f;
   AddPlaneSpectrum(field, pg, grid, w.k, w.plane_z - origin.z, &out);

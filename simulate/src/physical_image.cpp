@@ -188,10 +188,14 @@ struct PhysicalImager::Impl {
   /// The parts of a spectrum and of motion (`parts`), and this imager's sampling from them.
   void BuildParts();
 
-  /// The intensity change of one direction and polarisation on the window's grid (n x n,
-  /// spacing h, corner x0, y0), added with `weight` to `dev`.
-  void AddDirection(const Direction& dir, const CVec3& pol, double dz, int n, double h, double x0,
-                    double y0, double weight, std::vector<double>* dev, uint64_t* rays) const;
+  /// The intensity change of one direction on the window's grid (n x n, spacing h, corner x0,
+  /// y0), the mean of two orthogonal polarisations, added with `weight` to `dev`.
+  void AddDirection(const Direction& dir, double dz, int n, double h, double x0, double y0,
+                    double weight, std::vector<double>* dev, uint64_t* rays) const;
+  /// The same for polarisation `pol` with its scattered spectrum `sp` on grid `g`.
+  void AddPolarisation(const Direction& dir, const CVec3& pol, const RaySpectrum& sp,
+                       const SpectrumGrid& g, double dz, int n, double h, double x0, double y0,
+                       double weight, std::vector<double>* dev) const;
 };
 
 PhysicalImager::PhysicalImager(const Scene& scene) : impl_(std::make_unique<Impl>()) {
@@ -333,9 +337,9 @@ std::vector<std::string> PhysicalImager::Effects() const {
   return e;
 }
 
-void PhysicalImager::Impl::AddDirection(const Direction& dir, const CVec3& pol, double dz, int n,
-                                        double h, double x0, double y0, double weight,
-                                        std::vector<double>* dev, uint64_t* rays) const {
+void PhysicalImager::Impl::AddDirection(const Direction& dir, double dz, int n, double h, double x0,
+                                        double y0, double weight, std::vector<double>* dev,
+                                        uint64_t* rays) const {
   const double L = n * h, dk = 2 * M_PI / L;
   const int j_hi = int(std::floor(k * s_na / dk));
   SpectrumGrid g;
@@ -349,11 +353,27 @@ void PhysicalImager::Impl::AddDirection(const Direction& dir, const CVec3& pol, 
   rs.refine_levels = ps.refine_levels;
   rs.max_cell_steps = ps.max_cell_steps;
   rs.max_events = ps.max_events;
-  // Unit flux density through the z-plane: |E0|^2 cos(theta_in) = 1.
+  // Two orthogonal polarisations transverse to the direction, each of unit flux density through
+  // the z-plane (|E0|^2 cos(theta_in) = 1); one outline for both.
+  Vec3 e_th, e_ph;
+  PolarBasis(dir.d, &e_th, &e_ph);
   const double e_scale = 1 / std::sqrt(dir.d.z);
-  const CVec3 e0{pol[0] * e_scale, pol[1] * e_scale, pol[2] * e_scale};
-  const RaySpectrum sp = RayAngularSpectrum(*sim, dir.d, e0, origin, g, rs);
-  *rays += sp.rays;
+  const std::vector<CVec3> pols{{e_th.x, e_th.y, e_th.z}, {e_ph.x, e_ph.y, e_ph.z}};
+  std::vector<CVec3> e0s;
+  for (const CVec3& p : pols) e0s.push_back({p[0] * e_scale, p[1] * e_scale, p[2] * e_scale});
+  const std::vector<RaySpectrum> sp = RayAngularSpectra(*sim, dir.d, e0s, origin, g, rs);
+  for (size_t q = 0; q < pols.size(); ++q) {
+    *rays += sp[q].rays;
+    AddPolarisation(dir, pols[q], sp[q], g, dz, n, h, x0, y0, 0.5 * weight, dev);
+  }
+}
+
+void PhysicalImager::Impl::AddPolarisation(const Direction& dir, const CVec3& pol,
+                                           const RaySpectrum& sp, const SpectrumGrid& g, double dz,
+                                           int n, double h, double x0, double y0, double weight,
+                                           std::vector<double>* dev) const {
+  const double dk = g.dk;
+  const int j_hi = (g.nx - 1) / 2;
   // The camera's field as plane waves: sqrt(cos theta) (aplanatic) times the corrector's
   // amplitude sqrt(T), the defocus phase, the window's corner phase (fields are relative to the
   // origin), on the FFT's bins; one transform per component.
@@ -448,11 +468,7 @@ Image PhysicalImager::Expected(double defocus_um, int threads, bool progress,
     Progress bar(progress, label.empty() ? "physical optics" : label, im.dirs.size());
     arena.execute([&] {
       for (const Direction& d : im.dirs) {
-        // Two orthogonal polarisations transverse to the direction, averaged.
-        Vec3 e_th, e_ph;
-        PolarBasis(d.d, &e_th, &e_ph);
-        for (const Vec3& e : {e_th, e_ph})
-          im.AddDirection(d, {e.x, e.y, e.z}, dz, n, h, x0, y0, 0.5 * d.weight, &dev, &rays);
+        im.AddDirection(d, dz, n, h, x0, y0, d.weight, &dev, &rays);
         bar.Add(1);
       }
     });

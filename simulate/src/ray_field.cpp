@@ -657,7 +657,15 @@ Lattice MakeLattice(const Simulator& sim, const Vec3& din, double spacing, int l
 
 /// Adds the shadow's spectrum, -(E0 / (2 pi)^2) times the silhouette's transform at
 /// q = k_t - k_in,t, on the origin's z-plane.
-void AddShadow(const Wave& w, const Lattice& lat, const SpectrumGrid& g, RaySpectrum* out) {
+/// The silhouette's transform at q = k_t - k_in,t on the grid's nodes, on the origin's z-plane,
+/// with its area and outline; the same for every polarisation of a direction.
+struct Shadow {
+  std::vector<C> transform;
+  double area = 0;
+  int segments = 0;
+};
+
+Shadow ShadowOf(const Wave& w, const Lattice& lat, const SpectrumGrid& g) {
   Outline outline(w, lat, std::min<int>(3, int(std::log2(double(lat.step)))));
   std::vector<std::array<double, 4>> seg = outline.Segments();
   // Start plane to the origin's plane along din, relative to the origin.
@@ -665,58 +673,34 @@ void AddShadow(const Wave& w, const Lattice& lat, const SpectrumGrid& g, RaySpec
   const double sx = w.din.x * t - w.origin.x, sy = w.din.y * t - w.origin.y;
   for (auto& e : seg) e[0] += sx, e[1] += sy, e[2] += sx, e[3] += sy;
   const RegionTransform region(std::move(seg));
-  out->shadow_area_um2 = region.area;
-  out->outline_segments = int(region.seg.size());
-  const double k = w.k, kin_x = k * w.din.x, kin_y = k * w.din.y;
-  std::vector<C> transform(size_t(g.nx) * g.ny);
+  Shadow sh;
+  sh.area = region.area;
+  sh.segments = int(region.seg.size());
+  const double kin_x = w.k * w.din.x, kin_y = w.k * w.din.y;
+  sh.transform.resize(size_t(g.nx) * g.ny);
   tbb::parallel_for(0, g.ny, [&](int j) {
-    region.Row(g.kx0 - kin_x, g.dk, g.ky0 + j * g.dk - kin_y, g.nx, &transform[size_t(j) * g.nx]);
+    region.Row(g.kx0 - kin_x, g.dk, g.ky0 + j * g.dk - kin_y, g.nx,
+               &sh.transform[size_t(j) * g.nx]);
   });
+  return sh;
+}
+
+/// Adds the shadow's spectrum, -(E0 / (2 pi)^2) times the silhouette's transform.
+void AddShadow(const Wave& w, const SpectrumGrid& g, const Shadow& sh, RaySpectrum* out) {
+  out->shadow_area_um2 = sh.area;
+  out->outline_segments = sh.segments;
+  const double k = w.k;
   ForEachPassedNode(g, k, [&](size_t p, double kx, double ky, double kz) {
-    const C f = -transform[p] / (4 * M_PI * M_PI);
+    const C f = -sh.transform[p] / (4 * M_PI * M_PI);
     AddTransverse(f, w.e0, Vec3(kx / k, ky / k, kz / k), &out->a[p]);
   });
 }
 
-}  // namespace
-
-RaySpectrum RayAngularSpectrum(const Simulator& sim, const Vec3& direction, const CVec3& e0,
-                               const Vec3& origin, const SpectrumGrid& grid,
-                               const RaySpectrumSettings& set) {
-  const Scene& scene = sim.scene();
-  Wave w;
-  w.sim = &sim;
-  w.din = Normalize(direction);
-  w.e0 = e0;
-  w.origin = origin;
-  w.k0 = 2 * M_PI / scene.wavelength_um;
-  w.k = w.k0 * scene.medium_index;
-  w.n_medium = scene.medium_index;
-  RAYMATCH_CHECK(w.din.z > 0 && grid.nx > 0 && grid.ny > 0 && grid.dk > 0);
-  RAYMATCH_CHECK(set.taper > 0 && set.plane_oversample >= 1 && set.max_events >= 0 &&
-                 set.max_events <= Simulator::FieldRay::kMaxEvents);
-  RAYMATCH_CHECK(set.refine_levels >= 0 && set.refine_levels <= 20);
-  RaySpectrum out;
-  out.a.assign(size_t(grid.nx) * grid.ny, CVec3{});
-  if (scene.objects.empty()) return out;
-  const double spacing =
-      set.ray_spacing_um > 0 ? set.ray_spacing_um : scene.wavelength_um / scene.medium_index;
-  const Lattice lat = MakeLattice(sim, w.din, spacing, set.refine_levels);
-  w.plane_z = origin.z + set.exit_plane_um;
-  // The branches' rays pass up to the grid's k_max, then taper off.
-  w.k_pass = std::min(grid.k_max, w.k);
-  w.k_taper = std::min(set.taper * grid.k_max, 0.5 * (w.k - w.k_pass) + 1e-9);
-  PlaneGrid pg;
-  const double window = 2 * M_PI / grid.dk;
-  const double h_max = M_PI / (w.k_pass + w.k_taper) / 1.25;
-  // Finer than the band needs: a sheet's edge sampled at points is a staircase whose error in
-  // the spectrum falls as the step.
-  pg.n = cv::getOptimalDFTSize(
-      std::max({grid.nx, grid.ny, int(std::ceil(set.plane_oversample * window / h_max))}));
-  pg.h = window / pg.n;
-  pg.cell = h_max;
-  pg.x_lo = pg.y_lo = -0.5 * window;
-  AddShadow(w, lat, grid, &out);
+/// Adds the branches' spectrum (every reflect/refract sequence up to max_events surfaces) to
+/// `out`, with their rays, triangles and powers.
+void AddBranches(const Wave& w, const Lattice& lat, const SpectrumGrid& grid, const PlaneGrid& pg,
+                 const RaySpectrumSettings& set, RaySpectrum* out_ptr) {
+  RaySpectrum& out = *out_ptr;
   // The branches, shortest first: a branch of m events grows into m + 1 only where its rays
   // meet another surface.
   std::vector<Branch> open = {{0, 0}};
@@ -767,8 +751,61 @@ RaySpectrum RayAngularSpectrum(const Simulator& sim, const Vec3& direction, cons
         Rasterise(tris, in_band[size_t(b)], pg, b * kRows, std::min(pg.n, (b + 1) * kRows), &field);
   });
   for (double f : flux) out.plane_power += f;
-  AddPlaneSpectrum(field, pg, grid, w.k, w.plane_z - origin.z, &out);
-  return out;
+  AddPlaneSpectrum(field, pg, grid, w.k, w.plane_z - w.origin.z, &out);
+}
+
+}  // namespace
+
+std::vector<RaySpectrum> RayAngularSpectra(const Simulator& sim, const Vec3& direction,
+                                           const std::vector<CVec3>& e0s, const Vec3& origin,
+                                           const SpectrumGrid& grid,
+                                           const RaySpectrumSettings& set) {
+  const Scene& scene = sim.scene();
+  Wave w;
+  w.sim = &sim;
+  w.din = Normalize(direction);
+  w.origin = origin;
+  w.k0 = 2 * M_PI / scene.wavelength_um;
+  w.k = w.k0 * scene.medium_index;
+  w.n_medium = scene.medium_index;
+  RAYMATCH_CHECK(w.din.z > 0 && grid.nx > 0 && grid.ny > 0 && grid.dk > 0);
+  RAYMATCH_CHECK(set.taper > 0 && set.plane_oversample >= 1 && set.max_events >= 0 &&
+                 set.max_events <= Simulator::FieldRay::kMaxEvents);
+  RAYMATCH_CHECK(set.refine_levels >= 0 && set.refine_levels <= 20);
+  std::vector<RaySpectrum> all(e0s.size());
+  for (RaySpectrum& out : all) out.a.assign(size_t(grid.nx) * grid.ny, CVec3{});
+  if (scene.objects.empty() || e0s.empty()) return all;
+  const double spacing =
+      set.ray_spacing_um > 0 ? set.ray_spacing_um : scene.wavelength_um / scene.medium_index;
+  const Lattice lat = MakeLattice(sim, w.din, spacing, set.refine_levels);
+  w.plane_z = origin.z + set.exit_plane_um;
+  // The branches' rays pass up to the grid's k_max, then taper off.
+  w.k_pass = std::min(grid.k_max, w.k);
+  w.k_taper = std::min(set.taper * grid.k_max, 0.5 * (w.k - w.k_pass) + 1e-9);
+  PlaneGrid pg;
+  const double window = 2 * M_PI / grid.dk;
+  const double h_max = M_PI / (w.k_pass + w.k_taper) / 1.25;
+  // Finer than the band needs: a sheet's edge sampled at points is a staircase whose error in
+  // the spectrum falls as the step.
+  pg.n = cv::getOptimalDFTSize(
+      std::max({grid.nx, grid.ny, int(std::ceil(set.plane_oversample * window / h_max))}));
+  pg.h = window / pg.n;
+  pg.cell = h_max;
+  pg.x_lo = pg.y_lo = -0.5 * window;
+  w.e0 = e0s[0];  // (the outline's rays carry a field, but only their hits count)
+  const Shadow shadow = ShadowOf(w, lat, grid);
+  for (size_t q = 0; q < e0s.size(); ++q) {
+    w.e0 = e0s[q];
+    AddShadow(w, grid, shadow, &all[q]);
+    AddBranches(w, lat, grid, pg, set, &all[q]);
+  }
+  return all;
+}
+
+RaySpectrum RayAngularSpectrum(const Simulator& sim, const Vec3& direction, const CVec3& e0,
+                               const Vec3& origin, const SpectrumGrid& grid,
+                               const RaySpectrumSettings& set) {
+  return RayAngularSpectra(sim, direction, {e0}, origin, grid, set)[0];
 }
 
 }  // namespace raymatch::simulate

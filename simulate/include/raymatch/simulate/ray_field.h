@@ -96,4 +96,11 @@ RaySpectrum RayAngularSpectrum(const Simulator& sim, const Vec3& direction, cons
                                const Vec3& origin, const SpectrumGrid& grid,
                                const RaySpectrumSettings& settings = {});
 
+/// The same for several fields of one direction (e.g. two polarisations), one spectrum each:
+/// the silhouette's outline and transform are found once for all of them.
+std::vector<RaySpectrum> RayAngularSpectra(const Simulator& sim, const Vec3& direction,
+                                           const std::vector<CVec3>& e0s, const Vec3& origin,
+                                           const SpectrumGrid& grid,
+                                           const RaySpectrumSettings& settings = {});
+
 }  // namespace raymatch::simulate

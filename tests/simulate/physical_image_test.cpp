@@ -226,14 +226,7 @@ TEST(PhysicalImage, CorrectorAndPsfAsTheExactImageHasThem) {
 // spectrum's mean wavelength alone it is 133 photons off.
 TEST(PhysicalImage, WaterDensityFieldFollowsTheWavelength) {
   testing::TempDir dir;
-  const int nr = 11, nz = 21;  // r 0..5 um, z -5..5 um, 0.5 um apart
-  NdArray rho{{size_t(nz), size_t(nr)}, std::vector<double>(size_t(nr) * nz)};
-  for (int iz = 0; iz < nz; ++iz)
-    for (int ir = 0; ir < nr; ++ir) {
-      const double r = 0.5 * ir, z = -5 + 0.5 * iz;
-      rho.values[size_t(iz) * nr + ir] = 998 + 42 * std::max(0.0, 1 - (r * r + z * z) / 16);
-    }
-  WriteNpy(dir / "rho.npy", rho);
+  const std::string drop = testing::DensityDropObject(dir, 5, 4, 4.5);
   auto scene = [&](const std::string& light) {
     return LoadScene(dir.Write(
         "s.toml",
@@ -244,17 +237,7 @@ type = "collimated"
             (light.empty() ? "spectrum = { type = \"lines\", wavelengths_um = [0.3, 1.0], "
                              "weights = [0.5, 0.5] }\n"
                            : "") +
-            R"([[object]]
-type = "sphere"
-radius_um = 4.5
-[object.index_field]
-type = "grid_rz"
-file = "rho.npy"
-spacing_um = [0.5, 0.5]
-origin_um = [0, -5]
-quantity = "density"
-temperature_K = 293.15
-[camera]
+            drop + R"([camera]
 pixels = [24, 24]
 pixel_pitch_um = 20
 [trace]

@@ -159,14 +159,7 @@ sellmeier_c_um2 = [0.0046791, 0.0135121, 97.934003]
 // line.
 TEST(Spectrum, WaterDensityFieldFollowsTheRaysWavelength) {
   TempDir dir;
-  const int nr = 21, nz = 41;  // r 0..10 um, z -10..10 um, 0.5 um apart
-  NdArray rho{{size_t(nz), size_t(nr)}, std::vector<double>(size_t(nr) * nz)};
-  for (int iz = 0; iz < nz; ++iz)
-    for (int ir = 0; ir < nr; ++ir) {
-      const double r = 0.5 * ir, z = -10 + 0.5 * iz;
-      rho.values[size_t(iz) * nr + ir] = 998 + 42 * std::max(0.0, 1 - (r * r + z * z) / 81);
-    }
-  WriteNpy(dir / "rho.npy", rho);
+  const std::string drop = testing::DensityDropObject(dir, 10, 9, 9, "center_um = [1, 0, 3]\n");
   auto scene = [&](const std::string& light, uint64_t seed) {
     return LoadScene(dir.Write(
         "s" + std::to_string(seed) + ".toml",
@@ -178,18 +171,7 @@ field_radius_um = 30
             (light.empty() ? "spectrum = { type = \"lines\", wavelengths_um = [0.3, 1.0], "
                              "weights = [0.5, 0.5] }\n"
                            : "") +
-            R"([[object]]
-type = "sphere"
-radius_um = 9
-center_um = [1, 0, 3]
-[object.index_field]
-type = "grid_rz"
-file = "rho.npy"
-spacing_um = [0.5, 0.5]
-origin_um = [0, -10]
-quantity = "density"
-temperature_K = 293.15
-[camera]
+            drop + R"([camera]
 pixels = [64, 64]
 pixel_pitch_um = 20
 [trace]

@@ -1,10 +1,14 @@
 #pragma once
 // Scenes shared by the simulator tests: the paper's microscope (20x / NA 0.42 objective, 200 mm
 // tube lens, M = -20) and simple objects.
+#include <algorithm>
 #include <memory>
 #include <string>
+#include <vector>
 
+#include "raymatch/core/array_io.h"
 #include "raymatch/simulate/scene.h"
+#include "temp_dir.h"
 
 namespace raymatch::testing {
 
@@ -63,6 +67,27 @@ inline ObjectSpec LuneburgSphere(double R) {
   o.index_field = f;
   o.index = f->Index(Vec3());
   return o;
+}
+
+/// A water drop whose density falls from 1040 kg/m^3 at its centre to 998 at `falloff_um` from
+/// it (a gradient-index lens): the grid written to `dir`/rho.npy (r 0..half_um, z -half_um..
+/// half_um, 0.5 um apart) and the TOML of a sphere of `radius_um` with that grid as its water
+/// density field at 293.15 K (`extra`: more keys of the object).
+inline std::string DensityDropObject(const TempDir& dir, int half_um, double falloff_um,
+                                     double radius_um, const std::string& extra = "") {
+  const int nr = 2 * half_um + 1, nz = 4 * half_um + 1;
+  NdArray rho{{size_t(nz), size_t(nr)}, std::vector<double>(size_t(nr) * nz)};
+  for (int iz = 0; iz < nz; ++iz)
+    for (int ir = 0; ir < nr; ++ir) {
+      const double r = 0.5 * ir, z = -half_um + 0.5 * iz;
+      rho.values[size_t(iz) * nr + ir] =
+          998 + 42 * std::max(0.0, 1 - (r * r + z * z) / (falloff_um * falloff_um));
+    }
+  WriteNpy(dir / "rho.npy", rho);
+  return "[[object]]\ntype = \"sphere\"\nradius_um = " + std::to_string(radius_um) + "\n" + extra +
+         "[object.index_field]\ntype = \"grid_rz\"\nfile = \"rho.npy\"\nspacing_um = [0.5, 0.5]\n"
+         "origin_um = [0, " +
+         std::to_string(-half_um) + "]\nquantity = \"density\"\ntemperature_K = 293.15\n";
 }
 
 }  // namespace raymatch::testing

@@ -52,9 +52,14 @@ int RunSimulate(const SimulateCliOptions& o) {
       std::cout << "raymatch simulate --compare-optics: rays against the exact wave image at "
                 << scene.trace.photons_per_pixel
                 << " photons per pixel (chi-square per pixel 1: within the shot noise)\n";
-      for (const auto& p : planes)
+      for (const auto& p : planes) {
         std::cout << "  z = " << p.defocus_um << " um: chi-square per pixel " << p.chi2_per_pixel
                   << ", largest |z| " << p.max_abs_z << "  (" << p.z_image << ")\n";
+        if (p.physical)
+          std::cout << "           physical optics: excess chi-square per pixel " << p.chi2_physical
+                    << " (0: exact), largest |z| " << p.max_abs_z_physical << "  ("
+                    << p.z_physical_image << ")\n";
+      }
     }
     return 0;
   }
@@ -104,7 +109,9 @@ void RegisterSimulate(CLI::App& app, int* exit_code) {
   sub->add_flag("--compare-optics", opt->compare_optics,
                 "For a sphere: the exact wave image (optics = \"mie\"), the ray image at the same "
                 "photons per pixel and z = (rays - wave) / sqrt(wave) per plane (<stem>_mie.tif, "
-                "_rays.tif, _z.tif/.png, <name>_optics.csv): where rays can be trusted");
+                "_rays.tif, _z.tif/.png, <name>_optics.csv): where rays can be trusted; with "
+                "optics = \"physical\" also the physical-optics image and its z "
+                "(_physical.tif, _z_physical.tif/.png)");
   sub->callback([opt, exit_code] { *exit_code = RunGuarded([&] { return RunSimulate(*opt); }); });
 }
 

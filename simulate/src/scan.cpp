@@ -458,11 +458,14 @@ std::vector<OpticsComparisonPlane> CompareOptics(const Scene& scene, const ScanO
   ray_scene.trace.optics = ImageOptics::kRays;
   const MieImager mie(wave_scene);  // throws for scenes without an exact wave image
   const Simulator sim(ray_scene);
+  std::unique_ptr<PhysicalImager> phys;
+  if (scene.trace.optics == ImageOptics::kPhysical) phys = std::make_unique<PhysicalImager>(scene);
   const uint64_t rays = sim.RaysForPhotonTarget(scene.trace.photons_per_pixel);
   EnsureDirectory(opt.output_dir);
   std::vector<OpticsComparisonPlane> out;
   std::ostringstream csv;
-  csv << "defocus_um,chi2_per_pixel,max_abs_z,wave_image,ray_image,z_image\n";
+  csv << "defocus_um,chi2_per_pixel,max_abs_z,wave_image,ray_image,z_image"
+      << (phys ? ",chi2_physical,max_abs_z_physical,physical_image,z_physical_image" : "") << "\n";
   for (size_t i = 0; i < scene.defocus_um.size(); ++i) {
     const double dz = scene.defocus_um[i];
     RunControl ctl = opt.control;
@@ -470,16 +473,28 @@ std::vector<OpticsComparisonPlane> CompareOptics(const Scene& scene, const ScanO
     const Image ray = sim.TracePlane(dz, static_cast<uint32_t>(i), rays, ctl).counts;
     OpticsComparisonPlane p;
     p.defocus_um = dz;
-    Image z(wave.width, wave.height);
-    double sum = 0;
-    for (size_t q = 0; q < wave.size(); ++q) {
-      const double e = std::max(double(wave.pixels[q]), 1.0);
-      const double v = (double(ray.pixels[q]) - wave.pixels[q]) / std::sqrt(e);
-      z.pixels[q] = float(v);
-      sum += v * v;
-      p.max_abs_z = std::max(p.max_abs_z, std::abs(v));
+    // z = (image - wave) / sqrt(wave) with its mean square and largest magnitude.
+    auto against_wave = [&](const Image& a, double* chi2, double* max_abs) {
+      Image z(wave.width, wave.height);
+      double sum = 0;
+      for (size_t q = 0; q < wave.size(); ++q) {
+        const double e = std::max(double(wave.pixels[q]), 1.0);
+        const double v = (double(a.pixels[q]) - wave.pixels[q]) / std::sqrt(e);
+        z.pixels[q] = float(v);
+        sum += v * v;
+        *max_abs = std::max(*max_abs, std::abs(v));
+      }
+      *chi2 = sum / double(wave.size());
+      return z;
+    };
+    const Image z = against_wave(ray, &p.chi2_per_pixel, &p.max_abs_z);
+    Image physical, z_physical;
+    if (phys) {
+      physical = phys->Expected(dz, ctl.threads > 0 ? ctl.threads : scene.trace.threads,
+                                ctl.progress, "physical optics");
+      z_physical = against_wave(physical, &p.chi2_physical, &p.max_abs_z_physical);
+      p.physical = true;
     }
-    p.chi2_per_pixel = sum / double(wave.size());
     const std::string stem = PlaneStem(scene.name, dz);
     const fs::path dir(opt.output_dir);
     p.wave_image = (dir / (stem + "_mie.tif")).string();
@@ -497,16 +512,33 @@ std::vector<OpticsComparisonPlane> CompareOptics(const Scene& scene, const ScanO
     WriteFloatImage(p.wave_image, wave, meta.dump());
     WriteFloatImage(p.ray_image, ray, meta.dump());
     WriteFloatImage(p.z_image, z, meta.dump());
-    if (opt.write_png) {
-      p.z_png = (dir / (stem + "_z.png")).string();
-      Image shifted = z;
+    auto preview = [&](const Image& zi, const std::string& path) {
+      Image shifted = zi;
       for (float& v : shifted.pixels) v += 5.0f;  // z = -5 .. 5 on the preview's 0 .. 10
-      WritePngPreview(p.z_png, shifted, 0.0, 10.0);
-    }
+      WritePngPreview(path, shifted, 0.0, 10.0);
+    };
+    if (opt.write_png) preview(z, p.z_png = (dir / (stem + "_z.png")).string());
     csv << FormatDefocus(dz) << "," << p.chi2_per_pixel << "," << p.max_abs_z << ","
         << fs::path(p.wave_image).filename().string() << ","
         << fs::path(p.ray_image).filename().string() << ","
-        << fs::path(p.z_image).filename().string() << "\n";
+        << fs::path(p.z_image).filename().string();
+    if (phys) {
+      nlohmann::json pm = meta;
+      pm["physical_sampling"] = phys->sampling().ToJson();
+      pm["z"] =
+          "(physical - wave) / sqrt(wave): the physical image's difference in units of the "
+          "shot noise (it has no noise itself)";
+      pm["chi2_per_pixel"] = p.chi2_physical;
+      p.physical_image = (dir / (stem + "_physical.tif")).string();
+      p.z_physical_image = (dir / (stem + "_z_physical.tif")).string();
+      WriteFloatImage(p.physical_image, physical, pm.dump());
+      WriteFloatImage(p.z_physical_image, z_physical, pm.dump());
+      if (opt.write_png) preview(z_physical, (dir / (stem + "_z_physical.png")).string());
+      csv << "," << p.chi2_physical << "," << p.max_abs_z_physical << ","
+          << fs::path(p.physical_image).filename().string() << ","
+          << fs::path(p.z_physical_image).filename().string();
+    }
+    csv << "\n";
     out.push_back(p);
   }
   WriteTextFileAtomic((fs::path(opt.output_dir) / (scene.name + "_optics.csv")).string(),

@@ -72,6 +72,22 @@ TEST(SimulateCli, WaveOpticsAndTheComparisonWithRays) {
   for (const char* f : {"c/tiny_z-005.00um_mie.tif", "c/tiny_z+005.00um_rays.tif",
                         "c/tiny_z+005.00um_z.tif", "c/tiny_z+005.00um_z.png", "c/tiny_optics.csv"})
     EXPECT_TRUE(fs::exists(dir / f)) << f;
+  // With optics = "physical" the comparison adds the physical-optics image.
+  std::string ptext = kScene;
+  ptext.replace(ptext.find("rays = 200000"), 13,
+                "photons_per_pixel = 500\noptics = \"physical\"\n[trace.physical]\n"
+                "polar_nodes = 1\nazimuths = 2");
+  const std::string pscene = dir.Write("phys.toml", ptext);
+  r = Raymatch("simulate " + pscene + " -o " + (dir / "p") + " --defocus-um 5 --compare-optics",
+               dir);
+  ASSERT_EQ(r.code, 0) << r.err;
+  for (const char* f : {"p/tiny_z+005.00um_physical.tif", "p/tiny_z+005.00um_z_physical.tif",
+                        "p/tiny_z+005.00um_z_physical.png", "p/tiny_z+005.00um_rays.tif"})
+    EXPECT_TRUE(fs::exists(dir / f)) << f;
+  std::ifstream pcsv(dir / "p/tiny_optics.csv");
+  std::string header;
+  std::getline(pcsv, header);
+  EXPECT_NE(header.find("chi2_physical"), std::string::npos) << header;
   const std::string two =
       dir.Write("two.toml", text +
                                 "[[object]]\ntype = \"sphere\"\ncenter_um = [12, 0, 0]\n"

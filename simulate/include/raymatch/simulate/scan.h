@@ -61,13 +61,20 @@ struct OpticsComparisonPlane {
   double chi2_per_pixel = 0;
   double max_abs_z = 0;  ///< the largest |rays - wave| / sqrt(wave)
   std::string wave_image, ray_image, z_image, z_png;
+  /// With [trace] optics = "physical": the physical-optics image (expected photons, no noise)
+  /// against the wave image, z = (physical - wave) / sqrt(wave): mean z^2 is its excess over
+  /// the shot noise (0 where it is exact), and the files of both.
+  bool physical = false;
+  double chi2_physical = 0, max_abs_z_physical = 0;
+  std::string physical_image, z_physical_image;
 };
 
 /// For a sphere scene (MieUnsupportedReason empty) at its photon target: per plane the wave
 /// image (<stem>_mie.tif, expected photons), the traced ray image (<stem>_rays.tif) and
 /// z = (rays - wave) / sqrt(wave) (<stem>_z.tif, .png on -5..5), and <name>_optics.csv with one
 /// line per plane. Where the ray model can be trusted at this photon count: chi2_per_pixel
-/// near 1.
+/// near 1. A scene with optics = "physical" adds its physical-optics image (<stem>_physical.tif)
+/// and z = (physical - wave) / sqrt(wave) (<stem>_z_physical.tif, .png).
 std::vector<OpticsComparisonPlane> CompareOptics(const Scene& scene, const ScanOptions& options);
 
 /// Throws Error when a focus position is listed twice (two planes would share a file name);

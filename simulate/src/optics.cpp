@@ -1,6 +1,7 @@
 // The optics after the objects (stages.h: Optics) from a scene's description.
 #include <algorithm>
 #include <cmath>
+#include <functional>
 
 #include "raymatch/simulate/scene.h"
 #include "sources.h"
@@ -129,6 +130,29 @@ AngularDensity LightFieldDensity(const SourceSpec& ss) {
       }
   d.reach = std::min(d.reach, d.s_max);
   return d;
+}
+
+double SpatialEnvelope::MeanOverSensor(const CameraSpec& cam, double sensor_sign) const {
+  double sum = 0;
+  for (int r = 0; r < cam.ny; ++r)
+    for (int c = 0; c < cam.nx; ++c) {
+      const auto [x, y] = SensorToObject(cam, sensor_sign, c + 0.5, r + 0.5);
+      sum += At(x, y);
+    }
+  return sum / (double(cam.nx) * cam.ny);
+}
+
+double TailStart(std::vector<std::pair<double, double>> rings) {
+  double total = 0;
+  for (const auto& ring : rings) total += ring.second;
+  std::sort(rings.begin(), rings.end(), std::greater<>());  // outermost first
+  double tail = 0, s_cut = 2;
+  for (const auto& [s, power] : rings) {
+    if (tail + power > kTailPower * total) break;
+    tail += power;
+    s_cut = s;
+  }
+  return s_cut;
 }
 
 SpatialEnvelope SpatialEnvelopeOf(const Scene& scene) {

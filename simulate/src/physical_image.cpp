@@ -59,9 +59,9 @@ std::array<C, 2> ToCamera(const Vec3& u, const CVec3& a) {
 ///    sin(theta) with the s ds measure, azimuths equally spaced (offset by half a step on
 ///    alternate rings).
 ///  * A light field: the same rings out to its map's reach (LightFieldDensity), each
-///    direction weighted by the density averaged over its azimuth sector; the outermost
-///    directions that together carry less than 1e-9 of the power (a soft edge's far tail) are
-///    left out, as the exact model leaves them.
+///    direction weighted by the density averaged over its azimuth sector.
+/// The outermost rings that together carry less than kTailPower of the power (a soft edge's
+/// far tail) are left out, as the exact model leaves them.
 /// Rings are split at the NA, where the direct light stops reaching the camera, and on each
 /// side again at the corrector's zone edges (and the light field's NA limit and edge ring),
 /// where the light's transmission or density jumps; `polar_nodes` per side, shared out by width,
@@ -102,8 +102,10 @@ std::vector<Direction> IlluminationDirections(const Scene& scene, double s_na,
   if (s_max > s_na) side(s_na, s_max);
   constexpr int kSector = 16;  // density samples across an azimuth sector
   const int az = ps.azimuths;
-  double total = 0;
-  for (size_t i = 0; i < xs.size(); ++i)
+  std::vector<std::pair<double, double>> rings;  // (s, power)
+  std::vector<double> ring_of;                   // each direction's ring's s
+  for (size_t i = 0; i < xs.size(); ++i) {
+    rings.emplace_back(xs[i], 0.0);
     for (int j = 0; j < az; ++j) {
       const double phi = 2 * M_PI * (j + 0.5 * (i % 2)) / az, st = xs[i];
       double mean = 1;
@@ -117,27 +119,16 @@ std::vector<Direction> IlluminationDirections(const Scene& scene, double s_na,
       }
       const double w = ws[i] * st * 2 * M_PI / az * mean;
       dirs.push_back({Vec3(st * std::cos(phi), st * std::sin(phi), std::sqrt(1 - st * st)), w});
-      total += w;
+      ring_of.push_back(st);
+      rings.back().second += w;
     }
-  if (field) {
-    // The far tail: outermost first, while their sum stays below 1e-9 of the power.
-    std::vector<size_t> order(dirs.size());
-    for (size_t i = 0; i < order.size(); ++i) order[i] = i;
-    auto sin_of = [&](size_t i) { return std::hypot(dirs[i].d.x, dirs[i].d.y); };
-    std::stable_sort(order.begin(), order.end(),
-                     [&](size_t a, size_t b) { return sin_of(a) > sin_of(b); });
-    double tail = 0;
-    std::vector<char> drop(dirs.size(), 0);
-    for (size_t i : order) {
-      if (tail + dirs[i].weight > 1e-9 * total) break;
-      tail += dirs[i].weight, drop[i] = 1;
-    }
-    std::vector<Direction> kept;
-    for (size_t i = 0; i < dirs.size(); ++i)
-      if (!drop[i]) kept.push_back(dirs[i]);
-    dirs = std::move(kept);
   }
-  return dirs;
+  // The far tail costs no spectra (TailStart, as in the exact model).
+  const double s_cut = TailStart(std::move(rings));
+  std::vector<Direction> kept;
+  for (size_t i = 0; i < dirs.size(); ++i)
+    if (ring_of[i] < s_cut) kept.push_back(dirs[i]);
+  return kept;
 }
 
 }  // namespace
@@ -241,14 +232,7 @@ PhysicalImager::PhysicalImager(const Scene& scene) : impl_(std::make_unique<Impl
   // centres keeps the flat field's mean at the photon target.
   im.spatial = SpatialEnvelopeOf(scene);
   if (!im.spatial.empty()) {
-    const CameraSpec& cam = scene.camera;
-    double sum = 0;
-    for (int r = 0; r < cam.ny; ++r)
-      for (int c = 0; c < cam.nx; ++c) {
-        const auto [x, y] = SensorToObject(cam, im.sensor_sign, c + 0.5, r + 0.5);
-        sum += im.spatial.At(x, y);
-      }
-    im.spatial_mean = sum / (double(cam.nx) * cam.ny);
+    im.spatial_mean = im.spatial.MeanOverSensor(scene.camera, im.sensor_sign);
     if (!(im.spatial_mean > 0))
       throw Error(FileLocation{scene.file},
                   "optics = \"physical\": the light field's spatial map is zero over the whole "
@@ -305,10 +289,7 @@ void PhysicalImager::Impl::BuildParts() {
       one.exposure = ExposureSpec{};
       parts.emplace_back(share / times, std::make_unique<PhysicalImager>(one));
     }
-  last = parts[0].second->sampling();
-  last.directions = 0;
-  for (const auto& [share, p] : parts) last.directions += p->sampling().directions;
-  last.directions /= int(parts.size());
+  last = parts[0].second->sampling();  // every part has the same directions
   last.wavelengths = int(lambdas.size());
   last.times = times;
 }

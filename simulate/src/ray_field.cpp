@@ -336,11 +336,6 @@ int EdgeSign(double ax, double ay, uint64_t ia, double bx, double by, uint64_t i
   return flip ? -s : s;
 }
 
-/// Adds the triangles' field to the plane's rows [r0, r1) (rows wrap: the grid is periodic):
-/// at a node inside a triangle, the barycentric mean of its rays' fields and of their phases
-/// carried to the node along their own wave vectors (second order), times the tube's amplitude.
-/// Returns the flux through the plane that the nodes carry, each triangle's own (|E|^2 cos
-/// theta h^2; where sheets overlap, without their interference).
 /// The plane's rows a triangle covers, [*jl, *jh] before they wrap (empty: jl > jh).
 void RowsOf(const Tri& t, const PlaneGrid& pg, int* jl, int* jh) {
   const double y_lo = std::min({t.py[0], t.py[1], t.py[2]});
@@ -349,7 +344,12 @@ void RowsOf(const Tri& t, const PlaneGrid& pg, int* jl, int* jh) {
   *jh = int(std::floor((y_hi - pg.y_lo) / pg.h));
 }
 
-/// Only the triangles `which` (indices into tris, ascending) are added.
+/// Adds the triangles' field to the plane's rows [r0, r1) (rows wrap: the grid is periodic):
+/// at a node inside a triangle, the barycentric mean of its rays' fields and of their phases
+/// carried to the node along their own wave vectors (second order), times the tube's amplitude.
+/// Returns the flux through the plane that the nodes carry, each triangle's own (|E|^2 cos
+/// theta h^2; where sheets overlap, without their interference). Only the triangles `which`
+/// (indices into tris, ascending) are added.
 double Rasterise(const std::vector<Tri>& tris, const std::vector<uint32_t>& which,
                  const PlaneGrid& pg, int r0, int r1, std::vector<CVec3>* field) {
   double flux = 0;
@@ -589,22 +589,14 @@ struct RegionTransform {
     }
   }
 
-  C At(double qx, double qy) const {
-    const double q2 = qx * qx + qy * qy;
-    if (std::sqrt(q2) * r_max < 0.02)
-      return C(area - 0.5 * (qx * qx * mxx + 2 * qx * qy * mxy + qy * qy * myy),
-               -(qx * mx + qy * my));
-    C sum = 0;
-    for (const auto& e : seg) {
-      const double ex = e[2] - e[0], ey = e[3] - e[1], u = qx * ex + qy * ey;
-      const C phi = std::abs(u) < 1e-8 ? C(1, -0.5 * u) : (std::exp(C(0, -u)) - 1.0) / C(0, -u);
-      sum += (qx * ey - qy * ex) * std::exp(C(0, -(qx * e[0] + qy * e[1]))) * phi;
-    }
-    return C(0, 1) / q2 * sum;
+  /// The Taylor series to second order from the region's moments, for |q| r_max < 0.02.
+  C NearZero(double qx, double qy) const {
+    return C(area - 0.5 * (qx * qx * mxx + 2 * qx * qy * mxy + qy * qy * myy),
+             -(qx * mx + qy * my));
   }
 
-  /// At(q) on a row of nodes q = (qx0 + i dq, qy), i = 0 ... n - 1, into out[i]: the same sums,
-  /// with each segment's end phasors exp(-i q . a), exp(-i q . b) stepped along the row (one
+  /// The transform on a row of nodes q = (qx0 + i dq, qy), i = 0 ... n - 1, into out[i], with
+  /// each segment's end phasors exp(-i q . a), exp(-i q . b) stepped along the row (one
   /// complex product a node instead of an exponential and a complex division):
   /// exp(-i q . a) (exp(-i q . e) - 1) / (-i q . e) = i (exp(-i q . b) - exp(-i q . a)) / (q . e).
   void Row(double qx0, double dq, double qy, int n, C* out) const {
@@ -626,7 +618,7 @@ struct RegionTransform {
     }
     for (int i = 0; i < n; ++i) {
       const double qx = qx0 + i * dq, q2 = qx * qx + qy * qy;
-      out[i] = std::sqrt(q2) * r_max < 0.02 ? At(qx, qy) : C(0, 1) / q2 * sum[size_t(i)];
+      out[i] = std::sqrt(q2) * r_max < 0.02 ? NearZero(qx, qy) : C(0, 1) / q2 * sum[size_t(i)];
     }
   }
 };

@@ -135,8 +135,22 @@ struct SpatialEnvelope {
     cy = std::clamp(cy, 0, map.height - 1);
     return map.at(cx, cy);
   }
+  /// Its mean over the sensor's pixel centres (1 without a map): the flat field's mean over
+  /// the sensor stays the photon target when the image is scaled by it.
+  double MeanOverSensor(const CameraSpec& cam, double sensor_sign) const;
 };
 SpatialEnvelope SpatialEnvelopeOf(const Scene& scene);
+
+/// A soft edge's tail (radiance falling as exp(-2 (theta - edge) / width)) reaches to the end of
+/// a light field's map with radiances of 1e-12 and less, and each direction there would cost a
+/// field: the outermost rings of illumination directions that together carry less than this
+/// share of the source's power are left out (their light, direct or scattered, is that share
+/// of the image's or less).
+inline constexpr double kTailPower = 1e-9;
+
+/// Of rings of directions given as (sin theta, power), the sin theta from which on (>=) the
+/// outermost ones together carry less than kTailPower of the power (2: none).
+double TailStart(std::vector<std::pair<double, double>> rings);
 
 /// Whether the packet path can trace a scene, and if not, why (Simulator::Effects lists it).
 struct PacketSupport {

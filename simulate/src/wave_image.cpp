@@ -253,24 +253,10 @@ void MieImager::Impl::BuildNodes(const std::vector<double>& breaks_in, double s_
       }
     }
   }
-  // A soft edge's tail (radiance falling as exp(-2 (theta - edge) / width)) reaches to the end
-  // of the map with radiances of 1e-12 and less, and each of its nodes would cost a field: the
-  // outermost nodes that together carry less than kTailPower of the source's power are left out
-  // (their light, direct or scattered, is that fraction of the image's or less).
-  constexpr double kTailPower = 1e-9;
-  std::vector<std::pair<double, double>> by_s;  // (s, power), outermost first
-  double total = 0;
-  for (const Node& nd : nodes) {
-    by_s.emplace_back(nd.s, nd.omega * nd.wc[0]);
-    total += nd.omega * nd.wc[0];
-  }
-  std::sort(by_s.begin(), by_s.end(), std::greater<>());
-  double tail = 0, s_cut = 2;
-  for (const auto& [s, power] : by_s) {
-    if (tail + power > kTailPower * total) break;
-    tail += power;
-    s_cut = s;
-  }
+  // A soft edge's far tail costs no fields (TailStart).
+  std::vector<std::pair<double, double>> rings;  // (s, power)
+  for (const Node& nd : nodes) rings.emplace_back(nd.s, nd.omega * nd.wc[0]);
+  const double s_cut = TailStart(std::move(rings));
   std::erase_if(nodes, [s_cut](const Node& nd) { return nd.s >= s_cut; });
 }
 
@@ -424,14 +410,7 @@ MieImager::MieImager(const Scene& scene, int stride, int offset) : impl_(std::ma
   im.spatial = SpatialEnvelopeOf(scene);
   // Photons: the flat field's mean over the sensor is photons_per_pixel (as in the ray model's
   // photon target); with a ray count instead, the ray model's flat field of that many rays.
-  const CameraSpec& cam = scene.camera;
-  double sum = 0;
-  for (int r = 0; r < cam.ny; ++r)
-    for (int c = 0; c < cam.nx; ++c) {
-      const auto [x, y] = im.ObjectPoint(c + 0.5, r + 0.5);
-      sum += im.SpatialAt(x, y);
-    }
-  im.spatial_mean = sum / (double(cam.nx) * cam.ny);
+  im.spatial_mean = im.spatial.MeanOverSensor(scene.camera, im.sensor_sign);
   const double photons = FlatFieldPhotons(scene);
   if (!(im.spatial_mean > 0))
     throw Error(FileLocation{scene.file},

@@ -307,6 +307,23 @@ TEST(PhysicalImage, LightFieldAsTheExactImageHasIt) {
   EXPECT_GT(chi2_m, 2 * chi2);
 }
 
+// A soft edge's far tail costs no spectra: a map falling as exp(-(s - 0.3) / 0.005) beyond
+// s = 0.3 out to the map's corner (s 0.64) is sampled on 3 rings inside the NA and 3 beyond it
+// (0.315-0.64); the outer two beyond it carry e^-35 and less of the power and are left out
+// (TailStart, the exact model's rule), the first (e^-10) is kept: 24 directions, 34 without the
+// rule (the outermost ring loses the sectors beyond the map).
+TEST(PhysicalImage, SoftEdgeTailCostsNoDirections) {
+  Scene s = LightFieldScene(
+      [](double u, double v) {
+        const double r = std::hypot(u, v);
+        return r < 0.3 ? 1.0 : std::exp(-(r - 0.3) / 0.005);
+      },
+      1.0);
+  s.trace.physical.polar_nodes = 3;
+  s.trace.physical.azimuths = 6;
+  EXPECT_EQ(PhysicalImager(s).sampling().directions, 4 * 6);
+}
+
 // A light field's spatial map is the image's envelope: without objects each pixel is the photon
 // target times the map there over its mean on the sensor (a map falling along x by half).
 TEST(PhysicalImage, SpatialMapIsTheEnvelope) {

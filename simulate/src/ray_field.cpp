@@ -155,7 +155,8 @@ struct Tri {
   uint64_t id[3];
   double px[3], py[3], kx[3], ky[3], phi[3], cos[3];
   CVec3 e[3];
-  double g = 0;  // sqrt(dA_in / dA_plane): the tube's amplitude change (over sqrt(cos))
+  double g = 0;              // sqrt(dA_in / dA_plane): the tube's amplitude change (over sqrt(cos))
+  double gv[3] = {0, 0, 0};  // the same at each ray, over the triangles that share it
   double focal_phase = 0;
 };
 
@@ -237,18 +238,72 @@ class BranchMapper {
           .first->second;
     }
 
-    /// Cell (i, j) of side s (finest units), corners c: 00, 10, 11, 01.
+    /// A lattice point and its ray.
+    struct Point {
+      int64_t i, j;
+      const Node* n;
+    };
+
+    /// Whether lattice point (i, j) lies on the lattice (outside it no ray meets an object).
+    bool OnLattice(int64_t i, int64_t j) const {
+      return i >= 0 && j >= 0 && i <= m->lat_.ni * m->lat_.step && j <= m->lat_.nj * m->lat_.step;
+    }
+    bool ValidAt(int64_t i, int64_t j) { return OnLattice(i, j) && Get(i, j).valid; }
+
+    /// Whether the edge a -> b of length s is halved. A function of the edge alone (its rays and
+    /// the two cells of side s on either side of it), so the two cells that share it agree and
+    /// the triangles meet without cracks: halved where its rays differ in validity, where a
+    /// cell beside it has rays of both kinds (the branch's edge is resolved to the finest
+    /// level), or where its rays' crossings of the plane lie more than max_cell_steps band
+    /// steps apart (unless both directions lie beyond the taper).
+    bool Splits(const Point& a, const Point& b, int64_t s) {
+      if (s < 2) return false;
+      if (a.n->valid != b.n->valid) return true;
+      if (a.n->valid) {
+        const double span = std::max(std::abs(a.n->kx - b.n->kx), std::abs(a.n->ky - b.n->ky));
+        const double grow = span + m->g_.dk;
+        auto beyond = [&](double k0, double k1) {
+          return std::max({std::min(k0, k1) - grow, 0.0, -(std::max(k0, k1) + grow)});
+        };
+        const double ex = beyond(a.n->kx, b.n->kx), ey = beyond(a.n->ky, b.n->ky);
+        const double k_end = m->w_.k_pass + m->w_.k_taper;
+        const double extent = std::max(std::abs(a.n->px - b.n->px), std::abs(a.n->py - b.n->py));
+        if (ex * ex + ey * ey <= k_end * k_end && extent > m->set_.max_cell_steps * m->plane_.cell)
+          return true;
+      }
+      // The cells on either side: the edge's perpendicular (-dj, di) and (dj, -di).
+      const int64_t di = (b.i - a.i), dj = (b.j - a.j);
+      for (int side : {1, -1}) {
+        const int64_t oi = -dj * side, oj = di * side;
+        if (ValidAt(a.i + oi, a.j + oj) != a.n->valid || ValidAt(b.i + oi, b.j + oj) != a.n->valid)
+          return true;
+      }
+      return false;
+    }
+
+    /// The points the edge a -> b of length s is halved into (recursively), in order, ends
+    /// excluded.
+    void EdgePoints(const Point& a, const Point& b, int64_t s, std::vector<Point>* out) {
+      if (!Splits(a, b, s)) return;
+      const int64_t mi = (a.i + b.i) / 2, mj = (a.j + b.j) / 2;
+      const Point mid{mi, mj, &Get(mi, mj)};
+      EdgePoints(a, mid, s / 2, out);
+      out->push_back(mid);
+      EdgePoints(mid, b, s / 2, out);
+    }
+
+    /// Cell (i, j) of side s (finest units), corners c: 00, 10, 11, 01. Quartered where all four
+    /// edges are halved; where only some are, a fan of triangles from its centre takes in the
+    /// points its edges are halved into (the neighbours' corners), so no crack opens between
+    /// cells of different sizes.
     void Refine(int64_t i, int64_t j, int64_t s, const Node* const c[4]) {
       int valid = 0;
       double kx_lo = kInf, kx_hi = -kInf, ky_lo = kInf, ky_hi = -kInf;
-      double px_lo = kInf, px_hi = -kInf, py_lo = kInf, py_hi = -kInf;
       for (int q = 0; q < 4; ++q) {
         if (!c[q]->valid) continue;
         ++valid;
         kx_lo = std::min(kx_lo, c[q]->kx), kx_hi = std::max(kx_hi, c[q]->kx);
         ky_lo = std::min(ky_lo, c[q]->ky), ky_hi = std::max(ky_hi, c[q]->ky);
-        px_lo = std::min(px_lo, c[q]->px), px_hi = std::max(px_hi, c[q]->px);
-        py_lo = std::min(py_lo, c[q]->py), py_hi = std::max(py_hi, c[q]->py);
       }
       if (valid == 0) return;
       const double span = std::max(kx_hi - kx_lo, ky_hi - ky_lo);
@@ -265,12 +320,27 @@ class BranchMapper {
         power += e2 * m->CellArea(s);
         return;
       }
-      const double extent = std::max(px_hi - px_lo, py_hi - py_lo);
-      if (s == 1 || (valid == 4 && extent <= m->set_.max_cell_steps * m->plane_.cell)) {
+      const Point corner[4] = {
+          {i, j, c[0]}, {i + s, j, c[1]}, {i + s, j + s, c[2]}, {i, j + s, c[3]}};
+      bool split[4], all = true, any = false;
+      for (int q = 0; q < 4; ++q) {
+        split[q] = Splits(corner[q], corner[(q + 1) % 4], s);
+        all &= split[q], any |= split[q];
+      }
+      if (!any) {
         Emit(i, j, s, c);
         return;
       }
       const int64_t h = s / 2;
+      if (!all) {
+        std::vector<Point> ring;
+        for (int q = 0; q < 4; ++q) {
+          ring.push_back(corner[q]);
+          if (split[q]) EdgePoints(corner[q], corner[(q + 1) % 4], s, &ring);
+        }
+        Fan({i + h, j + h, &Get(i + h, j + h)}, ring);
+        return;
+      }
       const Node* mid[5] = {&Get(i + h, j), &Get(i + s, j + h), &Get(i + h, j + s), &Get(i, j + h),
                             &Get(i + h, j + h)};
       // (References into the cache stay valid: unordered_map does not move its nodes.)
@@ -284,31 +354,66 @@ class BranchMapper {
       Refine(i, j + h, h, q01);
     }
 
+    /// The triangle of rays v (counter-clockwise on the lattice) over `area_in` of the incident
+    /// wave: its power, and its tube unless its rays carry no field.
+    void Triangle(const Point* const v[3], double area_in) {
+      for (int q = 0; q < 3; ++q)
+        if (!v[q]->n->valid) return;
+      const Node &a = *v[0]->n, &b = *v[1]->n, &d = *v[2]->n;
+      power += (a.power + b.power + d.power) / 3 * area_in;
+      bool lit = false;  // (rays beyond the taper carry no field)
+      for (int q = 0; q < 3; ++q)
+        for (const C& e : v[q]->n->e) lit |= e != C(0);
+      const double area_p =
+          0.5 * std::abs((b.px - a.px) * (d.py - a.py) - (b.py - a.py) * (d.px - a.px));
+      if (!lit || !(area_p > 0) || !(area_in > 0)) return;
+      Tri tr;
+      for (int q = 0; q < 3; ++q) {
+        const Node& x = *v[q]->n;
+        tr.id[q] = m->lat_.Key(v[q]->i, v[q]->j);
+        tr.kx[q] = x.kx, tr.ky[q] = x.ky, tr.px[q] = x.px, tr.py[q] = x.py;
+        tr.phi[q] = x.phi, tr.cos[q] = x.cos, tr.e[q] = x.e;
+      }
+      tr.g = std::sqrt(area_in / area_p);
+      tr.focal_phase = -0.5 * M_PI * FocalLines(a, b, d);
+      out->push_back(tr);
+    }
+
+    /// The lattice area of triangle (a, b, d) on the incident wave.
+    double AreaIn(const Point& a, const Point& b, const Point& d) const {
+      const double cross = double((b.i - a.i) * (d.j - a.j) - (b.j - a.j) * (d.i - a.i));
+      return 0.5 * std::abs(cross) * m->lat_.h * m->lat_.h * std::abs(m->w_.din.z);
+    }
+
+    /// The cell's two triangles, split along its 00-11 diagonal.
     void Emit(int64_t i, int64_t j, int64_t s, const Node* const c[4]) {
-      const uint64_t id[4] = {m->lat_.Key(i, j), m->lat_.Key(i + s, j), m->lat_.Key(i + s, j + s),
-                              m->lat_.Key(i, j + s)};
+      const Point p[4] = {{i, j, c[0]}, {i + s, j, c[1]}, {i + s, j + s, c[2]}, {i, j + s, c[3]}};
       const double area_in = 0.5 * m->CellArea(s);
       static constexpr int kTri[2][3] = {{0, 1, 2}, {0, 2, 3}};
       for (const auto& t : kTri) {
-        const Node *a = c[t[0]], *b = c[t[1]], *d = c[t[2]];
-        if (!a->valid || !b->valid || !d->valid) continue;
-        const Node* v[3] = {a, b, d};
-        power += (a->power + b->power + d->power) / 3 * area_in;
-        bool lit = false;  // (rays beyond the taper carry no field)
-        for (const Node* x : v)
-          for (const C& e : x->e) lit |= e != C(0);
-        const double area_p =
-            0.5 * std::abs((b->px - a->px) * (d->py - a->py) - (b->py - a->py) * (d->px - a->px));
-        if (!lit || !(area_p > 0)) continue;
-        Tri tr;
-        for (int q = 0; q < 3; ++q) {
-          tr.id[q] = id[t[q]];
-          tr.kx[q] = v[q]->kx, tr.ky[q] = v[q]->ky, tr.px[q] = v[q]->px, tr.py[q] = v[q]->py;
-          tr.phi[q] = v[q]->phi, tr.cos[q] = v[q]->cos, tr.e[q] = v[q]->e;
+        const Point* v[3] = {&p[t[0]], &p[t[1]], &p[t[2]]};
+        Triangle(v, area_in);
+      }
+    }
+
+    /// Triangles from `centre` to each side of the closed ring (counter-clockwise); where the
+    /// centre's ray does not take the branch, from the ring's first ray that does.
+    void Fan(const Point& centre, const std::vector<Point>& ring) {
+      const size_t n = ring.size();
+      if (centre.n->valid) {
+        for (size_t k = 0; k < n; ++k) {
+          const Point* v[3] = {&centre, &ring[k], &ring[(k + 1) % n]};
+          Triangle(v, AreaIn(centre, ring[k], ring[(k + 1) % n]));
         }
-        tr.g = std::sqrt(area_in / area_p);
-        tr.focal_phase = -0.5 * M_PI * FocalLines(*a, *b, *d);
-        out->push_back(tr);
+        return;
+      }
+      size_t f = 0;
+      while (f < n && !ring[f].n->valid) ++f;
+      if (f == n) return;
+      for (size_t k = 1; k + 1 < n; ++k) {
+        const Point &b = ring[(f + k) % n], &d = ring[(f + k + 1) % n];
+        const Point* v[3] = {&ring[f], &b, &d};
+        Triangle(v, AreaIn(ring[f], b, d));
       }
     }
   };
@@ -385,14 +490,15 @@ double Rasterise(const std::vector<Tri>& tris, const std::vector<uint32_t>& whic
         wb[0] = ((t.px[1] - x) * (t.py[2] - y) - (t.py[1] - y) * (t.px[2] - x)) / s2;
         wb[1] = ((t.px[2] - x) * (t.py[0] - y) - (t.py[2] - y) * (t.px[0] - x)) / s2;
         wb[2] = 1 - wb[0] - wb[1];
-        double phi = 0, cos = 0;
+        double phi = 0, cos = 0, g = 0;
         CVec3 e{};
         for (int q = 0; q < 3; ++q) {
           phi += wb[q] * (t.phi[q] + t.kx[q] * (x - t.px[q]) + t.ky[q] * (y - t.py[q]));
           cos += wb[q] * t.cos[q];
+          g += wb[q] * t.gv[q];
           for (int c = 0; c < 3; ++c) e[c] += wb[q] * t.e[q][c];
         }
-        const C f = t.g / std::sqrt(cos) * std::exp(C(0, phi + t.focal_phase));
+        const C f = g / std::sqrt(cos) * std::exp(C(0, phi + t.focal_phase));
         CVec3& out = (*field)[size_t(row) * n + wrap(i)];
         for (int c = 0; c < 3; ++c) out[c] += f * e[c];
         flux += std::norm(f) * cos * (std::norm(e[0]) + std::norm(e[1]) + std::norm(e[2]));
@@ -688,6 +794,31 @@ void AddShadow(const Wave& w, const SpectrumGrid& g, const Shadow& sh, RaySpectr
   });
 }
 
+/// Each ray's tube amplitude, sqrt(dA_in / dA_plane) over the triangles of its branch that share
+/// it (their areas summed): interpolated across a triangle, the field is continuous from one
+/// triangle to the next, so a plane node that crosses from one into another as the objects
+/// change sees no jump (a triangle's own amplitude would jump at every edge).
+void VertexAmplitudes(std::vector<Tri>* tris) {
+  std::unordered_map<uint64_t, std::pair<double, double>> sum;  // ray -> (dA_in, dA_plane)
+  sum.reserve(tris->size() * 2);
+  auto area_p = [](const Tri& t) {
+    return 0.5 * std::abs((t.px[1] - t.px[0]) * (t.py[2] - t.py[0]) -
+                          (t.py[1] - t.py[0]) * (t.px[2] - t.px[0]));
+  };
+  for (const Tri& t : *tris) {
+    const double ap = area_p(t), ai = t.g * t.g * ap;
+    for (uint64_t id : t.id) {
+      auto& [in, plane] = sum[id];
+      in += ai, plane += ap;
+    }
+  }
+  for (Tri& t : *tris)
+    for (int q = 0; q < 3; ++q) {
+      const auto& [in, plane] = sum.at(t.id[q]);
+      t.gv[q] = std::sqrt(in / plane);
+    }
+}
+
 /// Adds the branches' spectrum (every reflect/refract sequence up to max_events surfaces) to
 /// `out`, with their rays, triangles and powers.
 void AddBranches(const Wave& w, const Lattice& lat, const SpectrumGrid& grid, const PlaneGrid& pg,
@@ -707,6 +838,7 @@ void AddBranches(const Wave& w, const Lattice& lat, const SpectrumGrid& grid, co
         bool goes_on = false;
         if (mapper.Run(&bt, &goes_on, &out.rays, &out.branch_power)) {
           ++out.branches;
+          VertexAmplitudes(&bt);
           tris.insert(tris.end(), bt.begin(), bt.end());
         }
         if (goes_on) next.push_back(br);

@@ -16,6 +16,7 @@
 #include "raymatch/core/toml_reader.h"
 #include "raymatch/fit/fit.h"
 #include "raymatch/simulate/geometry.h"
+#include "raymatch/simulate/physical_image.h"
 #include "raymatch/simulate/scene.h"
 
 namespace raymatch::fit {
@@ -334,23 +335,27 @@ simulate::Scene ReadSceneAndOptics(TomlReader& r, const std::string& path,
   }
   if (!f.calibration_file.empty()) f.scene.insert_or_assign("calibration", f.calibration_file);
   // The fit file's choice of image model replaces the scene's; a ray start fit's is the rays.
-  std::string optics = r.Has("optics") ? r.Choice("optics", {"rays", "mie"}) : "";
+  std::string optics = r.Has("optics") ? r.Choice("optics", {"rays", "mie", "physical"}) : "";
   if (ray_start_fit) optics = "rays";
   if (!optics.empty()) {
     if (!f.scene.contains("trace")) f.scene.insert("trace", toml::table{});
     toml::table& trace = *f.scene["trace"].as_table();
     trace.insert_or_assign("optics", optics);
-    if (ray_start_fit) trace.erase("mie");
+    if (ray_start_fit) {
+      trace.erase("mie");
+      trace.erase("physical");
+    }
   }
   const simulate::Scene scene = simulate::LoadScene(f.scene, f.scene_file);  // checks it
-  if (scene.trace.optics == simulate::ImageOptics::kPhysical)
-    throw Error(FileLocation{f.scene_file},
-                "[trace] optics = \"physical\" makes images with `raymatch simulate` and the "
-                "Python module; fits and sensitivity studies do not take it yet (use \"rays\" or, "
-                "for a sphere, \"mie\")");
-  if (scene.trace.optics == simulate::ImageOptics::kMie) {
-    // An exact image model: one level, the two derivative sets the uncertainties need (any two
-    // sets are the same images), no repeats with other ray streams; [rays] may still set them.
+  f.optics = simulate::ImageOpticsName(scene.trace.optics);
+  if (scene.trace.optics == simulate::ImageOptics::kPhysical) {
+    if (const std::string why = simulate::PhysicalUnsupportedReason(scene); !why.empty())
+      throw Error(FileLocation{f.scene_file}, why);
+  }
+  if (scene.trace.optics != simulate::ImageOptics::kRays) {
+    // An image model without simulation noise: one level, the two derivative sets the
+    // uncertainties need (any two sets are the same images), no repeats with other ray streams;
+    // [rays] may still set them.
     f.exact_images = true;
     f.rays.fractions = {1.0};
     f.rays.jacobian_seeds = 2;
@@ -607,8 +612,8 @@ void ReadSearch(TomlReader sr, const std::string& path, const std::string& scene
     if (start == "rays") {
       if (!f.exact_images)
         sr.Fail("start",
-                "start = \"rays\" fits the ray model first, before an exact model (optics = "
-                "\"mie\"); this fit's model is the rays already");
+                "start = \"rays\" fits the ray model first, before a wave model (optics = "
+                "\"mie\" or \"physical\"); this fit's model is the rays already");
       f.start_fit = std::make_shared<const FitSpec>(
           LoadFitFile(path, scene_override, calibration_override, true));
     }

@@ -7,6 +7,7 @@
 
 #include "raymatch/core/error.h"
 #include "raymatch/core/rng.h"
+#include "raymatch/simulate/physical_image.h"
 #include "raymatch/simulate/wave_image.h"
 
 namespace raymatch::fit::internal {
@@ -74,6 +75,24 @@ ModelImages MieImageModel::Images(const simulate::Scene& scene, const Draw& draw
   }
   ModelImages out;
   for (double dz : scene.defocus_um) out.counts.push_back(last_->Expected(dz, threads_));
+  return out;
+}
+
+PhysicalImageModel::PhysicalImageModel(double photons_per_pixel, double window_um, int threads)
+    : photons_per_pixel_(photons_per_pixel), window_um_(window_um), threads_(threads) {}
+
+ModelImages PhysicalImageModel::Images(const simulate::Scene& scene, const Draw&,
+                                       uint64_t* rays_traced) {
+  simulate::Scene w = scene;
+  w.trace.photons_per_pixel = photons_per_pixel_;
+  w.trace.rays = 0;
+  if (w.trace.physical.window_um == 0) w.trace.physical.window_um = window_um_;
+  const simulate::PhysicalImager imager(w);
+  ModelImages out;
+  for (double dz : scene.defocus_um) {
+    out.counts.push_back(imager.Expected(dz, threads_));
+    if (rays_traced) *rays_traced += imager.sampling().field_rays;
+  }
   return out;
 }
 

@@ -2,7 +2,8 @@
 // How a fit gets its expected images: the image model of the scene's optics. The fit engine
 // (FitModel: parameters, exposure, backgrounds, likelihood) asks an ImageModel for the images
 // of a scene; the ray tracer with its common random numbers and its caches of rays that miss
-// the objects, and the exact wave image of a sphere, are the two models. Not installed.
+// the objects, the exact wave image of a sphere and the physical-optics image of any scene are
+// the three models. Not installed.
 #include <cstdint>
 #include <map>
 #include <memory>
@@ -12,6 +13,7 @@
 
 #include "raymatch/core/image.h"
 #include "raymatch/core/vec.h"
+#include "raymatch/simulate/physical_image.h"
 #include "raymatch/simulate/scene.h"
 #include "raymatch/simulate/tracer.h"
 #include "raymatch/simulate/wave_image.h"
@@ -81,6 +83,22 @@ class MieImageModel : public ImageModel {
   int threads_;
   std::unique_ptr<simulate::MieImager> last_;
   std::vector<double> last_key_;
+};
+
+/// The physical-optics image of any scene (simulate::PhysicalImager, rays that carry their
+/// field) in photons at a flat field of `photons_per_pixel`, with one FFT window for every
+/// evaluation. The field-ray lattice and the window are laid out from the objects' own bounds,
+/// so a lateral move shifts the sampling with the objects.
+class PhysicalImageModel : public ImageModel {
+ public:
+  PhysicalImageModel(double photons_per_pixel, double window_um, int threads);
+  bool exact() const override { return true; }
+  ModelImages Images(const simulate::Scene& scene, const Draw& draw,
+                     uint64_t* rays_traced) override;
+
+ private:
+  double photons_per_pixel_, window_um_;
+  int threads_;
 };
 
 /// The scene as the ray model traces it: the light field's part `part` and, with `psf_os` > 1,

@@ -119,9 +119,11 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
   double max_field = 0, wave_window_um = 0;
   for (const auto& th : probes) {
     const simulate::Scene sc = SceneByReading(th);
-    if (spec.exact_images)  // one FFT window for every evaluation (MieSettings::window_um)
+    if (spec.exact_images)  // one FFT window for every evaluation ([trace.mie] window_um)
       for (double dz : sc.defocus_um)
-        wave_window_um = std::max(wave_window_um, simulate::AutomaticMieWindowUm(sc, dz));
+        wave_window_um = std::max(wave_window_um, spec.optics == "physical"
+                                                      ? simulate::AutomaticPhysicalWindowUm(sc, dz)
+                                                      : simulate::AutomaticMieWindowUm(sc, dz));
     const simulate::Simulator sim(
         internal::TracedScene(sc, simulate::SourceSpec::EdgePart::kAll, psf_os_, psf_margin_));
     for (const auto& b : sim.ObjectBounds()) bounds.push_back(b);
@@ -153,7 +155,10 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
     double per_ray = 0;
     if (!(ppp > 0)) simulate::Simulator(s0).RaysForPhotonTarget(1.0, &per_ray);
     const double photons = ppp > 0 ? ppp : per_ray * double(photon_matched_rays_);
-    images_ = std::make_unique<internal::MieImageModel>(photons, wave_window_um, threads_);
+    if (spec.optics == "physical")
+      images_ = std::make_unique<internal::PhysicalImageModel>(photons, wave_window_um, threads_);
+    else
+      images_ = std::make_unique<internal::MieImageModel>(photons, wave_window_um, threads_);
   } else {
     internal::RayImageModel::Setup setup;
     setup.images = spec.images.size();

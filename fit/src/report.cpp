@@ -205,7 +205,7 @@ nlohmann::json FitJson(const FitSpec& spec, const FitResult& res) {
   j["best_error"] = J(res.best_error);
   if (res.final_steps_q >= 0) j["final_steps_q"] = J(res.final_steps_q);
   if (res.goodness.pixels > 0) j["goodness_of_fit"] = GoodnessJson(res.goodness);
-  j["optics"] = spec.exact_images ? "mie" : "rays";
+  j["optics"] = spec.optics;
   const bool focused = res.focused_region_radius_um > 0;  // null where not narrowed
   j["rays"] = {{"ray_factor", spec.rays.ray_factor},
                {"fractions", spec.rays.fractions},
@@ -445,7 +445,10 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
     h << "<tr><td style=\"text-align:left\">" << HtmlEscape(k) << "</td><td>" << Num(v, 3)
       << " s</td></tr>";
   h << "</table>\n<p>";
-  if (spec.exact_images)
+  if (spec.optics == "physical")
+    h << "Images: physical optics (optics = \"physical\", docs/physical-optics.md): rays that "
+         "carry their field, no simulation noise. ";
+  else if (spec.exact_images)
     h << "Images: the exact wave model of the sphere (optics = \"mie\", docs/wave-optics.md): "
          "no rays, no simulation noise. ";
   else

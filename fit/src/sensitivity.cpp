@@ -21,6 +21,7 @@
 #include "raymatch/core/provenance.h"
 #include "raymatch/core/toml_reader.h"
 #include "raymatch/fit/fit.h"
+#include "raymatch/simulate/physical_image.h"
 #include "raymatch/simulate/scene.h"
 #include "runner.h"
 
@@ -194,9 +195,11 @@ FitSpec SensitivityFitSpec(const SensitivitySpec& spec, const simulate::Scene& s
   fs.rays.fractions = {1.0};
   fs.rays.photons_per_pixel = r->photons_per_pixel;
   fs.rays.fit_exposure = false;  // the exposure's information enters as a parameter below
-  // An exact image model (optics = "mie"): every set is the same images, so one is computed and
-  // copied, with a tenth of the step (no noise to outrun; the fringes' linear range).
-  fs.exact_images = scene.trace.optics == simulate::ImageOptics::kMie;
+  // An image model without simulation noise (optics = "mie" or "physical"): every set is the
+  // same images, so one is computed and copied, with a tenth of the step (no noise to outrun;
+  // the fringes' linear range).
+  fs.exact_images = scene.trace.optics != simulate::ImageOptics::kRays;
+  fs.optics = simulate::ImageOpticsName(scene.trace.optics);
   for (double d : r->defocus_um) {
     FitImage fi;
     fi.defocus_um = d;
@@ -287,9 +290,8 @@ SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
   if (spec.sets < 4 || spec.sets % 2) throw Error(where, "sets: expected an even number >= 4");
   const simulate::Scene scene = simulate::LoadScene(spec.scene, spec.scene_file);
   if (scene.trace.optics == simulate::ImageOptics::kPhysical)
-    throw Error(where,
-                "[trace] optics = \"physical\": a sensitivity study does not take it yet (use "
-                "\"rays\" or, for a sphere, \"mie\")");
+    if (const std::string why = simulate::PhysicalUnsupportedReason(scene); !why.empty())
+      throw Error(where, why);
   SensitivityResult r;
   r.defocus_um = spec.defocus_um.empty() ? scene.defocus_um : spec.defocus_um;
   r.photons_per_pixel =

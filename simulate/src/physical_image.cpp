@@ -8,6 +8,8 @@
 #include <complex>
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
+#include <tuple>
+#include <utility>
 
 #include "raymatch/core/error.h"
 #include "raymatch/core/progress.h"
@@ -158,6 +160,38 @@ nlohmann::json PhysicalSampling::ToJson() const {
           {"times", times}};
 }
 
+namespace {
+
+/// The centre of the objects' bounding box and the radius about it that holds every object's
+/// bounding sphere (no objects: the origin and 0).
+std::pair<Vec3, double> ObjectsSphere(const Simulator& sim) {
+  const auto bounds = sim.ObjectBounds();
+  if (bounds.empty()) return {Vec3(), 0.0};
+  Vec3 lo = bounds[0].first, hi = lo;
+  for (const auto& [c, r] : bounds) {
+    lo = Vec3(std::min(lo.x, c.x - r), std::min(lo.y, c.y - r), std::min(lo.z, c.z - r));
+    hi = Vec3(std::max(hi.x, c.x + r), std::max(hi.y, c.y + r), std::max(hi.z, c.z + r));
+  }
+  const Vec3 origin = (lo + hi) * 0.5;
+  double extent = 0;
+  for (const auto& [c, r] : bounds) extent = std::max(extent, Length(c - origin) + r);
+  return {origin, extent};
+}
+
+Scene AsTraced(Scene s) {
+  s.trace.optics = ImageOptics::kRays;
+  return s;
+}
+
+}  // namespace
+
+double AutomaticPhysicalWindowUm(const Scene& scene, double defocus_um) {
+  const auto [origin, extent] = ObjectsSphere(Simulator(AsTraced(scene)));
+  const WaveWindow w =
+      WaveWindowFor(scene, scene.trace.physical.margin_um, extent, defocus_um - origin.z);
+  return 2 * (w.rho_light + w.margin);
+}
+
 struct PhysicalImager::Impl {
   Scene scene;
   std::unique_ptr<Simulator> sim;
@@ -198,24 +232,13 @@ PhysicalImager::PhysicalImager(const Scene& scene) : impl_(std::make_unique<Impl
     im.BuildParts();
     return;
   }
-  Scene traced = scene;
-  traced.trace.optics = ImageOptics::kRays;
-  im.sim = std::make_unique<Simulator>(traced);
+  im.sim = std::make_unique<Simulator>(AsTraced(scene));
   im.lambda_medium = scene.wavelength_um / scene.medium_index;
   im.k = 2 * M_PI / im.lambda_medium;
   im.s_na = AcceptanceSin(scene);
   im.sensor_sign = MakeOptics(scene).sign * Magnification(scene.optics);
   // The objects' bounding sphere: the origin of every spectrum (its exit plane through it).
-  const auto bounds = im.sim->ObjectBounds();
-  if (!bounds.empty()) {
-    Vec3 lo = bounds[0].first, hi = lo;
-    for (const auto& [c, r] : bounds) {
-      lo = Vec3(std::min(lo.x, c.x - r), std::min(lo.y, c.y - r), std::min(lo.z, c.z - r));
-      hi = Vec3(std::max(hi.x, c.x + r), std::max(hi.y, c.y + r), std::max(hi.z, c.z + r));
-    }
-    im.origin = (lo + hi) * 0.5;
-    for (const auto& [c, r] : bounds) im.extent = std::max(im.extent, Length(c - im.origin) + r);
-  }
+  std::tie(im.origin, im.extent) = ObjectsSphere(*im.sim);
   im.zones = CorrectorZonesOf(scene);
   im.dirs = IlluminationDirections(scene, im.s_na, im.zones);
   // The direct light that passes the NA and the corrector is the flat field (unit flux
@@ -435,7 +458,7 @@ Image PhysicalImager::Expected(double defocus_um, int threads, bool progress,
   const PhysicalSettings& ps = s.trace.physical;
   const double dz = defocus_um - im.origin.z;
   const WaveWindow win = WaveWindowFor(s, ps.margin_um, im.extent, dz);
-  const double half = win.rho_light + win.margin;
+  const double half = ps.window_um > 0 ? ps.window_um / 2 : win.rho_light + win.margin;
   const double h_max = im.lambda_medium / (4 * im.s_na) / ps.oversample;
   const int n = cv::getOptimalDFTSize(int(std::ceil(2 * half / h_max)));
   const double h = 2 * half / n;

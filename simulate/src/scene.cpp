@@ -745,6 +745,7 @@ static void ReadPhysicalSettings(TomlReader pr, PhysicalSettings* p_out) {
   p.azimuths = static_cast<int>(pr.Integer("azimuths", p.azimuths, 1, 256));
   p.oversample = pr.InRange("oversample", 1.0, 8.0, p.oversample);
   p.margin_um = pr.InRange("margin_um", 0.0, 1000.0, p.margin_um);
+  p.window_um = pr.InRange("window_um", 0.0, 100000.0, p.window_um);
   p.pixel_subsamples = static_cast<int>(pr.Integer("pixel_subsamples", p.pixel_subsamples, 0, 64));
   p.ray_spacing_um = pr.InRange("ray_spacing_um", 0.0, 100.0, p.ray_spacing_um);
   p.refine_levels = static_cast<int>(pr.Integer("refine_levels", p.refine_levels, 0, 12));

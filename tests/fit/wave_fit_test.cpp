@@ -249,16 +249,28 @@ TEST(WaveFit, FitFileChoosesTheOptics) {
   } catch (const Error& e) {
     EXPECT_NE(std::string(e.what()).find("concentric"), std::string::npos) << e.what();
   }
-  // A physical-optics scene: not yet a fit's model, said at the scene.
+  // A physical-optics scene is a model without simulation noise; one it cannot image (a point
+  // source) is refused with the reason, naming the scene.
   std::string phys_scene = rays_scene;
   phys_scene.replace(phys_scene.find("[trace]\n"), 8, "[trace]\noptics = \"physical\"\n");
   dir.Write("phys.toml", phys_scene);
+  const FitSpec phys = LoadFitSpec(
+      dir.Write("p.toml", "scene = \"phys.toml\"\n" + base.substr(base.find("[[image]]"))));
+  EXPECT_TRUE(phys.exact_images);
+  EXPECT_EQ(phys.optics, "physical");
+  EXPECT_EQ(mie.optics, "mie");
+  EXPECT_EQ(LoadFitSpec(dir.Write("o.toml", "optics = \"physical\"\n" + base)).optics, "physical");
+  std::string point_scene = phys_scene;
+  const std::string cone = "type = \"cone\"";
+  point_scene.replace(point_scene.find(cone), cone.size(),
+                      "type = \"point\"\nposition_um = [0, 0, -100]");
+  dir.Write("point.toml", point_scene);
   try {
     LoadFitSpec(
-        dir.Write("p.toml", "scene = \"phys.toml\"\n" + base.substr(base.find("[[image]]"))));
+        dir.Write("q.toml", "scene = \"point.toml\"\n" + base.substr(base.find("[[image]]"))));
     FAIL() << "expected an error";
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("do not take it yet"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("plane-wave"), std::string::npos) << e.what();
   }
   // [search]: a ray start only before an exact model, scans of the fit's own parameters, no
   // stages for a grid; each error names the key.

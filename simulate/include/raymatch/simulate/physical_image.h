@@ -43,6 +43,11 @@ namespace raymatch::simulate {
 /// The reason a scene has no physical-optics image here ("" when it has one).
 std::string PhysicalUnsupportedReason(const Scene& scene);
 
+/// The FFT window's side (um) that PhysicalImager chooses for `scene` focused at `defocus_um`
+/// when [trace.physical] window_um is 0: the objects' light on the focal plane and a margin.
+/// A fit takes the largest over its parameter box and fixes it.
+double AutomaticPhysicalWindowUm(const Scene& scene, double defocus_um);
+
 /// How the physical-optics image was sampled.
 struct PhysicalSampling {
   int directions = 0;        ///< illumination plane waves

@@ -257,10 +257,13 @@ struct MieSettings {
 
 /// [trace.physical]: the sampling of the physical-optics image (docs/physical-optics.md).
 struct PhysicalSettings {
-  int polar_nodes = 3;        ///< Gauss-Legendre nodes in sin(theta) across a cone (per side of NA)
-  int azimuths = 8;           ///< illumination directions per polar node of a cone
-  double oversample = 1.5;    ///< image grid spacing lambda_medium / (4 NA / n) / oversample
-  double margin_um = 0;       ///< window margin beyond the objects' light (0: 8 um + 8 lambda/NA)
+  int polar_nodes = 3;      ///< Gauss-Legendre nodes in sin(theta) across a cone (per side of NA)
+  int azimuths = 8;         ///< illumination directions per polar node of a cone
+  double oversample = 1.5;  ///< image grid spacing lambda_medium / (4 NA / n) / oversample
+  double margin_um = 0;     ///< window margin beyond the objects' light (0: 8 um + 8 lambda/NA)
+  /// The FFT window's side (0: automatic, from the objects' extent and the defocus). Fits fix
+  /// it, so the sampling does not jump as the objects change between evaluations.
+  double window_um = 0;
   int pixel_subsamples = 0;   ///< per pixel side (0: spacing at most lambda_medium / (8 NA / n))
   double ray_spacing_um = 0;  ///< field rays' coarse lattice (0: the medium's wavelength)
   int refine_levels = 6;      ///< halvings of a lattice cell at most

@@ -154,7 +154,7 @@ Differences Differentiate(Runner& run, const FitSpec& spec, const std::vector<do
     // has none, and a tenth of it keeps the difference inside the linear range of the wave
     // image's interference fringes (an index step of 0.0015 turns the phase through a 25 um
     // sphere by half a radian).
-    const double h = 0.5 * p.step * (spec.exact_images ? 0.1 : 1.0);
+    const double h = 0.5 * p.step * (spec.exact_images() ? 0.1 : 1.0);
     std::vector<double> a = th, b = th;
     Simulated mu_a, mu_b;
     if (central) {
@@ -319,7 +319,7 @@ class StallCallback : public ceres::IterationCallback {
     // log-likelihood) is well inside one standard deviation of every parameter. An exact image
     // model has no ray streams to resolve: it runs to Ceres' own tolerances (a deviance step
     // of 1e-3 is 0.03 standard deviations).
-    if (spec_.exact_images)
+    if (spec_.exact_images())
       return s.cost_change < 5e-4 ? ceres::SOLVER_TERMINATE_SUCCESSFULLY : ceres::SOLVER_CONTINUE;
     if (s.cost_change < 0.5) return ceres::SOLVER_TERMINATE_SUCCESSFULLY;
     double moved = 0;
@@ -448,7 +448,7 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
     // valleys of z, radius and index (40 Jacobians' worth); the final level refines (12).
     const size_t level_start = run.Count();
     const bool last = f + 1 == spec.rays.fractions.size();
-    const size_t level_cap = (last && !spec.exact_images ? 12 : 40) * (P + 2);
+    const size_t level_cap = (last && !spec.exact_images() ? 12 : 40) * (P + 2);
     StallCallback stall(x.data(), spec, [&] { return run.Count() - level_start >= level_cap; });
     so.callbacks.push_back(&stall);
     ceres::Solver::Summary sum;
@@ -457,7 +457,7 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
     if (record)
       run.Say(
           "level " + std::to_string(f + 1) + " (" +
-          (spec.exact_images ? "exact image" : "ray fraction " + Fmt(spec.rays.fractions[f], 3)) +
+          (spec.exact_images() ? "exact image" : "ray fraction " + Fmt(spec.rays.fractions[f], 3)) +
           ", bin " + std::to_string(run.model().BinAt(f)) +
           "): " + std::to_string(sum.iterations.size()) + " iterations, deviance " +
           Fmt(2 * sum.initial_cost) + " -> " + Fmt(2 * sum.final_cost) + ", " +
@@ -487,9 +487,9 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
     res->status = ok ? FitStatus::kConverged : FitStatus::kFailed;
     res->message = std::string("Levenberg-Marquardt: ") +
                    (term == ceres::CONVERGENCE || term == ceres::USER_SUCCESS
-                        ? (spec.exact_images ? "converged"
-                                             : "converged (steps below what the ray streams "
-                                               "resolve)")
+                        ? (spec.exact_images() ? "converged"
+                                               : "converged (steps below what the ray streams "
+                                                 "resolve)")
                         : "stopped without convergence");
   }
   return Clip(x, spec);

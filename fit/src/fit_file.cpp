@@ -303,8 +303,8 @@ FitSpec LoadFitSpec(const std::string& path, const std::string& scene_override,
 }
 
 double FitSpec::RaysPerPhoton() const {
-  return exact_images ? std::numeric_limits<double>::infinity()
-                      : rays.ray_factor * rays.fractions.back();
+  return exact_images() ? std::numeric_limits<double>::infinity()
+                        : rays.ray_factor * rays.fractions.back();
 }
 
 namespace {
@@ -356,7 +356,6 @@ simulate::Scene ReadSceneAndOptics(TomlReader& r, const std::string& path,
     // An image model without simulation noise: one level, the two derivative sets the
     // uncertainties need (any two sets are the same images), no repeats with other ray streams;
     // [rays] may still set them.
-    f.exact_images = true;
     f.rays.fractions = {1.0};
     f.rays.jacobian_seeds = 2;
     f.repeat_seeds = 0;
@@ -610,7 +609,7 @@ void ReadSearch(TomlReader sr, const std::string& path, const std::string& scene
                               : "hop",
               "method = \"grid\" evaluates every point already: [search] is for lm and pattern");
     if (start == "rays") {
-      if (!f.exact_images)
+      if (!f.exact_images())
         sr.Fail("start",
                 "start = \"rays\" fits the ray model first, before a wave model (optics = "
                 "\"mie\" or \"physical\"); this fit's model is the rays already");

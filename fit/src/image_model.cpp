@@ -52,8 +52,6 @@ inline double NormalFromWord(const float* table, uint32_t w) {
 
 }  // namespace
 
-MieImageModel::MieImageModel(double photons_per_pixel, double window_um, int threads)
-    : photons_per_pixel_(photons_per_pixel), window_um_(window_um), threads_(threads) {}
 MieImageModel::~MieImageModel() = default;
 
 ModelImages MieImageModel::Images(const simulate::Scene& scene, const Draw& draw, uint64_t*) {
@@ -66,9 +64,7 @@ ModelImages MieImageModel::Images(const simulate::Scene& scene, const Draw& draw
     last_->MoveAcross(c.x, c.y);
   } else {
     // The exact wave image in photons at the experiment's flat-field count.
-    simulate::Scene w = scene;
-    w.trace.photons_per_pixel = photons_per_pixel_;
-    w.trace.rays = 0;
+    simulate::Scene w = AtPhotonTarget(scene);
     if (w.trace.mie.window_um == 0) w.trace.mie.window_um = window_um_;
     last_ = std::make_unique<simulate::MieImager>(w);
     last_key_ = draw.across_key;
@@ -78,14 +74,9 @@ ModelImages MieImageModel::Images(const simulate::Scene& scene, const Draw& draw
   return out;
 }
 
-PhysicalImageModel::PhysicalImageModel(double photons_per_pixel, double window_um, int threads)
-    : photons_per_pixel_(photons_per_pixel), window_um_(window_um), threads_(threads) {}
-
 ModelImages PhysicalImageModel::Images(const simulate::Scene& scene, const Draw&,
                                        uint64_t* rays_traced) {
-  simulate::Scene w = scene;
-  w.trace.photons_per_pixel = photons_per_pixel_;
-  w.trace.rays = 0;
+  simulate::Scene w = AtPhotonTarget(scene);
   if (w.trace.physical.window_um == 0) w.trace.physical.window_um = window_um_;
   const simulate::PhysicalImager imager(w);
   ModelImages out;

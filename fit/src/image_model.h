@@ -66,39 +66,50 @@ class ImageModel {
   virtual void SetRegion(const Vec3& /*center*/, double /*radius*/) {}
 };
 
-/// The exact wave image of a homogeneous sphere (simulate::MieImager) in photons at a flat
-/// field of `photons_per_pixel`, with one FFT window for every evaluation.
-class MieImageModel : public ImageModel {
+/// An image model without simulation noise, in photons at a flat field of `photons_per_pixel`,
+/// with one FFT window (`window_um`) for every evaluation.
+class NoiselessImageModel : public ImageModel {
  public:
-  MieImageModel(double photons_per_pixel, double window_um, int threads);
-  ~MieImageModel() override;
   bool exact() const override { return true; }
+
+ protected:
+  NoiselessImageModel(double photons_per_pixel, double window_um, int threads)
+      : photons_per_pixel_(photons_per_pixel), window_um_(window_um), threads_(threads) {}
+  /// `scene` at this model's photon target (no ray count).
+  simulate::Scene AtPhotonTarget(simulate::Scene scene) const {
+    scene.trace.photons_per_pixel = photons_per_pixel_;
+    scene.trace.rays = 0;
+    return scene;
+  }
+  double photons_per_pixel_, window_um_;
+  int threads_;
+};
+
+/// The exact wave image of a homogeneous sphere (simulate::MieImager).
+class MieImageModel : public NoiselessImageModel {
+ public:
+  MieImageModel(double photons_per_pixel, double window_um, int threads)
+      : NoiselessImageModel(photons_per_pixel, window_um, threads) {}
+  ~MieImageModel() override;
   /// An evaluation whose Draw::across_key equals the last one's moves the last imager's sphere
   /// (simulate::MieImager::MoveAcross) instead of building a new one: its fields are kept.
   ModelImages Images(const simulate::Scene& scene, const Draw& draw,
                      uint64_t* rays_traced) override;
 
  private:
-  double photons_per_pixel_, window_um_;
-  int threads_;
   std::unique_ptr<simulate::MieImager> last_;
   std::vector<double> last_key_;
 };
 
 /// The physical-optics image of any scene (simulate::PhysicalImager, rays that carry their
-/// field) in photons at a flat field of `photons_per_pixel`, with one FFT window for every
-/// evaluation. The field-ray lattice and the window are laid out from the objects' own bounds,
-/// so a lateral move shifts the sampling with the objects.
-class PhysicalImageModel : public ImageModel {
+/// field). The field-ray lattice and the window are laid out from the objects' own bounds, so a
+/// lateral move shifts the sampling with the objects.
+class PhysicalImageModel : public NoiselessImageModel {
  public:
-  PhysicalImageModel(double photons_per_pixel, double window_um, int threads);
-  bool exact() const override { return true; }
+  PhysicalImageModel(double photons_per_pixel, double window_um, int threads)
+      : NoiselessImageModel(photons_per_pixel, window_um, threads) {}
   ModelImages Images(const simulate::Scene& scene, const Draw& draw,
                      uint64_t* rays_traced) override;
-
- private:
-  double photons_per_pixel_, window_um_;
-  int threads_;
 };
 
 /// The scene as the ray model traces it: the light field's part `part` and, with `psf_os` > 1,

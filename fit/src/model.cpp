@@ -119,7 +119,7 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
   double max_field = 0, wave_window_um = 0;
   for (const auto& th : probes) {
     const simulate::Scene sc = SceneByReading(th);
-    if (spec.exact_images)  // one FFT window for every evaluation ([trace.mie] window_um)
+    if (spec.exact_images())  // one FFT window for every evaluation ([trace.mie] window_um)
       for (double dz : sc.defocus_um)
         wave_window_um = std::max(wave_window_um, spec.optics == "physical"
                                                       ? simulate::AutomaticPhysicalWindowUm(sc, dz)
@@ -151,7 +151,7 @@ FitModel::FitModel(const FitSpec& spec, int threads, std::function<void(const st
     say_("background of the first image: " + std::to_string(ppp) + " photons per pixel");
   }
   photon_matched_rays_ = ppp > 0 ? simulate::Simulator(s0).RaysForPhotonTarget(ppp) : s0.trace.rays;
-  if (spec.exact_images) {
+  if (spec.exact_images()) {
     double per_ray = 0;
     if (!(ppp > 0)) simulate::Simulator(s0).RaysForPhotonTarget(1.0, &per_ray);
     const double photons = ppp > 0 ? ppp : per_ray * double(photon_matched_rays_);
@@ -215,14 +215,7 @@ std::vector<std::vector<double>> FitModel::Corners(const std::vector<double>& at
 
 std::pair<Vec3, double> FitModel::RegionOf(const std::vector<std::pair<Vec3, double>>& bounds) {
   if (bounds.empty()) return {Vec3(), 0.0};
-  Vec3 lo(1e300, 1e300, 1e300), hi(-1e300, -1e300, -1e300);
-  for (const auto& [c, r] : bounds) {
-    lo = Vec3(std::min(lo.x, c.x - r), std::min(lo.y, c.y - r), std::min(lo.z, c.z - r));
-    hi = Vec3(std::max(hi.x, c.x + r), std::max(hi.y, c.y + r), std::max(hi.z, c.z + r));
-  }
-  const Vec3 center = (lo + hi) * 0.5;
-  double radius = 0;
-  for (const auto& [c, r] : bounds) radius = std::max(radius, Length(c - center) + r);
+  const auto [center, radius] = simulate::Simulator::EnclosingSphere(bounds);
   return {center, 1.02 * radius + 0.5};  // margin: a micrometre-scale safety shell
 }
 
@@ -379,7 +372,7 @@ int FitModel::BinAt(size_t level) const {
   // The SSIM family is multi-scale or windowed already (the paper's MS-SSIM held its optimum
   // down to 1/1024 of the rays unbinned); binning serves the per-pixel Poisson deviance and MSE.
   if (spec_.error != ErrorFunction::kPoisson && spec_.error != ErrorFunction::kMse) return 1;
-  if (spec_.exact_images) return 1;  // no simulation noise to bin away
+  if (spec_.exact_images()) return 1;  // no simulation noise to bin away
   const double k = spec_.rays.ray_factor * spec_.rays.fractions[level];
   int b = 1;
   while (b * b * k < 1 - 1e-9) ++b;

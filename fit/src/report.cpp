@@ -448,7 +448,7 @@ std::string WriteFitOutputs(const FitSpec& spec, const FitResult& res, const std
   if (spec.optics == "physical")
     h << "Images: physical optics (optics = \"physical\", docs/physical-optics.md): rays that "
          "carry their field, no simulation noise. ";
-  else if (spec.exact_images)
+  else if (spec.exact_images())
     h << "Images: the exact wave model of the sphere (optics = \"mie\", docs/wave-optics.md): "
          "no rays, no simulation noise. ";
   else

@@ -114,7 +114,7 @@ class Runner {
         throw Error("fit: internal error: " + spec_.parameters[i].key +
                     " is not a finite number at a point the fit asked for (please report)");
     for (const Cached& c : cache_)
-      if (c.level == level && (c.seed == seed || spec_.exact_images) && c.theta == th) {
+      if (c.level == level && (c.seed == seed || spec_.exact_images()) && c.theta == th) {
         if (error) *error = c.error;
         return c.images;
       }
@@ -145,7 +145,7 @@ class Runner {
       last_progress_ = now;
       // An exact image model has no rays: its fractions only name the levels.
       const std::string model =
-          spec_.exact_images ? "exact image" : "ray fraction " + Fmt(fraction, 3);
+          spec_.exact_images() ? "exact image" : "ray fraction " + Fmt(fraction, 3);
       std::fprintf(stderr,
                    "%sraymatch fit: %-8s eval %4zu of at most %d  error %-12s best %-12s "
                    "%-19s  %.0f s%s",

@@ -198,7 +198,6 @@ FitSpec SensitivityFitSpec(const SensitivitySpec& spec, const simulate::Scene& s
   // An image model without simulation noise (optics = "mie" or "physical"): every set is the
   // same images, so one is computed and copied, with a tenth of the step (no noise to outrun;
   // the fringes' linear range).
-  fs.exact_images = scene.trace.optics != simulate::ImageOptics::kRays;
   fs.optics = simulate::ImageOpticsName(scene.trace.optics);
   for (double d : r->defocus_um) {
     FitImage fi;
@@ -303,7 +302,7 @@ SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
 
   std::vector<double> theta;
   FitSpec fs = SensitivityFitSpec(spec, scene, where, &r, &theta);
-  const double step_scale = fs.exact_images ? 0.1 : 1.0;
+  const double step_scale = fs.exact_images() ? 0.1 : 1.0;
   const size_t P = theta.size(), K = fs.images.size();
   auto say = [&](const std::string& m) {
     if (progress) std::fprintf(stderr, "raymatch sensitivity: %s\n", m.c_str());
@@ -316,7 +315,7 @@ SensitivityResult RunSensitivity(const SensitivitySpec& spec, bool progress) {
   std::vector<SetImages> sets(size_t(spec.sets));
   uint64_t rays = 0;
   for (size_t s = 0; s < sets.size(); ++s) {
-    if (fs.exact_images && s > 0) {
+    if (fs.exact_images() && s > 0) {
       sets[s] = sets[0];
       continue;
     }

@@ -499,7 +499,7 @@ OptimumDerivatives FinalSteps(Runner& run, const FitSpec& spec, std::vector<doub
     od.final_sim = run.Images(best, final_level, spec.seed, Stage::kFinal, &e);
   }
   // The goodness of fit's template (MeanTemplate).
-  if (!spec.exact_images && res.status != FitStatus::kFlat && spec.uncertainties && run.Budget())
+  if (!spec.exact_images() && res.status != FitStatus::kFlat && spec.uncertainties && run.Budget())
     MeanTemplate(run, spec, best, final_level, s_all, &od);
   return od;
 }
@@ -585,7 +585,7 @@ GoodnessOfFit TestedGoodness(Runner& run, const FitSpec& spec, const std::vector
   const Simulated& at = mean ? od.mean_sim : best_sim;
   // Exact derivative images carry no noise: the image is stepped along them. The ray model's
   // without derivative sets (no final steps): no step.
-  if (spec.exact_images) return model.Goodness(at, bin, P, od.half_a.dmu, od.half_b.dmu);
+  if (spec.exact_images()) return model.Goodness(at, bin, P, od.half_a.dmu, od.half_b.dmu);
   GoodnessOfFit plain = model.Goodness(at, bin, P);
   plain.template_sets = mean ? od.mean_sets : 1;
   if (!mean) return plain;

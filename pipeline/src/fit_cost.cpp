@@ -265,7 +265,7 @@ FitCostResult RunFitCostStudy(const FitCostOptions& o) {
     throw Error("raymatch bench fit: --realisations " + std::to_string(o.realisations) +
                 ": expected 2 or more (an RMS over realisations)");
   const fit::FitSpec base = fit::LoadFitSpec(o.fit_file, "", o.calibration);
-  if (base.error != fit::ErrorFunction::kPoisson || base.exact_images || !base.cramer_rao)
+  if (base.error != fit::ErrorFunction::kPoisson || base.exact_images() || !base.cramer_rao)
     throw Error(o.fit_file + ": raymatch bench fit needs a Poisson ray-model fit with cramer_rao");
   toml::table truth_table;
   try {

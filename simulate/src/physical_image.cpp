@@ -162,20 +162,9 @@ nlohmann::json PhysicalSampling::ToJson() const {
 
 namespace {
 
-/// The centre of the objects' bounding box and the radius about it that holds every object's
-/// bounding sphere (no objects: the origin and 0).
+/// The objects' enclosing sphere: the origin of every spectrum and its radius.
 std::pair<Vec3, double> ObjectsSphere(const Simulator& sim) {
-  const auto bounds = sim.ObjectBounds();
-  if (bounds.empty()) return {Vec3(), 0.0};
-  Vec3 lo = bounds[0].first, hi = lo;
-  for (const auto& [c, r] : bounds) {
-    lo = Vec3(std::min(lo.x, c.x - r), std::min(lo.y, c.y - r), std::min(lo.z, c.z - r));
-    hi = Vec3(std::max(hi.x, c.x + r), std::max(hi.y, c.y + r), std::max(hi.z, c.z + r));
-  }
-  const Vec3 origin = (lo + hi) * 0.5;
-  double extent = 0;
-  for (const auto& [c, r] : bounds) extent = std::max(extent, Length(c - origin) + r);
-  return {origin, extent};
+  return Simulator::EnclosingSphere(sim.ObjectBounds());
 }
 
 Scene AsTraced(Scene s) {

@@ -155,8 +155,10 @@ struct Tri {
   uint64_t id[3];
   double px[3], py[3], kx[3], ky[3], phi[3], cos[3];
   CVec3 e[3];
-  double g = 0;              // sqrt(dA_in / dA_plane): the tube's amplitude change (over sqrt(cos))
-  double gv[3] = {0, 0, 0};  // the same at each ray, over the triangles that share it
+  double area_in = 0, area_p = 0;  // on the incident wave and on the plane
+  // sqrt(dA_in / dA_plane) at each ray, over the triangles that share it: the tube's amplitude
+  // change (over sqrt(cos)).
+  double gv[3] = {0, 0, 0};
   double focal_phase = 0;
 };
 
@@ -219,6 +221,16 @@ class BranchMapper {
   /// A lattice cell of side s (finest units) across the incident wave.
   double CellArea(int64_t s) const { return double(s * s) * lat_.h * lat_.h * std::abs(w_.din.z); }
 
+  /// Whether directions within [kx_lo, kx_hi] x [ky_lo, ky_hi], grown by their own spread and
+  /// one spectrum step, all lie beyond the taper.
+  bool BeyondTaper(double kx_lo, double kx_hi, double ky_lo, double ky_hi) const {
+    const double grow = std::max(kx_hi - kx_lo, ky_hi - ky_lo) + g_.dk;
+    const double ex = std::max({kx_lo - grow, 0.0, -(kx_hi + grow)});
+    const double ey = std::max({ky_lo - grow, 0.0, -(ky_hi + grow)});
+    const double k_end = w_.k_pass + w_.k_taper;
+    return ex * ex + ey * ey > k_end * k_end;
+  }
+
   const Node& At(int64_t ci, int64_t cj) const { return coarse_[size_t(cj * (lat_.ni + 1) + ci)]; }
 
   /// One row of coarse cells (one thread): refined nodes cached by lattice key.
@@ -260,15 +272,10 @@ class BranchMapper {
       if (s < 2) return false;
       if (a.n->valid != b.n->valid) return true;
       if (a.n->valid) {
-        const double span = std::max(std::abs(a.n->kx - b.n->kx), std::abs(a.n->ky - b.n->ky));
-        const double grow = span + m->g_.dk;
-        auto beyond = [&](double k0, double k1) {
-          return std::max({std::min(k0, k1) - grow, 0.0, -(std::max(k0, k1) + grow)});
-        };
-        const double ex = beyond(a.n->kx, b.n->kx), ey = beyond(a.n->ky, b.n->ky);
-        const double k_end = m->w_.k_pass + m->w_.k_taper;
         const double extent = std::max(std::abs(a.n->px - b.n->px), std::abs(a.n->py - b.n->py));
-        if (ex * ex + ey * ey <= k_end * k_end && extent > m->set_.max_cell_steps * m->plane_.cell)
+        if (extent > m->set_.max_cell_steps * m->plane_.cell &&
+            !m->BeyondTaper(std::min(a.n->kx, b.n->kx), std::max(a.n->kx, b.n->kx),
+                            std::min(a.n->ky, b.n->ky), std::max(a.n->ky, b.n->ky)))
           return true;
       }
       // The cells on either side: the edge's perpendicular (-dj, di) and (dj, -di).
@@ -306,13 +313,7 @@ class BranchMapper {
         ky_lo = std::min(ky_lo, c[q]->ky), ky_hi = std::max(ky_hi, c[q]->ky);
       }
       if (valid == 0) return;
-      const double span = std::max(kx_hi - kx_lo, ky_hi - ky_lo);
-      // Cells whose directions (grown by their own spread) all lie beyond the taper.
-      const double grow = span + m->g_.dk;
-      const double ex = std::max({kx_lo - grow, 0.0, -(kx_hi + grow)});
-      const double ey = std::max({ky_lo - grow, 0.0, -(ky_hi + grow)});
-      const double k_end = m->w_.k_pass + m->w_.k_taper;
-      if (valid == 4 && ex * ex + ey * ey > k_end * k_end) {
+      if (valid == 4 && m->BeyondTaper(kx_lo, kx_hi, ky_lo, ky_hi)) {
         // Its power still counts (the branches' power is the light leaving forward); cells
         // across the branch's edge are refined on, for it.
         double e2 = 0;
@@ -328,7 +329,7 @@ class BranchMapper {
         all &= split[q], any |= split[q];
       }
       if (!any) {
-        Emit(i, j, s, c);
+        Emit(corner, m->CellArea(s));
         return;
       }
       const int64_t h = s / 2;
@@ -374,7 +375,7 @@ class BranchMapper {
         tr.kx[q] = x.kx, tr.ky[q] = x.ky, tr.px[q] = x.px, tr.py[q] = x.py;
         tr.phi[q] = x.phi, tr.cos[q] = x.cos, tr.e[q] = x.e;
       }
-      tr.g = std::sqrt(area_in / area_p);
+      tr.area_in = area_in, tr.area_p = area_p;
       tr.focal_phase = -0.5 * M_PI * FocalLines(a, b, d);
       out->push_back(tr);
     }
@@ -385,14 +386,13 @@ class BranchMapper {
       return 0.5 * std::abs(cross) * m->lat_.h * m->lat_.h * std::abs(m->w_.din.z);
     }
 
-    /// The cell's two triangles, split along its 00-11 diagonal.
-    void Emit(int64_t i, int64_t j, int64_t s, const Node* const c[4]) {
-      const Point p[4] = {{i, j, c[0]}, {i + s, j, c[1]}, {i + s, j + s, c[2]}, {i, j + s, c[3]}};
-      const double area_in = 0.5 * m->CellArea(s);
+    /// The two triangles of the cell with corners p (00, 10, 11, 01) and area `cell_area`,
+    /// split along its 00-11 diagonal.
+    void Emit(const Point p[4], double cell_area) {
       static constexpr int kTri[2][3] = {{0, 1, 2}, {0, 2, 3}};
       for (const auto& t : kTri) {
         const Point* v[3] = {&p[t[0]], &p[t[1]], &p[t[2]]};
-        Triangle(v, area_in);
+        Triangle(v, 0.5 * cell_area);
       }
     }
 
@@ -801,17 +801,11 @@ void AddShadow(const Wave& w, const SpectrumGrid& g, const Shadow& sh, RaySpectr
 void VertexAmplitudes(std::vector<Tri>* tris) {
   std::unordered_map<uint64_t, std::pair<double, double>> sum;  // ray -> (dA_in, dA_plane)
   sum.reserve(tris->size() * 2);
-  auto area_p = [](const Tri& t) {
-    return 0.5 * std::abs((t.px[1] - t.px[0]) * (t.py[2] - t.py[0]) -
-                          (t.py[1] - t.py[0]) * (t.px[2] - t.px[0]));
-  };
-  for (const Tri& t : *tris) {
-    const double ap = area_p(t), ai = t.g * t.g * ap;
+  for (const Tri& t : *tris)
     for (uint64_t id : t.id) {
       auto& [in, plane] = sum[id];
-      in += ai, plane += ap;
+      in += t.area_in, plane += t.area_p;
     }
-  }
   for (Tri& t : *tris)
     for (int q = 0; q < 3; ++q) {
       const auto& [in, plane] = sum.at(t.id[q]);

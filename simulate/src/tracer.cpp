@@ -452,6 +452,20 @@ void Simulator::SplitRaysBySphere(uint32_t plane_index, uint64_t first, uint64_t
 
 double Simulator::field_radius_um() const { return impl_->field_radius_um; }
 
+std::pair<Vec3, double> Simulator::EnclosingSphere(
+    const std::vector<std::pair<Vec3, double>>& spheres) {
+  if (spheres.empty()) return {Vec3(), 0.0};
+  Vec3 lo = spheres[0].first, hi = lo;
+  for (const auto& [c, r] : spheres) {
+    lo = Vec3(std::min(lo.x, c.x - r), std::min(lo.y, c.y - r), std::min(lo.z, c.z - r));
+    hi = Vec3(std::max(hi.x, c.x + r), std::max(hi.y, c.y + r), std::max(hi.z, c.z + r));
+  }
+  const Vec3 centre = (lo + hi) * 0.5;
+  double radius = 0;
+  for (const auto& [c, r] : spheres) radius = std::max(radius, Length(c - centre) + r);
+  return {centre, radius};
+}
+
 std::vector<std::pair<Vec3, double>> Simulator::ObjectBounds() const {
   std::vector<std::pair<Vec3, double>> b;
   for (size_t i = 0; i < scene_.objects.size(); ++i)

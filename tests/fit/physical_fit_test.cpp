@@ -62,7 +62,7 @@ TEST(PhysicalFit, PositionFromItsOwnImagesOverRealisations) {
     f << "scene = \"start.toml\"\n[[image]]\nfile = \"" << tif << "\"\ndefocus_um = 3\n"
       << kPosition;
     const FitSpec spec = LoadFitSpec(dir.Write("fit" + std::to_string(k) + ".toml", f.str()));
-    ASSERT_TRUE(spec.exact_images);
+    ASSERT_TRUE(spec.exact_images());
     ASSERT_EQ(spec.optics, "physical");
     FitOptions o;
     o.threads = 2;

@@ -69,7 +69,7 @@ TEST(WaveFit, ErrorsMatchSigmaAndTheBoundOverRealisations) {
     f << "scene = \"start.toml\"\n[[image]]\nfile = \"" << tif << "\"\ndefocus_um = 3\n"
       << kParameters;
     const FitSpec spec = LoadFitSpec(dir.Write("fit" + std::to_string(k) + ".toml", f.str()));
-    ASSERT_TRUE(spec.exact_images);
+    ASSERT_TRUE(spec.exact_images());
     FitOptions o;
     o.threads = 2;
     const FitResult r = RunFit(spec, o);
@@ -113,7 +113,7 @@ TEST(WaveFit, LateralMovesReuseTheFieldsAndGiveTheSameImages) {
                                              "scene = \"s.toml\"\n[[image]]\nfile = \"e.tif\"\n"
                                              "defocus_um = 3\n" +
                                                  std::string(kParameters)));
-  ASSERT_TRUE(spec.exact_images);
+  ASSERT_TRUE(spec.exact_images());
   const std::vector<std::vector<double>> thetas = {{0.1, -0.1, 0.2, 4.0, 1.4},
                                                    {0.5, 0.3, 0.2, 4.0, 1.4},   // across
                                                    {-0.4, 0.3, 0.2, 4.0, 1.4},  // across
@@ -161,7 +161,7 @@ TEST(WaveFit, SearchStagesFindTheValleyFromAStartFringeOrdersOff) {
     const FitSpec spec =
         LoadFitSpec(dir.Write("search.toml", fit + "[search]\n" + st.search + "\n"));
     EXPECT_EQ(spec.start_fit != nullptr, st.starts > 0);
-    if (spec.start_fit) EXPECT_FALSE(spec.start_fit->exact_images);
+    if (spec.start_fit) EXPECT_FALSE(spec.start_fit->exact_images());
     const FitResult r = RunFit(spec, o);
     EXPECT_FALSE(r.goodness.mismatch) << r.goodness.verdict;
     for (size_t i = 0; i < 5; ++i) {
@@ -233,9 +233,9 @@ TEST(WaveFit, FitFileChoosesTheOptics) {
   WriteFloatImage(dir / "e.tif", flat, "flat");
   const std::string base = "scene = \"s.toml\"\n[[image]]\nfile = \"e.tif\"\ndefocus_um = 3\n" +
                            std::string(kParameters);
-  EXPECT_FALSE(LoadFitSpec(dir.Write("a.toml", base)).exact_images);
+  EXPECT_FALSE(LoadFitSpec(dir.Write("a.toml", base)).exact_images());
   const FitSpec mie = LoadFitSpec(dir.Write("b.toml", "optics = \"mie\"\n" + base));
-  EXPECT_TRUE(mie.exact_images);
+  EXPECT_TRUE(mie.exact_images());
   EXPECT_EQ(mie.rays.fractions, std::vector<double>{1.0});
   EXPECT_EQ(mie.repeat_seeds, 0);
   // A scene the wave model cannot image: the error names the fit file's optics key.
@@ -256,7 +256,7 @@ TEST(WaveFit, FitFileChoosesTheOptics) {
   dir.Write("phys.toml", phys_scene);
   const FitSpec phys = LoadFitSpec(
       dir.Write("p.toml", "scene = \"phys.toml\"\n" + base.substr(base.find("[[image]]"))));
-  EXPECT_TRUE(phys.exact_images);
+  EXPECT_TRUE(phys.exact_images());
   EXPECT_EQ(phys.optics, "physical");
   EXPECT_EQ(mie.optics, "mie");
   EXPECT_EQ(LoadFitSpec(dir.Write("o.toml", "optics = \"physical\"\n" + base)).optics, "physical");

@@ -153,13 +153,13 @@ struct FitSpec {
   double profile_correlation = 0.9;
   bool uncertainties = true;  ///< false: search only (benchmarks)
   int threads = 0;
-  /// The images come from a model without simulation noise (the scene's or the fit file's
-  /// optics = "mie" or "physical"): one image per evaluation, no ray fractions, no repeats with
-  /// other ray streams, and every (1 + 1 / k) of the finite-ray formulas is 1.
-  bool exact_images = false;
   /// The image model: "rays", "mie" (exact for spheres) or "physical" (rays that carry their
-  /// field, any scene); the last two are exact_images.
+  /// field, any scene).
   std::string optics = "rays";
+  /// The images come from a model without simulation noise (optics = "mie" or "physical"): one
+  /// image per evaluation, no ray fractions, no repeats with other ray streams, and every
+  /// (1 + 1 / k) of the finite-ray formulas is 1.
+  bool exact_images() const { return optics != "rays"; }
   /// Search stages before the method's own search (the fit file's [search] table, docs/fit.md
   /// "Starts far from the truth"). `start_fit`: the same fit with the ray model (search only),
   /// whose optimum becomes the start. `scan`: parameters (indices) scanned in turn at this fit's

@@ -260,6 +260,10 @@ class Simulator {
   double source_weight() const;
   /// A bounding sphere (centre, radius; micrometres) of each object, in scene order.
   std::vector<std::pair<Vec3, double>> ObjectBounds() const;
+  /// One sphere that holds them all: centred on their bounding box, the least radius about that
+  /// centre (none: the origin and 0).
+  static std::pair<Vec3, double> EnclosingSphere(
+      const std::vector<std::pair<Vec3, double>>& spheres);
   bool has_mesh_bvh() const;  ///< an Embree BVH was built
 
   struct Impl;  ///< defined in simulate/src/tracer_impl.h only

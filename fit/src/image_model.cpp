@@ -78,7 +78,8 @@ ModelImages PhysicalImageModel::Images(const simulate::Scene& scene, const Draw&
                                        uint64_t* rays_traced) {
   simulate::Scene w = AtPhotonTarget(scene);
   if (w.trace.physical.window_um == 0) w.trace.physical.window_um = window_um_;
-  const simulate::PhysicalImager imager(w);
+  simulate::PhysicalImager imager(w);
+  imager.KeepLayouts(layouts_);
   ModelImages out;
   for (double dz : scene.defocus_um) {
     out.counts.push_back(imager.Expected(dz, threads_));

@@ -102,14 +102,19 @@ class MieImageModel : public NoiselessImageModel {
 };
 
 /// The physical-optics image of any scene (simulate::PhysicalImager, rays that carry their
-/// field). The field-ray lattice and the window are laid out from the objects' own bounds, so a
-/// lateral move shifts the sampling with the objects.
+/// field). The window is fixed and the field rays are laid out as the first evaluation laid
+/// them out (simulate::FieldLayouts), moved and scaled with the objects' bounds, so the image
+/// changes continuously with every parameter (no cell count or refinement test flips).
 class PhysicalImageModel : public NoiselessImageModel {
  public:
   PhysicalImageModel(double photons_per_pixel, double window_um, int threads)
-      : NoiselessImageModel(photons_per_pixel, window_um, threads) {}
+      : NoiselessImageModel(photons_per_pixel, window_um, threads),
+        layouts_(std::make_shared<simulate::FieldLayouts>()) {}
   ModelImages Images(const simulate::Scene& scene, const Draw& draw,
                      uint64_t* rays_traced) override;
+
+ private:
+  std::shared_ptr<simulate::FieldLayouts> layouts_;
 };
 
 /// The scene as the ray model traces it: the light field's part `part` and, with `psf_os` > 1,

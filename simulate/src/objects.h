@@ -407,8 +407,9 @@ bool TraceObjects(const Simulator::Impl& im, const TraceSpec& trace, RayRng& rng
       const int now = static_cast<int>(path.depth);
       const int inner = now ? stack[now - 1] : -1;
       if (r.n_segments < int(r.segments.size()))
-        r.segments[r.n_segments++] = {hp, d, *opl, ft->index_after,
-                                      im.has_grin && inner >= 0 && field[inner] != nullptr};
+        r.segments[r.n_segments++] = {
+            hp,      d, *opl, ft->index_after, im.has_grin && inner >= 0 && field[inner] != nullptr,
+            h.normal};
     }
   }
   c.interface_events += uint64_t(path.interface_events);

@@ -198,6 +198,7 @@ struct PhysicalImager::Impl {
   // pulse) with their shares of the power, each scaled to the photon target, so their weighted
   // sum is too. Empty: this imager is one such part itself.
   std::vector<std::pair<double, std::unique_ptr<PhysicalImager>>> parts;
+  std::shared_ptr<FieldLayouts> layouts;  // (none: each spectrum lays its rays out itself)
 
   /// The parts of a spectrum and of motion (`parts`), and this imager's sampling from them.
   void BuildParts();
@@ -205,7 +206,8 @@ struct PhysicalImager::Impl {
   /// The intensity change of one direction on the window's grid (n x n, spacing h, corner x0,
   /// y0), the mean of two orthogonal polarisations, added with `weight` to `dev`.
   void AddDirection(const Direction& dir, double dz, int n, double h, double x0, double y0,
-                    double weight, std::vector<double>* dev, uint64_t* rays) const;
+                    double weight, FieldLayout* layout, std::vector<double>* dev,
+                    uint64_t* rays) const;
   /// The same for polarisation `pol` with its scattered spectrum `sp` on grid `g`.
   void AddPolarisation(const Direction& dir, const CVec3& pol, const RaySpectrum& sp,
                        const SpectrumGrid& g, double dz, int n, double h, double x0, double y0,
@@ -307,6 +309,21 @@ void PhysicalImager::Impl::BuildParts() {
 }
 
 PhysicalImager::~PhysicalImager() = default;
+
+void PhysicalImager::KeepLayouts(std::shared_ptr<FieldLayouts> layouts) {
+  Impl& im = *impl_;
+  RAYMATCH_CHECK(layouts);
+  if (!im.parts.empty()) {
+    if (layouts->parts.size() != im.parts.size()) layouts->parts.assign(im.parts.size(), nullptr);
+    for (size_t i = 0; i < im.parts.size(); ++i) {
+      if (!layouts->parts[i]) layouts->parts[i] = std::make_shared<FieldLayouts>();
+      im.parts[i].second->KeepLayouts(layouts->parts[i]);
+    }
+  } else if (layouts->directions.size() != im.dirs.size()) {
+    layouts->directions.assign(im.dirs.size(), FieldLayout{});
+  }
+  im.layouts = std::move(layouts);
+}
 const Scene& PhysicalImager::scene() const { return impl_->scene; }
 PhysicalSampling PhysicalImager::sampling() const { return impl_->last; }
 
@@ -331,8 +348,8 @@ std::vector<std::string> PhysicalImager::Effects() const {
 }
 
 void PhysicalImager::Impl::AddDirection(const Direction& dir, double dz, int n, double h, double x0,
-                                        double y0, double weight, std::vector<double>* dev,
-                                        uint64_t* rays) const {
+                                        double y0, double weight, FieldLayout* layout,
+                                        std::vector<double>* dev, uint64_t* rays) const {
   const double L = n * h, dk = 2 * M_PI / L;
   const int j_hi = int(std::floor(k * s_na / dk));
   SpectrumGrid g;
@@ -354,7 +371,7 @@ void PhysicalImager::Impl::AddDirection(const Direction& dir, double dz, int n, 
   const std::vector<CVec3> pols{{e_th.x, e_th.y, e_th.z}, {e_ph.x, e_ph.y, e_ph.z}};
   std::vector<CVec3> e0s;
   for (const CVec3& p : pols) e0s.push_back({p[0] * e_scale, p[1] * e_scale, p[2] * e_scale});
-  const std::vector<RaySpectrum> sp = RayAngularSpectra(*sim, dir.d, e0s, origin, g, rs);
+  const std::vector<RaySpectrum> sp = RayAngularSpectra(*sim, dir.d, e0s, origin, g, rs, layout);
   for (size_t q = 0; q < pols.size(); ++q) {
     *rays += sp[q].rays;
     AddPolarisation(dir, pols[q], sp[q], g, dz, n, h, x0, y0, 0.5 * weight, dev);
@@ -460,8 +477,10 @@ Image PhysicalImager::Expected(double defocus_um, int threads, bool progress,
     // the same sums for any thread count.
     Progress bar(progress, label.empty() ? "physical optics" : label, im.dirs.size());
     arena.execute([&] {
-      for (const Direction& d : im.dirs) {
-        im.AddDirection(d, dz, n, h, x0, y0, d.weight, &dev, &rays);
+      for (size_t i = 0; i < im.dirs.size(); ++i) {
+        const Direction& d = im.dirs[i];
+        FieldLayout* layout = im.layouts ? &im.layouts->directions[i] : nullptr;
+        im.AddDirection(d, dz, n, h, x0, y0, d.weight, layout, &dev, &rays);
         bar.Add(1);
       }
     });

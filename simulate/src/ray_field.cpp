@@ -51,6 +51,7 @@ struct Line {
   Vec3 b, w;
   double lo = 0, hi = kInf;
   bool curved = false;
+  Vec3 normal;  // the surface's where it begins (either way; the first line: none)
 };
 
 /// One traced ray of a branch.
@@ -93,59 +94,86 @@ Node TraceNode(const Wave& w, const Lattice& lat, int64_t i, int64_t j, uint32_t
     l.lo = g.optical_path_um;
     l.hi = q + 1 < r.n_segments ? r.segments[q + 1].optical_path_um : kInf;
     l.curved = g.curved;
+    l.normal = g.normal;
   }
   return nd;
 }
 
-/// The focal lines a tube of three straight rays p_i(tau) = b_i + w_i tau passes between
-/// optical paths lo and hi, from its cross-section (the triangle projected across the mean
-/// direction u) at both ends: the linear map L taking the first to the second is mirrored
-/// (det L < 0) past one focal line and turned about (trace L < 0) past two, as through a point
-/// focus, where the section's area only touches zero (Kravtsov and Orlov, Caustics,
-/// Catastrophes and Wave Fields, sec. 2.3: the Maslov index of a ray tube).
-int FocalLinesBetween(const Line& l0, const Line& l1, const Line& l2, double lo, double hi) {
-  const Vec3 u = Normalize(l0.w + l1.w + l2.w);
-  const Vec3 e1 = Normalize(Cross(u, std::abs(u.x) < 0.6 ? Vec3(1, 0, 0) : Vec3(0, 1, 0)));
-  const Vec3 e2 = Cross(u, e1);
-  auto section = [&](double tau, double m[4]) {
-    const Vec3 p0 = l0.b + l0.w * tau, d1 = l1.b + l1.w * tau - p0, d2 = l2.b + l2.w * tau - p0;
+/// A ray tube's cross-section: the sides p1 - p0 and p2 - p0 of its triangle in a basis (e1, e2)
+/// across the mean direction u of its rays, as the matrix [d1.e1 d2.e1; d1.e2 d2.e2].
+struct TubeSection {
+  Vec3 e1, e2;
+  explicit TubeSection(const Vec3& u)
+      : e1(Normalize(Cross(u, std::abs(u.x) < 0.6 ? Vec3(1, 0, 0) : Vec3(0, 1, 0)))),
+        e2(Cross(u, e1)) {}
+  void Of(const Vec3& d1, const Vec3& d2, double m[4]) const {
     m[0] = Dot(d1, e1), m[1] = Dot(d2, e1), m[2] = Dot(d1, e2), m[3] = Dot(d2, e2);
-  };
-  double s0[4], s1[4];
-  section(lo, s0);
-  section(hi, s1);
-  const double det0 = s0[0] * s0[3] - s0[1] * s0[2], det1 = s1[0] * s1[3] - s1[1] * s1[2];
-  if (det0 == 0 || det1 == 0) return 0;
-  if ((det0 < 0) != (det1 < 0)) return 1;
-  // trace(S1 S0^-1) with S0^-1 = adj(S0) / det0.
-  const double tr = (s1[0] * s0[3] - s1[1] * s0[2] - s1[2] * s0[1] + s1[3] * s0[0]) / det0;
+  }
+};
+
+/// The focal lines a tube passes from cross-section s0 to s1 (TubeSection), whose areas have the
+/// signs o0 and o1 (+-1): the linear map L taking the first to the second is mirrored (det L <
+/// 0) past one focal line and turned about (trace L < 0) past two, as through a point focus,
+/// where the section's area only touches zero (Kravtsov and Orlov, Caustics, Catastrophes and
+/// Wave Fields, sec. 2.3: the Maslov index of a ray tube).
+int FocalLinesBetween(const double s0[4], const double s1[4], int o0, int o1) {
+  if (o0 != o1) return 1;
+  // trace(S1 S0^-1) with S0^-1 = adj(S0) / det0: its sign, with det0's sign o0.
+  const double tr = (s1[0] * s0[3] - s1[1] * s0[2] - s1[2] * s0[1] + s1[3] * s0[0]) * o0;
   return tr < 0 ? 2 : 0;
 }
 
+int SignOf(double v) { return v < 0 ? -1 : 1; }
+
+/// The surface's mean normal where the three lines `l` begin (each turned to the first's side).
+Vec3 SurfaceNormal(const Line* const l[3]) {
+  Vec3 sum = l[0]->normal;
+  for (int r = 1; r < 3; ++r)
+    sum = sum + (Dot(l[r]->normal, sum) < 0 ? l[r]->normal * -1.0 : l[r]->normal);
+  return Normalize(sum);
+}
+
 /// The focal lines the tube of three rays passes from the start to the exit plane, on every
-/// straight segment between equal optical paths (curved ones are skipped); on the last one up
-/// to the plane, or back to it (counted negative) where the plane lies before the exits.
+/// straight segment (curved ones are skipped) from the triangle of its rays' points where the
+/// segment begins (on the start plane or a surface) to the triangle where it ends (on the next
+/// surface, or for the last segment on the exit plane; counted negative where the plane lies
+/// before the exits on average). A triangle on a surface is oriented, for the segments on both
+/// sides, by its area along the surface normal (A.N)(N.u), so they agree where it degenerates:
+/// where a caustic touches a surface the two counts change together and their sum stays; on the
+/// exit plane the count changes where the triangle's area, and with it its share of the field,
+/// passes zero. The field stays continuous as caustics move with the objects.
 int FocalLines(const Node& a, const Node& b, const Node& c) {
   int count = 0;
   const int n = std::min({a.n_lines, b.n_lines, c.n_lines});
+  const Node* nodes[3] = {&a, &b, &c};
   for (int q = 0; q < n; ++q) {
-    const Line &l0 = a.lines[q], &l1 = b.lines[q], &l2 = c.lines[q];
-    if (l0.curved || l1.curved || l2.curved) continue;
-    double lo = std::max({l0.lo, l1.lo, l2.lo}), hi = std::min({l0.hi, l1.hi, l2.hi});
-    int sign = 1;
-    if (q + 1 == n) {
-      const double t_lo = std::min({a.tau_plane, b.tau_plane, c.tau_plane});
-      const double t_hi = std::max({a.tau_plane, b.tau_plane, c.tau_plane});
-      if (t_lo >= lo) {
-        hi = t_lo;
-      } else if (t_hi <= std::min({l0.lo, l1.lo, l2.lo})) {
-        hi = std::min({l0.lo, l1.lo, l2.lo}), lo = t_hi, sign = -1;
-      } else {
-        continue;  // the plane cuts through the exits: nothing between
-      }
+    const Line* l[3] = {&a.lines[q], &b.lines[q], &c.lines[q]};
+    if (l[0]->curved || l[1]->curved || l[2]->curved) continue;
+    const bool last = q + 1 == n;
+    Vec3 p0[3], p1[3];
+    double ahead = 0;  // the plane's mean optical path beyond the exits (last segment)
+    for (int r = 0; r < 3; ++r) {
+      const double end = last ? nodes[r]->tau_plane : l[r]->hi;
+      p0[r] = l[r]->b + l[r]->w * l[r]->lo, p1[r] = l[r]->b + l[r]->w * end;
+      ahead += end - l[r]->lo;
     }
-    if (!(hi > lo)) continue;
-    count += sign * FocalLinesBetween(l0, l1, l2, lo, hi);
+    const Vec3 u = Normalize(l[0]->w + l[1]->w + l[2]->w);
+    const TubeSection sec(u);
+    double s0[4], s1[4];
+    sec.Of(p0[1] - p0[0], p0[2] - p0[0], s0);
+    sec.Of(p1[1] - p1[0], p1[2] - p1[0], s1);
+    int o0 = SignOf(s0[0] * s0[3] - s0[1] * s0[2]), o1 = SignOf(s1[0] * s1[3] - s1[1] * s1[2]);
+    if (q > 0) {
+      const Vec3 nn = SurfaceNormal(l);
+      o0 = SignOf(Dot(Cross(p0[1] - p0[0], p0[2] - p0[0]), nn) * Dot(nn, u));
+    }
+    if (!last) {
+      const Line* next[3] = {&a.lines[q + 1], &b.lines[q + 1], &c.lines[q + 1]};
+      const Vec3 nn = SurfaceNormal(next);
+      o1 = SignOf(Dot(Cross(p1[1] - p1[0], p1[2] - p1[0]), nn) * Dot(nn, u));
+    }
+    count +=
+        last && ahead < 0 ? -FocalLinesBetween(s1, s0, o1, o0) : FocalLinesBetween(s0, s1, o0, o1);
   }
   return count;
 }
@@ -178,9 +206,20 @@ struct Branch {
 /// Traces and refines one branch's lattice cells and collects its triangles (in a fixed order).
 class BranchMapper {
  public:
+  /// With `replay`, the edges halved are those it lists (sorted lattice keys of their
+  /// midpoints) instead of the refinement's tests; with `record`, the edges the tests halve are
+  /// listed there (sorted).
   BranchMapper(const Wave& w, const Lattice& lat, const SpectrumGrid& g, const PlaneGrid& plane,
-               const RaySpectrumSettings& set, Branch br)
-      : w_(w), lat_(lat), g_(g), plane_(plane), set_(set), br_(br) {}
+               const RaySpectrumSettings& set, Branch br, const std::vector<uint64_t>* replay,
+               std::vector<uint64_t>* record)
+      : w_(w),
+        lat_(lat),
+        g_(g),
+        plane_(plane),
+        set_(set),
+        br_(br),
+        replay_(replay),
+        record_(record) {}
 
   /// The coarse lattice's nodes, then every coarse cell; false when no ray takes the branch.
   bool Run(std::vector<Tri>* tris, bool* goes_on, uint64_t* rays, double* power) {
@@ -199,8 +238,9 @@ class BranchMapper {
     std::vector<std::vector<Tri>> rows(size_t(lat_.nj));
     std::vector<uint64_t> row_rays(size_t(lat_.nj), 0);
     std::vector<double> row_power(size_t(lat_.nj), 0.0);
+    std::vector<std::vector<uint64_t>> row_halved(size_t(lat_.nj));
     tbb::parallel_for(int64_t(0), lat_.nj, [&](int64_t cj) {
-      Cells cells{this, {}, &rows[size_t(cj)], 0, 0};
+      Cells cells{this, {}, &rows[size_t(cj)], 0, 0, &row_halved[size_t(cj)]};
       for (int64_t ci = 0; ci < lat_.ni; ++ci) {
         const Node* c[4] = {&At(ci, cj), &At(ci + 1, cj), &At(ci + 1, cj + 1), &At(ci, cj + 1)};
         cells.Refine(ci * lat_.step, cj * lat_.step, lat_.step, c);
@@ -213,6 +253,13 @@ class BranchMapper {
       tris->insert(tris->end(), rows[size_t(cj)].begin(), rows[size_t(cj)].end());
       *rays += row_rays[size_t(cj)];
       *power += row_power[size_t(cj)];
+      if (record_)
+        record_->insert(record_->end(), row_halved[size_t(cj)].begin(),
+                        row_halved[size_t(cj)].end());
+    }
+    if (record_) {
+      std::sort(record_->begin(), record_->end());
+      record_->erase(std::unique(record_->begin(), record_->end()), record_->end());
     }
     return true;
   }
@@ -240,6 +287,7 @@ class BranchMapper {
     std::vector<Tri>* out;
     uint64_t rays;
     double power;
+    std::vector<uint64_t>* halved;  // the edges this row's tests halved (recording)
 
     const Node& Get(int64_t i, int64_t j) {
       const uint64_t key = m->lat_.Key(i, j);
@@ -267,9 +315,19 @@ class BranchMapper {
     /// the triangles meet without cracks: halved where its rays differ in validity, where a
     /// cell beside it has rays of both kinds (the branch's edge is resolved to the finest
     /// level), or where its rays' crossings of the plane lie more than max_cell_steps band
-    /// steps apart (unless both directions lie beyond the taper).
+    /// steps apart (unless both directions lie beyond the taper). Replaying a layout, as it
+    /// was decided when the layout was recorded.
     bool Splits(const Point& a, const Point& b, int64_t s) {
       if (s < 2) return false;
+      const uint64_t mid = m->lat_.Key((a.i + b.i) / 2, (a.j + b.j) / 2);
+      if (m->replay_) return std::binary_search(m->replay_->begin(), m->replay_->end(), mid);
+      const bool split = Tests(a, b);
+      if (split && m->record_) halved->push_back(mid);
+      return split;
+    }
+
+    /// The refinement's tests of Splits.
+    bool Tests(const Point& a, const Point& b) {
       if (a.n->valid != b.n->valid) return true;
       if (a.n->valid) {
         const double extent = std::max(std::abs(a.n->px - b.n->px), std::abs(a.n->py - b.n->py));
@@ -424,71 +482,121 @@ class BranchMapper {
   const PlaneGrid& plane_;
   const RaySpectrumSettings& set_;
   Branch br_;
+  const std::vector<uint64_t>* replay_;
+  std::vector<uint64_t>* record_;
   std::vector<Node> coarse_;
 };
 
-/// The sign of the edge function of (a, b) at p, with the edge taken from the lower key to the
-/// higher (the same bits in both triangles that share it) and exact zeros broken by moving p
-/// by (eps, eps^2) (simulation of simplicity), so a node on a shared edge or vertex falls in
-/// exactly one triangle of an unfolded sheet.
-int EdgeSign(double ax, double ay, uint64_t ia, double bx, double by, uint64_t ib, double px,
-             double py) {
-  bool flip = false;
-  if (ib < ia) std::swap(ax, bx), std::swap(ay, by), flip = true;
-  double e = (bx - ax) * (py - ay) - (by - ay) * (px - ax);
-  if (e == 0) e = (by != ay) ? -(by - ay) : (bx - ax);
-  const int s = e > 0 ? 1 : -1;
-  return flip ? -s : s;
-}
-
-/// The plane's rows a triangle covers, [*jl, *jh] before they wrap (empty: jl > jh).
+/// The plane's rows a triangle's nodes cover (their cells, a node step wide, meet it),
+/// [*jl, *jh] before they wrap (empty: jl > jh).
 void RowsOf(const Tri& t, const PlaneGrid& pg, int* jl, int* jh) {
-  const double y_lo = std::min({t.py[0], t.py[1], t.py[2]});
-  const double y_hi = std::max({t.py[0], t.py[1], t.py[2]});
+  const double y_lo = std::min({t.py[0], t.py[1], t.py[2]}) - 0.5 * pg.h;
+  const double y_hi = std::max({t.py[0], t.py[1], t.py[2]}) + 0.5 * pg.h;
   *jl = int(std::ceil((y_lo - pg.y_lo) / pg.h));
   *jh = int(std::floor((y_hi - pg.y_lo) / pg.h));
 }
 
-/// Adds the triangles' field to the plane's rows [r0, r1) (rows wrap: the grid is periodic):
-/// at a node inside a triangle, the barycentric mean of its rays' fields and of their phases
-/// carried to the node along their own wave vectors (second order), times the tube's amplitude.
-/// Returns the flux through the plane that the nodes carry, each triangle's own (|E|^2 cos
-/// theta h^2; where sheets overlap, without their interference). Only the triangles `which`
-/// (indices into tris, ascending) are added.
+/// The part of triangle (x, y) inside the box [x0, x1] x [y0, y1] (Sutherland-Hodgman
+/// clipping): its area and centroid.
+struct Clipped {
+  double area = 0, cx = 0, cy = 0;
+};
+Clipped ClipToBox(const double x[3], const double y[3], double x0, double x1, double y0,
+                  double y1) {
+  double px[2][10], py[2][10];
+  int n = 3, cur = 0;
+  for (int q = 0; q < 3; ++q) px[0][q] = x[q], py[0][q] = y[q];
+  // Each side of the box: keep where s * (coordinate - bound) >= 0.
+  const double bound[4] = {x0, x1, y0, y1};
+  for (int side = 0; side < 4 && n > 0; ++side) {
+    const bool along_x = side < 2;
+    const double s = side % 2 == 0 ? 1 : -1, c = bound[side];
+    const double* ix = px[cur];
+    const double* iy = py[cur];
+    double* ox = px[1 - cur];
+    double* oy = py[1 - cur];
+    int m = 0;
+    for (int q = 0; q < n; ++q) {
+      const int r = (q + 1) % n;
+      const double dq = s * ((along_x ? ix[q] : iy[q]) - c);
+      const double dr = s * ((along_x ? ix[r] : iy[r]) - c);
+      if (dq >= 0) ox[m] = ix[q], oy[m] = iy[q], ++m;
+      if ((dq >= 0) != (dr >= 0)) {
+        const double f = dq / (dq - dr);
+        ox[m] = ix[q] + f * (ix[r] - ix[q]), oy[m] = iy[q] + f * (iy[r] - iy[q]), ++m;
+      }
+    }
+    n = m, cur = 1 - cur;
+  }
+  Clipped out;
+  if (n < 3) return out;
+  const double* cx = px[cur];
+  const double* cy = py[cur];
+  double a2 = 0, mx = 0, my = 0;
+  for (int q = 0; q < n; ++q) {
+    const int r = (q + 1) % n;
+    const double cr = cx[q] * cy[r] - cx[r] * cy[q];
+    a2 += cr, mx += (cx[q] + cx[r]) * cr, my += (cy[q] + cy[r]) * cr;
+  }
+  if (a2 == 0) return out;
+  out.area = 0.5 * std::abs(a2), out.cx = mx / (3 * a2), out.cy = my / (3 * a2);
+  return out;
+}
+
+/// Adds the triangles' field to the plane's rows [r0, r1) (rows wrap: the grid is periodic).
+/// Each node takes a triangle's field in the share of its cell (a node step square about it)
+/// that the triangle covers: the barycentric mean of its rays' fields at the covered part's
+/// centroid, with their phases carried to the node along their own wave vectors (second
+/// order), times the tube's amplitude. A node deep inside a sheet takes its field at the node;
+/// at a sheet's edge or fold the shares change continuously as the edge moves across the nodes,
+/// so the image changes continuously with the objects. Returns the flux through the plane that
+/// the nodes carry, each triangle's own (share times |E|^2 cos theta h^2; where sheets overlap,
+/// without their interference). Only the triangles `which` (indices into tris, ascending) are
+/// added.
 double Rasterise(const std::vector<Tri>& tris, const std::vector<uint32_t>& which,
                  const PlaneGrid& pg, int r0, int r1, std::vector<CVec3>* field) {
   double flux = 0;
   const int n = pg.n;
+  const double half = 0.5 * pg.h, cell = pg.h * pg.h;
   auto wrap = [n](int i) { return ((i % n) + n) % n; };
   for (const uint32_t index : which) {
     const Tri& t = tris[index];
     int jl, jh;
     RowsOf(t, pg, &jl, &jh);
     if (jl > jh) continue;
-    const double x_lo = std::min({t.px[0], t.px[1], t.px[2]});
-    const double x_hi = std::max({t.px[0], t.px[1], t.px[2]});
+    const double x_lo = std::min({t.px[0], t.px[1], t.px[2]}) - half;
+    const double x_hi = std::max({t.px[0], t.px[1], t.px[2]}) + half;
     const int il = int(std::ceil((x_lo - pg.x_lo) / pg.h));
     const int ih = int(std::floor((x_hi - pg.x_lo) / pg.h));
     if (il > ih) continue;
     const double s2 =
         (t.px[1] - t.px[0]) * (t.py[2] - t.py[0]) - (t.py[1] - t.py[0]) * (t.px[2] - t.px[0]);
-    const int side[3] = {
-        EdgeSign(t.px[0], t.py[0], t.id[0], t.px[1], t.py[1], t.id[1], t.px[2], t.py[2]),
-        EdgeSign(t.px[1], t.py[1], t.id[1], t.px[2], t.py[2], t.id[2], t.px[0], t.py[0]),
-        EdgeSign(t.px[2], t.py[2], t.id[2], t.px[0], t.py[0], t.id[0], t.px[1], t.py[1])};
+    // Edge functions, positive inside: the box lies inside where they are at its worst corner.
+    double ea[3], eb[3], ec[3];
+    for (int q = 0; q < 3; ++q) {
+      const int r = (q + 1) % 3;
+      const double sign = s2 > 0 ? 1 : -1;
+      ea[q] = -sign * (t.py[r] - t.py[q]), eb[q] = sign * (t.px[r] - t.px[q]);
+      ec[q] = -(ea[q] * t.px[q] + eb[q] * t.py[q]);
+    }
     for (int j = jl; j <= jh; ++j) {
       const int row = wrap(j);
       if (row < r0 || row >= r1) continue;
       const double y = pg.y_lo + j * pg.h;
       for (int i = il; i <= ih; ++i) {
         const double x = pg.x_lo + i * pg.h;
-        if (EdgeSign(t.px[0], t.py[0], t.id[0], t.px[1], t.py[1], t.id[1], x, y) != side[0] ||
-            EdgeSign(t.px[1], t.py[1], t.id[1], t.px[2], t.py[2], t.id[2], x, y) != side[1] ||
-            EdgeSign(t.px[2], t.py[2], t.id[2], t.px[0], t.py[0], t.id[0], x, y) != side[2])
-          continue;
+        bool inside = true;
+        for (int q = 0; q < 3 && inside; ++q)
+          inside = ea[q] * x + eb[q] * y + ec[q] - half * (std::abs(ea[q]) + std::abs(eb[q])) >= 0;
+        double share = 1, sx = x, sy = y;
+        if (!inside) {
+          const Clipped c = ClipToBox(t.px, t.py, x - half, x + half, y - half, y + half);
+          if (!(c.area > 0)) continue;
+          share = c.area / cell, sx = c.cx, sy = c.cy;
+        }
         double wb[3];
-        wb[0] = ((t.px[1] - x) * (t.py[2] - y) - (t.py[1] - y) * (t.px[2] - x)) / s2;
-        wb[1] = ((t.px[2] - x) * (t.py[0] - y) - (t.py[2] - y) * (t.px[0] - x)) / s2;
+        wb[0] = ((t.px[1] - sx) * (t.py[2] - sy) - (t.py[1] - sy) * (t.px[2] - sx)) / s2;
+        wb[1] = ((t.px[2] - sx) * (t.py[0] - sy) - (t.py[2] - sy) * (t.px[0] - sx)) / s2;
         wb[2] = 1 - wb[0] - wb[1];
         double phi = 0, cos = 0, g = 0;
         CVec3 e{};
@@ -500,8 +608,8 @@ double Rasterise(const std::vector<Tri>& tris, const std::vector<uint32_t>& whic
         }
         const C f = g / std::sqrt(cos) * std::exp(C(0, phi + t.focal_phase));
         CVec3& out = (*field)[size_t(row) * n + wrap(i)];
-        for (int c = 0; c < 3; ++c) out[c] += f * e[c];
-        flux += std::norm(f) * cos * (std::norm(e[0]) + std::norm(e[1]) + std::norm(e[2]));
+        for (int c = 0; c < 3; ++c) out[c] += share * f * e[c];
+        flux += share * std::norm(f) * cos * (std::norm(e[0]) + std::norm(e[1]) + std::norm(e[2]));
       }
     }
   }
@@ -729,27 +837,49 @@ struct RegionTransform {
   }
 };
 
-Lattice MakeLattice(const Simulator& sim, const Vec3& din, double spacing, int levels) {
+/// The lattice over the objects' shadow on the start plane (a spacing beyond it), or as
+/// `layout` lays it out (FieldLayout; recording it when it is empty or the box outgrew it).
+Lattice MakeLattice(const Simulator& sim, const Vec3& din, double spacing, int levels,
+                    FieldLayout* layout) {
   const auto bounds = sim.ObjectBounds();
   RAYMATCH_CHECK(!bounds.empty());
   double z_lo = kInf;
   for (const auto& [c, r] : bounds) z_lo = std::min(z_lo, c.z - r);
   Lattice lat;
   lat.z_start = z_lo - 1.0;
-  double x_lo = kInf, x_hi = -kInf, y_lo = kInf, y_hi = -kInf;
+  double box[4] = {kInf, kInf, -kInf, -kInf};
   for (const auto& [c, r] : bounds) {
     // The bounding sphere's shadow on the start plane, along din: within r / din.z of the
     // projected centre.
     const double t = (c.z - lat.z_start) / din.z;
-    const double cx = c.x - din.x * t, cy = c.y - din.y * t, rr = r / din.z + spacing;
-    x_lo = std::min(x_lo, cx - rr), x_hi = std::max(x_hi, cx + rr);
-    y_lo = std::min(y_lo, cy - rr), y_hi = std::max(y_hi, cy + rr);
+    const double cx = c.x - din.x * t, cy = c.y - din.y * t, rr = r / din.z;
+    box[0] = std::min(box[0], cx - rr), box[2] = std::max(box[2], cx + rr);
+    box[1] = std::min(box[1], cy - rr), box[3] = std::max(box[3], cy + rr);
   }
   lat.step = int64_t(1) << levels;
+  if (layout && layout->recorded) {
+    const double* b0 = layout->box;
+    const double a = (box[2] - box[0] + box[3] - box[1]) / (b0[2] - b0[0] + b0[3] - b0[1]);
+    const double sp = layout->spacing * a;
+    lat.x_lo = 0.5 * (box[0] + box[2]) - (0.5 * (b0[0] + b0[2]) - layout->x_lo) * a;
+    lat.y_lo = 0.5 * (box[1] + box[3]) - (0.5 * (b0[1] + b0[3]) - layout->y_lo) * a;
+    lat.ni = layout->ni, lat.nj = layout->nj;
+    lat.h = sp / double(lat.step);
+    if (lat.x_lo < box[0] && lat.y_lo < box[1] && lat.x_lo + double(lat.ni) * sp > box[2] &&
+        lat.y_lo + double(lat.nj) * sp > box[3])
+      return lat;
+    *layout = FieldLayout{};  // outgrown: laid out afresh
+  }
   lat.h = spacing / double(lat.step);
-  lat.ni = int64_t(std::ceil((x_hi - x_lo) / spacing));
-  lat.nj = int64_t(std::ceil((y_hi - y_lo) / spacing));
-  lat.x_lo = x_lo, lat.y_lo = y_lo;
+  lat.x_lo = box[0] - spacing, lat.y_lo = box[1] - spacing;
+  lat.ni = int64_t(std::ceil((box[2] - box[0]) / spacing + 2));
+  lat.nj = int64_t(std::ceil((box[3] - box[1]) / spacing + 2));
+  if (layout) {
+    layout->ni = lat.ni, layout->nj = lat.nj, layout->spacing = spacing;
+    layout->x_lo = lat.x_lo, layout->y_lo = lat.y_lo;
+    std::copy(box, box + 4, layout->box);
+    layout->halved.clear();
+  }
   return lat;
 }
 
@@ -815,8 +945,10 @@ void VertexAmplitudes(std::vector<Tri>* tris) {
 
 /// Adds the branches' spectrum (every reflect/refract sequence up to max_events surfaces) to
 /// `out`, with their rays, triangles and powers.
+/// With `layout`, each branch's halved edges are replayed from it (FieldLayout::recorded) or
+/// recorded into it.
 void AddBranches(const Wave& w, const Lattice& lat, const SpectrumGrid& grid, const PlaneGrid& pg,
-                 const RaySpectrumSettings& set, RaySpectrum* out_ptr) {
+                 const RaySpectrumSettings& set, FieldLayout* layout, RaySpectrum* out_ptr) {
   RaySpectrum& out = *out_ptr;
   // The branches, shortest first: a branch of m events grows into m + 1 only where its rays
   // meet another surface.
@@ -827,7 +959,17 @@ void AddBranches(const Wave& w, const Lattice& lat, const SpectrumGrid& grid, co
     for (const Branch& parent : open)
       for (uint32_t bit = 0; bit < 2; ++bit) {
         const Branch br{parent.mask | (bit << (m - 1)), m};
-        BranchMapper mapper(w, lat, grid, pg, set, br);
+        const std::vector<uint64_t>* replay = nullptr;
+        std::vector<uint64_t>* record = nullptr;
+        if (layout) {
+          std::vector<uint64_t>& halved = layout->halved[uint64_t(br.mask) | uint64_t(m) << 32];
+          if (layout->recorded) {
+            replay = &halved;
+          } else {
+            record = &halved;
+          }
+        }
+        BranchMapper mapper(w, lat, grid, pg, set, br, replay, record);
         std::vector<Tri> bt;
         bool goes_on = false;
         if (mapper.Run(&bt, &goes_on, &out.rays, &out.branch_power)) {
@@ -876,8 +1018,8 @@ void AddBranches(const Wave& w, const Lattice& lat, const SpectrumGrid& grid, co
 
 std::vector<RaySpectrum> RayAngularSpectra(const Simulator& sim, const Vec3& direction,
                                            const std::vector<CVec3>& e0s, const Vec3& origin,
-                                           const SpectrumGrid& grid,
-                                           const RaySpectrumSettings& set) {
+                                           const SpectrumGrid& grid, const RaySpectrumSettings& set,
+                                           FieldLayout* layout) {
   const Scene& scene = sim.scene();
   Wave w;
   w.sim = &sim;
@@ -895,7 +1037,7 @@ std::vector<RaySpectrum> RayAngularSpectra(const Simulator& sim, const Vec3& dir
   if (scene.objects.empty() || e0s.empty()) return all;
   const double spacing =
       set.ray_spacing_um > 0 ? set.ray_spacing_um : scene.wavelength_um / scene.medium_index;
-  const Lattice lat = MakeLattice(sim, w.din, spacing, set.refine_levels);
+  const Lattice lat = MakeLattice(sim, w.din, spacing, set.refine_levels, layout);
   w.plane_z = origin.z + set.exit_plane_um;
   // The branches' rays pass up to the grid's k_max, then taper off.
   w.k_pass = std::min(grid.k_max, w.k);
@@ -903,8 +1045,8 @@ std::vector<RaySpectrum> RayAngularSpectra(const Simulator& sim, const Vec3& dir
   PlaneGrid pg;
   const double window = 2 * M_PI / grid.dk;
   const double h_max = M_PI / (w.k_pass + w.k_taper) / 1.25;
-  // Finer than the band needs: a sheet's edge sampled at points is a staircase whose error in
-  // the spectrum falls as the step.
+  // Finer than the band needs: the error of a sheet's edge sampled by its covered shares falls
+  // with the step.
   pg.n = cv::getOptimalDFTSize(
       std::max({grid.nx, grid.ny, int(std::ceil(set.plane_oversample * window / h_max))}));
   pg.h = window / pg.n;
@@ -915,7 +1057,8 @@ std::vector<RaySpectrum> RayAngularSpectra(const Simulator& sim, const Vec3& dir
   for (size_t q = 0; q < e0s.size(); ++q) {
     w.e0 = e0s[q];
     AddShadow(w, grid, shadow, &all[q]);
-    AddBranches(w, lat, grid, pg, set, &all[q]);
+    AddBranches(w, lat, grid, pg, set, layout, &all[q]);
+    if (layout) layout->recorded = true;  // the other polarisations replay the first's
   }
   return all;
 }

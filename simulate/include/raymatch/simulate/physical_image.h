@@ -36,6 +36,7 @@
 #include <vector>
 
 #include "raymatch/core/image.h"
+#include "raymatch/simulate/ray_field.h"
 #include "raymatch/simulate/scene.h"
 
 namespace raymatch::simulate {
@@ -61,6 +62,14 @@ struct PhysicalSampling {
   nlohmann::json ToJson() const;
 };
 
+/// The field rays' layouts (FieldLayout) of an imager's illumination directions and of its
+/// parts (a spectrum's wavelengths, a pulse's times), kept across imagers of one scene whose
+/// objects change (a fit's evaluations): see PhysicalImager::KeepLayouts.
+struct FieldLayouts {
+  std::vector<FieldLayout> directions;
+  std::vector<std::shared_ptr<FieldLayouts>> parts;
+};
+
 class PhysicalImager {
  public:
   /// Throws Error (naming the scene file) when PhysicalUnsupportedReason is not empty.
@@ -74,6 +83,12 @@ class PhysicalImager {
   /// progress bar on stderr over the illumination directions, labelled `label`.
   Image Expected(double defocus_um, int threads = 0, bool progress = false,
                  const std::string& label = "") const;
+  /// Lays the field rays out as `layouts` says and records there what it does not yet say
+  /// (FieldLayout): imagers of one scene that share it sample their objects alike, so their
+  /// images change continuously with the objects. Layouts made for other directions (another
+  /// count) are laid out afresh. Expected then writes to `layouts`: imagers that share it must
+  /// not run at the same time.
+  void KeepLayouts(std::shared_ptr<FieldLayouts> layouts);
   /// The sampling of the last Expected call (or the constructor's, before one).
   PhysicalSampling sampling() const;
   /// The stages this model runs, e.g. {"optics:physical", "source:cone", "partial_reflection"}.

@@ -19,12 +19,15 @@
 //  * Each lattice triangle is a ray tube: on the exit plane its field is the rays' fields
 //    (barycentric) times sqrt(dA_in / (dA_plane cos theta)) exp(i psi - i (pi / 2) N), psi the
 //    rays' phases carried to the sampling node along their own wave vectors, N the focal lines
-//    the tube passes on its way to the plane (from its cross-section at the ends of each
-//    straight segment: mirrored past one, turned about past two; counted negative where the
-//    plane lies before the exits). The plane's field is sampled at points of a periodic grid
-//    (`plane_oversample` times finer than the passed band needs) and Fourier transformed (one
-//    DFT per component): A(k_t) = (1 / (2 pi)^2) integral of E(x) exp(-i k_t . x) d^2x, projected
-//    transverse to k.
+//    the tube passes on its way to the plane (from the triangle its rays make where each
+//    straight segment begins and where it ends, on a surface oriented along the surface's
+//    normal: mirrored past one, turned about past two; counted negative where the plane lies
+//    before the exits). The plane's field is sampled on a periodic grid (`plane_oversample`
+//    times finer than the passed band needs), each node taking a triangle's field in the share
+//    of its cell that the triangle covers, and Fourier transformed (one DFT per component):
+//    A(k_t) = (1 / (2 pi)^2) integral of E(x) exp(-i k_t . x) d^2x, projected transverse to k.
+//    With a FieldLayout kept across spectra the lattice and its refinement follow the objects,
+//    and the spectrum changes continuously with them.
 //  * The scattered field is E_s(r) = integral of A(k_t) exp(i k . (r - origin)) dk_x dk_y, so
 //    the field beyond the objects is E0 exp(i k_in . (r - origin)) + E_s; k = 2 pi n_medium /
 //    lambda. This is the convention of the Mie model's angular spectrum (wave_image.h), whose
@@ -40,6 +43,7 @@
 #include <array>
 #include <complex>
 #include <cstdint>
+#include <map>
 #include <vector>
 
 #include "raymatch/simulate/tracer.h"
@@ -89,6 +93,23 @@ struct RaySpectrum {
   int outline_segments = 0;    ///< of the silhouette's outline
 };
 
+/// The field rays' layout for one illumination wave, kept from one spectrum to the next (a
+/// fit's evaluations): the lattice's cell counts, its corner and spacing relative to the
+/// objects' shadow box on the start plane, and each branch's halved edges. A spectrum made with
+/// an empty layout records it; later ones replay it, the lattice scaled and moved with the box
+/// and every refinement decision as recorded, so the sampling follows the objects continuously
+/// instead of jumping where a cell count or a refinement test flips (a sphere's lattice then
+/// scales with its radius: which rays hit it does not change). Where the box no longer fits in
+/// the scaled lattice, the layout is recorded again.
+struct FieldLayout {
+  bool recorded = false;
+  int64_t ni = 0, nj = 0;        ///< coarse cells along x and y
+  double spacing = 0;            ///< the coarse spacing at recording (um)
+  double x_lo = 0, y_lo = 0;     ///< the lattice's corner at recording
+  double box[4] = {0, 0, 0, 0};  ///< the shadow box then: x_lo, y_lo, x_hi, y_hi
+  std::map<uint64_t, std::vector<uint64_t>> halved;  ///< branch -> halved edges (sorted keys)
+};
+
 /// The angular spectrum (above) of the plane wave of direction `direction` (unit, d.z > 0)
 /// and field `e0` (perpendicular to it, its value at `origin`) behind `sim`'s objects, on
 /// `grid`. The same result for any thread count.
@@ -98,9 +119,11 @@ RaySpectrum RayAngularSpectrum(const Simulator& sim, const Vec3& direction, cons
 
 /// The same for several fields of one direction (e.g. two polarisations), one spectrum each:
 /// the silhouette's outline and transform are found once for all of them.
+/// With `layout`, the field rays are laid out as it says (recording it when it is empty).
 std::vector<RaySpectrum> RayAngularSpectra(const Simulator& sim, const Vec3& direction,
                                            const std::vector<CVec3>& e0s, const Vec3& origin,
                                            const SpectrumGrid& grid,
-                                           const RaySpectrumSettings& settings = {});
+                                           const RaySpectrumSettings& settings = {},
+                                           FieldLayout* layout = nullptr);
 
 }  // namespace raymatch::simulate

@@ -224,6 +224,7 @@ class Simulator {
       double optical_path_um = 0;  ///< from the origin to `point`
       double index = 1;            ///< the medium's index along it (at its start)
       bool curved = false;         ///< in a gradient-index object
+      Vec3 normal;                 ///< the surface's normal at `point` (either way; [0]: none)
     };
     static constexpr int kMaxEvents = 8;
     std::array<Segment, kMaxEvents + 1> segments{};  ///< [0]: from the origin

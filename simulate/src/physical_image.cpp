@@ -516,6 +516,7 @@ Image PhysicalImager::Expected(double defocus_um, int threads, bool progress,
         }
       const auto [xc, yc] = SensorToObject(cam, im.sensor_sign, c + 0.5, r + 0.5);
       const double val = im.scale * im.spatial.At(xc, yc) * (im.flat + sum / (kss * kss));
+      RAYMATCH_CHECK(std::isfinite(val));  // (std::max below would hide a NaN as 0)
       img.at(c, r) = float(std::max(0.0, val));
     }
   });

@@ -496,18 +496,17 @@ void RowsOf(const Tri& t, const PlaneGrid& pg, int* jl, int* jh) {
   *jh = int(std::floor((y_hi - pg.y_lo) / pg.h));
 }
 
-/// The part of triangle (x, y) inside the box [x0, x1] x [y0, y1] (Sutherland-Hodgman
-/// clipping): its area and centroid.
+/// The part of triangle (x, y) inside the square of half side `half` about (bx, by)
+/// (Sutherland-Hodgman clipping, about the square's centre): its area and centroid.
 struct Clipped {
   double area = 0, cx = 0, cy = 0;
 };
-Clipped ClipToBox(const double x[3], const double y[3], double x0, double x1, double y0,
-                  double y1) {
+Clipped ClipToBox(const double x[3], const double y[3], double bx, double by, double half) {
   double px[2][10], py[2][10];
   int n = 3, cur = 0;
-  for (int q = 0; q < 3; ++q) px[0][q] = x[q], py[0][q] = y[q];
+  for (int q = 0; q < 3; ++q) px[0][q] = x[q] - bx, py[0][q] = y[q] - by;
   // Each side of the box: keep where s * (coordinate - bound) >= 0.
-  const double bound[4] = {x0, x1, y0, y1};
+  const double bound[4] = {-half, half, -half, half};
   for (int side = 0; side < 4 && n > 0; ++side) {
     const bool along_x = side < 2;
     const double s = side % 2 == 0 ? 1 : -1, c = bound[side];
@@ -539,7 +538,7 @@ Clipped ClipToBox(const double x[3], const double y[3], double x0, double x1, do
     a2 += cr, mx += (cx[q] + cx[r]) * cr, my += (cy[q] + cy[r]) * cr;
   }
   if (a2 == 0) return out;
-  out.area = 0.5 * std::abs(a2), out.cx = mx / (3 * a2), out.cy = my / (3 * a2);
+  out.area = 0.5 * std::abs(a2), out.cx = bx + mx / (3 * a2), out.cy = by + my / (3 * a2);
   return out;
 }
 
@@ -590,7 +589,7 @@ double Rasterise(const std::vector<Tri>& tris, const std::vector<uint32_t>& whic
           inside = ea[q] * x + eb[q] * y + ec[q] - half * (std::abs(ea[q]) + std::abs(eb[q])) >= 0;
         double share = 1, sx = x, sy = y;
         if (!inside) {
-          const Clipped c = ClipToBox(t.px, t.py, x - half, x + half, y - half, y + half);
+          const Clipped c = ClipToBox(t.px, t.py, x, y, half);
           if (!(c.area > 0)) continue;
           share = c.area / cell, sx = c.cx, sy = c.cy;
         }
@@ -598,6 +597,11 @@ double Rasterise(const std::vector<Tri>& tris, const std::vector<uint32_t>& whic
         wb[0] = ((t.px[1] - sx) * (t.py[2] - sy) - (t.py[1] - sy) * (t.px[2] - sx)) / s2;
         wb[1] = ((t.px[2] - sx) * (t.py[0] - sy) - (t.py[2] - sy) * (t.px[0] - sx)) / s2;
         wb[2] = 1 - wb[0] - wb[1];
+        if (!inside) {  // (a sliver's centroid can round outside the triangle)
+          for (double& v : wb) v = std::max(v, 0.0);
+          const double sum = wb[0] + wb[1] + wb[2];
+          for (double& v : wb) v /= sum;
+        }
         double phi = 0, cos = 0, g = 0;
         CVec3 e{};
         for (int q = 0; q < 3; ++q) {

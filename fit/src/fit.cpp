@@ -469,8 +469,13 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
   // the final steps follow (`[rays] polish`): they start from the coarse
   // optimum and cross the valley with averaged derivatives.
   const bool polish = !record || spec.rays.polish || !FinalStepsRun(spec);
-  if (polish && !levels.empty() && std::none_of(flat.begin(), flat.end(), [](bool b) { return b; }))
+  if (polish && !levels.empty() &&
+      std::none_of(flat.begin(), flat.end(), [](bool b) { return b; })) {
+    // An exact model's sampling kept from the start is laid out again near the optimum, so
+    // the polish, the uncertainties and the goodness of fit see the model's own sampling there.
+    if (spec.exact_images()) run.Relayout();
     x = Polish(run, spec, x, levels.back(), seed, record ? Stage::kPolish : Stage::kRepeat);
+  }
   if (!record) return Clip(x, spec);
   std::string flat_keys;
   for (size_t i = 0; i < P; ++i)

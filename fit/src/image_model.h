@@ -64,6 +64,9 @@ class ImageModel {
   /// The sphere every object stays inside from now on (the near/far split); an evaluation whose
   /// objects leave it traces every ray.
   virtual void SetRegion(const Vec3& /*center*/, double /*radius*/) {}
+  /// The next evaluation lays out afresh a sampling the model keeps from evaluation to
+  /// evaluation; false where it keeps none (the default), and its images stay as they were.
+  virtual bool Relayout() { return false; }
 };
 
 /// An image model without simulation noise, in photons at a flat field of `photons_per_pixel`,
@@ -112,6 +115,10 @@ class PhysicalImageModel : public NoiselessImageModel {
         layouts_(std::make_shared<simulate::FieldLayouts>()) {}
   ModelImages Images(const simulate::Scene& scene, const Draw& draw,
                      uint64_t* rays_traced) override;
+  bool Relayout() override {
+    layouts_ = std::make_shared<simulate::FieldLayouts>();
+    return true;
+  }
 
  private:
   std::shared_ptr<simulate::FieldLayouts> layouts_;

@@ -161,6 +161,9 @@ class FitModel {
   /// it, with the same images (the rays between the two regions miss every object either way);
   /// an evaluation whose objects leave it traces every ray. Returns whether it narrowed.
   bool FocusRegion(const std::vector<double>& theta, double steps);
+  /// Lets an image model whose sampling follows its first evaluation (physical optics' field
+  /// rays) lay it out afresh at the next one (ImageModel::Relayout); false: it keeps none.
+  bool Relayout() { return images_->Relayout(); }
   const Vec3& region_center() const { return region_center_; }
   double region_radius() const { return region_radius_; }
   double near_fraction() const { return images_->near_fraction(); }

@@ -96,6 +96,14 @@ class Runner {
 
   FitModel& model() { return model_; }
 
+  /// The image model lays its kept sampling out afresh (FitModel::Relayout); the images kept
+  /// from the old one are dropped.
+  void Relayout() {
+    if (!model_.Relayout()) return;
+    cache_.clear();
+    best_error_ = -1;
+  }
+
   void Say(const std::string& m) {
     if (!opt_.progress) return;
     std::fprintf(stderr, "%sraymatch fit: %s\n", isatty(2) ? "\r\033[K" : "", m.c_str());

@@ -67,7 +67,8 @@ const char* kSphere =
 // The sphere's position, radius and index from images the physical model made, over four noise
 // realisations, from a start 0.15 um across, 0.5 um along the axis, 0.1 um in radius and 0.005
 // in index away. The fit keeps the field rays' layout of its first evaluation, moved and scaled
-// with the sphere, so the image is smooth in every parameter (PhysicalImage.KeptLayouts...).
+// with the sphere, so the image is smooth in every parameter (PhysicalImage.KeptLayouts...), and
+// lays it out again for the polish. Measured: pooled 18.8 (27.8 without the second layout).
 // Radius and index are strongly correlated, so each realisation's errors e are scored by
 // e^T C^-1 e with the fit's covariance C (sigmas and correlations): chi-square with 5 degrees of
 // freedom for an unbiased fit with honest sigmas, pooled over the four 20, within [7.43, 40.0]

@@ -324,6 +324,7 @@ void PhysicalImager::KeepLayouts(std::shared_ptr<FieldLayouts> layouts) {
   }
   im.layouts = std::move(layouts);
 }
+
 const Scene& PhysicalImager::scene() const { return impl_->scene; }
 PhysicalSampling PhysicalImager::sampling() const { return impl_->last; }
 

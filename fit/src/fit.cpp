@@ -471,9 +471,10 @@ std::vector<double> LevenbergMarquardt(Runner& run, const FitSpec& spec, FitResu
   const bool polish = !record || spec.rays.polish || !FinalStepsRun(spec);
   if (polish && !levels.empty() &&
       std::none_of(flat.begin(), flat.end(), [](bool b) { return b; })) {
-    // An exact model's sampling kept from the start is laid out again near the optimum, so
-    // the polish, the uncertainties and the goodness of fit see the model's own sampling there.
-    if (spec.exact_images()) run.Relayout();
+    // A sampling the model kept from the start (physical optics) is laid out again near the
+    // optimum, so the polish, the uncertainties and the goodness of fit see the model's own
+    // sampling there.
+    run.Relayout();
     x = Polish(run, spec, x, levels.back(), seed, record ? Stage::kPolish : Stage::kRepeat);
   }
   if (!record) return Clip(x, spec);

@@ -319,9 +319,10 @@ void PhysicalImager::KeepLayouts(std::shared_ptr<FieldLayouts> layouts) {
       if (!layouts->parts[i]) layouts->parts[i] = std::make_shared<FieldLayouts>();
       im.parts[i].second->KeepLayouts(layouts->parts[i]);
     }
-  } else if (layouts->directions.size() != im.dirs.size()) {
-    layouts->directions.assign(im.dirs.size(), FieldLayout{});
+    return;  // (the parts lay out their own directions)
   }
+  if (layouts->directions.size() != im.dirs.size())
+    layouts->directions.assign(im.dirs.size(), FieldLayout{});
   im.layouts = std::move(layouts);
 }
 

@@ -125,12 +125,15 @@ int FocalLinesBetween(const double s0[4], const double s1[4], int o0, int o1) {
 
 int SignOf(double v) { return v < 0 ? -1 : 1; }
 
-/// The surface's mean normal where the three lines `l` begin (each turned to the first's side).
-Vec3 SurfaceNormal(const Line* const l[3]) {
+/// The sign of the area of triangle p on the surface where the three lines `l` begin, seen
+/// along u: (A . N)(N . u), N the surface's mean normal there (each ray's turned to the first's
+/// side), A the triangle's area vector.
+int SurfaceOrientation(const Vec3 p[3], const Line* const l[3], const Vec3& u) {
   Vec3 sum = l[0]->normal;
   for (int r = 1; r < 3; ++r)
     sum = sum + (Dot(l[r]->normal, sum) < 0 ? l[r]->normal * -1.0 : l[r]->normal);
-  return Normalize(sum);
+  const Vec3 nn = Normalize(sum);
+  return SignOf(Dot(Cross(p[1] - p[0], p[2] - p[0]), nn) * Dot(nn, u));
 }
 
 /// The focal lines the tube of three rays passes from the start to the exit plane, on every
@@ -162,15 +165,11 @@ int FocalLines(const Node& a, const Node& b, const Node& c) {
     double s0[4], s1[4];
     sec.Of(p0[1] - p0[0], p0[2] - p0[0], s0);
     sec.Of(p1[1] - p1[0], p1[2] - p1[0], s1);
-    int o0 = SignOf(s0[0] * s0[3] - s0[1] * s0[2]), o1 = SignOf(s1[0] * s1[3] - s1[1] * s1[2]);
-    if (q > 0) {
-      const Vec3 nn = SurfaceNormal(l);
-      o0 = SignOf(Dot(Cross(p0[1] - p0[0], p0[2] - p0[0]), nn) * Dot(nn, u));
-    }
+    const int o0 = q > 0 ? SurfaceOrientation(p0, l, u) : SignOf(s0[0] * s0[3] - s0[1] * s0[2]);
+    int o1 = SignOf(s1[0] * s1[3] - s1[1] * s1[2]);
     if (!last) {
       const Line* next[3] = {&a.lines[q + 1], &b.lines[q + 1], &c.lines[q + 1]};
-      const Vec3 nn = SurfaceNormal(next);
-      o1 = SignOf(Dot(Cross(p1[1] - p1[0], p1[2] - p1[0]), nn) * Dot(nn, u));
+      o1 = SurfaceOrientation(p1, next, u);
     }
     count +=
         last && ahead < 0 ? -FocalLinesBetween(s1, s0, o1, o0) : FocalLinesBetween(s0, s1, o0, o1);
